@@ -1,0 +1,638 @@
+"""A DDPM diffusion policy over action chunks, written from the DDPM equations.
+
+Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpolator"):
+  - forward process, Eq. (5), in closed form ............ q_sample
+  - reverse process, Eq. (6), one step .................. p_sample
+  - noise schedule beta_k, alpha_k, alphabar_k .......... make_schedule / Schedule
+  - epsilon network eps_theta(a, k | o) over chunks ..... DiffusionPolicy (Chi et al.'s diffusion policy,
+                                                          here with a residual MLP, see below)
+  - action chunks of horizon H, labels (Sec. IV-C) ...... chunk_dataset, label_mask
+  - BC / fine-tuning / co-training (Alg. step 4) ........ train
+
+Index convention (read this once, it is used everywhere):
+  The paper numbers the diffusion steps k = 1..K, with alphabar_k = prod_{s=1..k} alpha_s and
+  alphabar_0 = 1 (the clean chunk a_0). In code the arrays are indexed k = 0..K-1 and
+      code index k  <->  paper step k + 1.
+  So schedule.betas[k] = beta_{k+1}, schedule.alphas_cumprod[k] = alphabar_{k+1} and
+  schedule.alphas_cumprod_prev[k] = alphabar_k (= 1 at k = 0). A chunk "at level k" (code) is distributed
+  like q_sample(schedule, a0, k, eps) = sqrt(alphabar_{k+1}) a0 + sqrt(1 - alphabar_{k+1}) eps, the network
+  is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 it returns the
+  clean chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
+
+Architecture (why a residual MLP): the chunks are tiny (H * dof = 48 numbers for the planar arm), the
+whole project retrains this network many times (BC, every method x every round of fine-tuning) and
+evaluates with the full K = 100 step reverse process for hundreds of parallel episodes, all on a 2-core CPU.
+A 1-D temporal U-Net (Chi et al.) spends most of its FLOPs on convolutions that a 48-number input does not
+need; a residual MLP over the flattened chunk with FiLM conditioning (Perez et al.) trains in minutes and
+samples a batch of 300 in a fraction of a second. FiLM is the sum of an observation term and a step term,
+so the observation part is computed once per sampling call and the step part once per step for the whole
+batch (a K-row table): sampling then costs two width x width matmuls per block and step.
+"""
+
+import copy
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+
+# ----------------------------------------------------------------------------------------------
+# Config
+
+
+@dataclass
+class PolicyConfig:
+    obs_dim: int                 # length of the flat observation vector
+    dof: int                     # joints per action (3 planar, 6 UR5)
+    horizon: int = 16            # H: actions per predicted chunk
+    n_act: int = 8               # actions of a chunk executed before re-planning (used by the rollout loop)
+    K: int = 100                 # diffusion steps (the diffusion-policy default)
+    schedule: str = "squaredcos" # 'squaredcos' (Nichol & Dhariwal, diffusion-policy default) or 'linear'
+    width: int = 256             # hidden width of the residual MLP
+    n_blocks: int = 3            # residual FiLM blocks
+    cond_dim: int = 64           # size of the observation / step codes that produce the FiLM parameters
+    step_embed_dim: int = 64     # size of the sinusoidal diffusion-step embedding
+    seed: int = 0                # seed of the weight initialisation
+
+    def __post_init__(self):
+        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "width", "n_blocks", "cond_dim", "step_embed_dim"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
+        if self.n_act > self.horizon:
+            raise ValueError(f"PolicyConfig.n_act={self.n_act} must be <= horizon={self.horizon}")
+        if self.schedule not in ("squaredcos", "linear"):
+            raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {self.schedule!r}")
+        if self.step_embed_dim % 2:
+            raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {self.step_embed_dim}")
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 10_000              # optimizer steps of this run (the total, also when resuming)
+    batch_size: int = 256            # chunks per step (base + augmented)
+    lr: float = 1e-3                 # peak AdamW learning rate (after warmup)
+    weight_decay: float = 1e-6       # AdamW weight decay (diffusion-policy default)
+    warmup_steps: int = 500          # linear warmup from 0 to lr, then cosine decay to 0 at `steps`
+    ema_decay: float = 0.999         # EMA of the weights used for sampling; timescale ~1/(1-decay) = 1000 steps
+    seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
+    aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
+    obs_noise: float = 0.0           # std of Gaussian noise added to normalized observations (labels unchanged)
+    log_every: int = 500             # steps between progress lines (0 = silent)
+    checkpoint_steps: tuple = ()     # steps after which a checkpoint is written
+    checkpoint_path: str = ""        # where; '{step}' in the path is replaced by the step number
+
+    def __post_init__(self):
+        if self.steps < 0 or self.batch_size < 1 or self.warmup_steps < 0:
+            raise ValueError(f"TrainConfig needs steps >= 0, batch_size >= 1, warmup_steps >= 0; got "
+                             f"{self.steps}, {self.batch_size}, {self.warmup_steps}")
+        if not 0.0 <= self.aug_fraction <= 1.0:
+            raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {self.aug_fraction}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.obs_noise < 0:
+            raise ValueError(f"TrainConfig.obs_noise must be >= 0, got {self.obs_noise}")
+        self.checkpoint_steps = tuple(int(s) for s in self.checkpoint_steps)
+        if self.checkpoint_steps and not self.checkpoint_path:
+            raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
+
+
+# ----------------------------------------------------------------------------------------------
+# Noise schedule (DDPM, Ho et al. 2020; names follow the DDPM paper)
+
+
+@dataclass
+class Schedule:
+    """All per-step DDPM coefficients, float32 tensors of shape (K,), indexed k = 0..K-1 = paper k + 1."""
+    betas: torch.Tensor                          # beta_{k+1}
+    alphas: torch.Tensor                         # alpha = 1 - beta
+    alphas_cumprod: torch.Tensor                 # alphabar_{k+1} = prod_{s<=k} alphas[s]
+    alphas_cumprod_prev: torch.Tensor            # alphabar_k, with alphabar_0 = 1
+    sqrt_alphas_cumprod: torch.Tensor            # Eq. (5) closed form: mean coefficient
+    sqrt_one_minus_alphas_cumprod: torch.Tensor  # Eq. (5) closed form: noise coefficient
+    sqrt_recip_alphas_cumprod: torch.Tensor      # x0 from eps: a0 = sqrt(1/abar) a_k - sqrt(1/abar - 1) eps
+    sqrt_recipm1_alphas_cumprod: torch.Tensor
+    posterior_variance: torch.Tensor             # beta~ = beta (1 - abar_prev) / (1 - abar)  ("fixed small")
+    posterior_mean_coef1: torch.Tensor           # multiplies the (clipped) predicted clean chunk a0
+    posterior_mean_coef2: torch.Tensor           # multiplies the current noisy chunk a_k
+
+    @property
+    def K(self):
+        return int(self.betas.shape[0])
+
+    def to(self, device):
+        return Schedule(**{name: value.to(device) for name, value in self.__dict__.items()})
+
+
+def make_schedule(K=100, kind="squaredcos"):
+    """The DDPM coefficients for K steps (computed in float64, stored as float32 tensors)."""
+    if not isinstance(K, (int, np.integer)) or K < 1:
+        raise ValueError(f"K must be a positive int, got {K!r}")
+    if kind == "squaredcos":
+        # Nichol & Dhariwal (2021): alphabar(t) = f(t) / f(0), f(t) = cos^2((t + s) / (1 + s) * pi / 2).
+        # s = 0.008 keeps beta_1 from being vanishingly small; the cap 0.999 avoids the singular last step
+        # (f(1) = 0 would give beta_K = 1). This is diffusers' 'squaredcos_cap_v2', used by diffusion policy.
+        s = 0.008
+        t = np.arange(K + 1, dtype=np.float64) / K
+        f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
+        betas = np.minimum(1.0 - f[1:] / f[:-1], 0.999)
+    elif kind == "linear":
+        # Ho et al.'s 1e-4 .. 0.02 are for K = 1000; scaled by 1000 / K (Nichol & Dhariwal) so that
+        # alphabar_K ~ 4e-5 for any K and the reverse process may start from N(0, I). Unscaled at K = 100,
+        # alphabar_K would be 0.37: the last level would still be mostly signal.
+        scale = 1000.0 / K
+        betas = np.linspace(scale * 1e-4, scale * 0.02, K, dtype=np.float64)
+        if betas.max() >= 1.0:
+            raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
+    else:
+        raise ValueError(f"schedule kind must be 'squaredcos' or 'linear', got {kind!r}")
+    alphas = 1.0 - betas
+    alphas_cumprod = np.cumprod(alphas)
+    alphas_cumprod_prev = np.concatenate([[1.0], alphas_cumprod[:-1]])
+    # Posterior q(a_{k-1} | a_k, a_0) = N(coef1 a_0 + coef2 a_k, beta~ I)  (DDPM Eqs. 6-7).
+    posterior_variance = betas * (1.0 - alphas_cumprod_prev) / (1.0 - alphas_cumprod)
+    posterior_mean_coef1 = betas * np.sqrt(alphas_cumprod_prev) / (1.0 - alphas_cumprod)
+    posterior_mean_coef2 = (1.0 - alphas_cumprod_prev) * np.sqrt(alphas) / (1.0 - alphas_cumprod)
+    arrays = dict(
+        betas=betas, alphas=alphas, alphas_cumprod=alphas_cumprod, alphas_cumprod_prev=alphas_cumprod_prev,
+        sqrt_alphas_cumprod=np.sqrt(alphas_cumprod),
+        sqrt_one_minus_alphas_cumprod=np.sqrt(1.0 - alphas_cumprod),
+        sqrt_recip_alphas_cumprod=np.sqrt(1.0 / alphas_cumprod),
+        sqrt_recipm1_alphas_cumprod=np.sqrt(1.0 / alphas_cumprod - 1.0),
+        posterior_variance=posterior_variance,
+        posterior_mean_coef1=posterior_mean_coef1, posterior_mean_coef2=posterior_mean_coef2)
+    return Schedule(**{name: torch.tensor(value, dtype=torch.float32) for name, value in arrays.items()})
+
+
+def _per_row(coef, k, like):
+    """coef[k] shaped to broadcast against `like` (B, ...). k: int or (B,) long tensor."""
+    if not torch.is_tensor(k):
+        k = torch.tensor(k, device=coef.device)
+    k = k.to(coef.device).long()
+    if k.numel() and (int(k.min()) < 0 or int(k.max()) >= coef.shape[0]):
+        raise ValueError(f"diffusion step k must be in 0..{coef.shape[0] - 1}, got {k.tolist()}")
+    value = coef[k]
+    return value.reshape(value.shape + (1,) * (like.dim() - value.dim()))
+
+
+def q_sample(schedule, a0, k, eps):
+    """Forward process: the chunk a0 diffused to code level k (paper step k + 1) with noise eps.
+
+    Eq. (5) applied k + 1 times, a_k = sqrt(alpha_k) a_{k-1} + sqrt(1 - alpha_k) eps_k, collapses (the sum of
+    independent Gaussians is Gaussian) to the closed form
+        a_k = sqrt(alphabar_k) a_0 + sqrt(1 - alphabar_k) eps,   eps ~ N(0, I).
+    """
+    # Eq. (5), closed form over k + 1 steps.
+    return (_per_row(schedule.sqrt_alphas_cumprod, k, a0) * a0
+            + _per_row(schedule.sqrt_one_minus_alphas_cumprod, k, a0) * eps)
+
+
+def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
+    """Reverse process: one step from code level k to k - 1 (from k = 0: the clean chunk).
+
+    Implemented through the predicted clean chunk, as in DDPM's code and diffusion policy:
+        a0_hat = (a_k - sqrt(1 - alphabar_k) eps_pred) / sqrt(alphabar_k), clipped to [-1, 1]
+        mean   = posterior_mean_coef1 * a0_hat + posterior_mean_coef2 * a_k
+        a_{k-1} = mean + sqrt(posterior_variance) z,   z ~ N(0, I)
+    Without the clip, substituting a0_hat gives mean = (a_k - beta_k / sqrt(1 - alphabar_k) eps_pred) / sqrt(alpha_k),
+    which is exactly Eq. (6) with sigma_k^2 = posterior variance (tested). The clip keeps the chunk inside the
+    normalized action box [-1, 1] that the data came from (diffusion policy's clip_sample).
+    noise: the z to use (B, H, dof); drawn from `generator` when None.
+    """
+    a0_hat = (_per_row(schedule.sqrt_recip_alphas_cumprod, k, a_k) * a_k
+              - _per_row(schedule.sqrt_recipm1_alphas_cumprod, k, a_k) * eps_pred)
+    if clip:
+        a0_hat = a0_hat.clamp(-1.0, 1.0)
+    # Eq. (6): posterior mean (equal to Eq. (6)'s mean when a0_hat is not clipped)
+    mean = (_per_row(schedule.posterior_mean_coef1, k, a_k) * a0_hat
+            + _per_row(schedule.posterior_mean_coef2, k, a_k) * a_k)
+    if noise is None:
+        noise = torch.randn(a_k.shape, generator=generator,
+                            device=generator.device if generator is not None else a_k.device)
+    # Eq. (6): + sigma_k z, sigma_k^2 = posterior variance (0 at k = 0, so the last step adds no noise)
+    return mean + _per_row(schedule.posterior_variance, k, a_k).sqrt() * noise.to(a_k.device)
+
+
+# ----------------------------------------------------------------------------------------------
+# The epsilon network
+
+
+def step_embedding(k, dim):
+    """Sinusoidal embedding of the diffusion step (Vaswani et al.; as in DDPM): (N,) -> (N, dim)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10_000.0) * torch.arange(half, dtype=torch.float32, device=k.device) / half)
+    angles = k.float()[:, None] * freqs[None, :]                   # (N, half)
+    return torch.cat([angles.sin(), angles.cos()], dim=1)           # (N, dim)
+
+
+class FiLMBlock(nn.Module):
+    """h + W2 SiLU(FiLM(W1 LayerNorm(h))) with FiLM(y) = y * (1 + scale) + shift."""
+
+    def __init__(self, width):
+        super().__init__()
+        self.norm = nn.LayerNorm(width)
+        self.fc1 = nn.Linear(width, width)
+        self.fc2 = nn.Linear(width, width)
+
+    def forward(self, h, scale, shift):
+        y = self.fc1(self.norm(h))
+        y = y * (1.0 + scale) + shift
+        return h + self.fc2(nn.functional.silu(y))
+
+
+class EpsNet(nn.Module):
+    """eps_theta(a_k, k | o): flattened chunk in, predicted noise out, FiLM-conditioned on (o, k)."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        width, nb, chunk_dim = cfg.width, cfg.n_blocks, cfg.horizon * cfg.dof
+        self.n_blocks, self.width, self.K, self.step_embed_dim = nb, width, cfg.K, cfg.step_embed_dim
+        # The codes are narrow (cond_dim) so that the per-row FiLM projection stays cheap in training:
+        # cond_dim x (n_blocks * 2 * width) instead of width x (n_blocks * 2 * width) multiply-adds.
+        self.obs_encoder = nn.Sequential(nn.Linear(cfg.obs_dim, width), nn.SiLU(),
+                                         nn.Linear(width, cfg.cond_dim), nn.SiLU())
+        self.obs_film = nn.Linear(cfg.cond_dim, nb * 2 * width)
+        self.step_encoder = nn.Sequential(nn.Linear(cfg.step_embed_dim, width), nn.SiLU(),
+                                          nn.Linear(width, cfg.cond_dim), nn.SiLU())
+        self.step_film = nn.Linear(cfg.cond_dim, nb * 2 * width)
+        self.inp = nn.Linear(chunk_dim, width)
+        self.blocks = nn.ModuleList([FiLMBlock(width) for _ in range(nb)])
+        self.out_norm = nn.LayerNorm(width)
+        self.out = nn.Linear(width, chunk_dim)
+        # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def obs_terms(self, obs_norm):
+        """(B, obs_dim) -> (B, n_blocks, 2 * width): the observation part of every block's FiLM."""
+        return self.obs_film(self.obs_encoder(obs_norm)).view(-1, self.n_blocks, 2 * self.width)
+
+    def step_table(self):
+        """(K, n_blocks, 2 * width): the step part of every block's FiLM, for all K steps at once."""
+        k = torch.arange(self.K, device=self.out.weight.device)
+        emb = step_embedding(k, self.step_embed_dim)                  # (K, step_embed_dim)
+        return self.step_film(self.step_encoder(emb)).view(self.K, self.n_blocks, 2 * self.width)
+
+    def forward(self, a_flat, film):
+        """a_flat (B, H * dof), film (B, n_blocks, 2 * width) -> eps (B, H * dof)."""
+        h = self.inp(a_flat)
+        for i, block in enumerate(self.blocks):
+            scale, shift = film[:, i].chunk(2, dim=-1)                # (B, width) each
+            h = block(h, scale, shift)
+        return self.out(self.out_norm(h))
+
+
+def _check_array(name, x, shape):
+    """x must be a finite array of the given shape (None = any size on that axis)."""
+    x = np.asarray(x) if not torch.is_tensor(x) else x
+    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
+        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
+                         f"got {tuple(x.shape)}")
+    finite = torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()
+    if not finite:
+        raise ValueError(f"{name} contains NaN or inf")
+    return x
+
+
+class DiffusionPolicy(nn.Module):
+    """pi_theta(a_{t:t+H} | o_t): DDPM over normalized action chunks, with an EMA copy for sampling."""
+
+    def __init__(self, cfg, device="cpu"):
+        super().__init__()
+        self.cfg = cfg
+        # Weight init from cfg.seed without touching the caller's global torch RNG state.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfg.seed)
+            self.net = EpsNet(cfg)
+        self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
+        # Min-max normalizer (center, half range) -> [-1, 1]; part of state_dict, so saved with the weights.
+        self.register_buffer("obs_center", torch.zeros(cfg.obs_dim))
+        self.register_buffer("obs_half", torch.ones(cfg.obs_dim))
+        self.register_buffer("act_center", torch.zeros(cfg.dof))
+        self.register_buffer("act_half", torch.ones(cfg.dof))
+        self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+        self.schedule = make_schedule(cfg.K, cfg.schedule)
+        self.to(device)
+
+    # -- bookkeeping -------------------------------------------------------------------------------
+
+    @property
+    def device(self):
+        return self.obs_center.device
+
+    def _apply(self, fn, *args, **kwargs):
+        # Keep the schedule (not a buffer: it is derived from the config) on the module's device.
+        super()._apply(fn, *args, **kwargs)
+        self.schedule = make_schedule(self.cfg.K, self.cfg.schedule).to(self.obs_center.device)
+        return self
+
+    # -- normalization -----------------------------------------------------------------------------
+
+    def fit_normalizer(self, obs, actions):
+        """Min-max fit on the dataset: obs (N, obs_dim); actions (N, H, dof) or (M, dof), joint units."""
+        obs = _check_array("obs", obs, (None, self.cfg.obs_dim))
+        actions = np.asarray(actions)
+        if actions.ndim == 3:
+            _check_array("actions", actions, (None, self.cfg.horizon, self.cfg.dof))
+        else:
+            _check_array("actions", actions, (None, self.cfg.dof))
+        actions = actions.reshape(-1, self.cfg.dof)
+        if len(obs) == 0 or len(actions) == 0:
+            raise ValueError("fit_normalizer needs at least one observation and one action")
+        for prefix, x in (("obs", np.asarray(obs, np.float64)), ("act", actions.astype(np.float64))):
+            lo, hi = x.min(axis=0), x.max(axis=0)
+            half = (hi - lo) / 2
+            # A constant dimension would divide by zero: give it half range 1 so it maps to 0.
+            half = np.where(half > 1e-6, half, 1.0)
+            getattr(self, f"{prefix}_center").copy_(torch.as_tensor((hi + lo) / 2))
+            getattr(self, f"{prefix}_half").copy_(torch.as_tensor(half))
+        self.normalizer_fitted.fill_(True)
+
+    def normalize_obs(self, obs):
+        return (obs - self.obs_center) / self.obs_half
+
+    def normalize_actions(self, a):
+        return (a - self.act_center) / self.act_half
+
+    def unnormalize_actions(self, a):
+        return a * self.act_half + self.act_center
+
+    # -- the network -------------------------------------------------------------------------------
+
+    def _net(self, use_ema):
+        return self.ema_net if use_ema else self.net
+
+    def condition(self, obs_norm, use_ema=True):
+        """Per-call FiLM pieces: (obs terms (B, n_blocks, 2W), step table (K, n_blocks, 2W))."""
+        net = self._net(use_ema)
+        return net.obs_terms(obs_norm), net.step_table()
+
+    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
+        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm (B, obs_dim) -> (B, H, dof).
+
+        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps.
+        """
+        B = a_k_norm.shape[0]
+        obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
+        k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
+        film = obs_part + step_part[k]                                # (B, n_blocks, 2W)
+        eps = self._net(use_ema)(a_k_norm.reshape(B, -1), film)        # (B, H * dof)
+        return eps.view(B, self.cfg.horizon, self.cfg.dof)              # (B, H, dof)
+
+    def loss(self, obs_norm, chunk_norm, generator=None):
+        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}."""
+        B = chunk_norm.shape[0]
+        gdev = generator.device if generator is not None else self.device
+        k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
+        eps = torch.randn(chunk_norm.shape, generator=generator, device=gdev).to(self.device)
+        a_k = q_sample(self.schedule, chunk_norm, k, eps)              # Eq. (5)
+        return nn.functional.mse_loss(self.predict_eps(a_k, k, obs_norm, use_ema=False), eps)
+
+    # -- sampling ----------------------------------------------------------------------------------
+
+    def draw_noise(self, B, generator=None):
+        """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] is the starting noise,
+        [:, 1 + k] is the z of the reverse step at code level k. Drawing them per row up front makes a
+        row's result independent of how the batch is split (batched == looped with the same stream)."""
+        shape = (B, self.cfg.K + 1, self.cfg.horizon, self.cfg.dof)
+        gdev = generator.device if generator is not None else torch.device("cpu")
+        return torch.randn(shape, generator=generator, device=gdev).to(self.device)
+
+    def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
+        """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.
+
+        a_k (B, H, dof) normalized, row i at level k_start[i]; k_start[i] = -1 means row i is already clean
+        and is returned unchanged. z (B, K, H, dof): z[:, k] is the noise of the step at level k.
+        """
+        cond = self.condition(obs_norm, use_ema)
+        a = a_k.clone()
+        top = int(k_start.max()) if len(k_start) else -1
+        for k in range(top, -1, -1):
+            active = k_start >= k                                      # rows that have reached level k
+            idx = active.nonzero().squeeze(1) if not bool(active.all()) else None
+            if idx is None:
+                eps = self.predict_eps(a, k, None, use_ema, cond=cond)
+                a = p_sample(self.schedule, eps, a, k, noise=z[:, k])   # Eq. (6)
+            else:
+                sub_cond = (cond[0][idx], cond[1])
+                eps = self.predict_eps(a[idx], k, None, use_ema, cond=sub_cond)
+                a[idx] = p_sample(self.schedule, eps, a[idx], k, noise=z[idx, k])
+        return a
+
+    def sample(self, obs, generator=None, use_ema=True):
+        """Unguided sampling: obs (B, obs_dim) np.ndarray -> chunks (B, H, dof) float64 in joint units."""
+        obs = _check_array("obs", obs, (None, self.cfg.obs_dim))
+        B = obs.shape[0]
+        with torch.inference_mode():
+            obs_norm = self.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
+            noise = self.draw_noise(B, generator)
+            a_K = noise[:, 0]                                          # pure noise stands in for level K - 1
+            k_start = torch.full((B,), self.cfg.K - 1, device=self.device)
+            a0 = self.reverse_process(a_K, k_start, obs_norm, noise[:, 1:], use_ema)
+            return self.unnormalize_actions(a0).double().cpu().numpy()
+
+    # -- persistence -------------------------------------------------------------------------------
+
+    def save(self, path, extra=None):
+        """One file: config, weights, EMA weights, normalizer (and `extra`, e.g. the training state)."""
+        payload = {"format": "diffusion-policy-v1", "config": asdict(self.cfg),
+                   "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+        if extra is not None:
+            payload["train_state"] = extra
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        tmp = f"{path}.tmp"
+        torch.save(payload, tmp)
+        os.replace(tmp, path)                                          # never leave a half-written file
+
+    @classmethod
+    def load(cls, path, device="cpu"):
+        payload = _read_checkpoint(path)
+        policy = cls(PolicyConfig(**payload["config"]), device=device)
+        policy.load_state_dict(payload["state_dict"])
+        return policy
+
+
+def _read_checkpoint(path):
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no policy checkpoint at {path!r}")
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    if payload.get("format") != "diffusion-policy-v1":
+        raise ValueError(f"{path!r} is not a diffusion-policy-v1 checkpoint")
+    return payload
+
+
+# ----------------------------------------------------------------------------------------------
+# Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
+
+
+def label_mask(expert, H):
+    """(T,) bool: True where the chunk starting at t is a valid label, i.e. expert[t:t+H] are all True,
+    or the episode ends before t + H and expert[t:] are all True (the chunk is then padded)."""
+    expert = np.asarray(expert, dtype=bool)
+    not_expert = np.concatenate([[0], np.cumsum(~expert)])            # (T + 1,) running count
+    t = np.arange(len(expert))
+    end = np.minimum(t + H, len(expert))
+    return (not_expert[end] - not_expert[t]) == 0
+
+
+def chunk_dataset(episodes, H):
+    """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
+    A chunk is action[t : t + H]; past the episode end it repeats the last action."""
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive int, got {H!r}")
+    obs_list, chunk_list = [], []
+    for i, ep in enumerate(episodes):
+        for key in ("obs", "action", "expert"):
+            if key not in ep:
+                raise ValueError(f"episode {i} has no {key!r} array (has {sorted(ep)})")
+        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"])
+        T = len(action)
+        if len(obs) != T or len(expert) != T or action.ndim != 2:
+            raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
+                             "must share the length T, with action of shape (T, dof)")
+        starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
+        steps = np.minimum(starts[:, None] + np.arange(H)[None, :], T - 1)   # (n, H), padded at the end
+        obs_list.append(obs[starts].astype(np.float32))
+        chunk_list.append(action[steps].astype(np.float32))            # (n, H, dof)
+    if not obs_list:
+        raise ValueError("chunk_dataset needs at least one episode")
+    return np.concatenate(obs_list), np.concatenate(chunk_list)
+
+
+# ----------------------------------------------------------------------------------------------
+# Training: AdamW, warmup + cosine decay, EMA, checkpoints, resume, co-training hook
+
+
+def lr_at(step, cfg):
+    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.steps."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+@torch.no_grad()
+def update_ema(policy, step, decay):
+    # Warm-up of the decay ((1 + t) / (10 + t), as in common EMA implementations) so that the EMA is not
+    # dominated by the random initial weights during a short run.
+    d = min(decay, (1.0 + step) / (10.0 + step))
+    torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
+
+
+def _checkpoint_path(cfg, step):
+    return cfg.checkpoint_path.replace("{step}", str(step))
+
+
+def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
+    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
+
+    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
+      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)): augmented pairs made on the fly; they fill
+      round(cfg.aug_fraction * batch_size) rows of every batch (co-training, Sec. IV-A step 4).
+    - resume_from: a checkpoint written by this function; restores weights, EMA, optimizer, step and both
+      random streams, so the resumed run ends with the same numbers as an uninterrupted one.
+    """
+    pc = policy.cfg
+    obs = _check_array("obs", obs, (None, pc.obs_dim))
+    chunks = _check_array("chunks", chunks, (None, pc.horizon, pc.dof))
+    if len(obs) != len(chunks) or len(obs) == 0:
+        raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
+    n_aug = int(round(cfg.aug_fraction * cfg.batch_size))
+    if n_aug and sampler is None:
+        raise ValueError(f"aug_fraction={cfg.aug_fraction} needs a sampler")
+    n_base = cfg.batch_size - n_aug
+    if not bool(policy.normalizer_fitted):
+        policy.fit_normalizer(obs, chunks)
+    dev = policy.device
+    with torch.no_grad():
+        obs_n = policy.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=dev))
+        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev))
+
+    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                  foreach=True)
+    rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
+    step = 0
+    if resume_from is not None:
+        payload = _read_checkpoint(resume_from)
+        if "train_state" not in payload:
+            raise ValueError(f"{resume_from!r} holds no training state (was it written by policy.save?)")
+        policy.load_state_dict(payload["state_dict"])
+        state = payload["train_state"]
+        optimizer.load_state_dict(state["optimizer"])
+        rng.bit_generator.state = json.loads(state["numpy_rng"])
+        gen.set_state(state["torch_rng"])
+        step = int(state["step"])
+
+    policy.train()
+    t0, losses, last_step = time.time(), [], step
+    while step < cfg.steps:
+        lr = lr_at(step, cfg)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        idx = torch.as_tensor(rng.integers(0, len(obs_n), n_base), device=dev)
+        o, a = obs_n[idx], chunks_n[idx]
+        if n_aug:
+            o_aug, a_aug = sampler(n_aug, rng)
+            o_aug = _check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
+            a_aug = _check_array("sampler chunks", a_aug, (n_aug, pc.horizon, pc.dof))
+            with torch.no_grad():
+                o = torch.cat([o, policy.normalize_obs(torch.as_tensor(o_aug, dtype=torch.float32, device=dev))])
+                a = torch.cat([a, policy.normalize_actions(torch.as_tensor(a_aug, dtype=torch.float32,
+                                                                           device=dev))])
+        if cfg.obs_noise > 0:
+            # Observation noise in normalized units, labels unchanged (Sec. V: common practice).
+            o = o + cfg.obs_noise * torch.randn(o.shape, generator=gen, device=dev)
+        loss = policy.loss(o, a, generator=gen)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        update_ema(policy, step, cfg.ema_decay)
+        losses.append(loss.item())
+        step += 1
+
+        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps):
+            rate = (step - last_step) / max(time.time() - t0, 1e-9)
+            log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
+                f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
+            t0, losses, last_step = time.time(), [], step
+        if step in cfg.checkpoint_steps:
+            policy.save(_checkpoint_path(cfg, step), extra={
+                "step": step, "optimizer": optimizer.state_dict(),
+                "numpy_rng": json.dumps(rng.bit_generator.state), "torch_rng": gen.get_state(),
+                "train_config": json.dumps(asdict(cfg))})
+    policy.eval()
+    return policy
+
+
+# ----------------------------------------------------------------------------------------------
+# Demo: a 2-D toy task with two modes (go up-right or down-left); the policy must keep both.
+
+
+def toy_two_mode_data(n, H=4, seed=0):
+    """obs ~ U[-1, 1]^2; chunk = obs + t * v for t = 1..H, v = +(0.5, 0.5) or -(0.5, 0.5) at random."""
+    rng = np.random.default_rng(seed)
+    obs = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    sign = rng.choice([-1.0, 1.0], size=(n, 1, 1))
+    steps = np.arange(1, H + 1, dtype=np.float32)[None, :, None] / H   # (1, H, 1)
+    chunks = obs[:, None, :] + sign * 0.5 * steps                      # (n, H, 2)
+    return obs, chunks.astype(np.float32)
+
+
+if __name__ == "__main__":
+    obs, chunks = toy_two_mode_data(4000, H=4)
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, width=128, n_blocks=2))
+    train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=500))
+    test_obs = np.zeros((200, 2), dtype=np.float32)
+    samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
+    last = samples[:, -1, :]                                           # (200, 2) end of each chunk
+    up = last.sum(axis=1) > 0
+    print(f"from the origin: {up.mean():.0%} of chunks end up-right, {1 - up.mean():.0%} down-left")
+    print(f"mean end point of each mode: {last[up].mean(0).round(3)} and {last[~up].mean(0).round(3)} "
+          "(data: [0.5 0.5] and [-0.5 -0.5])")
