@@ -1,0 +1,636 @@
+"""Corrective labels around expert interventions (paper Sec. IV-E, "Generating Corrective Labels").
+
+Policy-Calibrated DAgger noises the states of the expert intervention data D_k and labels each
+noised state with an action chunk that returns to the expert trajectory (Sec. IV-A, steps 3-4).
+This file implements that augmentation, top to bottom:
+
+1. demonstration statistics: the median step (the unit of every noise level), the median speed and
+   the acceleration clamp "seen in the demonstrations" (Sec. IV-E);
+2. `perturb_states`: joint states drawn from N(q_t, Σ) around intervention states, with Σ one of
+   - 'isotropic'  (σ · median_step)² I   -- the fixed-noise baselines of Table I,
+   - 'pooled'     Σ̄^α                     -- Eqs. (15)-(16), computed in calibrate.py,
+   - 'per_step'   Σ^α_t                    -- Eq. (14) per measured timestep, from calibrate.py,
+   rejecting states in collision or outside the joint limits;
+3. `monotone_projection`: the closest point of the expert trajectory, never earlier in time;
+4. `pd_return_chunk`: a critically damped PD controller, accelerations clamped to the demos,
+   rolled out toward the trajectory a few steps ahead of the projection (the lookahead comes from
+   the dataset's median speed) -- the chunk of H absolute joint targets rejoins, then follows it;
+5. `AugmentationSampler`: (observation, chunk) training pairs generated on the fly for co-training
+   (diffusion.train's `sampler` hook), kept in a pool that is partly regenerated every few calls;
+6. `plot_recovery`: the paper's Fig. 1 on the planar env.
+
+Units: everything is per control step. Velocities are rad/step, accelerations rad/step², so the
+env's `max_step` is directly the velocity clamp and no dt appears anywhere.
+
+The small Gaussian observation noise that leaves labels unchanged (Sec. V, last paragraph) is NOT
+here: it applies to every training batch of every method, so it lives in one place, the training
+loop of diffusion.py (see the note at the end of this file).
+
+The env is used only through the duck-typed interface of CONTRACT.md, passed in as an argument:
+`in_collision`, `make_obs`, `joint_limits`, `max_step`, `reset(seed=...)`, and for the figure
+`ee` and `render`. This module imports numpy only (matplotlib lazily, inside `plot_recovery`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+
+@dataclass
+class RelabelConfig:
+    horizon: int = 16  # H: length of a label chunk (CONTRACT default, same as the policy's)
+    projection_window: int = 32  # the projection looks at most this many steps ahead of t; bounded
+    #   so that a trajectory that later passes near the same configuration (untangling manoeuvres)
+    #   cannot pull the projection far into the future. 2H covers perturbations of ~16 median steps.
+    max_lookahead: int = 8  # cap on the lookahead (steps ahead of the projection), H/2 by default
+    settle_steps: float = 8.0  # the PD gains make the unclamped error settle (to 2 %) in this many
+    #   steps: H/2, so the second half of every chunk follows the expert trajectory.
+    accel_percentile: float = 99.0  # acceleration clamp = this percentile of |Δ²q| in the demos
+    #   (a high percentile, not the max: the max is set by a handful of corner-smoothing spikes)
+    max_tries: int = 10  # rejection rounds for a perturbed state before it is dropped
+    pool_size: int = 4096  # AugmentationSampler: pairs kept in the pool
+    refresh_every: int = 8  # ... regenerate part of the pool every this many sampler calls
+    refresh_size: int = 512  # ... this many fresh pairs per refresh (oldest pairs are replaced)
+    episodes_per_refresh: int = 16  # ... drawn from this many (episode) draws, so the env calls
+    #   (collision check, observation) are batched per scenario instead of per pair
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Demonstration statistics (Sec. IV-E: "with respect to the demonstration dataset's velocity
+#    and acceleration statistics")
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DemoStats:
+    median_step: float  # rad/step: envs.median_step(base demos); 1 unit of every noise level σ
+    median_speed: float  # rad/step: median over moving steps of ‖q[t+1] - q[t]‖₂ (sets lookahead)
+    accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD acceleration
+    max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the PD velocity
+
+
+def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_percentile: float = 99.0) -> DemoStats:
+    """Statistics of the base demonstrations D0 that shape the corrective labels.
+
+    `median_step` must be `envs.median_step(episodes)` (this module does not import envs); `max_step`
+    is the env's per-step joint speed limit (scalar or (dof,)).
+    """
+    if not np.isfinite(median_step) or median_step <= 0:
+        raise ValueError(f"median_step must be a finite positive number (rad/step), got {median_step!r}")
+    if not 0 < accel_percentile <= 100:
+        raise ValueError(f"accel_percentile must be in (0, 100], got {accel_percentile!r}")
+    steps, accels = [], []
+    for ep in episodes:
+        q = np.asarray(ep["q"], dtype=np.float64)  # (T, dof)
+        if len(q) >= 2:
+            steps.append(np.diff(q, axis=0))
+        if len(q) >= 3:
+            accels.append(np.abs(q[2:] - 2 * q[1:-1] + q[:-2]))  # second differences, rad/step²
+    if not accels:
+        raise ValueError("demo_stats needs at least one episode with >= 3 steps to measure accelerations")
+    speed = np.linalg.norm(np.concatenate(steps), axis=1)
+    speed = speed[speed > 0]  # standing still is not a speed
+    if speed.size == 0:
+        raise ValueError("the demonstrations never move; no median speed can be measured")
+    accel_max = np.percentile(np.concatenate(accels), accel_percentile, axis=0)  # (dof,)
+    if np.any(accel_max <= 0):
+        raise ValueError(f"the demonstrations show no acceleration on joints {np.flatnonzero(accel_max <= 0).tolist()}; "
+                         "the PD return could never move them (accel clamp would be 0)")
+    dof = accel_max.shape[0]
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,)).copy()
+    if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
+        raise ValueError(f"max_step must be positive and finite (rad/step), got {max_step}")
+    return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step)
+
+
+# --------------------------------------------------------------------------------------------
+# 2. Noised states around the intervention data
+# --------------------------------------------------------------------------------------------
+
+def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps t whose chunk is a valid label (CONTRACT): expert[t:t+H] all True, or the episode ends
+    before t+H with expert[t:] all True. Returns (t (N,), seg_end (N,)) where seg_end is the end
+    (exclusive) of the expert segment containing t -- the part of the trajectory labels may follow."""
+    expert = np.asarray(expert, dtype=bool)
+    T = len(expert)
+    run = np.zeros(T + 1, dtype=np.int64)  # run[t] = number of consecutive expert steps from t on
+    for t in range(T - 1, -1, -1):
+        run[t] = run[t + 1] + 1 if expert[t] else 0
+    t = np.arange(T)
+    valid = expert & ((run[:T] >= horizon) | (t + run[:T] == T))
+    return t[valid], (t + run[:T])[valid]
+
+
+def covariance_factor(cov: np.ndarray) -> np.ndarray:
+    """L with L Lᵀ = Σ for a batch of covariances (..., dof, dof).
+
+    An eigendecomposition rather than a Cholesky: Σ̂ from a handful of policy samples is often
+    (near-)singular -- a flat ellipse -- where Cholesky fails. Eigenvalues that are negative only by
+    round-off are set to 0; clearly negative ones mean the matrix is not a covariance (ValueError).
+    """
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
+        raise ValueError(f"a covariance must be (..., dof, dof), got shape {cov.shape}")
+    if not np.all(np.isfinite(cov)):
+        raise ValueError("covariance contains NaN or inf; valid covariances are finite")
+    scale = max(1.0, float(np.abs(cov).max(initial=0.0)))
+    if np.abs(cov - np.swapaxes(cov, -1, -2)).max(initial=0.0) > 1e-8 * scale:
+        raise ValueError("covariance is not symmetric; valid covariances satisfy Σ = Σᵀ")
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    tol = 1e-9 * np.maximum(np.abs(w).max(axis=-1, keepdims=True), 1e-300)
+    if np.any(w < -tol):
+        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue {w.min():.3g}); "
+                         "valid covariances have eigenvalues >= 0")
+    return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]  # (..., dof, dof): columns scaled
+
+
+def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None = None, n_steps: int | None = None) -> np.ndarray:
+    """Noise factors L_t (len(steps), dof, dof) for the timesteps `steps` of one episode.
+
+    The three noise models, told apart by the form of `sigma`:
+      - isotropic: a scalar σ >= 0 in median steps -> Σ = (σ · median_step)² I  (needs median_step)
+      - pooled:    an array (dof, dof)             -> Σ̄ at every step
+      - per_step:  a pair (timesteps (M,), covs (M, dof, dof)) -> Σ_t from the nearest measured
+                   timestep (calibrate.py measures every other step); or an array (n_steps, dof, dof)
+                   aligned with the episode's steps.
+    """
+    steps = np.asarray(steps, dtype=np.int64)
+    if isinstance(sigma, tuple):  # per_step with explicit timesteps
+        if len(sigma) != 2:
+            raise ValueError("per-step sigma must be a pair (timesteps (M,), covs (M, dof, dof))")
+        measured_t = np.asarray(sigma[0], dtype=np.int64)
+        covs = np.asarray(sigma[1], dtype=np.float64)
+        if covs.ndim != 3 or covs.shape[1:] != (dof, dof) or measured_t.shape != (len(covs),) or len(covs) == 0:
+            raise ValueError(f"per-step sigma must be timesteps (M,) with covs (M, {dof}, {dof}), M >= 1; "
+                             f"got timesteps {measured_t.shape} and covs {covs.shape}")
+        order = np.argsort(measured_t, kind="stable")
+        measured_t, covs = measured_t[order], covs[order]
+        # nearest measured timestep (ties -> the earlier one)
+        right = np.clip(np.searchsorted(measured_t, steps), 0, len(measured_t) - 1)
+        left = np.clip(right - 1, 0, len(measured_t) - 1)
+        nearest = np.where(np.abs(measured_t[left] - steps) <= np.abs(measured_t[right] - steps), left, right)
+        return covariance_factor(covs)[nearest]
+    s = np.asarray(sigma, dtype=np.float64)
+    if s.ndim == 0:  # isotropic baseline
+        if not np.isfinite(s) or s < 0:
+            raise ValueError(f"isotropic sigma must be a finite number >= 0 (in median steps), got {sigma!r}")
+        if median_step is None or not np.isfinite(median_step) or median_step <= 0:
+            raise ValueError(f"isotropic sigma needs a finite positive median_step, got {median_step!r}")
+        return np.broadcast_to(float(s) * median_step * np.eye(dof), (len(steps), dof, dof))
+    if s.shape == (dof, dof):  # pooled
+        return np.broadcast_to(covariance_factor(s), (len(steps), dof, dof))
+    if s.ndim == 3 and s.shape[1:] == (dof, dof):  # per_step, aligned with the episode
+        if n_steps is not None and len(s) != n_steps:
+            raise ValueError(f"per-step sigma of shape {s.shape} is not aligned with the episode's {n_steps} steps; "
+                             "pass (timesteps, covs) to say which steps the covariances belong to")
+        return covariance_factor(s)[steps]
+    raise ValueError(f"sigma must be a scalar (isotropic), ({dof}, {dof}) (pooled), ({n_steps}, {dof}, {dof}) or "
+                     f"(timesteps, covs) (per-step); got shape {s.shape}")
+
+
+def _in_limits(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.all((q >= lo) & (q <= hi), axis=-1)
+
+
+def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generator, env, max_tries: int) -> tuple[np.ndarray, np.ndarray]:
+    """q̃ = q_t + L z, z ~ N(0, I) (so q̃ ~ N(q_t, L Lᵀ)) for each row; rows in collision or outside
+    the joint limits are redrawn up to `max_tries` rounds. Returns (q̃ (m, dof), kept (m,) bool).
+    Rejecting (rather than clipping to the limits) keeps the accepted states Gaussian-shaped
+    instead of piling probability mass onto the limit."""
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in env.joint_limits)
+    q = center.copy()
+    kept = np.zeros(len(center), dtype=bool)
+    todo = np.arange(len(center))
+    for _ in range(max_tries):
+        if todo.size == 0:
+            break
+        z = rng.standard_normal((todo.size, center.shape[1]))
+        cand = center[todo] + np.einsum("mij,mj->mi", factors[todo], z)  # (m, dof)
+        ok = _in_limits(cand, lo, hi)
+        if ok.any():
+            ok[ok] = ~np.asarray(env.in_collision(cand[ok]), dtype=bool)
+        q[todo[ok]] = cand[ok]
+        kept[todo[ok]] = True
+        todo = todo[~ok]
+    return q, kept
+
+
+def _check_episode(episode: dict) -> tuple[np.ndarray, np.ndarray]:
+    for key in ("q", "expert", "seed"):
+        if key not in episode:
+            raise ValueError(f"episode is missing '{key}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
+    q = np.asarray(episode["q"], dtype=np.float64)
+    expert = np.asarray(episode["expert"], dtype=bool)
+    if q.ndim != 2 or len(q) == 0:
+        raise ValueError(f"episode['q'] must be (T, dof) with T >= 1, got shape {q.shape}")
+    if expert.shape != (len(q),):
+        raise ValueError(f"episode['expert'] must be ({len(q)},) like q, got shape {expert.shape}")
+    return q, expert
+
+
+def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, t_index=None,
+                   median_step: float | None = None, horizon: int = 16, max_tries: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode`.
+
+    sigma: see `noise_factors` (isotropic scalar in median steps / pooled (dof, dof) / per-step).
+    t_index: None -> t uniform over the steps with a valid label (see `label_steps`); an int -> all
+      n around that step; an array (n,) -> one state around each given step.
+    env: is reset to the episode's scenario (`env.reset(seed=episode['seed'])`) for collision checks.
+    Returns (q̃ (m, dof), t (m,)) with m <= n: states still in collision or outside the joint limits
+    after `max_tries` redraws are dropped, so m is the number kept.
+    """
+    q, expert = _check_episode(episode)
+    if not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"n must be an integer >= 0, got {n!r}")
+    if t_index is None:
+        valid_t, _ = label_steps(expert, horizon)
+        if valid_t.size == 0:
+            raise ValueError(f"episode has no intervention step with a valid label (expert runs >= H={horizon})")
+        t = rng.choice(valid_t, size=n)
+    else:
+        t = np.broadcast_to(np.asarray(t_index, dtype=np.int64), (n,)).copy()
+        if t.size and (t.min() < 0 or t.max() >= len(q)):
+            raise ValueError(f"t_index must be in [0, {len(q)}), got range [{t.min()}, {t.max()}]")
+    factors = noise_factors(sigma, t, q.shape[1], median_step=median_step, n_steps=len(q))
+    env.reset(seed=int(episode["seed"]))
+    q_tilde, kept = _draw_valid(q[t], np.asarray(factors), rng, env, max_tries)
+    return q_tilde[kept], t[kept]
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Monotone closest-point projection
+# --------------------------------------------------------------------------------------------
+
+def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: int | None = None, t_end=None):
+    """Index of the trajectory point closest to q among t_start <= t < min(t_start + window, t_end).
+
+    "Monotone": the search never looks before t_start, so a noised copy of the state at step t is
+    associated with step t or later even when an earlier point of the path is closer -- the label
+    never tells the robot to go back in time. Ties go to the earliest index.
+    q: (B, dof) or (dof,); trajectory (T, dof); t_start, t_end: int or (B,) (t_end exclusive,
+    default T); window: None = no bound. Returns (B,) int64 (or an int for a single q).
+    """
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    single = q.ndim == 1
+    q = np.atleast_2d(q)
+    if trajectory.ndim != 2 or len(trajectory) == 0 or q.shape[1] != trajectory.shape[1]:
+        raise ValueError(f"trajectory must be (T>=1, dof) matching q (B, dof); got {trajectory.shape} and {q.shape}")
+    B, T = len(q), len(trajectory)
+    t_start = np.broadcast_to(np.asarray(t_start, dtype=np.int64), (B,))
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    if B and (np.any(t_end > T) or np.any(t_start < 0) or np.any(t_start >= t_end)):
+        raise ValueError(f"need 0 <= t_start < t_end <= T={T}; got t_start in [{t_start.min()}, {t_start.max()}], "
+                         f"t_end in [{t_end.min()}, {t_end.max()}]")
+    if window is not None and window < 1:
+        raise ValueError(f"window must be >= 1 or None, got {window}")
+    width = int((t_end - t_start).max(initial=1))
+    if window is not None:
+        width = min(width, int(window))
+    idx = t_start[:, None] + np.arange(width)[None, :]  # (B, W) candidate indices
+    inside = idx < t_end[:, None]
+    dist = np.sum((trajectory[np.minimum(idx, T - 1)] - q[:, None, :]) ** 2, axis=-1)  # (B, W)
+    dist[~inside] = np.inf
+    best = t_start + np.argmin(dist, axis=1)
+    return int(best[0]) if single else best
+
+
+# --------------------------------------------------------------------------------------------
+# 4. Critically damped PD return chunk
+# --------------------------------------------------------------------------------------------
+
+def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
+    """(Kp, Kd) per step for a critically damped PD on the discrete double integrator
+    v ← v + a, q ← q + v (one control step, dt = 1).
+
+    Continuous time: e'' + Kd e' + Kp e = 0 is critically damped for Kd = 2 √Kp (double pole -ω,
+    ω = √Kp), and e(t) = (1 + ωt) e0 e^{-ωt} falls below 2 % at ωt ≈ 5.83. With dt = 1 and
+    ω ≈ 0.7 (settling in ~8 steps) an Euler step of the continuous gains overshoots, so we place the
+    discrete double pole exactly at p = e^{-ω}: the error map [[1-Kp, 1-Kd], [-Kp, 1-Kd]] has
+    trace 2 - Kp - Kd = 2p and determinant 1 - Kd = p², i.e. Kp = (1-p)², Kd = 1 - p² -- which
+    tends to Kd = 2 √Kp as ω -> 0.
+    """
+    if not np.isfinite(settle_steps) or settle_steps <= 0:
+        raise ValueError(f"settle_steps must be a positive number of steps, got {settle_steps!r}")
+    p = np.exp(-5.83 / settle_steps)  # 5.83: (1 + x) e^{-x} = 0.02 at x = 5.83 (2 % settling)
+    return float((1 - p) ** 2), float(1 - p ** 2)
+
+
+def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max_lookahead: int) -> np.ndarray:
+    """How many steps ahead of the projection the return aims (Sec. IV-E: "a state a few timesteps
+    further ... computed with the median velocity in the dataset"): the time, in steps, that the
+    demonstrations take at their median speed to cover the gap ‖q0 - q_proj‖, capped at
+    max_lookahead. A state on the trajectory gets 0 (its label is the expert's own future)."""
+    gap = np.linalg.norm(np.asarray(q0) - np.asarray(q_proj), axis=-1)
+    return np.minimum(np.ceil(gap / median_speed), max_lookahead).astype(np.int64)
+
+
+def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, lookahead,
+                    accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None) -> np.ndarray:
+    """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory.
+
+    The reference at rollout step k is r_k = trajectory[t_proj + lookahead + k] (held at the last
+    point of the segment, index t_end - 1): it starts `lookahead` steps ahead of the projection and
+    advances one index per step, so the chunk REJOINS the trajectory, then follows it. With
+    u_k = r_k - r_{k-1} the reference velocity, the control is PD on the tracking error plus the
+    reference's own acceleration as feed-forward,
+        a_k = Kp (r_k - q_k) + Kd (u_k - v_k) + (u_{k+1} - u_k),
+    which makes the error e = q - r obey the critically damped map of `critically_damped_gains`
+    exactly (so it settles in ~settle_steps, default H/2), as long as the clamps are inactive:
+        |a| <= accel_max (per joint, from the demos), |v| <= max_step (the env's speed limit).
+    Units are per step (rad/step, rad/step²). Because |q_{k+1} - q_k| <= max_step, the env executes
+    every target of the chunk exactly.
+
+    q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, lookahead, t_end: int or (B,);
+    limits: optional (lo, hi) joint limits the positions are clipped to.
+    Returns the absolute joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
+    """
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    q = np.asarray(q0, dtype=np.float64)
+    single = q.ndim == 1
+    q = np.atleast_2d(q).copy()
+    B, dof = q.shape
+    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
+    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
+        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive integer, got {H!r}")
+    accel_max = np.broadcast_to(np.asarray(accel_max, dtype=np.float64), (dof,))
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
+    if np.any(~(accel_max > 0)) or np.any(~(max_step > 0)):
+        raise ValueError(f"accel_max and max_step must be > 0 per joint, got {accel_max} and {max_step}")
+    T = len(trajectory)
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    start = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)) + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,))
+    if B and (np.any(start < 0) or np.any(t_end > T) or np.any(t_end < 1)):
+        raise ValueError(f"need t_proj + lookahead >= 0 and 1 <= t_end <= T={T}")
+    kp, kd = critically_damped_gains(H / 2 if settle_steps is None else settle_steps)
+    # reference r_{-1} .. r_H, held at the segment's last point
+    idx = np.minimum(start[:, None] + np.arange(-1, H + 1)[None, :], t_end[:, None] - 1)  # (B, H+2)
+    idx = np.maximum(idx, 0)
+    ref = trajectory[idx]  # (B, H+2, dof)
+    u = np.diff(ref, axis=1)  # (B, H+1, dof): u[:, k] = r_k - r_{k-1}
+    v = np.clip(v, -max_step, max_step)
+    chunk = np.empty((B, H, dof))
+    for k in range(H):
+        r_k = ref[:, k + 1]
+        e = q - r_k  # tracking error
+        w_des = -(kp / kd) * e  # closing speed the linear PD asks for ...
+        brake = np.sqrt(2 * accel_max * np.abs(e))  # ... capped so the clamped decel can still stop
+        w_des = np.clip(w_des, -brake, brake)
+        a = kd * (w_des - (v - u[:, k])) + (u[:, k + 1] - u[:, k])  # PD (cascade form) + feed-forward
+        a = np.clip(a, -accel_max, accel_max)  # accelerations seen in the demonstrations
+        v = np.clip(v + a, -max_step, max_step)  # the env's speed limit
+        q_next = q + v
+        if limits is not None:
+            q_next = np.clip(q_next, limits[0], limits[1])
+            v = q_next - q  # a joint stopped by its limit has stopped moving
+        q = q_next
+        chunk[:, k] = q
+    return chunk[0] if single else chunk
+
+
+def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
+                      stats: DemoStats, cfg: RelabelConfig, limits=None) -> np.ndarray:
+    """The labelling pipeline of Sec. IV-E for noised states q̃ (m, dof) that came from steps t (m,):
+    monotone projection -> lookahead from the median speed -> PD return chunk. `t_end` (m,) is the
+    (exclusive) end of each state's expert segment in `trajectory`. Returns (m, H, dof)."""
+    t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
+    ahead = lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
+    return pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, ahead, stats.accel_max, stats.max_step,
+                           settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
+
+
+# --------------------------------------------------------------------------------------------
+# 5. On-the-fly augmentation for co-training (Sec. IV-A steps 3-4)
+# --------------------------------------------------------------------------------------------
+
+NOISE_KINDS = ("isotropic", "pooled", "per_step")
+
+
+class AugmentationSampler:
+    """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32): noised
+    intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
+
+    noise / sigma (explicit, validated):
+      'isotropic': sigma is a scalar σ in median steps                       (Table I baselines)
+      'pooled':    sigma is Σ̄^α, (dof, dof)                                  (Eqs. 15-16)
+      'per_step':  sigma[e] for episode index e is a pair (timesteps (M,), covs (M, dof, dof)) --
+                   a list aligned with `episodes` or a dict {episode index: pair}; steps without a
+                   measurement use the nearest measured step of the same episode       (Eq. 14)
+    make_env: a no-argument factory (e.g. `lambda: envs.make_env('planar')`); one env per scenario
+      seed is created on demand, reset once to that seed, and cached.
+
+    A pair is made like this: draw (episode, t) uniformly among the intervention steps with a valid
+    label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); q̃_prev = q̃ - (q_t - q_{t-1}) so the
+    observed velocity is the expert's; obs = env.make_obs(q̃, q̃_prev) in the episode's scenario;
+    chunk = `corrective_labels` (projection, lookahead, PD return).
+
+    Cost: env calls cost per call, not per state, so pairs are generated in batches grouped by
+    scenario and kept in a pool of `cfg.pool_size` pairs. Every `cfg.refresh_every` calls the
+    `cfg.refresh_size` oldest pairs are replaced by fresh ones (from `cfg.episodes_per_refresh`
+    episode draws); each call returns n pairs drawn uniformly from the pool. With the defaults and
+    n = 128 a pair is used about pool_size / refresh_size * refresh_every * n / pool_size
+    = 2 times before it is replaced. All randomness comes from the rng passed to each call, so
+    the same seed and call sequence give the same pairs.
+    """
+
+    def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
+                 noise: str, sigma, cfg: RelabelConfig | None = None):
+        self.cfg = cfg or RelabelConfig()
+        H = self.cfg.horizon
+        if noise not in NOISE_KINDS:
+            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+        if self.cfg.refresh_size < 1 or self.cfg.pool_size < self.cfg.refresh_size or self.cfg.refresh_every < 1:
+            raise ValueError("need 1 <= refresh_size <= pool_size and refresh_every >= 1, got "
+                             f"{self.cfg.refresh_size}, {self.cfg.pool_size}, {self.cfg.refresh_every}")
+        self.noise, self.stats, self._make_env, self._envs = noise, stats, make_env, {}
+        # One flat table of every labelable intervention step; the expert segments of all episodes
+        # are concatenated into one trajectory array so projection and PD run once for a whole batch.
+        traj, center, vel, t_glob, end_glob, factors, seeds, ep_of, offset = [], [], [], [], [], [], [], [], 0
+        for e, ep in enumerate(episodes):
+            q, expert = _check_episode(ep)
+            t, seg_end = label_steps(expert, H)
+            if t.size == 0:
+                offset += len(q)
+                traj.append(q)
+                continue
+            dof = q.shape[1]
+            if noise == "isotropic" and np.ndim(sigma) != 0:
+                raise ValueError(f"noise='isotropic' needs a scalar sigma (median steps), got shape {np.shape(sigma)}")
+            if noise == "pooled" and np.shape(sigma) != (dof, dof):
+                raise ValueError(f"noise='pooled' needs sigma of shape ({dof}, {dof}), got {np.shape(sigma)}")
+            if noise == "per_step":
+                try:
+                    per_ep = sigma[e]
+                except (KeyError, IndexError, TypeError):
+                    raise ValueError(f"noise='per_step': no covariances for episode {e}; pass a list aligned with "
+                                     "episodes or a dict {episode index: (timesteps, covs)}") from None
+                if not isinstance(per_ep, tuple):
+                    raise ValueError(f"noise='per_step': sigma[{e}] must be a pair (timesteps, covs)")
+                factors.append(noise_factors(per_ep, t, dof))
+            else:
+                factors.append(noise_factors(sigma, t, dof, median_step=stats.median_step))
+            prev = q[np.maximum(t - 1, 0)]  # at t = 0 the arm starts at rest (q_prev = q)
+            traj.append(q)
+            center.append(q[t])
+            vel.append(q[t] - prev)
+            t_glob.append(offset + t)
+            end_glob.append(offset + seg_end)
+            seeds.append(np.full(t.size, int(ep["seed"])))
+            ep_of.append(np.full(t.size, e))
+            offset += len(q)
+        if not center:
+            raise ValueError(f"no intervention step with a valid label (expert run >= H={H}) in {len(episodes)} episodes")
+        self.trajectory = np.concatenate(traj)  # (sum T, dof)
+        self.center = np.concatenate(center)  # (N, dof) q_t
+        self.velocity = np.concatenate(vel)  # (N, dof) q_t - q_{t-1}
+        self.t_glob = np.concatenate(t_glob)  # (N,) index of q_t in self.trajectory
+        self.end_glob = np.concatenate(end_glob)  # (N,) exclusive end of its expert segment
+        self.factors = np.ascontiguousarray(np.concatenate(factors))  # (N, dof, dof)
+        self.seeds = np.concatenate(seeds)
+        self.episode_of = np.concatenate(ep_of)
+        # contiguous block of rows per episode, for the "episodes first" draw
+        self._ep_ids, self._ep_start, self._ep_count = np.unique(self.episode_of, return_index=True, return_counts=True)
+        self._pool_obs = self._pool_chunks = None
+        self._filled = self._write = self._calls = 0
+        self.n_drawn = self.n_kept = 0  # acceptance bookkeeping (collision / limit rejections)
+
+    def _env(self, seed: int):
+        if seed not in self._envs:
+            env = self._make_env()
+            env.reset(seed=seed)
+            self._envs[seed] = env
+        return self._envs[seed]
+
+    def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """m fresh pairs (fewer if some states were rejected `max_tries` times): obs (m', obs_dim)
+        float32, chunks (m', H, dof) float32. Episodes are drawn first (probability proportional to
+        their number of labelable steps, so steps are uniform overall), then steps within them."""
+        k = min(self.cfg.episodes_per_refresh, m)
+        draws = rng.choice(len(self._ep_ids), size=k, p=self._ep_count / self._ep_count.sum())
+        per_draw = np.full(k, m // k)
+        per_draw[: m % k] += 1
+        rows = np.concatenate([self._ep_start[d] + rng.integers(self._ep_count[d], size=c) for d, c in zip(draws, per_draw)])
+        obs_parts, rows_kept, q_parts = [], [], []
+        for seed in np.unique(self.seeds[rows]):  # one batched collision check + obs per scenario
+            r = rows[self.seeds[rows] == seed]
+            env = self._env(int(seed))
+            q_tilde, kept = _draw_valid(self.center[r], self.factors[r], rng, env, self.cfg.max_tries)
+            q_tilde, r = q_tilde[kept], r[kept]
+            if r.size:
+                obs_parts.append(np.asarray(env.make_obs(q_tilde, q_tilde - self.velocity[r]), dtype=np.float32))
+                rows_kept.append(r)
+                q_parts.append(q_tilde)
+        self.n_drawn += m
+        if not rows_kept:
+            return np.empty((0, 0), np.float32), np.empty((0, self.cfg.horizon, self.center.shape[1]), np.float32)
+        r = np.concatenate(rows_kept)
+        q_tilde = np.concatenate(q_parts)
+        self.n_kept += r.size
+        limits = self._env(int(self.seeds[r[0]])).joint_limits
+        chunks = corrective_labels(q_tilde, self.velocity[r], self.trajectory, self.t_glob[r], self.end_glob[r],
+                                   self.stats, self.cfg, limits=limits)
+        return np.concatenate(obs_parts), chunks.astype(np.float32)
+
+    def _refresh(self, rng: np.random.Generator) -> int:
+        obs, chunks = self.generate(self.cfg.refresh_size, rng)
+        if self._pool_obs is None and len(obs):
+            P = self.cfg.pool_size
+            self._pool_obs = np.empty((P, obs.shape[1]), np.float32)
+            self._pool_chunks = np.empty((P, *chunks.shape[1:]), np.float32)
+        if len(obs):  # ring buffer: overwrite the oldest pairs
+            slots = (self._write + np.arange(len(obs))) % self.cfg.pool_size
+            self._pool_obs[slots], self._pool_chunks[slots] = obs, chunks
+            self._write = int((self._write + len(obs)) % self.cfg.pool_size)
+            self._filled = min(self.cfg.pool_size, self._filled + len(obs))
+        return len(obs)
+
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        if not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"n must be an integer >= 0, got {n!r}")
+        if self._filled == 0:  # first call: fill the pool (bounded number of attempts)
+            for _ in range(4 * self.cfg.pool_size // self.cfg.refresh_size):
+                self._refresh(rng)
+                if self._filled >= self.cfg.pool_size:
+                    break
+            if self._filled == 0:
+                raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
+                                 f"{self.cfg.max_tries} tries; the noise ({self.noise}) is too large for these scenarios")
+        elif self._calls % self.cfg.refresh_every == 0:
+            self._refresh(rng)
+        self._calls += 1
+        pick = rng.integers(self._filled, size=n)
+        return self._pool_obs[pick], self._pool_chunks[pick]
+
+
+# --------------------------------------------------------------------------------------------
+# 6. Fig. 1: expert trajectory, policy-calibrated noise ellipses, sampled recovery trajectories
+# --------------------------------------------------------------------------------------------
+
+def _ee_jacobian(env, q: np.ndarray, eps: float = 1e-5) -> np.ndarray:
+    """Central-difference Jacobian of the end effector, (B, dim, dof), through the batched env.ee."""
+    B, dof = q.shape
+    offsets = eps * np.eye(dof)
+    plus = env.ee((q[:, None, :] + offsets[None]).reshape(-1, dof))  # (B*dof, dim)
+    minus = env.ee((q[:, None, :] - offsets[None]).reshape(-1, dof))
+    jac = (plus - minus).reshape(B, dof, -1) / (2 * eps)  # (B, dof, dim)
+    return np.swapaxes(jac, 1, 2)
+
+
+def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator, stats: DemoStats,
+                  cfg: RelabelConfig | None = None, n_recoveries: int = 12, ellipse_every: int = 4) -> str:
+    """The paper's Fig. 1 on the planar env: the expert (intervention) end-effector path in blue,
+    2-σ ellipses of the policy-calibrated noise pushed to the end-effector plane through the fk
+    Jacobian (J Σ_t Jᵀ), and sampled recovery trajectories (end-effector paths of PD return chunks
+    from noised states) in orange. sigma as in `noise_factors`. Saves a PNG to `path`."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    cfg = cfg or RelabelConfig()
+    q, expert = _check_episode(episode)
+    valid_t, seg_end = label_steps(expert, cfg.horizon)
+    if valid_t.size == 0:
+        raise ValueError(f"episode has no intervention of at least H={cfg.horizon} expert steps to draw")
+    # the first intervention segment: its labelable steps, and where it ends
+    seg = valid_t[seg_end == seg_end[0]]
+    seg_steps = np.arange(seg[0], seg_end[0])
+    env.reset(seed=int(episode["seed"]))
+    env.set_state(q[seg[0]])
+    fig, ax = plt.subplots(figsize=(6, 6))
+    env.render(ax)
+
+    ell_t = seg[::ellipse_every]
+    factors = noise_factors(sigma, ell_t, q.shape[1], median_step=stats.median_step, n_steps=len(q))
+    cov_q = factors @ np.swapaxes(factors, 1, 2)  # (n, dof, dof) Σ_t
+    jac = _ee_jacobian(env, q[ell_t])  # (n, dim, dof)
+    cov_ee = jac @ cov_q @ np.swapaxes(jac, 1, 2)  # (n, 2, 2): J Σ Jᵀ
+    centers = env.ee(q[ell_t])
+    for c, cv in zip(centers, cov_ee):
+        w, v = np.linalg.eigh(cv)
+        angle = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
+        ax.add_patch(Ellipse(c, 2 * 2 * np.sqrt(max(w[1], 0)), 2 * 2 * np.sqrt(max(w[0], 0)), angle=angle,
+                             facecolor="tab:blue", alpha=0.15, edgecolor="tab:blue", lw=0.5))
+
+    q_tilde, t = perturb_states(episode, sigma, rng, n_recoveries, env, t_index=rng.choice(seg, n_recoveries),
+                                median_step=stats.median_step, horizon=cfg.horizon, max_tries=cfg.max_tries)
+    v = q[t] - q[np.maximum(t - 1, 0)]
+    chunks = corrective_labels(q_tilde, v, q, t, np.full(len(t), seg_end[0]), stats, cfg, limits=env.joint_limits)
+    for qt, ch in zip(q_tilde, chunks):
+        path_ee = env.ee(np.concatenate([qt[None], ch]))  # (H+1, 2)
+        ax.plot(path_ee[:, 0], path_ee[:, 1], color="tab:orange", lw=1.2, alpha=0.9)
+        ax.plot(path_ee[0, 0], path_ee[0, 1], "o", color="tab:orange", ms=3)
+    expert_ee = env.ee(q[seg_steps])
+    ax.plot(expert_ee[:, 0], expert_ee[:, 1], color="tab:blue", lw=2.0, label="expert intervention")
+    ax.plot([], [], color="tab:orange", label="recovery trajectories")
+    ax.add_patch(Ellipse((np.nan, np.nan), 0, 0, facecolor="tab:blue", alpha=0.15, label="policy-calibrated noise (2σ)"))
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("Policy-calibrated noise and recovery trajectories (Fig. 1)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

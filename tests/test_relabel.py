@@ -1,0 +1,558 @@
+"""Tests for relabel.py (paper Sec. IV-E): PD return chunks, monotone projection, noised states,
+the three noise models, the augmentation sampler and Fig. 1.
+
+Most tests use FakeEnv, a small test double of the CONTRACT env interface (joint-space ball
+obstacles, planar 3-link forward kinematics), so they run in milliseconds and the collision region
+is known exactly. The tests at the end run against the real envs.PlanarReacher when it exists.
+"""
+import numpy as np
+import pytest
+
+import relabel
+from relabel import (AugmentationSampler, RelabelConfig, corrective_labels, covariance_factor,
+                     critically_damped_gains, demo_stats, label_steps, lookahead_steps,
+                     monotone_projection, noise_factors, pd_return_chunk, perturb_states)
+
+DOF = 3
+
+
+class FakeEnv:
+    """Test double of the CONTRACT env: 3 joints, limits ±π, speed limit 0.05 rad/step. The
+    obstacle is a ball in joint space (radius `radius`) whose centre depends on the scenario seed,
+    so collision checks are exact and cheap. Links of length 1 for fk/ee."""
+    dof, obs_dim, max_step, max_steps, dt = DOF, 2 * DOF + 2, 0.05, 200, 0.1
+
+    def __init__(self, radius=0.1, center_fn=None):
+        self.radius = radius
+        self.center_fn = center_fn or (lambda seed: np.array([10.0, 10.0, 10.0]))  # far away: free
+        self.reset_calls = 0
+
+    @property
+    def joint_limits(self):
+        return np.full(DOF, -np.pi), np.full(DOF, np.pi)
+
+    def reset(self, seed=None):
+        self.reset_calls += 1
+        self.seed = seed
+        self.goal = np.array([np.cos(seed), np.sin(seed)])
+        self.obstacle = np.asarray(self.center_fn(seed), dtype=np.float64)
+        self.q = self.q_prev = np.zeros(DOF)
+        return self.make_obs(self.q, self.q_prev), {"q": self.q, "goal": self.goal}
+
+    def set_state(self, q, q_prev=None):
+        self.q = np.asarray(q, dtype=np.float64)
+        self.q_prev = self.q if q_prev is None else np.asarray(q_prev, dtype=np.float64)
+
+    def in_collision(self, q):
+        return np.linalg.norm(np.atleast_2d(q) - self.obstacle, axis=-1) < self.radius
+
+    def make_obs(self, q, q_prev):
+        q, q_prev = np.atleast_2d(q), np.atleast_2d(q_prev)
+        goal = np.broadcast_to(self.goal, (len(q), 2))
+        return np.concatenate([q, q_prev, goal], axis=1).astype(np.float32)
+
+    def fk(self, q):
+        ang = np.cumsum(np.atleast_2d(q), axis=1)  # (B, 3)
+        pts = np.cumsum(np.stack([np.cos(ang), np.sin(ang)], axis=-1), axis=1)  # (B, 3, 2)
+        return np.concatenate([np.zeros((len(ang), 1, 2)), pts], axis=1)
+
+    def ee(self, q):
+        return self.fk(q)[:, -1]
+
+    def render(self, ax):
+        pts = self.fk(self.q[None])[0]
+        ax.plot(pts[:, 0], pts[:, 1], "k-o")
+
+
+def smooth_trajectory(T=80, phase=0.0):
+    """A gently curved joint path (per-step displacement ~0.02 rad, accelerations ~1e-4 rad/step²,
+    far below the demos' clamp, so a PD return can track it exactly)."""
+    s = np.arange(T, dtype=np.float64)
+    return np.stack([0.02 * s, 0.3 * np.sin(0.02 * s + phase), -0.015 * s + 0.2 * np.cos(0.03 * s + phase)], axis=1)
+
+
+def oracle_like_demo(seed, T=120, accel_limit=0.004, speed=0.03):
+    """A demonstration shaped like a time-parameterized planner path: straight joint-space legs at
+    cruise speed, a new direction every 25 steps, reached with accelerations of at most accel_limit."""
+    rng = np.random.default_rng(seed)
+    q, v, v_goal = np.zeros((T, DOF)), np.zeros(DOF), np.zeros(DOF)
+    for t in range(1, T):
+        if t % 25 == 1:
+            d = rng.normal(size=DOF)
+            v_goal = speed * d / np.abs(d).max()
+        v = v + np.clip(v_goal - v, -accel_limit, accel_limit)
+        q[t] = q[t - 1] + v
+    return {"q": q, "action": np.concatenate([q[1:], q[-1:]]), "expert": np.ones(T, bool), "seed": seed}
+
+
+def make_episode(seed=0, T=80, expert=None, phase=0.0):
+    q = smooth_trajectory(T, phase)
+    action = np.concatenate([q[1:], q[-1:]])
+    if expert is None:
+        expert = np.ones(T, dtype=bool)
+    prev = np.concatenate([q[:1], q[:-1]])
+    env = FakeEnv()
+    env.reset(seed=seed)
+    return {"obs": env.make_obs(q, prev), "q": q, "action": action, "expert": np.asarray(expert, bool), "seed": seed}
+
+
+def intervention_episode(seed=0, T=80, phase=0.0):
+    expert = np.zeros(T, dtype=bool)
+    expert[10:60] = True  # one intervention of 50 steps
+    return make_episode(seed, T, expert, phase)
+
+
+@pytest.fixture
+def stats():
+    demos = [oracle_like_demo(s) for s in range(3)]
+    steps = np.abs(np.diff(np.concatenate([d["q"] for d in demos]), axis=0))
+    return demo_stats(demos, median_step=float(np.median(steps[steps > 0])), max_step=FakeEnv.max_step)
+
+
+# ---------------------------------------------------------------- demo statistics, label steps
+
+def test_demo_stats_match_hand_computation(stats):
+    demos = [oracle_like_demo(s) for s in range(3)]
+    acc = np.concatenate([np.abs(np.diff(d["q"], 2, axis=0)) for d in demos])
+    np.testing.assert_allclose(stats.accel_max, np.percentile(acc, 99, axis=0))
+    speeds = np.concatenate([np.linalg.norm(np.diff(d["q"], axis=0), axis=1) for d in demos])
+    assert stats.median_speed == pytest.approx(np.median(speeds))
+    assert np.all((stats.accel_max > 0.003) & (stats.accel_max <= 0.004 + 1e-12))  # the planner's limit
+    np.testing.assert_array_equal(stats.max_step, np.full(DOF, 0.05))
+
+
+def test_demo_stats_degenerate_inputs():
+    still = {"q": np.zeros((10, DOF)), "expert": np.ones(10, bool), "seed": 0}
+    with pytest.raises(ValueError, match="never move"):
+        demo_stats([still], 0.01, 0.05)
+    with pytest.raises(ValueError, match=">= 3 steps"):
+        demo_stats([{"q": np.zeros((2, DOF))}], 0.01, 0.05)
+    with pytest.raises(ValueError, match="median_step"):
+        demo_stats([make_episode()], float("nan"), 0.05)
+    one_joint_still = make_episode()
+    one_joint_still["q"] = one_joint_still["q"].copy()
+    one_joint_still["q"][:, 1] = 0.0
+    with pytest.raises(ValueError, match=r"joints \[1\]"):
+        demo_stats([one_joint_still], 0.01, 0.05)
+
+
+def test_label_steps_follow_the_contract():
+    expert = np.array([0, 1, 1, 1, 1, 0, 1, 1, 1, 0, 1, 1], dtype=bool)
+    t, seg_end = label_steps(expert, horizon=3)
+    # run of 4 at 1..4 -> t = 1, 2 (need 3 steps); run of 3 at 6..8 -> t = 6;
+    # run 10..11 reaches the episode end -> t = 10, 11 are valid (padded labels)
+    np.testing.assert_array_equal(t, [1, 2, 6, 10, 11])
+    np.testing.assert_array_equal(seg_end, [5, 5, 9, 12, 12])
+
+
+# ---------------------------------------------------------------- monotone projection
+
+def test_projection_finds_true_closest_point_on_a_line():
+    traj = np.stack([np.linspace(0, 1, 11), np.zeros(11), np.zeros(11)], axis=1)
+    q = np.array([[0.31, 0.2, 0.0], [0.96, -0.1, 0.05], [-0.5, 0.0, 0.0]])
+    np.testing.assert_array_equal(monotone_projection(q, traj, 0), [3, 10, 0])
+    assert monotone_projection(q[0], traj, 0) == 3  # single state -> int
+
+
+def test_projection_never_goes_back_in_time():
+    # a U-shaped path: out along x then back; q sits at the start, which the path revisits at the end
+    out = np.stack([np.linspace(0, 1, 10), np.zeros(10), np.zeros(10)], axis=1)
+    back = np.stack([np.linspace(1, 0.1, 10), 0.3 * np.ones(10), np.zeros(10)], axis=1)
+    traj = np.concatenate([out, back])
+    q = np.array([0.0, 0.0, 0.0])
+    assert monotone_projection(q, traj, 0) == 0
+    assert monotone_projection(q, traj, 4) == 19  # the earlier, closer point 0 is not allowed
+    assert monotone_projection(q, traj, 4, window=5) == 4  # bounded window: best of 4..8
+    assert monotone_projection(q, traj, 4, t_end=8) == 4  # segment end respected
+
+
+def test_projection_matches_brute_force_and_is_monotone_in_t_start():
+    rng = np.random.default_rng(0)
+    traj = np.cumsum(rng.normal(size=(40, DOF)), axis=0)
+    q = rng.normal(size=(25, DOF)) * 3
+    previous = np.zeros(len(q), dtype=np.int64)
+    for t0 in range(0, 40, 3):
+        got = monotone_projection(q, traj, t0, window=12)
+        for b in range(len(q)):
+            cand = np.arange(t0, min(t0 + 12, 40))
+            assert got[b] == cand[np.argmin(np.linalg.norm(traj[cand] - q[b], axis=1))]
+        assert np.all(got >= t0)
+    # for an unbounded window the projection of a fixed q never decreases as t_start grows
+    for t0 in range(40):
+        got = monotone_projection(q, traj, t0)
+        assert np.all(got >= previous)
+        previous = got
+
+
+def test_projection_bad_inputs():
+    traj = np.zeros((5, DOF))
+    with pytest.raises(ValueError, match="t_start"):
+        monotone_projection(np.zeros(DOF), traj, 5)
+    with pytest.raises(ValueError, match="trajectory"):
+        monotone_projection(np.zeros(DOF), np.zeros((0, DOF)), 0)
+    with pytest.raises(ValueError, match="trajectory"):
+        monotone_projection(np.zeros(2), traj, 0)
+
+
+# ---------------------------------------------------------------- PD return chunks
+
+def test_gains_are_a_discrete_critically_damped_double_pole():
+    for settle in (4.0, 8.0, 30.0):
+        kp, kd = critically_damped_gains(settle)
+        A = np.array([[1 - kp, 1 - kd], [-kp, 1 - kd]])  # error map of v += a; e += v
+        eig = np.linalg.eigvals(A)
+        p = np.exp(-5.83 / settle)
+        np.testing.assert_allclose(eig.real, [p, p], atol=2e-4)  # a double (repeated) real pole
+        np.testing.assert_allclose(eig.imag, 0, atol=2e-4)
+    kp, kd = critically_damped_gains(400.0)
+    assert kd == pytest.approx(2 * np.sqrt(kp), rel=0.02)  # continuous-time limit Kd = 2 √Kp
+    with pytest.raises(ValueError):
+        critically_damped_gains(0.0)
+
+
+def test_pd_from_the_trajectory_reproduces_the_expert_future(stats):
+    traj = smooth_trajectory()
+    t = 20
+    chunk = pd_return_chunk(traj[t], traj[t] - traj[t - 1], traj, t, 16, 0, stats.accel_max, stats.max_step)
+    np.testing.assert_allclose(chunk, traj[t + 1:t + 17], atol=1e-12)
+
+
+def test_pd_unclamped_error_settles_in_settle_steps():
+    traj = smooth_trajectory()
+    t, H = 20, 16
+    e0 = np.array([0.02, -0.015, 0.01])
+    chunk = pd_return_chunk(traj[t] + e0, traj[t] - traj[t - 1], traj, t, H, 0, 10.0, 10.0, settle_steps=8)
+    err = np.linalg.norm(chunk - traj[t + 1:t + H + 1], axis=1)
+    assert err[7] < 0.02 * np.linalg.norm(e0)  # 2 % after 8 steps (the gain design)
+    assert err[-1] < 1e-3 * np.linalg.norm(e0)
+    assert np.all(np.diff(err[1:]) < 0)  # critically damped: no overshoot ringing
+
+
+@pytest.mark.parametrize("scale", [2.0, 6.0])
+def test_pd_chunks_converge_within_clamps(stats, scale):
+    """Noised states `scale` median steps (per joint) off a path: every chunk obeys the demos'
+    acceleration clamp and the speed limit, and ends on (or, for large noise, nearer to) the path."""
+    rng = np.random.default_rng(1)
+    traj = smooth_trajectory()
+    B, H, unit = 300, 16, stats.median_step
+    t = rng.integers(5, 50, size=B)
+    q0 = traj[t] + rng.normal(size=(B, DOF)) * scale * unit
+    v0 = traj[t] - traj[t - 1]
+    proj = monotone_projection(q0, traj, t, window=32)
+    ahead = lookahead_steps(q0, traj[proj], stats.median_speed, 8)
+    chunk = pd_return_chunk(q0, v0, traj, proj, H, ahead, stats.accel_max, stats.max_step)
+    assert chunk.shape == (B, H, DOF)
+    # velocity and acceleration, including the first step from (q0, v0)
+    path = np.concatenate([q0[:, None], chunk], axis=1)  # (B, H+1, dof)
+    vel = np.diff(path, axis=1)
+    acc = np.diff(np.concatenate([v0[:, None], vel], axis=1), axis=1)
+    assert np.all(np.abs(vel) <= stats.max_step + 1e-12)
+    assert np.all(np.abs(acc) <= stats.accel_max + 1e-12)
+    # distance to the moving reference r_{k+1} = traj[proj + ahead + k + 1] tracked by chunk[k]
+    ref = traj[np.minimum(proj[:, None] + ahead[:, None] + np.arange(1, H + 1), len(traj) - 1)]
+    end_gap = np.linalg.norm(chunk[:, -1] - ref[:, -1], axis=1) / unit
+    dist_to_path = lambda x: np.min(np.linalg.norm(traj[None] - x[:, None], axis=-1), axis=1) / unit
+    if scale == 2.0:  # reachable within H under the clamp: the chunk has rejoined the path
+        assert np.all(end_gap < 1.0) and np.percentile(end_gap, 90) < 0.1
+    else:  # far off: not always rejoined within one chunk, but always heading back
+        assert np.median(end_gap) < 1.0
+        assert np.all(dist_to_path(chunk[:, -1]) < dist_to_path(q0))
+
+
+def test_pd_brake_limit_reduces_overshoot_under_the_clamp():
+    """On a straight path with a tight clamp, the closing speed cap √(2 a_max |e|) prevents the
+    wind-up overshoot of a saturated PD: the error never changes sign by more than a little."""
+    traj = np.outer(np.arange(100), [0.02, -0.01, 0.015])
+    q0 = traj[10] + np.array([0.15, -0.1, 0.12])
+    chunk = pd_return_chunk(q0, traj[10] - traj[9], traj, 10, 16, 0, 0.004, 0.05)
+    err = chunk - traj[11:27]
+    e0 = q0 - traj[10]
+    overshoot = np.max(-err * np.sign(e0), axis=0)  # how far past the path each joint goes
+    assert np.all(overshoot < 0.1 * np.abs(e0))
+    assert np.all(np.abs(err[-1]) < 0.05 * np.abs(e0))
+
+
+def test_pd_clamped_acceleration_slows_the_return(stats):
+    traj = smooth_trajectory()
+    q0, v0 = traj[20] + 0.05, traj[20] - traj[19]
+    fast = pd_return_chunk(q0, v0, traj, 20, 16, 2, 1.0, 1.0)
+    slow = pd_return_chunk(q0, v0, traj, 20, 16, 2, 1e-3, 1.0)
+    acc = np.diff(np.concatenate([[v0], np.diff(np.concatenate([[q0], slow]), axis=0)]), axis=0)
+    assert np.abs(acc).max() <= 1e-3 + 1e-15
+    ref = traj[22 + 16]  # chunk[-1] tracks r_H = traj[t_proj + lookahead + H]
+    assert np.linalg.norm(slow[-1] - ref) > np.linalg.norm(fast[-1] - ref)
+
+
+def test_pd_holds_the_segment_end_and_respects_limits():
+    traj = smooth_trajectory()
+    chunk = pd_return_chunk(traj[30], np.zeros(DOF), traj, 30, 16, 0, 1.0, 1.0, t_end=33)
+    np.testing.assert_allclose(chunk[-1], traj[32], atol=1e-5)  # stops at the last expert point
+    lo, hi = np.full(DOF, -0.1), np.full(DOF, 0.1)
+    far = np.ones((1, DOF)) * 3.0
+    chunk = pd_return_chunk(np.zeros(DOF), np.zeros(DOF), far, 0, 16, 0, 1.0, 1.0, limits=(lo, hi))
+    assert np.all(chunk <= hi) and np.all(chunk >= lo)
+
+
+def test_pd_bad_inputs(stats):
+    traj = smooth_trajectory()
+    with pytest.raises(ValueError, match="trajectory"):
+        pd_return_chunk(np.zeros(2), np.zeros(2), traj, 0, 16, 0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="H"):
+        pd_return_chunk(traj[0], np.zeros(DOF), traj, 0, 0, 0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="accel_max"):
+        pd_return_chunk(traj[0], np.zeros(DOF), traj, 0, 16, 0, np.nan, 1.0)
+
+
+# ---------------------------------------------------------------- noised states
+
+def test_isotropic_sigma_has_the_right_std_in_median_steps():
+    ep = make_episode()
+    rng = np.random.default_rng(2)
+    q, t = perturb_states(ep, 4.0, rng, 20000, FakeEnv(), t_index=30, median_step=0.01)
+    assert len(q) == 20000 and np.all(t == 30)
+    std = (q - ep["q"][30]).std(axis=0) / 0.01
+    np.testing.assert_allclose(std, 4.0, rtol=0.03)
+    assert np.abs(np.corrcoef((q - ep["q"][30]).T)[np.triu_indices(DOF, 1)]).max() < 0.03
+
+
+def test_pooled_covariance_is_reproduced_including_near_singular():
+    ep = make_episode()
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(DOF, DOF)) * 0.01
+    cov = A @ A.T
+    q, _ = perturb_states(ep, cov, rng, 40000, FakeEnv(), t_index=25)
+    emp = np.cov((q - ep["q"][25]).T)
+    assert np.linalg.norm(emp - cov) < 0.03 * np.linalg.norm(cov)
+    # rank one (a flat ellipse): Cholesky would fail; samples must lie on the line
+    d = np.array([1.0, 2.0, -1.0]) / np.sqrt(6)
+    flat = 1e-4 * np.outer(d, d) + 1e-18 * np.eye(DOF)
+    q, _ = perturb_states(ep, flat, rng, 5000, FakeEnv(), t_index=25)
+    dev = q - ep["q"][25]
+    off_line = dev - np.outer(dev @ d, d)
+    assert np.abs(off_line).max() < 1e-7
+    assert (dev @ d).std() == pytest.approx(1e-2, rel=0.05)
+
+
+def test_per_step_covariances_use_the_nearest_measured_step():
+    ep = make_episode()
+    rng = np.random.default_rng(4)
+    c_a = np.diag([1e-4, 4e-4, 1e-6])
+    c_b = np.diag([9e-4, 1e-6, 1e-4])
+    per_step = (np.array([10, 20]), np.stack([c_a, c_b]))
+    for t_query, expect in [(10, c_a), (14, c_a), (16, c_b), (40, c_b), (0, c_a)]:
+        q, _ = perturb_states(ep, per_step, rng, 20000, FakeEnv(), t_index=t_query)
+        emp = np.cov((q - ep["q"][t_query]).T)
+        assert np.linalg.norm(emp - expect) < 0.04 * np.linalg.norm(expect), t_query
+    # an array aligned with the episode's steps
+    aligned = np.broadcast_to(c_a, (80, DOF, DOF)).copy()
+    aligned[50] = c_b
+    q, _ = perturb_states(ep, aligned, rng, 20000, FakeEnv(), t_index=50)
+    assert np.linalg.norm(np.cov((q - ep["q"][50]).T) - c_b) < 0.04 * np.linalg.norm(c_b)
+    f = noise_factors(per_step, np.array([15]), DOF)  # tie between 10 and 20 -> the earlier
+    np.testing.assert_allclose(f[0] @ f[0].T, c_a)
+
+
+def test_perturbed_states_are_collision_free_and_inside_limits():
+    ep = intervention_episode()
+    # the obstacle ball sits right next to the trajectory, so a good share of draws hits it
+    env = FakeEnv(radius=0.15, center_fn=lambda seed: smooth_trajectory()[30] + np.array([0.1, 0.0, 0.0]))
+    rng = np.random.default_rng(5)
+    q, t = perturb_states(ep, 15.0, rng, 3000, env, median_step=0.01, max_tries=1)
+    assert 0 < len(q) < 3000  # with a single try, colliding draws are dropped, not kept
+    assert not env.in_collision(q).any()
+    q, t = perturb_states(ep, 15.0, rng, 3000, env, median_step=0.01, max_tries=10)
+    assert len(q) == 3000 and not env.in_collision(q).any()
+    assert np.all((t >= 10) & (t < 60))  # only intervention steps with a valid label
+    lo, hi = env.joint_limits
+    # a state close to a joint limit: out-of-limit draws are rejected, not clipped onto the limit
+    near = make_episode()
+    near["q"] = near["q"] + np.array([np.pi - 0.01, 0, 0]) - near["q"][30, 0] * np.array([1, 0, 0])
+    q, _ = perturb_states(near, 2.0, rng, 4000, FakeEnv(), t_index=30, median_step=0.01)
+    assert np.all(q <= hi) and np.all(q >= lo)
+    assert np.sum(q[:, 0] == hi[0]) == 0
+
+
+def test_states_are_dropped_when_every_draw_collides():
+    ep = make_episode()
+    env = FakeEnv(radius=100.0, center_fn=lambda seed: np.zeros(DOF))  # everything is in collision
+    q, t = perturb_states(ep, 1.0, np.random.default_rng(0), 50, env, median_step=0.01)
+    assert q.shape == (0, DOF) and t.shape == (0,)
+
+
+def test_zero_covariance_gives_the_expert_state_and_the_expert_label(stats):
+    ep = intervention_episode()
+    q, t = perturb_states(ep, 0.0, np.random.default_rng(0), 20, FakeEnv(), median_step=0.01)
+    np.testing.assert_array_equal(q, ep["q"][t])
+    q2, _ = perturb_states(ep, np.zeros((DOF, DOF)), np.random.default_rng(0), 20, FakeEnv())
+    np.testing.assert_array_equal(q2, q)
+    cfg = RelabelConfig()
+    chunks = corrective_labels(q, ep["q"][t] - ep["q"][t - 1], ep["q"], t, np.full(len(t), 60), stats, cfg)
+    for c, ti in zip(chunks, t):  # identical to the expert's own future (padded at the segment end)
+        fut = ep["q"][np.minimum(np.arange(ti + 1, ti + 17), 59)]
+        np.testing.assert_allclose(c, fut, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma, match", [
+    (-1.0, "isotropic sigma"),
+    (float("nan"), "isotropic sigma"),
+    (np.full((DOF, DOF), np.nan), "NaN"),
+    (np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0]]), "positive semi-definite"),
+    (np.array([[1.0, 0.5, 0], [0, 1.0, 0], [0, 0, 1.0]]), "symmetric"),
+    (np.eye(2), "sigma must be"),
+    (np.zeros((7, DOF, DOF)), "not aligned"),
+    ((np.array([1, 2]), np.zeros((3, DOF, DOF))), "per-step sigma"),
+    ((np.array([], dtype=int), np.zeros((0, DOF, DOF))), "per-step sigma"),
+])
+def test_bad_sigma_raises(sigma, match):
+    with pytest.raises(ValueError, match=match):
+        perturb_states(make_episode(), sigma, np.random.default_rng(0), 5, FakeEnv(), median_step=0.01)
+
+
+def test_bad_episode_or_request_raises():
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match="median_step"):
+        perturb_states(make_episode(), 2.0, rng, 5, FakeEnv())
+    empty = {"q": np.zeros((0, DOF)), "expert": np.zeros(0, bool), "seed": 0}
+    with pytest.raises(ValueError, match="T >= 1"):
+        perturb_states(empty, 2.0, rng, 5, FakeEnv(), median_step=0.01)
+    short = make_episode(expert=np.r_[np.zeros(70, bool), np.ones(5, bool), np.zeros(5, bool)])
+    with pytest.raises(ValueError, match="no intervention step"):
+        perturb_states(short, 2.0, rng, 5, FakeEnv(), median_step=0.01)
+    with pytest.raises(ValueError, match="missing 'seed'"):
+        perturb_states({"q": np.zeros((3, DOF)), "expert": np.ones(3, bool)}, 2.0, rng, 5, FakeEnv(), median_step=0.01)
+    with pytest.raises(ValueError, match="t_index"):
+        perturb_states(make_episode(), 2.0, rng, 5, FakeEnv(), t_index=80, median_step=0.01)
+    with pytest.raises(ValueError, match="n must be"):
+        perturb_states(make_episode(), 2.0, rng, -1, FakeEnv(), median_step=0.01)
+
+
+def test_covariance_factor_batched():
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(5, DOF, DOF))
+    covs = A @ np.swapaxes(A, 1, 2)
+    L = covariance_factor(covs)
+    np.testing.assert_allclose(L @ np.swapaxes(L, 1, 2), covs, atol=1e-12)
+
+
+# ---------------------------------------------------------------- augmentation sampler
+
+def small_cfg(**kw):
+    base = dict(pool_size=256, refresh_size=64, refresh_every=2, episodes_per_refresh=4)
+    base.update(kw)
+    return RelabelConfig(**base)
+
+
+def make_sampler(stats, noise="isotropic", sigma=4.0, cfg=None, n_eps=5):
+    eps = [intervention_episode(seed=s, phase=0.2 * s) for s in range(n_eps)]
+    return AugmentationSampler(eps, FakeEnv, stats, noise, sigma, cfg or small_cfg()), eps
+
+
+def test_sampler_shapes_dtypes_and_labels(stats):
+    sampler, eps = make_sampler(stats)
+    obs, chunks = sampler(128, np.random.default_rng(0))
+    assert obs.shape == (128, FakeEnv.obs_dim) and obs.dtype == np.float32
+    assert chunks.shape == (128, 16, DOF) and chunks.dtype == np.float32
+    q_tilde, q_prev = obs[:, :DOF].astype(np.float64), obs[:, DOF:2 * DOF].astype(np.float64)
+    # the observed velocity is one of the expert's velocities at an intervention step
+    expert_vel = np.concatenate([ep["q"][10:60] - ep["q"][9:59] for ep in eps])
+    vel = q_tilde - q_prev
+    assert np.min(np.abs(vel[:, None] - expert_vel[None]).max(-1), axis=1).max() < 1e-6
+    # the goal part of the observation belongs to one of the episodes' scenarios
+    goals = np.array([[np.cos(s), np.sin(s)] for s in range(5)], dtype=np.float32)
+    assert np.min(np.abs(obs[:, None, -2:] - goals[None]).max(-1), axis=1).max() < 1e-6
+    # every chunk starts within one speed-limited step of its noised state
+    assert np.all(np.abs(chunks[:, 0] - q_tilde) <= FakeEnv.max_step + 1e-6)
+    assert sampler.n_kept == sampler.n_drawn > 0
+
+
+def test_sampler_is_deterministic_given_the_seed(stats):
+    outs = []
+    for _ in range(2):
+        sampler, _ = make_sampler(stats)
+        rng = np.random.default_rng(42)
+        outs.append([sampler(64, rng) for _ in range(5)])
+    for (o1, c1), (o2, c2) in zip(*outs):
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(c1, c2)
+    sampler, _ = make_sampler(stats)
+    o3, _ = sampler(64, np.random.default_rng(43))
+    assert not np.array_equal(o3, outs[0][0][0])
+
+
+def test_sampler_pool_is_refreshed_and_envs_are_cached(stats):
+    sampler, _ = make_sampler(stats, cfg=small_cfg(pool_size=128, refresh_size=64, refresh_every=3))
+    rng = np.random.default_rng(0)
+    sampler(8, rng)  # fills the pool
+    assert sampler._filled == 128
+    before = sampler._pool_obs.copy()
+    drawn = sampler.n_drawn
+    sampler(8, rng), sampler(8, rng)
+    assert sampler.n_drawn == drawn  # calls 2 and 3 reuse the pool
+    sampler(8, rng)  # call 4: refresh of 64 pairs
+    assert sampler.n_drawn == drawn + 64
+    changed = np.any(sampler._pool_obs != before, axis=1)
+    assert changed.sum() == 64
+    assert len(sampler._envs) >= 2 and set(sampler._envs) <= set(range(5))  # one env per scenario seed
+    assert all(env.reset_calls == 1 for env in sampler._envs.values())
+
+
+def test_sampler_pooled_noise_matches_covariance(stats):
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(DOF, DOF)) * 0.02
+    cov = A @ A.T
+    sampler, eps = make_sampler(stats, noise="pooled", sigma=cov, cfg=small_cfg(pool_size=8192, refresh_size=8192))
+    obs, _ = sampler(0, rng)  # fills the pool
+    q_tilde = sampler._pool_obs[:, :DOF].astype(np.float64)
+    q_prev = sampler._pool_obs[:, DOF:2 * DOF].astype(np.float64)
+    # recover q_t from the observed velocity: find the expert step with that velocity and position
+    all_q = np.concatenate([ep["q"][10:60] for ep in eps])
+    all_v = np.concatenate([ep["q"][10:60] - ep["q"][9:59] for ep in eps])
+    match = np.argmin(np.abs((q_tilde - q_prev)[:, None] - all_v[None]).sum(-1), axis=1)
+    dev = q_tilde - all_q[match]
+    emp = np.cov(dev.T)
+    assert np.linalg.norm(emp - cov) < 0.06 * np.linalg.norm(cov)
+
+
+def test_sampler_per_step_dict_and_list(stats):
+    covs = (np.array([12, 30, 50]), np.stack([np.eye(DOF) * 1e-4, np.eye(DOF) * 4e-4, np.eye(DOF) * 1e-5]))
+    eps = [intervention_episode(seed=s) for s in range(3)]
+    rng = np.random.default_rng(0)
+    for per_step in ({0: covs, 1: covs, 2: covs}, [covs, covs, covs]):
+        sampler = AugmentationSampler(eps, FakeEnv, stats, "per_step", per_step, small_cfg())
+        obs, chunks = sampler(32, rng)
+        assert obs.shape == (32, FakeEnv.obs_dim) and chunks.shape == (32, 16, DOF)
+        # step 31 (nearest measurement at 30) gets 4e-4 I; step 13 gets 1e-4 I
+        np.testing.assert_allclose(sampler.factors[31 - 10] @ sampler.factors[31 - 10].T, np.eye(DOF) * 4e-4)
+        np.testing.assert_allclose(sampler.factors[13 - 10] @ sampler.factors[13 - 10].T, np.eye(DOF) * 1e-4)
+    with pytest.raises(ValueError, match="no covariances for episode 2"):
+        AugmentationSampler(eps, FakeEnv, stats, "per_step", {0: covs, 1: covs}, small_cfg())
+
+
+def test_sampler_bad_configuration(stats):
+    eps = [intervention_episode()]
+    with pytest.raises(ValueError, match="noise must be one of"):
+        AugmentationSampler(eps, FakeEnv, stats, "gaussian", 4.0)
+    with pytest.raises(ValueError, match="scalar sigma"):
+        AugmentationSampler(eps, FakeEnv, stats, "isotropic", np.eye(DOF))
+    with pytest.raises(ValueError, match="pooled"):
+        AugmentationSampler(eps, FakeEnv, stats, "pooled", 4.0)
+    with pytest.raises(ValueError, match="no intervention step"):
+        AugmentationSampler([make_episode(expert=np.zeros(80, bool))], FakeEnv, stats, "isotropic", 4.0)
+    with pytest.raises(ValueError, match="refresh_size"):
+        AugmentationSampler(eps, FakeEnv, stats, "isotropic", 4.0, RelabelConfig(pool_size=10, refresh_size=20))
+    blocked = lambda: FakeEnv(radius=100.0, center_fn=lambda s: np.zeros(DOF))
+    sampler = AugmentationSampler(eps, blocked, stats, "isotropic", 4.0, small_cfg(max_tries=2))
+    with pytest.raises(ValueError, match="too large"):
+        sampler(8, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="n must be"):
+        make_sampler(stats)[0](-3, np.random.default_rng(0))
+
+
+# ---------------------------------------------------------------- figure 1
+
+def test_plot_recovery_writes_a_png(tmp_path, stats):
+    path = tmp_path / "fig1.png"
+    out = relabel.plot_recovery(FakeEnv(), intervention_episode(), np.eye(DOF) * 1e-3, str(path),
+                                np.random.default_rng(0), stats, n_recoveries=5)
+    assert out == str(path) and path.stat().st_size > 10_000
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
