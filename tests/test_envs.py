@@ -19,8 +19,7 @@ def empty_env(obstacles=()):
     """An env whose scene is replaced by hand-built obstacles (N, 5)."""
     e = PlanarReacher()
     e.reset(seed=0)
-    e.obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
-    e._build_space()
+    e.set_scene(obstacles)
     return e
 
 
@@ -171,7 +170,9 @@ def test_step_speed_limit_and_joint_limit_clipping():
 def test_step_terminates_on_success_and_collision_and_truncates():
     e = make_env("planar")
     e.reset(seed=10_000)
-    goal_q = e.goal_configurations()[0]
+    goal_qs = e.goal_configurations()
+    # a goal configuration whose neighbourhood is free too
+    goal_q = next(g for g in goal_qs if not e.in_collision(g + [0.01, 0.0, 0.0]))
     e.set_state(goal_q + [0.01, 0.0, 0.0])
     _, reward, terminated, truncated, info = e.step(goal_q)
     assert info["success"] and terminated and not truncated and reward == 1.0
@@ -268,3 +269,50 @@ def test_median_step_ignores_zero_motion():
     assert median_step([{"q": q}]) == pytest.approx(0.2)
     with pytest.raises(ValueError):
         median_step([{"q": np.zeros((4, 3))}])
+
+
+# ---- scene construction and drawing --------------------------------------------------------------
+def test_generated_obstacles_stay_out_of_link0_disc():
+    # an obstacle inside the disc link 0 sweeps would cut joint 0's range in two (unsolvable scenes)
+    e = make_env("planar")
+    keep_out = e.link_lengths[0] + e.link_radius + e.cfg.base_clearance
+    for seed in range(10_000, 10_020):
+        e.reset(seed=seed)
+        assert 3 <= len(e.obstacles) <= e.cfg.n_max_obstacles
+        for x0, y0, x1, y1, rad in e.obstacles:
+            d = np.array([x1 - x0, y1 - y0])
+            dist = math.sqrt(envs._point_segment_dist_sq(0.0, 0.0, x0, y0, *d, 1 / max(d @ d, 1e-300)))
+            assert dist - rad >= keep_out - 1e-12
+
+
+def test_set_scene_validates_and_feeds_both_checks():
+    e = PlanarReacher()
+    with pytest.raises(ValueError, match="n_max_obstacles"):
+        e.set_scene(np.zeros((e.cfg.n_max_obstacles + 1, 5)))
+    with pytest.raises(ValueError, match="radius"):
+        e.set_scene([[0, 0, 1, 1, -0.1]])
+    e.set_scene([[0.6, -0.1, 0.6, 0.1, 0.02]], goal=[0.0, 0.8])
+    np.testing.assert_array_equal(e.goal, [0.0, 0.8])
+    assert e.in_collision(np.zeros(3)) and e.pymunk_in_collision(np.zeros(3))
+    with pytest.raises(ValueError, match="before reset"):
+        e.step(np.zeros(3))
+
+
+def test_render_draws_scene_and_arms():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    e = make_env("planar")
+    e.reset(seed=10_003)
+    fig, ax = plt.subplots()
+    e.render(ax)
+    n_scene = len(ax.patches)
+    assert n_scene == len(e.obstacles) + 1 + e.dof  # obstacles, goal disc, 3 links
+    e.render(ax, q=np.zeros((4, 3)), alpha=0.3, show_scene=False)
+    assert len(ax.patches) == n_scene + 4 * e.dof
+    # a link polygon spans the link length plus both radii
+    xy = ax.patches[-1].get_xy()
+    assert np.ptp(xy[:, 0]) == pytest.approx(e.link_lengths[2] + 2 * e.link_radius, abs=1e-9)
+    plt.close(fig)
