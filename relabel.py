@@ -23,8 +23,8 @@ Units: everything is per control step. Velocities are rad/step, accelerations ra
 env's `max_step` is directly the velocity clamp and no dt appears anywhere.
 
 The small Gaussian observation noise that leaves labels unchanged (Sec. V, last paragraph) is NOT
-here: it applies to every training batch of every method, so it lives in one place, the training
-loop of diffusion.py (see the note at the end of this file).
+here: it applies to every training batch of every method (augmented or not), so it lives in one
+place, the training loop: `diffusion.TrainConfig.obs_noise`.
 
 The env is used only through the duck-typed interface of CONTRACT.md, passed in as an argument:
 `in_collision`, `make_obs`, `joint_limits`, `max_step`, `reset(seed=...)`, and for the figure
@@ -547,6 +547,19 @@ class AugmentationSampler:
             self._filled = min(self.cfg.pool_size, self._filled + len(obs))
         return len(obs)
 
+    def state_dict(self) -> dict:
+        """The pool and its counters, so a resumed training run can continue with the same pairs
+        (the rng is the caller's and is restored by the caller)."""
+        copy = lambda a: None if a is None else a.copy()
+        return {"pool_obs": copy(self._pool_obs), "pool_chunks": copy(self._pool_chunks), "filled": self._filled,
+                "write": self._write, "calls": self._calls, "n_drawn": self.n_drawn, "n_kept": self.n_kept}
+
+    def load_state_dict(self, state: dict) -> None:
+        copy = lambda a: None if a is None else np.array(a, dtype=np.float32)
+        self._pool_obs, self._pool_chunks = copy(state["pool_obs"]), copy(state["pool_chunks"])
+        self._filled, self._write, self._calls = int(state["filled"]), int(state["write"]), int(state["calls"])
+        self.n_drawn, self.n_kept = int(state["n_drawn"]), int(state["n_kept"])
+
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         if not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n must be an integer >= 0, got {n!r}")
@@ -580,11 +593,12 @@ def _ee_jacobian(env, q: np.ndarray, eps: float = 1e-5) -> np.ndarray:
 
 
 def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator, stats: DemoStats,
-                  cfg: RelabelConfig | None = None, n_recoveries: int = 12, ellipse_every: int = 4) -> str:
+                  cfg: RelabelConfig | None = None, n_recoveries: int = 12, ellipse_every: int = 3) -> str:
     """The paper's Fig. 1 on the planar env: the expert (intervention) end-effector path in blue,
     2-σ ellipses of the policy-calibrated noise pushed to the end-effector plane through the fk
     Jacobian (J Σ_t Jᵀ), and sampled recovery trajectories (end-effector paths of PD return chunks
-    from noised states) in orange. sigma as in `noise_factors`. Saves a PNG to `path`."""
+    from noised states) in orange. Left: the whole scene; right: a close-up of the noised stretch.
+    sigma as in `noise_factors`. Saves a PNG to `path` and returns it."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -595,41 +609,56 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     valid_t, seg_end = label_steps(expert, cfg.horizon)
     if valid_t.size == 0:
         raise ValueError(f"episode has no intervention of at least H={cfg.horizon} expert steps to draw")
-    # the first intervention segment: its labelable steps, and where it ends
-    seg = valid_t[seg_end == seg_end[0]]
-    seg_steps = np.arange(seg[0], seg_end[0])
+    seg = valid_t[seg_end == seg_end[0]]  # labelable steps of the first intervention segment
+    end = int(seg_end[0])
     env.reset(seed=int(episode["seed"]))
     env.set_state(q[seg[0]])
-    fig, ax = plt.subplots(figsize=(6, 6))
-    env.render(ax)
 
+    # noise ellipses: Σ_t in joint space -> J Σ_t Jᵀ in the end-effector plane
     ell_t = seg[::ellipse_every]
     factors = noise_factors(sigma, ell_t, q.shape[1], median_step=stats.median_step, n_steps=len(q))
-    cov_q = factors @ np.swapaxes(factors, 1, 2)  # (n, dof, dof) Σ_t
+    cov_q = factors @ np.swapaxes(factors, 1, 2)  # (n, dof, dof)
     jac = _ee_jacobian(env, q[ell_t])  # (n, dim, dof)
-    cov_ee = jac @ cov_q @ np.swapaxes(jac, 1, 2)  # (n, 2, 2): J Σ Jᵀ
+    cov_ee = jac @ cov_q @ np.swapaxes(jac, 1, 2)  # (n, 2, 2)
     centers = env.ee(q[ell_t])
-    for c, cv in zip(centers, cov_ee):
-        w, v = np.linalg.eigh(cv)
-        angle = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
-        ax.add_patch(Ellipse(c, 2 * 2 * np.sqrt(max(w[1], 0)), 2 * 2 * np.sqrt(max(w[0], 0)), angle=angle,
-                             facecolor="tab:blue", alpha=0.15, edgecolor="tab:blue", lw=0.5))
-
-    q_tilde, t = perturb_states(episode, sigma, rng, n_recoveries, env, t_index=rng.choice(seg, n_recoveries),
+    # recovery trajectories from noised states at evenly spread steps of the segment
+    steps = seg[np.linspace(0, len(seg) - 1, n_recoveries).round().astype(int)]  # (n,)
+    q_tilde, t = perturb_states(episode, sigma, rng, len(steps), env, t_index=steps,
                                 median_step=stats.median_step, horizon=cfg.horizon, max_tries=cfg.max_tries)
     v = q[t] - q[np.maximum(t - 1, 0)]
-    chunks = corrective_labels(q_tilde, v, q, t, np.full(len(t), seg_end[0]), stats, cfg, limits=env.joint_limits)
-    for qt, ch in zip(q_tilde, chunks):
-        path_ee = env.ee(np.concatenate([qt[None], ch]))  # (H+1, 2)
-        ax.plot(path_ee[:, 0], path_ee[:, 1], color="tab:orange", lw=1.2, alpha=0.9)
-        ax.plot(path_ee[0, 0], path_ee[0, 1], "o", color="tab:orange", ms=3)
-    expert_ee = env.ee(q[seg_steps])
-    ax.plot(expert_ee[:, 0], expert_ee[:, 1], color="tab:blue", lw=2.0, label="expert intervention")
-    ax.plot([], [], color="tab:orange", label="recovery trajectories")
-    ax.add_patch(Ellipse((np.nan, np.nan), 0, 0, facecolor="tab:blue", alpha=0.15, label="policy-calibrated noise (2σ)"))
-    ax.set_aspect("equal")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title("Policy-calibrated noise and recovery trajectories (Fig. 1)")
+    chunks = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
+    recoveries = [env.ee(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each
+    expert_ee = env.ee(q[seg[0]:end])
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
+    for ax in axes:
+        env.render(ax)
+        for c, cv in zip(centers, cov_ee):
+            w, vec = np.linalg.eigh(cv)
+            angle = np.degrees(np.arctan2(vec[1, 1], vec[0, 1]))
+            ax.add_patch(Ellipse(c, 4 * np.sqrt(max(w[1], 0)), 4 * np.sqrt(max(w[0], 0)), angle=angle,
+                                 facecolor="tab:blue", alpha=0.2, edgecolor="tab:blue", lw=0.6))
+        for rec in recoveries:
+            ax.plot(rec[:, 0], rec[:, 1], color="tab:orange", lw=1.3)
+            ax.plot(rec[0, 0], rec[0, 1], "o", color="tab:orange", ms=3)
+        ax.plot(expert_ee[:, 0], expert_ee[:, 1], color="tab:blue", lw=2.0)
+        ax.set_aspect("equal")
+    # close-up: a quarter chunk either side of the middle of the segment, where the returns happen
+    mid, reach = int(np.median(seg)), max(cfg.horizon // 4, 1)
+    starts = [rec[:1] for rec, ti in zip(recoveries, t) if abs(ti - mid) <= reach]  # noised states there
+    box = np.concatenate([env.ee(q[max(mid - reach, seg[0]):min(mid + reach + 1, end)]), *starts])
+    radius = 2 * np.sqrt(np.linalg.eigvalsh(cov_ee).max())  # the largest 2σ half axis
+    lo, hi = box.min(0) - radius, box.max(0) + radius
+    half = 0.5 * max(hi - lo) * 1.1  # a square window keeps the aspect ratio equal
+    axes[1].set_xlim((lo + hi)[0] / 2 - half, (lo + hi)[0] / 2 + half)
+    axes[1].set_ylim((lo + hi)[1] / 2 - half, (lo + hi)[1] / 2 + half)
+    axes[0].plot([], [], color="tab:blue", lw=2, label="expert intervention (end effector)")
+    axes[0].add_patch(Ellipse((np.nan, np.nan), 0, 0, facecolor="tab:blue", alpha=0.2, label="policy-calibrated noise (2σ)"))
+    axes[0].plot([], [], color="tab:orange", label="sampled recovery trajectories")
+    axes[0].legend(loc="lower left", fontsize=8)
+    axes[0].set_title("scene")
+    axes[1].set_title("close-up")
+    fig.suptitle("Policy-calibrated noise around an intervention and PD recovery chunks (paper Fig. 1)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -556,3 +556,102 @@ def test_plot_recovery_writes_a_png(tmp_path, stats):
                                 np.random.default_rng(0), stats, n_recoveries=5)
     assert out == str(path) and path.stat().st_size > 10_000
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# ---------------------------------------------------------------- the real planar env
+
+def straight_demo(env, seed, expert_from=5, peak=0.04):
+    """An expert-like episode in a real PlanarReacher scenario without the oracle: a straight
+    joint-space path from the start toward the nearest goal configuration, stopped at 90 % of the
+    way to the first collision, timed with a smoothstep (rest to rest, peak speed `peak`)."""
+    env.reset(seed=seed)
+    q0 = env.q
+    goals = env.goal_configurations()
+    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
+    f = np.linspace(0, 1, 401)
+    hit = env.in_collision(q0 + f[:, None] * (target - q0))
+    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
+    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
+    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d
+    prev = np.concatenate([q[:1], q[:-1]])
+    expert = np.arange(len(q)) >= expert_from  # the "intervention" runs to the end of the episode
+    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
+            "expert": expert, "seed": seed}
+
+
+PLANAR_SEEDS = (4, 13, 30)  # scenarios where that straight path is >= 60 steps long
+
+
+@pytest.fixture(scope="module")
+def planar():
+    import envs
+    env = envs.make_env("planar")
+    eps = [straight_demo(env, s) for s in PLANAR_SEEDS]
+    st = demo_stats(eps, envs.median_step(eps), env.max_step)
+    return envs, eps, st
+
+
+def test_planar_perturbed_states_are_free_by_the_pymunk_check(planar):
+    envs, eps, st = planar
+    env = envs.make_env("planar")
+    rng = np.random.default_rng(0)
+    for ep in eps:
+        q, t = perturb_states(ep, 8.0, rng, 300, env, median_step=st.median_step)
+        assert len(q) > 250
+        assert not env.in_collision(q).any()
+        assert not np.any(env.pymunk_in_collision(q))  # the simulator's own, independent check
+        lo, hi = env.joint_limits
+        assert np.all((q >= lo) & (q <= hi))
+
+
+def test_planar_sampler_without_noise_reproduces_the_episodes(planar):
+    envs, eps, st = planar
+    sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "isotropic", 0.0, small_cfg())
+    obs, chunks = sampler(64, np.random.default_rng(0))
+    for o, c in zip(obs, chunks):
+        found = [(e, t) for e, ep in enumerate(eps) for t in np.flatnonzero(np.all(ep["obs"] == o, axis=1))]
+        assert len(found) == 1  # the observation the episode recorded at that step, bit for bit
+        e, t = found[0]
+        q = eps[e]["q"]
+        # the expert's own future; tiny differences where the smoothstep's final braking exceeds the
+        # 99th-percentile acceleration clamp
+        np.testing.assert_allclose(c, q[np.minimum(np.arange(t + 1, t + 17), len(q) - 1)], atol=0.05 * st.median_step)
+
+
+def test_planar_sampler_pooled_noise(planar):
+    envs, eps, st = planar
+    cov = np.diag([4.0, 2.0, 1.0]) ** 2 * st.median_step ** 2
+    sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "pooled", cov, small_cfg())
+    obs, chunks = sampler(128, np.random.default_rng(1))
+    env = envs.make_env("planar")
+    assert obs.shape == (128, env.obs_dim) and chunks.shape == (128, 16, 3)
+    for seed in PLANAR_SEEDS:  # every noised state is free in its own scenario
+        env.reset(seed=seed)
+        mine = np.all(obs[:, 6:] == env.make_obs(np.zeros(3), np.zeros(3))[6:], axis=1)
+        assert not np.any(env.pymunk_in_collision(obs[mine, :3].astype(np.float64)))
+    steps = np.abs(np.diff(np.concatenate([obs[:, None, :3], chunks], axis=1), axis=1))
+    assert steps.max() <= env.max_step + 1e-6  # every chunk is executable as is
+
+
+def test_planar_fig1(planar, tmp_path):
+    envs, eps, st = planar
+    env = envs.make_env("planar")
+    path = relabel.plot_recovery(env, eps[0], np.diag([5.0, 3.0, 2.0]) ** 2 * st.median_step ** 2,
+                                 str(tmp_path / "fig1.png"), np.random.default_rng(0), st)
+    assert (tmp_path / "fig1.png").stat().st_size > 20_000
+
+
+def test_sampler_state_dict_resumes_the_same_stream(stats):
+    a, _ = make_sampler(stats)
+    rng = np.random.default_rng(9)
+    for _ in range(3):
+        a(32, rng)
+    state, rng_state = a.state_dict(), rng.bit_generator.state
+    expect = [a(32, rng) for _ in range(4)]
+    b, _ = make_sampler(stats)
+    b.load_state_dict(state)
+    rng2 = np.random.default_rng()
+    rng2.bit_generator.state = rng_state
+    for (o1, c1), (o2, c2) in zip(expect, [b(32, rng2) for _ in range(4)]):
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(c1, c2)
