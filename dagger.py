@@ -1,0 +1,827 @@
+"""Policy-Calibrated DAgger end to end: the paper's loop, evaluation, statistics, tables and figures.
+
+Paper map (paper.tex):
+  Sec. IV-A, steps 1-6 ............ main / run_lineage: D0 from the oracle, BC pi_0, HG-DAgger rounds,
+                                     calibration, augmentation, co-training, fine-tuning from pi_0
+  Sec. IV-A step 2, Sec. V ......... collect_interventions: expert-gated (HG-DAgger) data collection
+                                     with the RRT oracle; interventions shorter than H are discarded
+  Sec. IV-D ........................ calibrate.calibrate, called once per round with the current policy
+  Sec. IV-E ........................ relabel.AugmentationSampler, the on-the-fly augmented data D^_k
+  Sec. V, Tables I and II .......... evaluate (100 scenarios x 3 evaluations, batched), paired_ttest,
+                                     tost, write_report (table.md in Table I's layout)
+
+Usage:
+  python dagger.py                          # the 'quick' profile: the whole loop on the planar env
+  python dagger.py --profile smoke          # a minute; what CI runs
+  python dagger.py --profile paper          # Table I's protocol (long; resumable; shardable)
+  python dagger.py --profile paper --lineage 2     # one lineage alone (e.g. a Slurm array task)
+  python dagger.py --profile paper --report        # merge finished lineages into table and figures
+
+Every stage writes its result to runs/<name>/ before the next starts; running the same command
+again skips what is finished, so a stopped run resumes from its last finished stage.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+import torch
+
+import calibrate
+import diffusion
+import envs
+import oracle as oracle_mod
+import partial_denoise
+import relabel
+
+# ----------------------------------------------------------------------------------------------
+# Configuration: one dataclass, three presets
+# ----------------------------------------------------------------------------------------------
+ENV_NAMES = ("planar", "engine3d")  # envs.make_env names: Table I and Table II
+FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in median steps
+ALL_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
+               "pooled", "per_step", "closed_loop")
+METHOD_LABELS = {
+    "bc": "BC (no aggregation)",
+    "hg_dagger": "HG-DAgger",
+    **{f"fixed_{s}": f"Fixed iso. noise (sigma={s})" for s in FIXED_SIGMAS},
+    "pooled": "Pooled Sigma-bar^alpha (Ours)",
+    "per_step": "Per-step Sigma^alpha (Ours)",
+    "closed_loop": "Closed-loop pooled Sigma-bar^alpha (Ours)",
+}
+
+
+@dataclass
+class Config:
+    name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
+    env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II)
+    seed: int = 0  # master seed; every stage derives its own seed from it
+    device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
+    methods: tuple = ALL_METHODS  # methods compared (BC and HG-DAgger always run: others pair with them)
+    # --- data ---
+    n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
+    rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
+    lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
+    episodes_per_round: int = 100  # HG-DAgger rollouts on fresh training scenarios per round
+    # --- policy and training ---
+    horizon: int = 16  # H, actions per chunk (paper: interventions shorter than H are discarded)
+    n_act: int = 8  # actions executed per chunk before the policy is asked again
+    K: int = 100  # diffusion steps
+    width: int = 256  # epsilon-network width
+    bc_steps: int = 75_000  # BC training steps (paper: pi_0 = BC's 75k checkpoint)
+    finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
+    batch_size: int = 256
+    lr: float = 1e-3
+    aug_fraction: float = 0.5  # share of each batch drawn from the augmented data (co-training)
+    obs_noise: float = 0.01  # small Gaussian observation noise, labels unchanged (Sec. V)
+    # --- calibration (Sec. IV-D) ---
+    calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
+    calib_samples: int = 8  # policy samples per open-loop timestep
+    # --- evaluation (Sec. V) ---
+    eval_scenarios: int = 100  # the fixed held-out scenarios
+    eval_repeats: int = 3  # evaluations per scenario
+    tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
+
+    def __post_init__(self):
+        self.methods = tuple(self.methods)
+        bad = [m for m in self.methods if m not in ALL_METHODS]
+        if bad:
+            raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(ALL_METHODS)}")
+        # BC and HG-DAgger anchor every comparison (paired design): always present, listed first.
+        self.methods = ("bc", "hg_dagger") + tuple(m for m in self.methods if m not in ("bc", "hg_dagger"))
+        if self.env not in ENV_NAMES:
+            raise ValueError(f"unknown env {self.env!r}; valid: {', '.join(ENV_NAMES)}")
+        for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
+                    "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
+        if self.eval_scenarios > 100:
+            raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {self.eval_scenarios}")
+
+
+PROFILES = {
+    # CI: every stage and every output file, tiny sizes (about a minute).
+    "smoke": Config(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=20,
+                    width=128, bc_steps=300, finetune_steps=150, batch_size=64,
+                    methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
+                    calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
+    # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
+    "quick": Config(name="quick", n_demos=200, rounds=2, lineages=1, episodes_per_round=60,
+                    bc_steps=4000, finetune_steps=3000, eval_scenarios=100, eval_repeats=3),
+    # Table I's protocol.
+    "paper": Config(name="paper"),
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# Run folder: stages, atomic writes, log
+# ----------------------------------------------------------------------------------------------
+class Run:
+    """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
+
+    def __init__(self, root, cfg: Config):
+        self.root, self.cfg = root, cfg
+        os.makedirs(root, exist_ok=True)
+        path = os.path.join(root, "config.json")
+        saved = asdict(cfg)
+        if os.path.exists(path):
+            with open(path) as f:
+                old = json.load(f)
+            old["methods"] = tuple(old["methods"])
+            saved["methods"] = tuple(saved["methods"])
+            changed = {k for k in saved if k not in ("device",) and old.get(k) != saved[k]}
+            if changed:
+                raise ValueError(f"{root} holds a run with a different config ({sorted(changed)} differ); "
+                                 f"use --out for a new folder or delete {root}")
+        else:
+            write_json(path, asdict(cfg))
+        self._log = open(os.path.join(root, "log.txt"), "a")
+
+    def path(self, *parts):
+        p = os.path.join(self.root, *parts)
+        os.makedirs(os.path.dirname(p), exist_ok=True)
+        return p
+
+    def log(self, msg):
+        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
+        print(line, flush=True)
+        self._log.write(line + "\n")
+        self._log.flush()
+
+
+def write_json(path, data):
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)  # a stage is finished only when its file is complete
+
+
+def read_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def stage_seed(cfg, *keys):
+    """A seed for one stage, derived from the master seed and the stage's name (stable across runs)."""
+    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
+
+
+def _key_int(key):
+    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
+
+
+# ----------------------------------------------------------------------------------------------
+# Rollouts: many episodes in lockstep, one policy call per decision for all of them
+# ----------------------------------------------------------------------------------------------
+def rollout(envs_list, policy, n_act, generator, oracle=None, log=None):
+    """Run one episode in each (already reset) env until all end. Returns episode dicts.
+
+    Without an oracle: the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) --
+    before a chunk is executed the oracle's gate looks at it; if it would collide or the policy has
+    stalled, the oracle plans from the current state and velocity and drives (expert=True) at least
+    H steps and until the arm is safe, then hands back.
+    """
+    E = len(envs_list)
+    rec = [{"obs": [], "q": [], "action": [], "expert": []} for _ in range(E)]
+    obs_now = [e.make_obs(e.q, e.q_prev) for e in envs_list]
+    queue = [[] for _ in range(E)]  # pending (action, by_expert) per episode
+    done = np.zeros(E, bool)
+    success = np.zeros(E, bool)
+    gates = [oracle.gate(e) for e in envs_list] if oracle is not None else None
+    n_interventions = 0
+    while not done.all():
+        need = [i for i in range(E) if not done[i] and not queue[i]]
+        if need:
+            chunks = policy.sample(np.stack([obs_now[i] for i in need]), generator=generator)  # (B, H, dof)
+            for i, chunk in zip(need, chunks):
+                if gates is not None and gates[i].should_intervene(envs_list[i], chunk):
+                    try:
+                        plan = oracle.intervention(envs_list[i])
+                        queue[i] = [(a, True) for a in plan]
+                        n_interventions += 1
+                        continue
+                    except oracle_mod.PlanningFailed:
+                        pass  # no plan from here: the policy keeps driving
+                queue[i] = [(a, False) for a in chunk[:n_act]]
+        for i in range(E):
+            if done[i]:
+                continue
+            action, by_expert = queue[i].pop(0)
+            r = rec[i]
+            r["obs"].append(obs_now[i])
+            r["q"].append(envs_list[i].q)
+            r["action"].append(np.asarray(action, dtype=np.float64))
+            r["expert"].append(by_expert)
+            obs_now[i], _, terminated, truncated, info = envs_list[i].step(action)
+            if gates is not None:
+                gates[i].record(envs_list[i])
+            if terminated or truncated:
+                done[i], success[i], queue[i] = True, info["success"], []
+    episodes = []
+    for e, r, ok in zip(envs_list, rec, success):
+        episodes.append({"obs": np.asarray(r["obs"], np.float32), "q": np.asarray(r["q"]),
+                         "action": np.asarray(r["action"]), "expert": np.asarray(r["expert"], bool),
+                         "seed": int(e.seed), "success": bool(ok)})
+    if log is not None and oracle is not None:
+        log(f"  {n_interventions} interventions in {E} episodes")
+    return episodes
+
+
+def drop_short_interventions(expert, H):
+    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False."""
+    expert = np.asarray(expert, bool).copy()
+    t = 0
+    while t < len(expert):
+        if expert[t]:
+            end = t
+            while end < len(expert) and expert[end]:
+                end += 1
+            if end - t < H:
+                expert[t:end] = False
+            t = end
+        else:
+            t += 1
+    return expert
+
+
+def evaluate(policy, env_name, seeds, repeats, n_act, seed):
+    """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
+
+    All len(seeds) * repeats episodes run in lockstep (one policy call per decision). The sampling
+    generator is seeded identically for every method, so methods face the same scenarios and the
+    same draws where their policies agree (a paired comparison).
+    """
+    env_list = []
+    for _ in range(repeats):
+        for s in seeds:
+            e = envs.make_env(env_name)
+            e.reset(seed=int(s))
+            env_list.append(e)
+    gen = torch.Generator(device=policy.device).manual_seed(seed)
+    episodes = rollout(env_list, policy, n_act, gen)
+    ok = np.array([ep["success"] for ep in episodes])
+    return ok.reshape(repeats, len(seeds)).T
+
+
+# ----------------------------------------------------------------------------------------------
+# Statistics, self-written (no scipy): Student-t CDF, paired t-test, TOST
+# ----------------------------------------------------------------------------------------------
+def _betacf(a, b, x, max_iter=300, eps=1e-15):
+    """Continued fraction of the regularized incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, max_iter + 1):
+        # even step: d_{2m} = m (b - m) x / ((a + 2m - 1)(a + 2m))
+        num = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
+        d = 1.0 + num * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + num / c
+        c = c if abs(c) > tiny else tiny
+        h *= d * c
+        # odd step: d_{2m+1} = -(a + m)(a + b + m) x / ((a + 2m)(a + 2m + 1))
+        num = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
+        d = 1.0 + num * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + num / c
+        c = c if abs(c) > tiny else tiny
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < eps:
+            break
+    return h
+
+
+def incomplete_beta(a, b, x):
+    """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
+    if not 0.0 <= x <= 1.0:
+        raise ValueError(f"incomplete_beta needs 0 <= x <= 1, got {x}")
+    if x in (0.0, 1.0):
+        return x
+    log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
+                 + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):  # the continued fraction converges fast here
+        return math.exp(log_front) * _betacf(a, b, x) / a
+    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
+
+
+def student_t_cdf(t, df):
+    """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
+    if df <= 0:
+        raise ValueError(f"degrees of freedom must be > 0, got {df}")
+    if math.isinf(t):
+        return 1.0 if t > 0 else 0.0
+    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
+    return 1.0 - tail if t > 0 else tail
+
+
+def paired_ttest(a, b):
+    """Two-sided paired t-test of mean(a - b) = 0. Returns (t, df, p). Needs >= 2 pairs."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    n = d.size
+    if n < 2:
+        raise ValueError(f"a paired t-test needs at least 2 pairs (lineages), got {n}")
+    mean, sd = d.mean(), d.std(ddof=1)
+    if sd == 0:
+        return (0.0 if mean == 0 else math.copysign(math.inf, mean)), n - 1, (1.0 if mean == 0 else 0.0)
+    t = mean / (sd / math.sqrt(n))
+    return t, n - 1, 2.0 * (1.0 - student_t_cdf(abs(t), n - 1))
+
+
+def tost(a, b, margin):
+    """Two one-sided tests: is mean(a - b) within (-margin, +margin)? Returns (p, t_lower, t_upper).
+
+    H0: the difference is <= -margin or >= +margin; equivalence is shown when p (the larger of the
+    two one-sided p-values) is small. Needs >= 2 pairs.
+    """
+    d = np.asarray(a, float) - np.asarray(b, float)
+    n = d.size
+    if n < 2:
+        raise ValueError(f"TOST needs at least 2 pairs (lineages), got {n}")
+    if margin <= 0:
+        raise ValueError(f"TOST margin must be > 0, got {margin}")
+    mean, se = d.mean(), d.std(ddof=1) / math.sqrt(n)
+    if se == 0:
+        p = 0.0 if abs(mean) < margin else 1.0
+        return p, math.inf, -math.inf
+    t_lower = (mean + margin) / se  # H0: mean <= -margin
+    t_upper = (mean - margin) / se  # H0: mean >= +margin
+    p_lower = 1.0 - student_t_cdf(t_lower, n - 1)
+    p_upper = student_t_cdf(t_upper, n - 1)
+    return max(p_lower, p_upper), t_lower, t_upper
+
+
+# ----------------------------------------------------------------------------------------------
+# The stages of the loop (Sec. IV-A). Each one returns its result, or loads it if already on disk.
+# ----------------------------------------------------------------------------------------------
+def make_oracle(cfg):
+    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle"), horizon=cfg.horizon))
+
+
+def stage_demos(run):
+    """Step 1's data: D0, oracle demonstrations on training scenarios (skipping unplannable ones)."""
+    cfg, path = run.cfg, run.path("data", "D0.npz")
+    if os.path.exists(path):
+        return envs.load_episodes(path)
+    env, expert = envs.make_env(cfg.env), make_oracle(cfg)
+    demos, seed, t0, failures = [], 0, time.time(), 0
+    run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
+    while len(demos) < cfg.n_demos:
+        try:
+            demos.append(expert.demonstrate(env, env.train_seeds(1, start=seed)[0]))
+        except oracle_mod.PlanningFailed:
+            failures += 1
+        seed += 1
+        if len(demos) % max(1, cfg.n_demos // 10) == 0 or len(demos) == cfg.n_demos:
+            rate = len(demos) / (time.time() - t0)
+            run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
+                    f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
+    envs.save_episodes(path, demos)
+    return demos
+
+
+def make_policy(cfg, env):
+    pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
+                                K=cfg.K, width=cfg.width, seed=stage_seed(cfg, "init"))
+    return diffusion.DiffusionPolicy(pc, device=cfg.device)
+
+
+def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0):
+    """diffusion.train with checkpoints at quarters of the run; a stopped run resumes from the last."""
+    cfg = run.cfg
+    part = final_path.replace(".pt", "_step{step}.pt")
+    marks = tuple(sorted({max(1, steps * i // 4) for i in (1, 2, 3)}))
+    tc = diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=cfg.lr, seed=seed,
+                               warmup_steps=min(500, steps // 10), aug_fraction=aug_fraction,
+                               obs_noise=cfg.obs_noise, log_every=max(1, steps // 5),
+                               checkpoint_steps=marks, checkpoint_path=part)
+    resume = next((part.format(step=m) for m in reversed(marks) if os.path.exists(part.format(step=m))), None)
+    if resume:
+        run.log(f"  resuming from {os.path.relpath(resume, run.root)}")
+    diffusion.train(policy, obs, chunks, tc, sampler=sampler, resume_from=resume,
+                    log=lambda m: run.log("  " + m))
+    policy.save(final_path)
+    for m in marks:  # the finished checkpoint supersedes the partial ones
+        if os.path.exists(part.format(step=m)):
+            os.remove(part.format(step=m))
+    return policy
+
+
+def stage_bc(run, demos):
+    """Step 1: pi_0 = BC on D0."""
+    cfg, path = run.cfg, run.path("checkpoints", "bc.pt")
+    if os.path.exists(path):
+        return diffusion.DiffusionPolicy.load(path, device=cfg.device)
+    env = envs.make_env(cfg.env)
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
+    policy = make_policy(cfg, env)
+    return train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path)
+
+
+def stage_collect(run, lineage, k, policy):
+    """Step 2: D_k, HG-DAgger rollouts of the current policy on fresh training scenarios."""
+    cfg, path = run.cfg, run.path(f"lineage_{lineage}", f"round_{k}", "D.npz")
+    if os.path.exists(path):
+        return envs.load_episodes(path)
+    # fresh scenarios for every (lineage, round), after D0's seed range
+    start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
+    seeds = envs.make_env(cfg.env).train_seeds(cfg.episodes_per_round, start=start)
+    run.log(f"lineage {lineage} round {k}: HG-DAgger collection on {len(seeds)} training scenarios")
+    t0 = time.time()
+    env_list = []
+    for s in seeds:
+        e = envs.make_env(cfg.env)
+        e.reset(seed=int(s))
+        env_list.append(e)
+    gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", lineage, k))
+    episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg), log=run.log)
+    for ep in episodes:
+        ep["expert"] = drop_short_interventions(ep["expert"], cfg.horizon)
+    kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon).any()]
+    n_expert = sum(int(ep["expert"].sum()) for ep in kept)
+    run.log(f"  {len(kept)}/{len(episodes)} episodes with interventions >= H, {n_expert} expert steps, "
+            f"policy success {np.mean([ep['success'] for ep in episodes]):.2f}, {time.time() - t0:.0f} s")
+    envs.save_episodes(path, kept)
+    return kept
+
+
+def stage_calibrate(run, lineage, k, policy, episodes, median_step):
+    """Sec. IV-D with the policy that collected D_k (before training for the round)."""
+    cfg, path = run.cfg, run.path(f"lineage_{lineage}", f"round_{k}", "calibration.json")
+    if os.path.exists(path):
+        return calibrate.Calibration.from_dict(read_json(path))
+    t0 = time.time()
+    ccfg = calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
+                                       blend_segments=cfg.calib_blend_episodes)
+    gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
+    cal = calibrate.calibrate(envs.make_env(cfg.env), policy, episodes, median_step, ccfg, gen)
+    run.log(f"lineage {lineage} round {k}: calibration ({time.time() - t0:.0f} s)\n  "
+            + cal.report().replace("\n", "\n  "))
+    write_json(path, cal.to_dict())
+    return cal
+
+
+def noise_model(method, cal):
+    """(noise kind, sigma) for relabel.AugmentationSampler, for the data of one round."""
+    if method.startswith("fixed_"):
+        return "isotropic", float(method.split("_")[1])  # Table I: sigma in median steps
+    if method == "pooled":
+        return "pooled", cal.pooled  # Eq. (16)
+    if method == "closed_loop":
+        return "pooled", cal.closed_loop_pooled if cal.closed_loop_pooled is not None else cal.pooled
+    if method == "per_step":  # Eq. (14): each episode's own measured steps
+        per_episode = {}
+        for e in np.unique(cal.episode_index):
+            rows = cal.episode_index == e
+            per_episode[int(e)] = (cal.timestep[rows], cal.sigma_alpha[rows])
+        return "per_step", per_episode
+    raise ValueError(f"method {method!r} adds no noise")
+
+
+class MixtureSampler:
+    """Augmented pairs from several rounds' samplers, in proportion to their intervention steps."""
+
+    def __init__(self, samplers, weights):
+        self.samplers = samplers
+        self.p = np.asarray(weights, float) / np.sum(weights)
+
+    def __call__(self, n, rng):
+        counts = rng.multinomial(n, self.p)
+        parts = [s(c, rng) for s, c in zip(self.samplers, counts) if c > 0]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def stage_train_method(run, lineage, k, method, demos, rounds_data, calibrations, stats):
+    """Steps 3-4 and 6: fine-tune pi_0 on D0 u D1..Dk (+ the method's augmentation of D1..Dk)."""
+    cfg = run.cfg
+    path = run.path(f"lineage_{lineage}", f"round_{k}", "checkpoints", f"{method}.pt")
+    if os.path.exists(path):
+        return diffusion.DiffusionPolicy.load(path, device=cfg.device)
+    aggregate = demos + [ep for D in rounds_data for ep in D]
+    obs, chunks = diffusion.chunk_dataset(aggregate, cfg.horizon)
+    sampler, aug = None, 0.0
+    if method != "hg_dagger":
+        samplers, weights = [], []
+        for D, cal in zip(rounds_data, calibrations):
+            kind, sigma = noise_model(method, cal)
+            samplers.append(relabel.AugmentationSampler(
+                D, lambda: envs.make_env(cfg.env), stats, kind, sigma,
+                relabel.RelabelConfig(horizon=cfg.horizon)))
+            weights.append(sum(int(diffusion.label_mask(ep["expert"], cfg.horizon).sum()) for ep in D))
+        sampler, aug = MixtureSampler(samplers, weights), cfg.aug_fraction
+    run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
+            f"{len(obs)} chunks" + (f", {aug:.0%} augmented" if aug else ""))
+    policy = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
+    return train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
+                           stage_seed(cfg, "train", lineage, k, method), path, sampler, aug)
+
+
+def stage_evaluate(run, path, policy, label):
+    """Step 5's numbers: success on the held-out scenarios (same draws for every method)."""
+    cfg = run.cfg
+    if os.path.exists(path):
+        return np.asarray(read_json(path)["success"], bool)
+    t0 = time.time()
+    seeds = envs.make_env(cfg.env).eval_seeds()[: cfg.eval_scenarios]
+    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"))
+    run.log(f"  eval {label}: success {100 * ok.mean():.1f}% "
+            f"({ok.size} episodes, {time.time() - t0:.0f} s)")
+    write_json(path, {"success": ok.tolist(), "seeds": list(map(int, seeds))})
+    return ok
+
+
+def run_lineage(run, lineage, demos, stats):
+    """HG-DAgger rounds of one lineage: collect, calibrate, train every method, evaluate (Alg. 2-6)."""
+    cfg = run.cfg
+    median_step = stats.median_step
+    collector = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
+    rounds_data, calibrations = [], []
+    for k in range(1, cfg.rounds + 1):
+        D_k = stage_collect(run, lineage, k, collector)
+        rounds_data.append(D_k)
+        calibrations.append(stage_calibrate(run, lineage, k, collector, D_k, median_step))
+        for method in cfg.methods:
+            if method == "bc":
+                continue
+            policy = stage_train_method(run, lineage, k, method, demos, rounds_data, calibrations, stats)
+            stage_evaluate(run, run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json"),
+                           policy, f"{method} (lineage {lineage}, K={k})")
+            if method == "hg_dagger":
+                collector = policy  # the HG-DAgger policy of round k collects D_{k+1}
+
+
+# ----------------------------------------------------------------------------------------------
+# Results: Table I layout, statistics, CSV/JSON, figures
+# ----------------------------------------------------------------------------------------------
+def collect_results(run):
+    """success[method][lineage][k-1] in percent, from every finished evaluation on disk."""
+    cfg = run.cfg
+    results = {}
+    bc_path = os.path.join(run.root, "eval", "bc.json")
+    if os.path.exists(bc_path):
+        results["bc"] = {"all": [100.0 * float(np.mean(read_json(bc_path)["success"]))]}
+    for method in cfg.methods:
+        if method == "bc":
+            continue
+        for lineage in range(cfg.lineages):
+            row = []
+            for k in range(1, cfg.rounds + 1):
+                p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json")
+                if not os.path.exists(p):
+                    break
+                row.append(100.0 * float(np.mean(read_json(p)["success"])))
+            if row:
+                results.setdefault(method, {})[str(lineage)] = row
+    return results
+
+
+def mean_se(values):
+    v = np.asarray(values, float)
+    se = v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else 0.0
+    return float(v.mean()), float(se), int(v.size)
+
+
+def summarize(cfg, results):
+    """Per method and round: mean, SE over lineages, count; paired tests averaged over rounds."""
+    table = {}
+    for method, per_lineage in results.items():
+        if method == "bc":
+            table[method] = [mean_se(per_lineage["all"])]
+            continue
+        table[method] = []
+        for k in range(cfg.rounds):
+            vals = [row[k] for row in per_lineage.values() if len(row) > k]
+            table[method].append(mean_se(vals) if vals else None)
+    # Paired statistics over lineages that finished every round, each lineage averaged over rounds.
+    def round_avg(method):
+        rows = results.get(method, {})
+        return {l: float(np.mean(r)) for l, r in rows.items() if len(r) == cfg.rounds}
+
+    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}}
+    hg = round_avg("hg_dagger")
+    fixed = [m for m in cfg.methods if m.startswith("fixed_") and round_avg(m)]
+    best_fixed = max(fixed, key=lambda m: np.mean(list(round_avg(m).values()))) if fixed else None
+    stats["best_fixed"] = best_fixed
+    for method in cfg.methods:
+        if method in ("bc", "hg_dagger"):
+            continue
+        mine = round_avg(method)
+        common = sorted(set(mine) & set(hg))
+        if len(common) >= 2:
+            t, df, p = paired_ttest([mine[l] for l in common], [hg[l] for l in common])
+            stats["paired_vs_hg_dagger"][method] = {
+                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p}
+        if best_fixed and method in ("pooled", "per_step", "closed_loop"):
+            ref = round_avg(best_fixed)
+            common = sorted(set(mine) & set(ref))
+            if len(common) >= 2:
+                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], cfg.tost_margin)
+                stats["tost_vs_best_fixed"][method] = {
+                    "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
+                    "p": p, "margin": cfg.tost_margin}
+    return table, stats
+
+
+def format_table(cfg, table, stats):
+    """Markdown in Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages)."""
+    cols = [f"K={k}" for k in range(1, cfg.rounds + 1)]
+    lines = ["| Method | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for method in cfg.methods:
+        if method not in table:
+            continue
+        if method == "bc":
+            m, se, n = table["bc"][0]
+            lines.append(f"| {METHOD_LABELS['bc']} | {m:.1f} ± {se:.1f} ({n}), all K |" + " |" * (len(cols) - 1))
+            continue
+        cells = [f"{c[0]:.1f} ± {c[1]:.1f} ({c[2]})" if c else "–" for c in table[method]]
+        lines.append(f"| {METHOD_LABELS[method]} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append(f"Success rate in % on {cfg.eval_scenarios} held-out scenarios x {cfg.eval_repeats} "
+                 f"evaluations; mean ± SE over lineages (count in parentheses).")
+    if stats["paired_vs_hg_dagger"]:
+        lines.append("")
+        lines.append("Paired t-test vs HG-DAgger (lineages, averaged over rounds):")
+        for m, s in stats["paired_vs_hg_dagger"].items():
+            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, t({s['df']}) = {s['t']:.2f}, "
+                         f"p = {s['p']:.3g}")
+    if stats["tost_vs_best_fixed"]:
+        lines.append("")
+        lines.append(f"TOST equivalence (±{cfg.tost_margin:g} points) vs the best fixed noise in hindsight "
+                     f"({stats['best_fixed']}):")
+        for m, s in stats["tost_vs_best_fixed"].items():
+            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, p = {s['p']:.3g}")
+    if not stats["paired_vs_hg_dagger"]:
+        lines.append("")
+        lines.append("(Paired tests need at least 2 finished lineages.)")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(run):
+    """results.json, results.csv, table.md and the success-vs-round figure from what is on disk."""
+    cfg = run.cfg
+    results = collect_results(run)
+    table, stats = summarize(cfg, results)
+    write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats})
+    with open(os.path.join(run.root, "results.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["method", "lineage", "round", "success_pct"])
+        for method, rows in results.items():
+            for lineage, row in rows.items():
+                for k, v in enumerate(row, start=1):
+                    w.writerow([method, lineage, "all" if method == "bc" else k, f"{v:.2f}"])
+    text = format_table(cfg, table, stats)
+    with open(os.path.join(run.root, "table.md"), "w") as f:
+        f.write(text)
+    plot_success_vs_round(cfg, table, run.path("figures", "success_vs_round.png"))
+    return text
+
+
+def plot_success_vs_round(cfg, table, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    ks = np.arange(1, cfg.rounds + 1)
+    for method in cfg.methods:
+        if method not in table:
+            continue
+        if method == "bc":
+            ax.axhline(table["bc"][0][0], color="k", ls=":", label=METHOD_LABELS["bc"])
+            continue
+        cells = table[method]
+        xs = [k for k, c in zip(ks, cells) if c]
+        if not xs:
+            continue
+        m = np.array([c[0] for c in cells if c])
+        se = np.array([c[1] for c in cells if c])
+        style = "-o" if method in ("pooled", "per_step", "closed_loop") else ("-s" if method == "hg_dagger" else "--.")
+        ax.errorbar(xs, m, yerr=se, fmt=style, capsize=3, label=METHOD_LABELS[method])
+    ax.set_xlabel("DAgger round K")
+    ax.set_ylabel("success rate [%]")
+    ax.set_xticks(ks)
+    ax.set_title(f"Success vs round ({cfg.env}, the data of Table I)")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def make_figures(run, demos, stats):
+    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
+    cfg = run.cfg
+    fig = lambda name: run.path("figures", name)  # noqa: E731
+    env = envs.make_env(cfg.env)
+    rdir = os.path.join(run.root, "lineage_0", "round_1")
+    oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
+    if not os.path.exists(os.path.join(rdir, "calibration.json")):
+        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
+        return
+    D1 = envs.load_episodes(os.path.join(rdir, "D.npz"))
+    cal = calibrate.Calibration.from_dict(read_json(os.path.join(rdir, "calibration.json")))
+    policy = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
+    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
+    # the episode with the longest intervention shows the method best
+    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
+    episode = D1[e]
+    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
+    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
+                                   episode_index=e, generator=gen())
+    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
+                          np.random.default_rng(stage_seed(cfg, "fig1")), stats)
+    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
+    end = min(t + cfg.horizon, len(episode["action"]))
+    chunk = episode["action"][t:end]
+    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
+    env.reset(seed=int(episode["seed"]))
+    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
+                                           fig("fig3_partial_denoising.png"), gen(),
+                                           q=episode["q"][t])
+
+
+# ----------------------------------------------------------------------------------------------
+# Entry point
+# ----------------------------------------------------------------------------------------------
+def parse_args(argv):
+    p = argparse.ArgumentParser(
+        description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
+                    "calibration, augmentation, every method of Table I, evaluation, table and figures.")
+    p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
+                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min), paper (Table I protocol)")
+    p.add_argument("--env", default=None, choices=list(ENV_NAMES), help="environment (default planar)")
+    p.add_argument("--methods", default=None,
+                   help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
+    p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
+    p.add_argument("--lineages", type=int, default=None, help="number of lineages")
+    p.add_argument("--lineage", type=int, default=None,
+                   help="run only this lineage (0-based), e.g. as one task of a cluster job array")
+    p.add_argument("--prepare", action="store_true", help="only the shared stages: D0, BC and its evaluation")
+    p.add_argument("--seed", type=int, default=None, help="master seed")
+    p.add_argument("--device", default=None, help="torch device: cpu (default) or cuda")
+    p.add_argument("--out", default=None, help="run folder (default runs/<profile>[_<env>])")
+    p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
+    args = p.parse_args(argv)
+    cfg = PROFILES[args.profile]
+    over = {}
+    if args.env:
+        over["env"] = args.env
+    if args.methods:
+        names = [m.strip() for m in args.methods.split(",") if m.strip()]
+        bad = [m for m in names if m not in ALL_METHODS]
+        if bad:
+            p.error(f"--methods: unknown {bad}; valid choices: {', '.join(ALL_METHODS)}")
+        over["methods"] = tuple(names)
+    for key in ("rounds", "lineages", "seed"):
+        if getattr(args, key) is not None:
+            over[key] = getattr(args, key)
+    if args.device:
+        if args.device not in ("cpu", "cuda") and not args.device.startswith("cuda:"):
+            p.error(f"--device: {args.device!r} is not valid; use cpu or cuda")
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            p.error(f"--device {args.device}: no CUDA device is available here; use --device cpu")
+        over["device"] = args.device
+    name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
+    over["name"] = name
+    try:
+        cfg = replace(cfg, **over)
+    except ValueError as err:
+        p.error(str(err))
+    if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
+        p.error(f"--lineage {args.lineage}: valid lineages are 0..{cfg.lineages - 1}")
+    return args, cfg
+
+
+def main(argv=None):
+    args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
+    run = Run(args.out or os.path.join("runs", cfg.name), cfg)
+    t0 = time.time()
+    torch.manual_seed(cfg.seed)  # nothing should draw from it; a guard for determinism
+    if not args.report:
+        run.log(f"Policy-Calibrated DAgger, profile {args.profile}, env {cfg.env}, folder {run.root}")
+        demos = stage_demos(run)
+        bc = stage_bc(run, demos)
+        stage_evaluate(run, run.path("eval", "bc.json"), bc, "bc (pi_0)")
+        if not args.prepare:
+            stats = relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
+            lineages = [args.lineage] if args.lineage is not None else range(cfg.lineages)
+            for lineage in lineages:
+                run_lineage(run, lineage, demos, stats)
+    demos = envs.load_episodes(run.path("data", "D0.npz"))
+    stats = relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
+    text = write_report(run)
+    make_figures(run, demos, stats)
+    run.log(f"done in {time.time() - t0:.0f} s; table, results and figures in {run.root}\n\n{text}")
+    return run.root
+
+
+if __name__ == "__main__":
+    main()
