@@ -397,11 +397,14 @@ class DiffusionPolicy(nn.Module):
 
     def draw_noise(self, B, generator=None):
         """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] is the starting noise,
-        [:, 1 + k] is the z of the reverse step at code level k. Drawing them per row up front makes a
-        row's result independent of how the batch is split (batched == looped with the same stream)."""
+        [:, 1 + k] is the z of the reverse step at code level k. Drawn row after row (one randn call each:
+        torch's CPU normal sampler fills blocks of 16 numbers, so one big call would not split into the
+        same per-row numbers), a row's draws do not depend on how the batch is split: sampling a batch
+        equals sampling its rows one by one from the same generator."""
         shape = (B, self.cfg.K + 1, self.cfg.horizon, self.cfg.dof)
         gdev = generator.device if generator is not None else torch.device("cpu")
-        return torch.randn(shape, generator=generator, device=gdev).to(self.device)
+        rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
+        return torch.stack(rows).to(self.device) if rows else torch.empty(shape, device=self.device)
 
     def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
         """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.

@@ -1,0 +1,290 @@
+"""Tests of diffusion.py: the DDPM equations against closed forms, the policy, the dataset, training."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, label_mask, lr_at,
+                       make_schedule, p_sample, q_sample, toy_two_mode_data, train)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """The test networks are tiny: a second torch thread only adds contention on the shared 2-core machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def tiny_policy(**overrides):
+    kwargs = dict(obs_dim=2, dof=2, horizon=4, n_act=2, K=50, width=64, n_blocks=2, cond_dim=32)
+    kwargs.update(overrides)
+    return DiffusionPolicy(PolicyConfig(**kwargs))
+
+
+@pytest.fixture(scope="module")
+def toy_trained():
+    """A small policy trained on the two-mode toy task (a few seconds of CPU), shared by several tests."""
+    obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
+    policy = tiny_policy()
+    train(policy, obs, chunks, TrainConfig(steps=1500, batch_size=128, lr=2e-3, warmup_steps=100,
+                                           log_every=0, seed=0))
+    return policy
+
+
+# ---------------------------------------------------------------------------------------------- schedule
+
+def cosine_alphabar(t, s=0.008):
+    f = lambda u: math.cos((u + s) / (1 + s) * math.pi / 2) ** 2
+    return f(t) / f(0.0)
+
+
+def test_squaredcos_schedule_matches_closed_form():
+    K = 100
+    sch = make_schedule(K, "squaredcos")
+    abar = sch.alphas_cumprod.double().numpy()
+    # Before the cap, alphabar_{k+1} = f((k+1)/K) / f(0) (code index k = paper step k + 1).
+    for k in (0, 10, 50, 90, 97):
+        assert abar[k] == pytest.approx(cosine_alphabar((k + 1) / K), rel=1e-5)
+    assert np.all(np.diff(abar) < 0), "alphabar must decrease strictly"
+    assert sch.betas.max().item() == pytest.approx(0.999), "the last beta is capped at 0.999"
+    assert np.all(sch.betas.numpy() <= 0.999 + 1e-7)
+    assert abar[-1] < 1e-6, "the last level must be (almost) pure noise"
+    assert sch.alphas_cumprod_prev[0].item() == 1.0
+    assert torch.allclose(sch.alphas_cumprod_prev[1:], sch.alphas_cumprod[:-1])
+    assert torch.allclose(sch.alphas, 1 - sch.betas)
+    assert np.allclose(np.cumprod(sch.alphas.double().numpy()), abar, rtol=1e-5)
+
+
+def test_linear_schedule_end_values():
+    sch = make_schedule(1000, "linear")                 # Ho et al.'s values at K = 1000
+    assert sch.betas[0].item() == pytest.approx(1e-4)
+    assert sch.betas[-1].item() == pytest.approx(0.02)
+    sch100 = make_schedule(100, "linear")               # scaled by 1000 / K
+    assert sch100.betas[0].item() == pytest.approx(1e-3)
+    assert sch100.betas[-1].item() == pytest.approx(0.2)
+    for s in (sch, sch100):
+        assert np.all(np.diff(s.alphas_cumprod.numpy()) < 0)
+        assert s.alphas_cumprod[-1].item() < 1e-4      # the reverse process may start from N(0, I)
+
+
+@pytest.mark.parametrize("K,kind", [(0, "linear"), (100, "cosine"), (10, "linear")])
+def test_bad_schedule_raises(K, kind):
+    with pytest.raises(ValueError):
+        make_schedule(K, kind)
+
+
+# ---------------------------------------------------------------------------------------------- Eq. (5)
+
+def test_q_sample_equals_iterating_eq5():
+    sch = make_schedule(100, "squaredcos")
+    gen = torch.Generator().manual_seed(0)
+    n, k = 200_000, 30                                  # code level 30 = paper step 31
+    a0 = torch.tensor([0.7, -0.4])
+    a = a0.expand(n, 2).double()
+    for j in range(k + 1):                              # Eq. (5), one step at a time
+        alpha = sch.alphas[j].double()
+        a = alpha.sqrt() * a + (1 - alpha).sqrt() * torch.randn(n, 2, generator=gen, dtype=torch.float64)
+    closed = q_sample(sch, a0.expand(n, 2), torch.full((n,), k), torch.randn(n, 2, generator=gen))
+    abar = sch.alphas_cumprod[k].item()
+    for samples in (a.float(), closed):
+        assert torch.allclose(samples.mean(0), math.sqrt(abar) * a0, atol=0.01)
+        assert torch.allclose(samples.var(0), torch.full((2,), 1 - abar), rtol=0.02)
+    assert torch.allclose(a.float().mean(0), closed.mean(0), atol=0.01)
+    assert torch.allclose(a.float().var(0), closed.var(0), rtol=0.02)
+
+
+# ---------------------------------------------------------------------------------------------- Eq. (6)
+
+def test_posterior_matches_gaussian_product():
+    """q(a_{k-1} | a_k, a_0) ∝ q(a_k | a_{k-1}) q(a_{k-1} | a_0): multiply the two Gaussians directly."""
+    for kind in ("squaredcos", "linear"):
+        sch = make_schedule(100, kind)
+        b, al = sch.betas.double(), sch.alphas.double()
+        abar_prev = sch.alphas_cumprod_prev.double()
+        for k in range(1, 100):
+            # In a_{k-1}: q(a_k | a_{k-1}) has precision alpha/beta and mean a_k / sqrt(alpha);
+            # q(a_{k-1} | a_0) has precision 1 / (1 - abar_prev) and mean sqrt(abar_prev) a_0.
+            precision = al[k] / b[k] + 1 / (1 - abar_prev[k])
+            assert sch.posterior_variance[k].item() == pytest.approx(1 / precision.item(), rel=1e-4)
+            coef_a0 = abar_prev[k].sqrt() / (1 - abar_prev[k]) / precision
+            coef_ak = al[k].sqrt() / b[k] / precision
+            assert sch.posterior_mean_coef1[k].item() == pytest.approx(coef_a0.item(), rel=1e-4)
+            assert sch.posterior_mean_coef2[k].item() == pytest.approx(coef_ak.item(), rel=1e-4)
+        # code k = 0 (paper step 1): a_0 is known exactly once a_1 and a_0 are given.
+        assert sch.posterior_variance[0].item() == 0.0
+        assert sch.posterior_mean_coef1[0].item() == pytest.approx(1.0)
+        assert sch.posterior_mean_coef2[0].item() == pytest.approx(0.0, abs=1e-7)
+
+
+def test_p_sample_without_clip_is_eq6():
+    sch = make_schedule(100, "squaredcos")
+    gen = torch.Generator().manual_seed(1)
+    a_k, eps, z = (torch.randn(64, 4, 2, generator=gen) for _ in range(3))
+    k = torch.randint(1, 100, (64,), generator=gen)
+    out = p_sample(sch, eps, a_k, k, noise=z, clip=False)
+    r = lambda c: c[k].view(-1, 1, 1)
+    # Eq. (6): a_{k-1} = (a_k - beta / sqrt(1 - abar) eps) / sqrt(alpha) + sigma z
+    eq6 = (a_k - r(sch.betas) / r(1 - sch.alphas_cumprod).sqrt() * eps) / r(sch.alphas).sqrt() \
+        + r(sch.posterior_variance).sqrt() * z
+    assert torch.allclose(out, eq6, atol=1e-4)
+    clipped = p_sample(sch, eps, a_k, torch.zeros(64, dtype=torch.long), noise=z)   # last step: x0 clipped
+    assert clipped.abs().max().item() <= 1.0
+    with pytest.raises(ValueError):
+        p_sample(sch, eps, a_k, torch.full((64,), 100), noise=z)
+
+
+# ---------------------------------------------------------------------------------------------- policy
+
+def test_two_mode_toy_policy_keeps_both_modes(toy_trained):
+    obs = np.zeros((400, 2), dtype=np.float32)
+    chunks = toy_trained.sample(obs, generator=torch.Generator().manual_seed(0))
+    assert chunks.shape == (400, 4, 2) and chunks.dtype == np.float64
+    # From the origin the data chunks are ±(0.5, 0.5) * t / H for t = 1..H.
+    mode = 0.5 * np.arange(1, 5)[:, None] / 4 * np.ones((1, 2))          # (H, 2)
+    up = chunks[:, -1].sum(1) > 0
+    assert 0.3 < up.mean() < 0.7, f"both modes must be sampled, got {up.mean():.2f} up-right"
+    err = np.where(up[:, None, None], chunks - mode, chunks + mode)
+    assert np.abs(err).max(axis=(1, 2)).mean() < 0.06, "samples must stay near the data modes"
+
+
+def test_save_load_round_trip(toy_trained, tmp_path):
+    path = str(tmp_path / "policy.pt")
+    toy_trained.save(path)
+    loaded = DiffusionPolicy.load(path)
+    obs = np.random.default_rng(0).uniform(-1, 1, (32, 2)).astype(np.float32)
+    a = toy_trained.sample(obs, generator=torch.Generator().manual_seed(3))
+    b = loaded.sample(obs, generator=torch.Generator().manual_seed(3))
+    assert np.array_equal(a, b)
+    assert loaded.cfg == toy_trained.cfg
+    c = loaded.sample(obs, generator=torch.Generator().manual_seed(4))
+    assert not np.array_equal(a, c), "a different generator must give different samples"
+    with pytest.raises(FileNotFoundError):
+        DiffusionPolicy.load(str(tmp_path / "missing.pt"))
+
+
+def test_batched_sampling_equals_looped(toy_trained):
+    obs = np.random.default_rng(1).uniform(-1, 1, (3, 2)).astype(np.float32)
+    batched = toy_trained.sample(obs, generator=torch.Generator().manual_seed(5))
+    gen = torch.Generator().manual_seed(5)
+    looped = np.concatenate([toy_trained.sample(obs[i:i + 1], generator=gen) for i in range(3)])
+    assert np.allclose(batched, looped, atol=1e-5)
+
+
+def test_normalizer_round_trip_and_constant_dims():
+    policy = tiny_policy(obs_dim=3)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(100, 3)).astype(np.float32)
+    obs[:, 1] = 5.0                                                       # a constant dimension
+    acts = rng.uniform(-2, 3, size=(100, 4, 2))
+    policy.fit_normalizer(obs, acts)
+    o = policy.normalize_obs(torch.as_tensor(obs))
+    assert torch.isfinite(o).all() and torch.all(o[:, 1] == 0)
+    assert o[:, 0].min().item() == pytest.approx(-1, abs=1e-5) and o[:, 0].max().item() == pytest.approx(1, abs=1e-5)
+    a = torch.as_tensor(acts, dtype=torch.float32)
+    an = policy.normalize_actions(a)
+    assert an.min().item() == pytest.approx(-1, abs=1e-5) and an.max().item() == pytest.approx(1, abs=1e-5)
+    assert torch.allclose(policy.unnormalize_actions(an), a, atol=1e-5)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((4, 3)), np.zeros(2), np.full((4, 2), np.nan), np.full((4, 2), np.inf)])
+def test_sample_rejects_bad_obs(bad):
+    with pytest.raises(ValueError):
+        tiny_policy().sample(bad)
+
+
+def test_bad_inputs_raise():
+    policy = tiny_policy()
+    with pytest.raises(ValueError):
+        policy.fit_normalizer(np.zeros((5, 2)), np.zeros((5, 3, 2)))     # wrong horizon
+    with pytest.raises(ValueError):
+        policy.fit_normalizer(np.zeros((5, 2)), np.full((5, 4, 2), np.nan))
+    with pytest.raises(ValueError):
+        train(policy, np.zeros((5, 2)), np.zeros((6, 4, 2)), TrainConfig(steps=1))
+    with pytest.raises(ValueError):
+        train(policy, np.zeros((5, 2)), np.zeros((5, 4, 2)), TrainConfig(steps=1, aug_fraction=0.5))
+    with pytest.raises(ValueError):
+        PolicyConfig(obs_dim=2, dof=2, schedule="cosine")
+    with pytest.raises(ValueError):
+        PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=8)
+    with pytest.raises(ValueError):
+        TrainConfig(aug_fraction=1.5)
+
+
+# ---------------------------------------------------------------------------------------------- dataset
+
+def test_chunk_dataset_label_rule():
+    T, H = 10, 3
+    expert = np.array([1, 1, 1, 1, 0, 1, 1, 1, 1, 1], dtype=bool)
+    action = np.arange(T, dtype=np.float64)[:, None] * np.array([[1.0, -1.0]])   # (T, 2)
+    ep = {"obs": np.arange(T, dtype=np.float32)[:, None], "q": action, "action": action,
+          "expert": expert, "seed": 0}
+    # Valid starts: 0, 1 (steps 0..3 expert), then 5, 6, 7 (full), 8, 9 (end of episode, padded).
+    assert np.array_equal(np.nonzero(label_mask(expert, H))[0], [0, 1, 5, 6, 7, 8, 9])
+    obs, chunks = chunk_dataset([ep, ep], H)
+    assert obs.shape == (14, 1) and chunks.shape == (14, H, 2)
+    assert obs.dtype == np.float32 and chunks.dtype == np.float32
+    assert np.array_equal(obs[:7, 0], [0, 1, 5, 6, 7, 8, 9])
+    assert np.array_equal(chunks[2, :, 0], [5, 6, 7])
+    assert np.array_equal(chunks[5, :, 0], [8, 9, 9]), "past the end the last action repeats"
+    assert np.array_equal(chunks[6, :, 1], [-9, -9, -9])
+    # An episode ending with a non-expert step has no padded labels there.
+    ep2 = dict(ep, expert=np.array([1] * 9 + [0], dtype=bool))
+    assert np.array_equal(np.nonzero(label_mask(ep2["expert"], H))[0], [0, 1, 2, 3, 4, 5, 6])
+    with pytest.raises(ValueError):
+        chunk_dataset([{"obs": ep["obs"], "action": action}], H)
+
+
+# ---------------------------------------------------------------------------------------------- training
+
+def test_lr_schedule_warmup_and_cosine():
+    cfg = TrainConfig(steps=1000, lr=1e-3, warmup_steps=100)
+    assert lr_at(0, cfg) == pytest.approx(1e-5)
+    assert lr_at(99, cfg) == pytest.approx(1e-3)
+    assert lr_at(550, cfg) == pytest.approx(0.5e-3)
+    assert lr_at(1000, cfg) == pytest.approx(0.0, abs=1e-12)
+
+
+def _aug_sampler(calls):
+    def sampler(n, rng):
+        calls.append(n)
+        obs = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+        return obs, np.repeat(obs[:, None, :], 4, axis=1)
+    return sampler
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    obs, chunks = toy_two_mode_data(300, H=4, seed=1)
+    cfg = TrainConfig(steps=40, batch_size=32, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25,
+                      obs_noise=0.05, checkpoint_steps=(20,), checkpoint_path=str(tmp_path / "ck_{step}.pt"))
+    calls = []
+    full = train(tiny_policy(), obs, chunks, cfg, sampler=_aug_sampler(calls))
+    assert calls == [8] * 40, "aug_fraction 0.25 of 32 = 8 augmented rows per step"
+    resumed = train(tiny_policy(seed=99), obs, chunks, cfg, sampler=_aug_sampler([]),
+                    resume_from=str(tmp_path / "ck_20.pt"))
+    a, b = full.state_dict(), resumed.state_dict()
+    assert all(torch.equal(a[key], b[key]) for key in a)
+    # The checkpoint is also a plain policy file (fine-tuning starts from it with a fresh optimizer).
+    DiffusionPolicy.load(str(tmp_path / "ck_20.pt"))
+    # Same seed -> same weights; another seed -> different weights.
+    again = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": ()}),
+                  sampler=_aug_sampler([]))
+    assert all(torch.equal(a[key], again.state_dict()[key]) for key in a)
+    other = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": (), "seed": 4}),
+                  sampler=_aug_sampler([]))
+    assert not torch.equal(a["net.inp.weight"], other.state_dict()["net.inp.weight"])
+
+
+def test_training_lowers_loss_and_logs_progress():
+    obs, chunks = toy_two_mode_data(500, H=4, seed=2)
+    lines = []
+    policy = tiny_policy()
+    train(policy, obs, chunks, TrainConfig(steps=200, batch_size=64, warmup_steps=20, log_every=100),
+          log=lines.append)
+    assert len(lines) == 2 and lines[-1].startswith("step 200/200 | loss ")
+    assert "steps/s" in lines[0] and "s left" in lines[0]
+    first, last = (float(line.split("| loss ")[1].split(" ")[0]) for line in lines)
+    assert last < first < 1.2
