@@ -260,16 +260,20 @@ def test_pd_chunks_converge_within_clamps(stats, scale):
 
 
 def test_pd_brake_limit_reduces_overshoot_under_the_clamp():
-    """On a straight path with a tight clamp, the closing speed cap √(2 a_max |e|) prevents the
-    wind-up overshoot of a saturated PD: the error never changes sign by more than a little."""
+    """On a straight path with a tight clamp, the closing-speed cap √(2 a_max |e|) limits the
+    wind-up overshoot of a saturated PD (without the cap this case overshoots by 25 % of e0)."""
     traj = np.outer(np.arange(100), [0.02, -0.01, 0.015])
-    q0 = traj[10] + np.array([0.15, -0.1, 0.12])
-    chunk = pd_return_chunk(q0, traj[10] - traj[9], traj, 10, 16, 0, 0.004, 0.05)
+    e0 = np.array([0.3, 0.2, -0.25])
+    chunk = pd_return_chunk(traj[10] + e0, traj[10] - traj[9], traj, 10, 16, 0, 0.004, 0.05)
     err = chunk - traj[11:27]
-    e0 = q0 - traj[10]
     overshoot = np.max(-err * np.sign(e0), axis=0)  # how far past the path each joint goes
-    assert np.all(overshoot < 0.1 * np.abs(e0))
-    assert np.all(np.abs(err[-1]) < 0.05 * np.abs(e0))
+    assert np.all(overshoot < 0.12 * np.abs(e0))
+    # a gap within reach of the clamp is closed with almost no overshoot
+    e0 = np.array([0.05, -0.05, 0.03])
+    chunk = pd_return_chunk(traj[10] + e0, traj[10] - traj[9], traj, 10, 16, 0, 0.002, 0.05)
+    err = chunk - traj[11:27]
+    assert np.all(np.max(-err * np.sign(e0), axis=0) < 0.01 * np.abs(e0))
+    assert np.all(np.abs(err[-1]) < 1e-3 * np.abs(e0))
 
 
 def test_pd_clamped_acceleration_slows_the_return(stats):
@@ -437,7 +441,7 @@ def test_covariance_factor_batched():
 # ---------------------------------------------------------------- augmentation sampler
 
 def small_cfg(**kw):
-    base = dict(pool_size=256, refresh_size=64, refresh_every=2, episodes_per_refresh=4)
+    base = dict(pool_size=256, refresh_size=64, reuse=2.0, episodes_per_refresh=4)
     base.update(kw)
     return RelabelConfig(**base)
 
@@ -480,18 +484,23 @@ def test_sampler_is_deterministic_given_the_seed(stats):
 
 
 def test_sampler_pool_is_refreshed_and_envs_are_cached(stats):
-    sampler, _ = make_sampler(stats, cfg=small_cfg(pool_size=128, refresh_size=64, refresh_every=3))
+    # a refresh of 64 pairs after every reuse * refresh_size = 0.25 * 64 = 16 pairs served
+    sampler, _ = make_sampler(stats, cfg=small_cfg(pool_size=128, refresh_size=64, reuse=0.25))
     rng = np.random.default_rng(0)
-    sampler(8, rng)  # fills the pool
+    sampler(8, rng)  # call 1 fills the pool
     assert sampler._filled == 128
     before = sampler._pool_obs.copy()
     drawn = sampler.n_drawn
-    sampler(8, rng), sampler(8, rng)
-    assert sampler.n_drawn == drawn  # calls 2 and 3 reuse the pool
-    sampler(8, rng)  # call 4: refresh of 64 pairs
+    sampler(8, rng)  # 8 served so far: no refresh
+    assert sampler.n_drawn == drawn
+    sampler(8, rng)  # 16 served: refresh of 64 pairs, then serve
     assert sampler.n_drawn == drawn + 64
     changed = np.any(sampler._pool_obs != before, axis=1)
     assert changed.sum() == 64
+    sampler(16, rng)  # 8 served since the refresh
+    assert sampler.n_drawn == drawn + 64
+    sampler(1, rng)  # 24 >= 16: the next refresh
+    assert sampler.n_drawn == drawn + 128
     assert len(sampler._envs) >= 2 and set(sampler._envs) <= set(range(5))  # one env per scenario seed
     assert all(env.reset_calls == 1 for env in sampler._envs.values())
 
@@ -655,3 +664,9 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     for (o1, c1), (o2, c2) in zip(expect, [b(32, rng2) for _ in range(4)]):
         np.testing.assert_array_equal(o1, o2)
         np.testing.assert_array_equal(c1, c2)
+
+
+def test_lookahead_is_the_gap_at_median_speed_capped():
+    q_proj = np.zeros((4, DOF))
+    q0 = np.array([[0, 0, 0], [0.03, 0, 0], [0.031, 0, 0], [1.0, 0, 0]])
+    np.testing.assert_array_equal(lookahead_steps(q0, q_proj, median_speed=0.01, max_lookahead=8), [0, 3, 4, 8])
