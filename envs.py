@@ -26,6 +26,9 @@ Every environment in this file has the same interface (gymnasium conventions, no
     env.goal                                  # (dim,) goal of the current scenario
     env.render(ax, q=None, alpha=1.0)         # matplotlib drawing of the scene (and arm at q)
     env.eval_seeds(), env.train_seeds(n, start=0)
+PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; goal_configurations()
+gives collision-free closed-form IK solutions of the goal; pymunk_in_collision(q) is the
+simulator's (slow) version of in_collision; clip_action(q, action) is step's motion rule.
 
 Step semantics (CONTRACT.md): q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
@@ -49,7 +52,7 @@ median_step(episodes) gives the paper's "median step size" unit of noise levels 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pymunk
@@ -78,7 +81,7 @@ class PlanarConfig:
     # States checked for contact within one step (the end state and evenly spaced states before it).
     # At max_step = 0.05 rad on all joints a point of the arm moves at most 0.085 m per step, i.e.
     # 0.021 m between checks -- far less than the thinnest forbidden band a link centre line must
-    # cross (2 * (link_radius + min obstacle radius) = 0.1 m), so no link tunnels through an obstacle.
+    # cross (2 * (link_radius + thinnest obstacle radius 0.025) = 0.11 m): nothing tunnels through.
     n_substeps: int = 4
     n_max_obstacles: int = 8  # obstacle slots in the observation (absent ones are zeros)
     # --- scene generator (see PlanarReacher._draw_scene) ---
@@ -101,8 +104,8 @@ class PlanarConfig:
 
 
 # ----------------------------------------------------------------------------------------------
-# Vectorized capsule geometry (numpy). Components are kept in separate x / y arrays: broadcasting
-# over (B, links, obstacles) then runs on contiguous memory.
+# Vectorized capsule geometry (numpy). x and y components are kept in separate arrays (no
+# trailing axis of length 2), so every operation runs on contiguous memory.
 # ----------------------------------------------------------------------------------------------
 def _point_segment_dist_sq(px, py, ax, ay, dx, dy, inv_len_sq):
     """Squared distance from point p to segment a + s d, s in [0, 1] (all arrays broadcast)."""
@@ -234,11 +237,6 @@ class PlanarReacher:
     def goal_reached(self, q):
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
         return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
-
-    def link_segments(self, q):
-        """Link capsules (B, 3, 4): rows (x0, y0, x1, y1); all have radius link_radius."""
-        p = self.fk(q)
-        return np.concatenate([p[..., :-1, :], p[..., 1:, :]], axis=-1)
 
     def in_collision(self, q):
         """True where configuration q touches an obstacle or itself (links 0 and 2). (B,) bool.
@@ -443,8 +441,9 @@ class PlanarReacher:
         """Draw the scenario of `seed` (obstacles, goal, start) and put the arm at the start.
 
         Rejection sampling with one rng stream, so the scene is a deterministic function of seed:
-        scenes whose goal has no collision-free configuration are re-drawn, and start
-        configurations in collision or too close to the goal are re-drawn.
+        scenes whose goal has fewer than min_goal_configurations collision-free IK candidates are
+        re-drawn; the start is the first of 256 uniform joint samples that is collision-free with
+        its end effector at least start_goal_min_dist from the goal (none: re-draw the scene).
         """
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
@@ -577,8 +576,10 @@ _EPISODE_ARRAYS = ("obs", "q", "action", "expert")
 def save_episodes(path, episodes):
     """Write a list of episode dicts to one .npz: per-step arrays concatenated, plus offsets.
 
-    Per-step keys ('obs', 'q', 'action', 'expert', and any other array whose first axis is the
-    episode length T) are concatenated; scalars ('seed', 'success', ...) become per-episode arrays.
+    A key is per-step when its value's first axis is the episode length T in every episode
+    ('obs', 'q', 'action', 'expert', ...): these are concatenated along time and cut back with
+    'offsets'. Other keys ('seed', 'success', a goal vector) must have one shape in all episodes and
+    are stacked per episode. ('seed' is always per-episode.)
     """
     if len(episodes) == 0:
         raise ValueError("save_episodes: empty episode list")
@@ -589,12 +590,13 @@ def save_episodes(path, episodes):
         if any(key not in ep for ep in episodes):
             raise ValueError(f"save_episodes: key {key!r} is missing from some episodes")
         values = [np.asarray(ep[key]) for ep in episodes]
-        if all(v.ndim >= 1 and len(v) == n for v, n in zip(values, lengths)) and key != "seed":
+        if key != "seed" and all(v.ndim >= 1 and len(v) == n for v, n in zip(values, lengths)):
             data["step/" + key] = np.concatenate(values, axis=0)
-        elif all(v.ndim == 0 for v in values):
-            data["episode/" + key] = np.array(values)
+        elif all(v.shape == values[0].shape for v in values):
+            data["episode/" + key] = np.stack(values)
         else:
-            raise ValueError(f"save_episodes: key {key!r} is neither per-step (length T) nor scalar")
+            raise ValueError(f"save_episodes: key {key!r} is neither per-step (first axis T) nor "
+                             f"of one shape in every episode")
     np.savez_compressed(path, **data)
 
 
@@ -614,7 +616,11 @@ def load_episodes(path):
                 ep[key] = values[offsets[i]:offsets[i + 1]]
             elif kind == "episode":
                 v = values[i]
-                ep[key] = int(v) if key == "seed" else v.item() if v.dtype == bool else v
+                if key == "seed":
+                    v = int(v)
+                elif v.ndim == 0 and v.dtype == bool:
+                    v = bool(v)
+                ep[key] = v
     return episodes
 
 

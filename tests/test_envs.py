@@ -247,7 +247,8 @@ def test_save_load_round_trip(tmp_path):
     for i, T in enumerate([5, 1, 12]):
         episodes.append({"obs": rng.normal(size=(T, 48)).astype(np.float32),
                          "q": rng.normal(size=(T, 3)), "action": rng.normal(size=(T, 3)),
-                         "expert": rng.random(T) < 0.5, "seed": 100 + i, "success": bool(i % 2)})
+                         "expert": rng.random(T) < 0.5, "seed": 100 + i, "success": bool(i % 2),
+                         "goal": rng.normal(size=2)})
     path = tmp_path / "eps.npz"
     save_episodes(path, episodes)
     back = load_episodes(path)
@@ -258,7 +259,10 @@ def test_save_load_round_trip(tmp_path):
             np.testing.assert_array_equal(a[k], b[k])
             assert a[k].dtype == b[k].dtype
         assert b["seed"] == a["seed"] and isinstance(b["seed"], int)
-        assert b["success"] == a["success"]
+        assert b["success"] == a["success"] and isinstance(b["success"], bool)
+        np.testing.assert_array_equal(a["goal"], b["goal"])
+    with pytest.raises(ValueError, match="missing"):
+        save_episodes(path, [episodes[0], {"q": np.zeros((2, 3))}])
     with pytest.raises(FileNotFoundError):
         load_episodes(tmp_path / "missing.npz")
 
