@@ -141,6 +141,33 @@ def test_numpy_and_pymunk_agree_on_random_configurations(seed):
     np.testing.assert_array_equal(numpy_says, pymunk_says)
 
 
+def test_numpy_and_pymunk_agree_at_the_contact_boundary():
+    # Bisect between free and colliding random configurations to points on the contact boundary,
+    # then step 1e-9 rad to either side: both checks must give the same answer there.
+    e = make_env("planar")
+    rng = np.random.default_rng(7)
+    lo, hi = e.joint_limits
+    n_points = 0
+    for seed in (10_004, 10_005):
+        e.reset(seed=seed)
+        qa, qb = rng.uniform(lo, hi, size=(2, 150, 3))
+        differ = e.in_collision(qa) != e.in_collision(qb)
+        a, b = qa[differ], qb[differ]
+        t0, t1 = np.zeros(len(a)), np.ones(len(a))  # in_collision(a + t0 d) == in_collision(a)
+        start = e.in_collision(a)
+        for _ in range(45):
+            tm = 0.5 * (t0 + t1)
+            same = e.in_collision(a + tm[:, None] * (b - a)) == start
+            t0, t1 = np.where(same, tm, t0), np.where(same, t1, tm)
+        step = 1e-9 / np.linalg.norm(b - a, axis=1)
+        for t in (t0 - step, t1 + step):
+            q = a + t[:, None] * (b - a)
+            np.testing.assert_array_equal(e.in_collision(q), e.pymunk_in_collision(q))
+        assert np.all(e.in_collision(a + (t1 + step)[:, None] * (b - a)) != start)
+        n_points += len(a)
+    assert n_points > 100
+
+
 def test_batched_equals_looped(env):
     lo, hi = env.joint_limits
     q = np.random.default_rng(1).uniform(lo, hi, size=(200, 3))
