@@ -13,8 +13,9 @@ This file implements that augmentation, top to bottom:
    rejecting states in collision or outside the joint limits;
 3. `monotone_projection`: the closest point of the expert trajectory, never earlier in time;
 4. `pd_return_chunk`: a critically damped PD controller, accelerations clamped to the demos,
-   rolled out toward the trajectory a few steps ahead of the projection (the lookahead comes from
-   the dataset's median speed) -- the chunk of H absolute joint targets rejoins, then follows it;
+   rolled out toward a reference that advances along the expert trajectory from the projection
+   (see `lookahead_steps` for the paper's "a state a few timesteps further") -- the chunk of H
+   absolute joint targets rejoins the trajectory, then follows it;
 5. `AugmentationSampler`: (observation, chunk) training pairs generated on the fly for co-training
    (diffusion.train's `sampler` hook), kept in a pool that is partly regenerated every few calls;
 6. `plot_recovery`: the paper's Fig. 1 on the planar env.
@@ -45,7 +46,11 @@ class RelabelConfig:
     #   so that a trajectory that later passes near the same configuration (untangling manoeuvres)
     #   cannot pull the projection far into the future. At the demos' typical speed 2H steps of path
     #   are far longer than the largest noise of Table I (16 median steps per joint).
-    max_lookahead: int = 8  # cap on the lookahead (steps ahead of the projection), H/2 by default
+    lookahead: str = "time_matched"  # where the PD aims at chunk step k (see `lookahead_steps`):
+    #   'time_matched': trajectory[t_proj + k], the lag-free form of the paper's "state a few
+    #   timesteps further"; 'gap': L = ceil(gap / median speed) steps further still, the literal
+    #   reading -- measured worse on oracle demos (benchmarks/bench_relabel.py, label quality)
+    max_lookahead: int = 8  # cap on L for lookahead='gap' (H/2)
     settle_steps: float = 8.0  # the PD gains make the unclamped error settle (to 2 %) in this many
     #   steps: H/2, so the second half of every chunk follows the expert trajectory.
     max_tries: int = 10  # rejection rounds for a perturbed state before it is dropped
@@ -320,10 +325,18 @@ def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
 
 
 def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max_lookahead: int) -> np.ndarray:
-    """How many steps ahead of the projection the return aims (Sec. IV-E: "a state a few timesteps
-    further ... computed with the median velocity in the dataset"): the time, in steps, that the
-    demonstrations take at their median speed to cover the gap ‖q0 - q_proj‖, capped at
-    max_lookahead. A state on the trajectory gets 0 (its label is the expert's own future)."""
+    """The literal reading of Sec. IV-E's target, "a state a few timesteps further in the expert
+    trajectory (computed with the median velocity in the dataset)": L = the steps the demos take at
+    their median speed to cover the gap ‖q0 - q_proj‖, capped at max_lookahead (0 on the path).
+
+    Why it is not the default (RelabelConfig.lookahead): a plain PD chasing a point that advances
+    along the path settles Kd/Kp steps *behind* it, and a lookahead of a few steps is what puts
+    such a PD back on the time-matched point. `pd_return_chunk` has velocity feed-forward and no
+    lag, so its equivalent is lookahead 0 (reference trajectory[t_proj + k]). With L > 0 on top, the
+    arm must gain L steps on an expert that already moves at the speed limit, which it cannot: on
+    oracle demos at σ = 4 the chunk ends were 1.32 median steps from the path against 0.10
+    time-matched (medians; benchmarks/bench_relabel.py).
+    """
     gap = np.linalg.norm(np.asarray(q0) - np.asarray(q_proj), axis=-1)
     return np.minimum(np.ceil(gap / median_speed), max_lookahead).astype(np.int64)
 
@@ -401,10 +414,15 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
                       stats: DemoStats, cfg: RelabelConfig, limits=None) -> np.ndarray:
     """The labelling pipeline of Sec. IV-E for noised states q̃ (m, dof) that came from steps t (m,):
-    monotone projection -> lookahead from the median speed -> PD return chunk. `t_end` (m,) is the
+    monotone projection -> (optional lookahead) -> PD return chunk. `t_end` (m,) is the
     (exclusive) end of each state's expert segment in `trajectory`. Returns (m, H, dof)."""
     t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
-    ahead = lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
+    if cfg.lookahead == "time_matched":
+        ahead = 0
+    elif cfg.lookahead == "gap":
+        ahead = lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
+    else:
+        raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {cfg.lookahead!r}")
     return pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, ahead, stats.accel_max, stats.max_step,
                            settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
 
@@ -432,7 +450,7 @@ class AugmentationSampler:
     A pair is made like this: draw (episode, t) uniformly among the intervention steps with a valid
     label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); q̃_prev = q̃ - (q_t - q_{t-1}) so the
     observed velocity is the expert's; obs = env.make_obs(q̃, q̃_prev) in the episode's scenario;
-    chunk = `corrective_labels` (projection, lookahead, PD return).
+    chunk = `corrective_labels` (monotone projection, PD return).
 
     Cost: env calls cost per call, not per state, so pairs are generated in batches grouped by
     scenario and kept in a pool of `cfg.pool_size` pairs. Each call returns n pairs drawn uniformly
@@ -450,6 +468,8 @@ class AugmentationSampler:
         H = self.cfg.horizon
         if noise not in NOISE_KINDS:
             raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+        if self.cfg.lookahead not in ("time_matched", "gap"):
+            raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {self.cfg.lookahead!r}")
         if self.cfg.refresh_size < 1 or self.cfg.pool_size < self.cfg.refresh_size or not self.cfg.reuse > 0:
             raise ValueError("need 1 <= refresh_size <= pool_size and reuse > 0, got refresh_size="
                              f"{self.cfg.refresh_size}, pool_size={self.cfg.pool_size}, reuse={self.cfg.reuse}")

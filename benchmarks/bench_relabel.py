@@ -9,7 +9,10 @@ The intervention episodes are stand-ins that need no oracle: straight joint-spac
 scenario's start toward its nearest goal configuration, stopped before the first collision, timed
 with a smoothstep, with the "intervention" covering all but the first 5 steps.
 
-Usage:  python benchmarks/bench_relabel.py [--calls 400] [--episodes 24]
+A second table measures label quality on RRT-oracle demonstrations (which move at the speed limit):
+how close the PD chunks come back to the expert path, for both RelabelConfig.lookahead modes.
+
+Usage:  python benchmarks/bench_relabel.py [--calls 400] [--episodes 24] [--oracle-demos 8]
 Prints a markdown table. Numbers depend on machine load (the team shares 2 cores); the CPU-time
 row (time.process_time) is the least sensitive to other processes.
 """
@@ -55,6 +58,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--calls", type=int, default=400, help="sampler calls timed per noise model")
     parser.add_argument("--episodes", type=int, default=24, help="intervention episodes")
+    parser.add_argument("--oracle-demos", type=int, default=8,
+                        help="oracle demonstrations for the label-quality table (0 = skip; ~4 s each)")
     args = parser.parse_args()
     env = make_env("planar")
     episodes, seed = [], 0
@@ -122,6 +127,48 @@ def main():
     for name, value, unit_name in rows:
         text = value if isinstance(value, str) else (f"{value:,.0f}" if value >= 100 else f"{value:.3f}")
         print(f"| {name} | {text} | {unit_name} |")
+    if args.oracle_demos > 0:
+        label_quality(env, args.oracle_demos)
+
+
+def label_quality(env, n_demos):
+    """How close the labels come back to the expert path, on RRT-oracle demonstrations (they move at
+    the speed limit, unlike the stand-ins above), for both RelabelConfig.lookahead modes."""
+    import oracle
+
+    expert, seed = oracle.Oracle(), 0
+    demos = []
+    t0 = time.perf_counter()
+    while len(demos) < n_demos and seed < 10 * n_demos:
+        try:
+            demos.append(expert.demonstrate(env, seed))
+        except oracle.PlanningFailed:
+            pass
+        seed += 1
+    unit = median_step(demos)
+    stats = relabel.demo_stats(demos, unit, env.max_step)
+    print(f"\nLabel quality on {len(demos)} oracle demos ({time.perf_counter() - t0:.0f} s to plan): distance of "
+          f"chunk[7] / chunk[15] to the expert segment, in median steps ({unit:.4f} rad), median (90th pct)\n")
+    print("| σ (median steps) | start | lookahead | chunk[7] | chunk[15] | mean |a| / clamp |\n|---:|---:|---|---:|---:|---:|")
+    table = relabel.AugmentationSampler(demos, lambda: make_env("planar"), stats, "isotropic", 0.0)
+    traj = table.trajectory
+    rng = np.random.default_rng(0)
+    for sigma in (2, 4, 8, 16):
+        rows = rng.integers(len(table.center), size=1000)
+        q0 = table.center[rows] + rng.normal(size=(1000, env.dof)) * sigma * unit
+        v, t, t_end = table.velocity[rows], table.t_glob[rows], table.end_glob[rows]
+
+        def dist(x):  # distance to the nearest point of the expert segment from t on
+            return np.array([np.linalg.norm(traj[a:b] - p, axis=1).min() for p, a, b in zip(x, t, t_end)]) / unit
+
+        start = dist(q0)
+        for mode in ("time_matched", "gap"):
+            chunks = relabel.corrective_labels(q0, v, traj, t, t_end, stats, relabel.RelabelConfig(lookahead=mode))
+            path = np.concatenate([q0[:, None], chunks], axis=1)
+            acc = np.diff(np.concatenate([v[:, None], np.diff(path, axis=1)], axis=1), axis=1)
+            mid, end = dist(chunks[:, 7]), dist(chunks[:, -1])
+            fmt = lambda d: f"{np.median(d):.2f} ({np.percentile(d, 90):.2f})"
+            print(f"| {sigma} | {fmt(start)} | {mode} | {fmt(mid)} | {fmt(end)} | {np.mean(np.abs(acc) / stats.accel_max):.2f} |")
 
 
 if __name__ == "__main__":

@@ -670,3 +670,25 @@ def test_lookahead_is_the_gap_at_median_speed_capped():
     q_proj = np.zeros((4, DOF))
     q0 = np.array([[0, 0, 0], [0.03, 0, 0], [0.031, 0, 0], [1.0, 0, 0]])
     np.testing.assert_array_equal(lookahead_steps(q0, q_proj, median_speed=0.01, max_lookahead=8), [0, 3, 4, 8])
+
+
+def test_corrective_labels_lookahead_modes(stats):
+    traj = smooth_trajectory()
+    rng = np.random.default_rng(3)
+    t = np.full(50, 20)
+    q = traj[t] + rng.normal(size=(50, DOF)) * 3 * stats.median_step
+    v = traj[t] - traj[t - 1]
+    end = np.full(50, len(traj))
+    timed = corrective_labels(q, v, traj, t, end, stats, RelabelConfig())
+    gap = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(lookahead="gap"))
+    proj = monotone_projection(q, traj, t, window=32)
+    ahead = lookahead_steps(q, traj[proj], stats.median_speed, 8)
+    assert ahead.min() >= 1  # every noised state is off the path, so 'gap' aims further ahead
+    np.testing.assert_allclose(timed, pd_return_chunk(q, v, traj, proj, 16, 0, stats.accel_max, stats.max_step))
+    np.testing.assert_allclose(gap, pd_return_chunk(q, v, traj, proj, 16, ahead, stats.accel_max, stats.max_step))
+    # time-matched: the chunk ends on the point the expert reaches H steps after the projection
+    assert np.median(np.linalg.norm(timed[:, -1] - traj[proj + 16], axis=1)) < 0.1 * stats.median_step
+    with pytest.raises(ValueError, match="lookahead"):
+        corrective_labels(q, v, traj, t, end, stats, RelabelConfig(lookahead="far"))
+    with pytest.raises(ValueError, match="lookahead"):
+        make_sampler(stats, cfg=small_cfg(lookahead="far"))
