@@ -19,7 +19,8 @@ Every environment in this file has the same interface (gymnasium conventions, no
     env.q, env.q_prev                         # current / previous joint positions (read-only)
     env.set_state(q, q_prev=None, step_count=0)
     env.make_obs(q, q_prev)                   # batched observations for the current scenario
-    env.in_collision(q)                       # (B,) bool, True = in collision (vectorized numpy)
+    env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy);
+                                              # margin (m) inflates every pair's contact distance
     env.fk(q)                                 # (B, n_points, dim) joint points, base .. end effector
     env.ee(q)                                 # (B, dim) end effector
     env.goal_reached(q)                       # (B,) bool, True = end effector within tolerance
@@ -240,10 +241,12 @@ class PlanarReacher:
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
         return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
 
-    def in_collision(self, q):
+    def in_collision(self, q, margin=0.0):
         """True where configuration q touches an obstacle or itself (links 0 and 2). (B,) bool.
 
-        A capsule pair collides when the distance of its segments is < the sum of the radii.
+        A capsule pair collides when the distance of its segments is < the sum of the radii
+        (+ margin: with margin > 0, True also where a pair is closer than margin m -- the
+        inflated check planners use to keep clear of obstacles between their collision checks).
         Adjacent links share a joint and never count. Vectorized over the batch in two phases:
           broad phase: bounding circles of every (config, link, obstacle) pair -- a cheap test that
             rules out most pairs (about 5 in 6 in the generated scenes);
@@ -253,12 +256,14 @@ class PlanarReacher:
         q, single = _as_batch(q, self.dof)
         if not np.all(np.isfinite(q)):
             raise ValueError("in_collision: q contains NaN or inf")
+        if not (np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
         chunk = 2048  # configurations per pass: temporaries stay in cache (faster than 4096 here)
-        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk])
+        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], float(margin))
                               for i in range(0, len(q), chunk)])
         return hit[0] if single else hit
 
-    def _in_collision_chunk(self, q):
+    def _in_collision_chunk(self, q, margin):
         B = len(q)
         angles = np.cumsum(q.T, axis=0)  # (3, B) absolute link angles
         ux = np.cos(angles) * self.link_lengths[:, None]  # (3, B) link vectors
@@ -272,7 +277,7 @@ class PlanarReacher:
         # broad phase: link bounding circle (centre = link midpoint) vs obstacle bounding circle
         dx = (ax + 0.5 * ux)[:, :, None] - g["cx"]  # (3, B, N)
         dy = (ay + 0.5 * uy)[:, :, None] - g["cy"]
-        near = dx * dx + dy * dy < g["reach_sq"][:, None, :]  # (3, B, N)
+        near = dx * dx + dy * dy < ((g["reach"] + margin) ** 2)[:, None, :]  # (3, B, N)
         link, b, o = np.nonzero(near)
         flat = link * B + b  # index into the raveled (3, B) link arrays
         # narrow phase on the candidate pairs (link, obstacle) plus, for every configuration, the
@@ -282,7 +287,8 @@ class PlanarReacher:
             np.concatenate([ux.ravel()[flat], ux[0]]), np.concatenate([uy.ravel()[flat], uy[0]]),
             np.concatenate([g["bx"][o], ax[2]]), np.concatenate([g["by"][o], ay[2]]),
             np.concatenate([g["vx"][o], ux[2]]), np.concatenate([g["vy"][o], uy[2]]))
-        contact_sq = np.concatenate([g["contact_sq"][o], np.full(B, (2 * self.link_radius) ** 2)])
+        contact = np.concatenate([g["contact"][o], np.full(B, 2 * self.link_radius)]) + margin
+        contact_sq = contact * contact
         hit = np.zeros(B, dtype=bool)
         hit[np.concatenate([b, np.arange(B)])[d2 < contact_sq]] = True
         return hit
@@ -307,8 +313,8 @@ class PlanarReacher:
         bound = 0.5 * np.hypot(vx, vy) + obstacles[:, 4]  # obstacle bounding-circle radius
         link_bound = 0.5 * self.link_lengths + self.link_radius  # (3,)
         self._geom = dict(bx=bx, by=by, vx=vx, vy=vy, cx=bx + 0.5 * vx, cy=by + 0.5 * vy,
-                          reach_sq=(link_bound[:, None] + bound) ** 2,  # (3, N)
-                          contact_sq=(self.link_radius + obstacles[:, 4]) ** 2)  # (N,)
+                          reach=link_bound[:, None] + bound,  # (3, N) centre distance for overlap
+                          contact=self.link_radius + obstacles[:, 4])  # (N,) radii sums
         self._obstacle_obs = np.zeros(5 * self.cfg.n_max_obstacles, dtype=np.float32)
         self._obstacle_obs[: obstacles.size] = obstacles.ravel()
         self._build_space()

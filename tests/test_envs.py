@@ -107,6 +107,33 @@ def test_touching_within_radius_and_clear_by_a_hair():
         assert e.pymunk_in_collision(np.zeros(3)) == expected
 
 
+def test_margin_inflates_every_capsule_pair():
+    r = PlanarReacher().link_radius
+    gap = 0.01  # surface gap between link 1 and a disc above it
+    e = empty_env([[0.5, r + 0.02 + gap, 0.5, r + 0.02 + gap, 0.02]])
+    q = np.zeros(3)
+    assert not e.in_collision(q)
+    assert not e.in_collision(q, margin=0.9 * gap) and e.in_collision(q, margin=1.1 * gap)
+    # self-collision: a folded arm whose link 2 is clear of link 0: margin just below / above the clearance
+    e = empty_env()
+    lo_q = np.array([0.0, 2.5, 1.0])  # less folded: clear of link 0
+    assert not e.in_collision(lo_q)
+    pts = e.fk(lo_q)
+    d = math.sqrt(envs.segment_distance_sq(*pts[0], *(pts[1] - pts[0]), *pts[2], *(pts[3] - pts[2])))
+    clearance = d - 2 * r
+    assert clearance > 0
+    assert not e.in_collision(lo_q, margin=0.99 * clearance)
+    assert e.in_collision(lo_q, margin=1.01 * clearance)
+    # a random batch: margin never removes collisions, and agrees with looped calls
+    e.reset(seed=10_001)
+    lo, hi = e.joint_limits
+    qs = np.random.default_rng(0).uniform(lo, hi, size=(500, 3))
+    assert np.all(e.in_collision(qs, margin=0.02) >= e.in_collision(qs))
+    assert e.in_collision(qs, margin=0.02).sum() > e.in_collision(qs).sum()
+    with pytest.raises(ValueError, match="margin"):
+        e.in_collision(qs, margin=-0.1)
+
+
 def test_self_collision_of_non_adjacent_links_only():
     e = empty_env()
     # fold link 2 back over link 0: q1 = 2.5, q2 = 2.5 -> link 2 points back across link 0
