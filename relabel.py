@@ -458,8 +458,9 @@ class AugmentationSampler:
     oldest pairs are replaced by fresh ones (from `cfg.episodes_per_refresh` episode draws). So a
     pair is served `reuse` (= 4) times on average, and with n = 128 a refresh comes every 16 calls
     (32 fresh pairs per call). Counting pairs rather than calls keeps the cost per served pair the
-    same when several samplers share a batch (one per DAgger round). All randomness comes from the rng passed to each call, so
-    the same seed and call sequence give the same pairs.
+    same when several samplers share a batch (one per DAgger round). All randomness comes from the
+    rng passed to each call, so the same seed and call sequence give the same pairs; `state_dict`
+    saves the pool for a resumed training run.
     """
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
@@ -536,6 +537,8 @@ class AugmentationSampler:
         """m fresh pairs (fewer if some states were rejected `max_tries` times): obs (m', obs_dim)
         float32, chunks (m', H, dof) float32. Episodes are drawn first (probability proportional to
         their number of labelable steps, so steps are uniform overall), then steps within them."""
+        if not isinstance(m, (int, np.integer)) or m < 1:
+            raise ValueError(f"m must be a positive integer, got {m!r}")
         k = min(self.cfg.episodes_per_refresh, m)
         draws = rng.choice(len(self._ep_ids), size=k, p=self._ep_count / self._ep_count.sum())
         per_draw = np.full(k, m // k)
@@ -589,6 +592,7 @@ class AugmentationSampler:
         self.n_drawn, self.n_kept = int(state["n_drawn"]), int(state["n_kept"])
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """n pairs from the pool (diffusion.train's sampler hook); fills the pool on the first call."""
         if not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n must be an integer >= 0, got {n!r}")
         if self._filled == 0:  # first call: fill the pool (bounded number of attempts)
