@@ -1,0 +1,96 @@
+"""Benchmark of the RRT oracle expert (issue 3) on the planar env's 100 evaluation scenarios.
+
+For every scenario: Oracle.demonstrate (plan + execute with env.step). Reports
+  expert success (target >= 98 %), median planning time, median demo length (steps),
+  demos per minute on this machine (wall clock of plan + execution, single process),
+  time_parameterize duration / lower bound, where the lower bounds are
+    path bound:  the slowest joint's bang-bang (trapezoid) time over its total travel along the
+                 smoothed path that was executed (min_time_lower_bound(plan.path));
+    line bound:  the same over the straight joint-space line start -> chosen goal configuration
+                 (no path from start to that configuration can be faster),
+  and checks the velocity / acceleration / jerk limits at every sample of every plan.
+Failures are listed with their seed and reason.
+
+Usage:  python benchmarks/bench_oracle.py [--n 100] [--seeds eval|train]
+"""
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from envs import make_env  # noqa: E402
+from oracle import Oracle, PlanningFailed, min_time_lower_bound  # noqa: E402
+
+
+def limit_ratios(samples, v_max, a_max, j_max, dt):
+    """Largest |v| / v_max, |a| / a_max, |jerk| / j_max over all samples (start and end at rest)."""
+    vel = np.diff(samples, axis=0, prepend=samples[:1], append=samples[-1:]) / dt
+    vel = np.concatenate([np.zeros((1, samples.shape[1])), vel])
+    acc = np.diff(vel, axis=0) / dt
+    jerk = np.diff(acc, axis=0) / dt
+    return (np.abs(vel) / v_max).max(), (np.abs(acc) / a_max).max(), (np.abs(jerk) / j_max).max()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--n", type=int, default=100, help="number of scenarios")
+    parser.add_argument("--seeds", choices=["eval", "train"], default="eval")
+    args = parser.parse_args()
+    env = make_env("planar")
+    oracle = Oracle()
+    v_max, a_max, j_max = oracle.limits(env)
+    seeds = env.eval_seeds()[: args.n] if args.seeds == "eval" else env.train_seeds(args.n)
+    rows, failures = [], []
+    t_start = time.perf_counter()
+    for i, seed in enumerate(seeds):
+        t0 = time.perf_counter()
+        try:
+            episode = oracle.demonstrate(env, seed)
+        except PlanningFailed as e:
+            failures.append((seed, f"planning failed: {e.reason}"))
+            print(f"[{i + 1}/{len(seeds)}] seed {seed}: PLANNING FAILED ({e.reason})", flush=True)
+            continue
+        wall = time.perf_counter() - t0
+        plan = oracle.last_plan
+        duration = (len(plan.samples) - 1) * env.dt
+        rows.append(dict(
+            seed=seed, success=episode["success"], steps=len(episode["q"]), wall=wall,
+            plan_time=plan.planning_time, duration=duration,
+            path_ratio=duration / min_time_lower_bound(plan.path, v_max, a_max),
+            line_ratio=duration / min_time_lower_bound(plan.samples[[0, -1]], v_max, a_max),
+            limits=max(limit_ratios(plan.samples, v_max, a_max, j_max, env.dt))))
+        if not episode["success"]:
+            failures.append((seed, f"execution failed after {len(episode['q'])} steps "
+                                   f"(collision or truncation at max_steps={env.max_steps})"))
+        elapsed = time.perf_counter() - t_start
+        print(f"[{i + 1}/{len(seeds)}] seed {seed}: success {episode['success']}, "
+              f"{len(episode['q'])} steps, plan {plan.planning_time:.2f} s, "
+              f"T/bound {rows[-1]['path_ratio']:.2f}, {elapsed:.0f} s elapsed, "
+              f"~{elapsed / (i + 1) * (len(seeds) - i - 1):.0f} s left", flush=True)
+    total = time.perf_counter() - t_start
+    col = lambda k: np.array([r[k] for r in rows])  # noqa: E731
+    n_success = int(col("success").sum()) if rows else 0
+    print(f"\nscenarios: {len(seeds)} ({args.seeds} seeds), {total:.0f} s total")
+    print("| measure | value |\n|---|---|")
+    print(f"| expert success | {n_success}/{len(seeds)} = {100 * n_success / len(seeds):.1f} % |")
+    if rows:
+        print(f"| planning time, s (median / 90th pct / max) | {np.median(col('plan_time')):.2f} / "
+              f"{np.percentile(col('plan_time'), 90):.2f} / {col('plan_time').max():.2f} |")
+        print(f"| demo length, steps (median / 90th pct / max) | {np.median(col('steps')):.0f} / "
+              f"{np.percentile(col('steps'), 90):.0f} / {col('steps').max()} |")
+        print(f"| demos per minute (plan + execute, 1 process) | {60 * n_success / total:.1f} |")
+        print(f"| duration / path bound (median / max) | {np.median(col('path_ratio')):.2f} / "
+              f"{col('path_ratio').max():.2f} |")
+        print(f"| duration / straight-line bound (median / max) | {np.median(col('line_ratio')):.2f}"
+              f" / {col('line_ratio').max():.2f} |")
+        print(f"| max limit use over all samples (|v|/v_max, |a|/a_max, |j|/j_max) | "
+              f"{col('limits').max():.6f} |")
+    for seed, reason in failures:
+        print(f"failure: seed {seed}: {reason}")
+
+
+if __name__ == "__main__":
+    main()

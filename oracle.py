@@ -1,0 +1,847 @@
+"""The RRT oracle expert (paper Sec. V, "RRT-based oracle expert"; Sec. III HG-DAgger gating).
+
+The paper replaces the human of HG-DAgger by a deterministic planner that uses privileged simulator
+information. This file builds it from scratch, for any serial arm behind the env interface of
+CONTRACT.md (env.dof, env.joint_limits, env.in_collision, env.fk / env.ee, env.max_step, env.dt):
+
+  solve_ik            goal configurations: damped least squares from many seeds (numeric Jacobian)
+  rrt_connect         bidirectional RRT-Connect in joint space, batched edge checks, several goals
+  shortcut            random shortcutting (after one greedy batched pass)
+  smooth_corners      quadratic-Bezier corner rounding, sharp corner kept where rounding collides
+  time_parameterize   speed / acceleration / jerk limits at every sample, WITHOUT TOPP-RA (the
+                      paper uses TOPP-RA; here: a double moving-average (FIR) filter of a
+                      full-speed traversal, verified and locally slowed down where needed)
+  Oracle              demonstrate (full expert episodes for D0) and the HG-DAgger gate (Sec. III:
+                      "whether the policy's predicted action chunk will drive the robot into
+                      collision or if the policy has not yet reached the goal") + intervention,
+                      which matches the policy's pose and velocity at the handoff (Sec. V) and
+                      drives only a fraction of the plan before handing back.
+
+Edge validation (why the collision checks cannot miss an obstacle). For a serial arm, a joint-space
+step dq moves any point of the arm by at most  sum_j R_j |dq_j|,  where R_j bounds the distance
+from joint j to the farthest point of the arm beyond it (the arm beyond joint j rotates about it).
+A link's centre line collides iff it comes within (link radius + obstacle radius) of an obstacle,
+so to cross an obstacle unseen it must jump a forbidden band of width >= 2 * link radius. We
+interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= link radius,
+i.e. |dq_j| / eps_j summed <= 1 with eps_j = link_radius / R_j (`edge_resolution`). R_j comes from
+env.fk (`lever_arms`), not from planar constants.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class PlanningFailed(RuntimeError):
+    """The planner found no plan within its budget (or the problem has none)."""
+
+    def __init__(self, reason, iters=0):
+        super().__init__(reason)
+        self.reason = reason  # human-readable cause
+        self.iters = iters  # RRT iterations spent (0 if it failed before the search)
+
+
+@dataclass
+class OracleConfig:
+    seed: int = 0  # base seed of the planner's randomness (mixed with scenario seed / state)
+    # --- inverse kinematics ---
+    n_ik_seeds: int = 512  # DLS starting points (start + uniform random); free goal configs can
+    # be rare in clutter (~2% of converged seeds in some planar scenes), and seeds are batched
+    ik_iters: int = 40  # DLS iterations (most seeds converge in 10-20)
+    ik_damping: float = 0.05  # lambda of DLS: keeps steps bounded near singularities
+    ik_tolerance: float = 1e-3  # m, an IK solution's end effector must be this close to the goal
+    max_goals: int = 8  # distinct goal configurations handed to the planner (nearest first)
+    goal_dedup: float = 0.2  # rad, solutions closer than this (max-norm) count as one
+    # --- RRT-Connect ---
+    step_size: float = 0.3  # rad, joint-space length of one EXTEND step
+    max_iters: int = 1000  # RRT iterations per attempt (each extends toward rrt_batch samples)
+    rrt_batch: int = 8  # samples per iteration, checked in one batched call
+    max_time: float = 10.0  # s per attempt: a guard against hanging, not the normal budget
+    n_attempts: int = 3  # independent RRT runs; the plan with the smallest ee arc length wins
+    shortcut_iters: int = 64  # random shortcut proposals (after the greedy pass)
+    corner_fraction: float = 0.4  # corner blend starts this fraction of the shorter edge away
+    corner_points: int = 8  # points sampled on each corner's Bezier blend
+    # --- limits of the expert's motion (derived from env.max_step and env.dt in `limits`) ---
+    speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (env's limit)
+    accel_steps: int = 4  # steps to go from rest to v_max (a_max = v_max / (accel_steps dt))
+    jerk_steps: int = 2  # steps to go from 0 to a_max (j_max = a_max / (jerk_steps dt))
+    # m, max arm-point motion between two collision checks of an edge; None: half the env's
+    # link_radius (below the link radius, as the edge-validation argument needs; half of it keeps
+    # the margins below small next to the planar scenes' 0.15 m wall gaps)
+    sweep_tolerance: float | None = None
+    margin: float = 1.0  # planning margin, in sweeps (RRT, shortcut, corners)
+    verify_margin: float = 0.5  # margin the executed trajectory is verified with, in sweeps;
+    # >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
+    relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion from the start
+    # --- HG-DAgger gating and intervention ---
+    horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
+    handback_fraction: float = 0.5  # drive at least this fraction of the plan before handing back
+    safe_lookahead: int = 8  # hand back only if the next steps of the plan are all clear
+    clearance: float = 4.0  # required clearance for hand-back, in sweeps (= 2 link radii)
+    stall_window: int = 40  # steps: stalled if the ee got no closer to the goal in this window
+    stall_progress: float = 0.02  # m, the improvement that counts as progress in the window
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry helpers: lever arms, edge interpolation, batched edge checks
+# ----------------------------------------------------------------------------------------------
+def lever_arms(env, n_probe=8):
+    """R_j (dof,): bound on the distance from joint j to any point of the arm beyond it.
+
+    Segment lengths between consecutive fk points are constant for a rigid serial chain; we take
+    their maximum over the zero pose and a few probe poses (a fixed probe seed, so the bound is
+    deterministic). If fk returns one point per joint plus the end effector, joint j sits at point
+    j and R_j = sum of the segment lengths after it; otherwise every R_j = the total chain length
+    (the maximal reach), which is always a valid, if looser, bound.
+    """
+    lo, hi = env.joint_limits
+    probe_rng = np.random.default_rng(0)  # geometry probe only, not a planning decision
+    qs = np.concatenate([np.zeros((1, env.dof)), probe_rng.uniform(lo, hi, (n_probe, env.dof))])
+    points = env.fk(qs)  # (B, n_points, dim)
+    seg = np.linalg.norm(np.diff(points, axis=1), axis=-1).max(axis=0)  # (n_points - 1,)
+    if len(seg) == env.dof:
+        return np.cumsum(seg[::-1])[::-1].copy()  # R_j = sum_{i >= j} seg_i
+    return np.full(env.dof, seg.sum())
+
+
+def edge_resolution(env, sweep_tolerance):
+    """eps_j (dof,) in rad: an edge is checked at states with sum_j |dq_j| / eps_j <= 1 apart,
+    so that no point of the arm moves more than sweep_tolerance (m) between two checks."""
+    if not sweep_tolerance > 0:
+        raise ValueError(f"sweep_tolerance must be > 0 (m), got {sweep_tolerance}")
+    return sweep_tolerance / lever_arms(env)
+
+
+def interpolate_edges(q_from, q_to, resolution):
+    """States along straight edges, spaced so that sum_j |dq_j| / resolution_j <= 1.
+
+    q_from, q_to: (E, dof). Returns states (P, dof), their edge index (P,), their sub-step k (P,)
+    and each edge's sub-step count n (E,): the states at fractions k / n, k = 1 .. n, of each
+    edge (the start of an edge is assumed checked already).
+    """
+    dq = q_to - q_from  # (E, dof)
+    n = np.maximum(1, np.ceil(np.sum(np.abs(dq) / resolution, axis=1) - 1e-9)).astype(int)  # (E,)
+    edge = np.repeat(np.arange(len(dq)), n)  # (P,)
+    first = np.cumsum(n) - n  # index of each edge's first state
+    k = np.arange(n.sum()) - np.repeat(first, n) + 1  # (P,) 1 .. n_e
+    return q_from[edge] + (k / n[edge])[:, None] * dq[edge], edge, k, n
+
+
+def edge_free_fraction(q_from, q_to, in_collision, resolution):
+    """(E,) fraction of each edge q_from -> q_to that is collision-free from its start (1 = all).
+
+    One batched in_collision call for all edges: the states are interpolated and checked, and
+    each edge reports the last free sub-step before its first colliding one.
+    """
+    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
+    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
+    hit = in_collision(states)  # (P,)
+    first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
+    np.minimum.at(first_hit, edge[hit], k[hit])
+    return (first_hit - 1) / n
+
+
+def with_margin(env, margin, relax_at=None, relax_radius=0.0):
+    """A stricter collision predicate for planning: True within ~margin (m) of a collision.
+
+    Shortest paths hug obstacles, and two free checks a sweep tolerance apart do not rule out a
+    graze between them (by the lever-arm bound a point moves at most sweep/2 from the nearer
+    check, so it can dip up to sweep/2 into an obstacle). Planning against obstacles inflated by
+    margin >= sweep/2 makes every interpolated state between two checks truly free. If
+    env.in_collision accepts a `margin` keyword (distance inflation), it is used; otherwise the
+    margin is approximated by probes: q counts as colliding if q or one of its 2 dof one-joint
+    displacements of +-margin / R_j collides (each moves the arm by at most `margin`).
+    Near relax_at (K, dof) (arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius_k for some
+    k, in m) only the plain env check applies: a start inside the margin band (an intervention often
+    begins close to an obstacle) must be able to leave it, and a goal configuration squeezed
+    between obstacles must be reachable; grazes are then possible only in these small zones.
+    """
+    lever = lever_arms(env)
+    relax_at = None if relax_at is None else np.atleast_2d(relax_at)
+    try:
+        env.in_collision(np.zeros((1, env.dof)), margin=margin)
+        inflated = lambda q: env.in_collision(q, margin=margin)  # noqa: E731
+    except TypeError:
+        step = margin / lever  # (dof,) rad
+        offsets = np.concatenate([np.zeros((1, env.dof)), np.diag(step), -np.diag(step)])
+
+        def inflated(q):  # (B, dof) -> (B,)
+            probes = (q[:, None, :] + offsets).reshape(-1, env.dof)  # (B * (2 dof + 1), dof)
+            return env.in_collision(probes).reshape(len(q), -1).any(axis=1)
+
+    def in_collision(q):
+        q = np.atleast_2d(q)
+        if relax_at is None:
+            return inflated(q)
+        motion = np.sum(np.abs(q[:, None] - relax_at[None]) * lever, axis=2)  # (B, K)
+        near = np.any(motion <= relax_radius, axis=1)  # (B,); relax_radius scalar or (K,)
+        hit = np.empty(len(q), dtype=bool)
+        hit[near] = env.in_collision(q[near]) if near.any() else []
+        hit[~near] = inflated(q[~near]) if (~near).any() else []
+        return hit
+
+    return in_collision
+
+
+def path_in_collision(path, in_collision, resolution):
+    """True if any edge of the polyline path (N, dof) or its first state collides."""
+    path = np.atleast_2d(path)
+    if in_collision(path[:1])[0]:
+        return True
+    if len(path) < 2:
+        return False
+    return bool(np.any(edge_free_fraction(path[:-1], path[1:], in_collision, resolution) < 1))
+
+
+# ----------------------------------------------------------------------------------------------
+# Inverse kinematics (goal configurations)
+# ----------------------------------------------------------------------------------------------
+def numeric_jacobian(ee, q, h=1e-6):
+    """Central-difference Jacobian of the end effector, batched: q (S, dof) -> (S, dim, dof)."""
+    S, dof = q.shape
+    offsets = np.eye(dof) * h  # (dof, dof)
+    q_plus = (q[:, None, :] + offsets).reshape(-1, dof)  # (S * dof, dof)
+    q_minus = (q[:, None, :] - offsets).reshape(-1, dof)
+    d = (ee(q_plus) - ee(q_minus)).reshape(S, dof, -1) / (2 * h)  # (S, dof, dim)
+    return d.transpose(0, 2, 1)
+
+
+def solve_ik(env, goal, rng, q_start=None, n_seeds=32, iters=60, damping=0.05, tolerance=1e-3,
+             max_goals=8, dedup=0.2, in_collision=None):
+    """Collision-free goal configurations (M, dof), M <= max_goals, nearest to q_start first.
+
+    Damped least squares, batched over seeds: dq = J^T (J J^T + lambda^2 I)^-1 (goal - ee(q)),
+    projected onto the joint limits. Seeds: q_start (if given) and uniform random configurations.
+    Kept: solutions within `tolerance` of the goal, accepted by env.goal_reached, collision-free
+    (in_collision, default env.in_collision), and more than `dedup` rad (max-norm) from every
+    solution kept before them.
+    """
+    in_collision = in_collision or env.in_collision
+    goal = np.asarray(goal, dtype=np.float64)
+    lo, hi = env.joint_limits
+    q = rng.uniform(lo, hi, size=(n_seeds, env.dof))  # (S, dof)
+    if q_start is not None:
+        q[0] = q_start
+    for _ in range(iters):
+        err = goal - env.ee(q)  # (S, dim)
+        J = numeric_jacobian(env.ee, q)  # (S, dim, dof)
+        JJt = J @ J.transpose(0, 2, 1) + damping ** 2 * np.eye(J.shape[1])  # (S, dim, dim)
+        dq = (J.transpose(0, 2, 1) @ np.linalg.solve(JJt, err[..., None]))[..., 0]  # (S, dof)
+        q = np.clip(q + dq, lo, hi)
+    close = np.linalg.norm(env.ee(q) - goal, axis=1) <= tolerance
+    q = q[close & env.goal_reached(q)]
+    q = q[~in_collision(q)] if len(q) else q
+    if q_start is not None and len(q):
+        q = q[np.argsort(np.linalg.norm(q - q_start, axis=1), kind="stable")]
+    kept = []
+    for cand in q:
+        if all(np.max(np.abs(cand - k)) > dedup for k in kept):
+            kept.append(cand)
+        if len(kept) == max_goals:
+            break
+    return np.array(kept).reshape(-1, env.dof)
+
+
+# ----------------------------------------------------------------------------------------------
+# RRT-Connect (Kuffner & LaValle 2000), joint space, several goal roots
+# ----------------------------------------------------------------------------------------------
+class _Tree:
+    """Nodes (n, dof) with parent indices; roots have parent -1 (the goal tree has several)."""
+
+    def __init__(self, roots):
+        self.nodes = np.array(roots, dtype=np.float64)  # grows by doubling
+        self.parent = np.full(len(self.nodes), -1)
+        self.n = len(self.nodes)
+
+    def add(self, q, parent):
+        if self.n == len(self.nodes):
+            self.nodes = np.concatenate([self.nodes, np.empty_like(self.nodes)])
+            self.parent = np.concatenate([self.parent, np.full(len(self.parent), -1)])
+        self.nodes[self.n], self.parent[self.n] = q, parent
+        self.n += 1
+        return self.n - 1
+
+    def nearest(self, q):
+        return int(np.argmin(np.sum((self.nodes[:self.n] - q) ** 2, axis=1)))
+
+    def branch(self, i):
+        """Nodes from node i back to its root, (k, dof)."""
+        out = []
+        while i >= 0:
+            out.append(self.nodes[i])
+            i = self.parent[i]
+        return np.array(out)
+
+
+def _grow(tree, near, targets, free, step_size):
+    """Add to `tree` the free part of the edges near[i] -> targets[i] (free: fraction (E,)),
+    one node every step_size along it. Returns the index of each edge's last node (E,)."""
+    last = np.array(near)
+    for e, (i, target) in enumerate(zip(near, targets)):
+        q_near = tree.nodes[i].copy()
+        n_new = int(math.ceil(free[e] * np.linalg.norm(target - q_near) / step_size - 1e-9))
+        for k in range(1, n_new + 1):
+            last[e] = tree.add(q_near + (k / n_new) * free[e] * (target - q_near), last[e])
+    return last
+
+
+def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3, resolution=0.05,
+                max_iters=500, max_time=10.0, batch=8):
+    """A collision-free path (N, dof) from q_start to one of q_goals, or raise PlanningFailed.
+
+    q_goals (M, dof) are all roots of the goal tree. `resolution` (scalar or (dof,), rad) is the
+    edge-check spacing (see `edge_resolution`). Each iteration is one batched RRT-Connect step:
+    tree A EXTENDs toward `batch` uniform samples (one step_size each, keeping the free part of a
+    blocked step, which still makes progress into narrow passages), then tree B CONNECTs
+    greedily toward every new node (straight, as far as free); the trees swap roles. Two
+    in_collision calls per iteration. Budget: max_iters iterations (deterministic) and max_time
+    seconds (a hang guard; hitting it is the only non-deterministic outcome).
+    """
+    q_start = np.asarray(q_start, dtype=np.float64)
+    q_goals = np.atleast_2d(np.asarray(q_goals, dtype=np.float64))
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in joint_limits)
+    if q_start.ndim != 1 or q_goals.shape[1:] != q_start.shape:
+        raise ValueError(f"q_start (dof,) and q_goals (M, dof) must agree, got {q_start.shape} "
+                         f"and {q_goals.shape}")
+    if step_size <= 0 or max_iters < 0 or batch < 1:
+        raise ValueError(f"need step_size > 0, max_iters >= 0, batch >= 1; got {step_size}, "
+                         f"{max_iters}, {batch}")
+    if in_collision(q_start[None])[0]:
+        raise PlanningFailed("start configuration is in collision")
+    q_goals = q_goals[~in_collision(q_goals)]
+    if len(q_goals) == 0:
+        raise PlanningFailed("every goal configuration is in collision")
+    # Straight lines first (one batched check): the common easy case costs a single call.
+    free = edge_free_fraction(np.repeat(q_start[None], len(q_goals), 0), q_goals, in_collision,
+                              resolution)
+    if np.any(free == 1.0):
+        direct = np.flatnonzero(free == 1.0)
+        best = direct[np.argmin(np.linalg.norm(q_goals[direct] - q_start, axis=1))]
+        return np.stack([q_start, q_goals[best]])
+    trees = [_Tree([q_start]), _Tree(q_goals)]  # [start tree, goal tree]
+    t0 = time.perf_counter()
+    for it in range(max_iters):
+        if time.perf_counter() - t0 > max_time:
+            raise PlanningFailed(f"time budget of {max_time} s exhausted", iters=it)
+        a, b = trees[it % 2], trees[1 - it % 2]
+        # EXTEND tree A toward `batch` uniform samples (one batched check)
+        q_rand = rng.uniform(lo, hi, size=(batch, len(lo)))  # (batch, dof)
+        near = np.argmin(((q_rand[:, None] - a.nodes[None, :a.n]) ** 2).sum(-1), axis=1)
+        d = q_rand - a.nodes[near]
+        dist = np.linalg.norm(d, axis=1)
+        q_new = a.nodes[near] + d * np.minimum(1.0, step_size / np.maximum(dist, 1e-12))[:, None]
+        free = edge_free_fraction(a.nodes[near], q_new, in_collision, resolution)
+        useful = free * np.minimum(dist, step_size) >= 0.1 * step_size  # else not worth a node
+        if not useful.any():
+            continue
+        new = _grow(a, near[useful], q_new[useful], free[useful], step_size)  # one node each
+        # CONNECT tree B toward every new node (one batched check)
+        targets = a.nodes[new]
+        near_b = np.argmin(((targets[:, None] - b.nodes[None, :b.n]) ** 2).sum(-1), axis=1)
+        free_b = edge_free_fraction(b.nodes[near_b], targets, in_collision, resolution)
+        last_b = _grow(b, near_b, targets, free_b, step_size)
+        reached = np.flatnonzero(free_b == 1.0)
+        if len(reached):
+            e = reached[0]  # first in sample order: deterministic
+            branch_a, branch_b = a.branch(new[e]), b.branch(last_b[e])
+            start_side, goal_side = (branch_a, branch_b) if it % 2 == 0 else (branch_b, branch_a)
+            return _drop_duplicates(np.concatenate([start_side[::-1], goal_side]))
+    raise PlanningFailed(f"no path within max_iters={max_iters}", iters=max_iters)
+
+
+def _drop_duplicates(path, tol=1e-12):
+    """Remove consecutive repeated states from a polyline (N, dof)."""
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(path, axis=0), axis=1) > tol])
+    return path[keep]
+
+
+# ----------------------------------------------------------------------------------------------
+# Path post-processing: shortcutting and corner smoothing
+# ----------------------------------------------------------------------------------------------
+def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
+    """Shorter collision-free polyline with the same end points.
+
+    1) Greedy pass: from each kept vertex jump to the farthest later vertex reachable by a free
+       straight edge (all candidate edges of a vertex in one batched check).
+    2) Random shortcutting: `iters` proposals of two random points along the path, in batches of
+       `batch` checked together; the free proposal that saves the most length is applied.
+    """
+    path = _drop_duplicates(np.asarray(path, dtype=np.float64))
+    out, i = [path[0]], 0
+    while i < len(path) - 1:
+        later = np.arange(i + 1, len(path))
+        free = edge_free_fraction(np.repeat(path[i][None], len(later), 0), path[later],
+                                  in_collision, resolution)
+        i = later[np.flatnonzero(free == 1.0).max()]  # i + 1 is always free (an edge of path)
+        out.append(path[i])
+    path = np.array(out)
+    for _ in range(iters // batch):
+        if len(path) < 3:
+            break
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+        s = np.sort(rng.uniform(0, cum[-1], size=(batch, 2)), axis=1)  # (batch, 2) arc positions
+        seg = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(path) - 2)  # (batch, 2)
+        t = (s - cum[seg]) / (cum[seg + 1] - cum[seg])
+        p = path[seg] + t[..., None] * (path[seg + 1] - path[seg])  # (batch, 2, dof)
+        saving = (s[:, 1] - s[:, 0]) - np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
+        useful = (seg[:, 0] < seg[:, 1]) & (saving > 1e-9)
+        if not useful.any():
+            continue
+        free = edge_free_fraction(p[useful, 0], p[useful, 1], in_collision, resolution) == 1.0
+        if not free.any():
+            continue
+        cand = np.flatnonzero(useful)[free]
+        k = cand[np.argmax(saving[cand])]
+        path = _drop_duplicates(np.concatenate([path[:seg[k, 0] + 1], p[k], path[seg[k, 1] + 1:]]))
+    return path
+
+
+def smooth_corners(path, in_collision, resolution=0.05, fraction=0.4, n_points=8, n_halvings=3):
+    """Replace each interior vertex by a quadratic Bezier blend, where that stays collision-free.
+
+    The blend of vertex v between neighbours a, b runs from p_in = v + d (a - v)/|a - v| to
+    p_out = v + d (b - v)/|b - v| with control point v: B(u) = (1-u)^2 p_in + 2u(1-u) v + u^2 p_out,
+    tangent to both edges (so the direction changes gradually). d = fraction * min(|a-v|, |b-v|)
+    (fraction <= 0.5: neighbouring blends never overlap). A blend that collides is retried with d
+    halved, n_halvings times; after that the sharp corner stays (always valid: it was checked).
+    All corners of one halving level are checked in one batched call.
+    """
+    path = _drop_duplicates(np.asarray(path, dtype=np.float64))
+    if not 0 < fraction <= 0.5:
+        raise ValueError(f"fraction must be in (0, 0.5], got {fraction}")
+    n_corner = len(path) - 2
+    if n_corner < 1:
+        return path
+    v, a, b = path[1:-1], path[:-2], path[2:]  # (C, dof) each
+    len_a = np.linalg.norm(a - v, axis=1)[:, None]
+    len_b = np.linalg.norm(b - v, axis=1)[:, None]
+    d = fraction * np.minimum(len_a, len_b)  # (C, 1)
+    u = np.linspace(0.0, 1.0, n_points)[None, :, None]  # (1, n_points, 1)
+    blends = [None] * n_corner
+    todo = np.arange(n_corner)
+    for _ in range(n_halvings + 1):
+        p_in = v[todo] + d[todo] * (a[todo] - v[todo]) / len_a[todo]
+        p_out = v[todo] + d[todo] * (b[todo] - v[todo]) / len_b[todo]
+        curve = ((1 - u) ** 2 * p_in[:, None] + 2 * u * (1 - u) * v[todo][:, None]
+                 + u ** 2 * p_out[:, None])  # (C', n_points, dof)
+        q_from = curve[:, :-1].reshape(-1, path.shape[1])
+        q_to = curve[:, 1:].reshape(-1, path.shape[1])
+        ok = edge_free_fraction(q_from, q_to, in_collision, resolution).reshape(len(todo), -1)
+        ok = np.all(ok == 1.0, axis=1)  # p_in itself lies on a checked edge of the path
+        for row, c in enumerate(todo):
+            if ok[row]:
+                blends[c] = curve[row]
+        todo = todo[~ok]
+        d[todo] *= 0.5
+        if len(todo) == 0:
+            break
+    pieces = [path[:1]]
+    for c in range(n_corner):
+        pieces.append(blends[c] if blends[c] is not None else path[c + 1:c + 2])
+    pieces.append(path[-1:])
+    return _drop_duplicates(np.concatenate(pieces))
+
+
+# ----------------------------------------------------------------------------------------------
+# Time parameterization with velocity / acceleration / jerk limits (TOPP-free)
+# ----------------------------------------------------------------------------------------------
+def _per_joint(x, dof, name):
+    x = np.broadcast_to(np.asarray(x, dtype=np.float64), (dof,)).copy()
+    if not np.all(x > 0):
+        raise ValueError(f"{name} must be > 0 for every joint, got {x}")
+    return x
+
+
+def filter_kernel(v_max, a_max, j_max, dt):
+    """Impulse response of two moving averages, (n_acc + n_jerk - 1,), summing to 1.
+
+    Averaging a velocity sequence over n_acc steps turns any jump of at most v_max into a ramp of
+    slope <= v_max / (n_acc dt) <= a_max; averaging again over n_jerk steps turns each acceleration
+    step into a ramp of slope <= a_max / (n_jerk dt) <= j_max (the FIR form of an S-curve).
+    """
+    n_acc = int(math.ceil(np.max(v_max / (a_max * dt)) - 1e-9))
+    n_jerk = int(math.ceil(np.max(a_max / (j_max * dt)) - 1e-9))
+    return np.convolve(np.ones(n_acc) / n_acc, np.ones(n_jerk) / n_jerk)
+
+
+def handoff_point(q0, v0, kernel, dt):
+    """Where the filter input must start so that the output starts at q0 with velocity v0.
+
+    The filter input is taken to have moved at v0 forever before t = 0, so the output begins at
+    velocity v0 with zero acceleration. That history adds v0 * dt * (mean delay of the kernel) to
+    the total displacement, so the input path starts that far ahead of q0, along v0 (a "coast").
+    """
+    delay = np.sum(np.arange(len(kernel)) * kernel)  # mean delay in steps
+    return np.asarray(q0, dtype=np.float64) + np.asarray(v0, dtype=np.float64) * dt * delay
+
+
+def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None, resolution=None,
+                      max_repairs=60, repair_factor=0.7, min_speed_factor=1e-2):
+    """Samples (T, dof) of a trajectory along `path` at the step dt, within per-joint limits.
+
+    Finite differences at dt of the samples, with sample -1 = q0 - v0 dt (and constant velocity
+    before that), satisfy |v| <= v_max, |a| <= a_max, |jerk| <= j_max at EVERY sample; the first
+    sample is path[0] moving at v0, the last is path[-1] at rest.
+
+    Method (no TOPP-RA): (1) traverse the polyline at full speed (the most constrained joint at its
+    v_max; per-joint speed is then <= v_max on every piece), sampled at dt -> input velocities w;
+    (2) prepend the handoff history (w = v0 before t = 0) and filter w with `filter_kernel`, whose
+    two moving averages bound acceleration and jerk; integrate to positions. The input starts at
+    `handoff_point` and then follows path[1:] (the caller plans path[1:] from that point).
+    (3) Verify every sample (limits and, if in_collision is given, every output edge at
+    `resolution`); where a sample fails, slow the input down by repair_factor over the time window
+    that sample depends on, and repeat. The filter cuts corners by at most the path length
+    traversed within one kernel window, so slowing down also shrinks any colliding corner cut.
+    A straight rest-to-rest move takes L / v_max + (n_acc + n_jerk - 2) dt: an S-curve's time.
+    """
+    path = np.atleast_2d(np.asarray(path, dtype=np.float64))
+    dof = path.shape[1]
+    v_max, a_max, j_max = (_per_joint(x, dof, n) for x, n in
+                           ((v_max, "v_max"), (a_max, "a_max"), (j_max, "j_max")))
+    if dt <= 0:
+        raise ValueError(f"dt must be > 0, got {dt}")
+    v0 = np.zeros(dof) if v0 is None else np.asarray(v0, dtype=np.float64)
+    if v0.shape != (dof,) or np.any(np.abs(v0) > v_max * (1 + 1e-9)):
+        raise ValueError(f"v0 must have shape ({dof},) and |v0| <= v_max={v_max}, got {v0}")
+    kernel = filter_kernel(v_max, a_max, j_max, dt)
+    L = len(kernel)
+    q0 = path[0]
+    start = handoff_point(q0, v0, kernel, dt)
+    verts = _drop_duplicates(np.concatenate([start[None], path[1:] if len(path) > 1 else path]))
+    if len(verts) == 1:
+        return path[:1].copy()
+    # Densify so that slow-downs act locally: pieces of at most dt / 2 at full speed.
+    seg_time = np.max(np.abs(np.diff(verts, axis=0)) / v_max, axis=1)  # (S,) s at full speed
+    m = np.maximum(1, np.ceil(seg_time / (0.5 * dt))).astype(int)
+    u = np.concatenate([np.arange(k) / k for k in m] + [[1.0]])  # fraction along each segment
+    seg = np.concatenate([np.full(k, i) for i, k in enumerate(m)] + [[len(m) - 1]])
+    verts = verts[seg] + u[:, None] * (verts[np.minimum(seg + 1, len(verts) - 1)] - verts[seg])
+    piece_time = np.repeat(seg_time / m, m)  # (P,)
+    slow = np.ones(len(piece_time))  # speed factor per piece, lowered by repairs
+    # Input steps spent waiting at the handoff point before moving on. From a handoff at full
+    # speed, reversing a joint at once needs an input velocity jump of more than v_max, which no
+    # slow-down fixes; after n_acc + n_jerk steps of waiting the filter has come to rest there
+    # (an S-curve stop), and any direction is feasible.
+    dwell, max_dwell = 0, L + 1 if np.any(v0) else 0
+    for _ in range(max_repairs + 1):
+        t_vert = np.concatenate([[0.0], np.cumsum(piece_time / slow)])  # (P + 1,) input time
+        K = int(math.ceil(t_vert[-1] / dt - 1e-9)) + dwell
+        times = np.clip((np.arange(K + 1) - dwell) * dt, 0.0, t_vert[-1])
+        x = np.stack([np.interp(times, t_vert, verts[:, j]) for j in range(dof)], axis=1)
+        w = np.diff(x, axis=0) / dt  # (K, dof) input velocity, <= v_max per joint
+        w_ext = np.concatenate([np.repeat(v0[None], L - 1, 0), w, np.zeros((L - 1, dof))])
+        y = np.stack([np.convolve(w_ext[:, j], kernel, "valid") for j in range(dof)], axis=1)
+        samples = q0 + np.concatenate([np.zeros((1, dof)), np.cumsum(y * dt, axis=0)])  # (T, dof)
+        # Finite differences seen by the env, from sample -1 (q0 - v0 dt) to rest after the end.
+        vel = np.concatenate([v0[None], v0[None], y, np.zeros((1, dof))])  # samples -1 .. T
+        acc = np.diff(vel, axis=0) / dt  # acc[i] at sample i
+        jerk = np.diff(acc, axis=0) / dt  # jerk[i] at sample i + 1
+        bad = [np.flatnonzero(np.any(np.abs(vel) > v_max * (1 + 1e-9), axis=1)) - 1,
+               np.flatnonzero(np.any(np.abs(acc) > a_max * (1 + 1e-9), axis=1)),
+               np.flatnonzero(np.any(np.abs(jerk) > j_max * (1 + 1e-9), axis=1)) + 1]
+        if in_collision is not None:
+            free = edge_free_fraction(samples[:-1], samples[1:], in_collision, resolution)
+            bad.append(np.flatnonzero(free < 1.0) + 1)
+        bad = np.unique(np.concatenate(bad))
+        if len(bad) == 0:
+            samples[-1] = path[-1]  # remove float round-off of the cumulative sum at the goal
+            return samples
+        # The failing sample k depends on input steps k - L - 1 .. k, i.e. input times in
+        # [(k - L - 2 - dwell) dt, (k - dwell) dt]: slow every piece overlapping such a window,
+        # and wait longer at the handoff if the failure is within reach of it.
+        if dwell < max_dwell and bad.min() <= dwell + L + 2:
+            dwell += 1
+        lo, hi = (bad - L - 2 - dwell) * dt, (bad - dwell) * dt
+        hit = np.any((t_vert[1:, None] > lo) & (t_vert[:-1, None] < hi), axis=1)
+        slow[hit] *= repair_factor
+        if slow.min() < min_speed_factor:
+            break
+    raise PlanningFailed(f"time parameterization: samples {bad[:5].tolist()} still violate limits "
+                         f"or collide after slowing down to {slow.min():.3g} of full speed")
+
+
+def min_time_lower_bound(path, v_max, a_max):
+    """Lower bound (s) on any rest-to-rest traversal of `path`: the slowest joint's bang-bang time.
+
+    Joint j must travel at least its total variation D_j along the path with |v| <= v_max_j and
+    |a| <= a_max_j, which takes at least the trapezoid time D/v + v/a (or 2 sqrt(D/a) if the joint
+    never reaches v_max). Jerk limits and path shape only add to it.
+    """
+    path = np.atleast_2d(np.asarray(path, dtype=np.float64))
+    dof = path.shape[1]
+    v_max, a_max = _per_joint(v_max, dof, "v_max"), _per_joint(a_max, dof, "a_max")
+    travel = np.sum(np.abs(np.diff(path, axis=0)), axis=0)  # (dof,)
+    cruise = travel >= v_max ** 2 / a_max
+    t = np.where(cruise, travel / v_max + v_max / a_max, 2 * np.sqrt(travel / a_max))
+    return float(t.max())
+
+
+# ----------------------------------------------------------------------------------------------
+# HG-DAgger gate helpers (env-generic)
+# ----------------------------------------------------------------------------------------------
+def rollout_chunk(env, chunk, q=None):
+    """States (H + 1, dof) the env would visit executing `chunk` (H, dof) of absolute targets.
+
+    CONTRACT step rule: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
+    """
+    lo, hi = env.joint_limits
+    q = env.q if q is None else np.asarray(q, dtype=np.float64)
+    states = [q]
+    for action in np.asarray(chunk, dtype=np.float64):
+        q = np.clip(q + np.clip(action - q, -env.max_step, env.max_step), lo, hi)
+        states.append(q)
+    return np.array(states)
+
+
+def stalled(distances, window, min_progress):
+    """True if the best distance to the goal over the last `window` steps is not at least
+    `min_progress` better than the best one before them (False while the history is shorter)."""
+    if len(distances) <= window:
+        return False
+    d = np.asarray(distances, dtype=np.float64)
+    return bool(d[-window:].min() > d[:-window].min() - min_progress)
+
+
+@dataclass
+class Plan:
+    samples: np.ndarray  # (T, dof) trajectory at env.dt; samples[0] = start, samples[-1] = goal
+    path: np.ndarray  # (N, dof) the smoothed geometric path it follows
+    ee_length: float  # end-effector arc length of `path` (the selection criterion)
+    velocity_matched: bool  # False if the handoff velocity had to be dropped (abrupt stop)
+    planning_time: float  # s, wall clock (informative only; never used in a decision)
+
+
+class Gate:
+    """Per-episode HG-DAgger gate. Call observe() after reset and after every env step (whoever
+    drove it), and check(chunk) whenever the policy proposes a chunk."""
+
+    def __init__(self, oracle, env):
+        self.oracle, self.env = oracle, env
+        self.distances = []  # ee distance to the goal at every observed step
+        self.observe()
+
+    def observe(self):
+        ee = self.env.ee(self.env.q[None])[0]
+        self.distances.append(float(np.linalg.norm(ee - self.env.goal)))
+
+    def check(self, chunk):
+        return self.oracle.should_intervene(self.env, chunk, self.distances)
+
+
+# ----------------------------------------------------------------------------------------------
+# The oracle
+# ----------------------------------------------------------------------------------------------
+class Oracle:
+    """Deterministic RRT expert: demonstrations (D0) and HG-DAgger interventions (D1..DK)."""
+
+    def __init__(self, config: OracleConfig | None = None):
+        self.cfg = config or OracleConfig()
+        self.last_plan = None  # the most recent Plan (for benchmarks and figures)
+
+    def sweep(self, env):
+        """Max arm-point motion (m) between collision checks (OracleConfig.sweep_tolerance)."""
+        if self.cfg.sweep_tolerance is not None:
+            return self.cfg.sweep_tolerance
+        if not hasattr(env, "link_radius"):
+            raise ValueError("env has no link_radius: set OracleConfig.sweep_tolerance (m)")
+        return 0.5 * env.link_radius
+
+    def limits(self, env):
+        """Per-joint (v_max, a_max, j_max) of the expert, in rad/s, rad/s^2, rad/s^3."""
+        c = self.cfg
+        v_max = np.full(env.dof, c.speed_fraction * env.max_step / env.dt)
+        a_max = v_max / (c.accel_steps * env.dt)
+        return v_max, a_max, a_max / (c.jerk_steps * env.dt)
+
+    def ee_length(self, env, path):
+        """End-effector arc length of a joint-space polyline (edges interpolated finely)."""
+        states, _, _, _ = interpolate_edges(path[:-1], path[1:], edge_resolution(
+            env, self.sweep(env)))
+        pts = env.ee(np.concatenate([path[:1], states]))
+        return float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
+
+    def plan(self, env, q0, v0, rng):
+        """Plan from q0 moving at v0 to the env's goal: IK, RRT-Connect attempts, shortcutting and
+        corner smoothing, pick the minimum ee arc length, time-parameterize. Raises PlanningFailed.
+
+        Handoff (Sec. V, "match the policy's induced pose and velocity"): the geometric plan starts
+        at handoff_point(q0, v0) -- where the arm coasts while the filter absorbs v0 -- so the
+        samples start at q0 with velocity exactly v0. If that coast leaves the joint limits or
+        collides, the handoff velocity is dropped (v0 = 0, an abrupt stop the env allows) and the
+        plan says so in velocity_matched.
+        """
+        c, t0 = self.cfg, time.perf_counter()
+        q0 = np.asarray(q0, dtype=np.float64)
+        v0 = np.zeros(env.dof) if v0 is None else np.asarray(v0, dtype=np.float64)
+        sweep = self.sweep(env)
+        res = edge_resolution(env, sweep)
+        v_max, a_max, j_max = self.limits(env)
+        v0 = np.clip(v0, -v_max, v_max)  # the env's speed limit already bounds it; round-off
+        lo, hi = env.joint_limits
+        start = handoff_point(q0, v0, filter_kernel(v_max, a_max, j_max, env.dt), env.dt)
+        coast = float(np.sum(np.abs(start - q0) * lever_arms(env)))  # m of arm motion
+        matched = bool(np.all((start >= lo) & (start <= hi))) and not path_in_collision(
+            np.stack([q0, start]), env.in_collision, res)
+        if not matched:
+            v0, start, coast = np.zeros(env.dof), q0, 0.0
+        goals = solve_ik(env, env.goal, rng, q_start=start, n_seeds=c.n_ik_seeds, iters=c.ik_iters,
+                         damping=c.ik_damping, tolerance=c.ik_tolerance, max_goals=c.max_goals,
+                         dedup=c.goal_dedup)
+        if len(goals) == 0:
+            raise PlanningFailed("no collision-free IK solution for the goal")
+        # Margins everywhere except near q0 (and its coast) and near the goal configurations.
+        zones = np.concatenate([q0[None], goals])
+        radii = np.concatenate([[coast], np.zeros(len(goals))]) + c.relax_sweeps * sweep
+        collides = with_margin(env, c.margin * sweep, zones, radii)
+        verify = with_margin(env, c.verify_margin * sweep, zones, radii)
+        best, failures = None, []
+        for seed in rng.integers(0, 2 ** 63, size=c.n_attempts):
+            attempt_rng = np.random.default_rng(seed)
+            try:
+                path = rrt_connect(start, goals, collides, (lo, hi), attempt_rng,
+                                   step_size=c.step_size, resolution=res, max_iters=c.max_iters,
+                                   max_time=c.max_time, batch=c.rrt_batch)
+            except PlanningFailed as e:
+                failures.append(e.reason)
+                continue
+            direct = len(path) == 2  # a straight line: every attempt would return the same one
+            path = shortcut(path, collides, attempt_rng, c.shortcut_iters, res)
+            path = smooth_corners(path, collides, res, c.corner_fraction, c.corner_points)
+            length = self.ee_length(env, path)
+            if best is None or length < best[1]:  # strict: ties keep the earlier attempt
+                best = (path, length)
+            if direct:
+                break
+        if best is None:
+            raise PlanningFailed(f"all {c.n_attempts} RRT-Connect attempts failed: {failures}")
+        path = best[0] if not np.any(v0) else np.concatenate([q0[None], best[0]])
+        samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0,
+                                    in_collision=verify, resolution=res)
+        self.last_plan = Plan(samples, best[0], best[1], matched, time.perf_counter() - t0)
+        return self.last_plan
+
+    # ---- D0: full demonstrations ----------------------------------------------------------
+    def demonstrate(self, env, seed):
+        """An expert episode (CONTRACT format) for scenario `seed`; raises PlanningFailed.
+
+        The plan's samples are the absolute joint targets, executed with env.step until the env
+        terminates (goal reached or collision) or truncates. 'success' comes from the env.
+        """
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng([self.cfg.seed, int(seed)])
+        plan = self.plan(env, env.q, np.zeros(env.dof), rng)
+        episode = {"obs": [], "q": [], "action": []}
+        success = False
+        for target in plan.samples[1:]:
+            episode["obs"].append(obs)
+            episode["q"].append(env.q)
+            episode["action"].append(target)
+            obs, _, terminated, truncated, info = env.step(target)
+            success = info["success"]
+            if terminated or truncated:
+                break
+        T = len(episode["q"])
+        return {"obs": np.asarray(episode["obs"], dtype=np.float32).reshape(T, env.obs_dim),
+                "q": np.asarray(episode["q"], dtype=np.float64).reshape(T, env.dof),
+                "action": np.asarray(episode["action"], dtype=np.float64).reshape(T, env.dof),
+                "expert": np.ones(T, dtype=bool), "seed": int(seed), "success": bool(success)}
+
+    # ---- HG-DAgger gating --------------------------------------------------------------------
+    def gate(self, env):
+        """A per-episode Gate for `env` (create it right after env.reset)."""
+        return Gate(self, env)
+
+    def chunk_collides(self, env, chunk):
+        """True if executing `chunk` (H, dof) from env.q would collide, checked at the edge
+        resolution along every speed-limited step (the env moves straight within a step)."""
+        states = rollout_chunk(env, chunk)
+        return path_in_collision(states, env.in_collision,
+                                 edge_resolution(env, self.sweep(env)))
+
+    def should_intervene(self, env, chunk, distances):
+        """'collision' if the policy's chunk would collide, 'stall' if the ee made no progress
+        toward the goal over the last stall_window steps (distances: one per step), else None."""
+        if self.chunk_collides(env, chunk):
+            return "collision"
+        if stalled(distances, self.cfg.stall_window, self.cfg.stall_progress):
+            return "stall"
+        return None
+
+    def clear(self, env, states):
+        """(T,) True where a state has clearance: moving any one joint by +-clearance sweep
+        tolerances (in arm-point motion, via the lever arms) stays collision-free. A cheap
+        probe of the configuration-space neighbourhood, not a distance computation."""
+        lo, hi = env.joint_limits
+        res = edge_resolution(env, self.sweep(env))
+        offsets = np.concatenate([np.diag(res), -np.diag(res)]) * self.cfg.clearance  # (2 dof, dof)
+        probes = np.clip(states[:, None, :] + offsets, lo, hi)  # (T, 2 dof, dof)
+        hit = env.in_collision(probes.reshape(-1, env.dof)).reshape(len(states), -1)
+        return ~hit.any(axis=1) & ~env.in_collision(states)
+
+    def intervention(self, env):
+        """Absolute joint targets (L, dof) for the expert to drive from the current state.
+
+        Plans from env.q with the current velocity (env.q - env.q_prev) / env.dt matched at the
+        handoff. Hand-back heuristic (emulating a human who drives "just enough to return to a safe
+        state", Sec. V): drive at least max(H, handback_fraction * plan length) steps, then keep
+        driving until the next safe_lookahead states of the plan all have clearance; the whole
+        plan if that never happens. Deterministic: the rng is seeded by (cfg.seed, q, q_prev).
+        Raises PlanningFailed when no plan is found.
+        """
+        q, q_prev = env.q, env.q_prev
+        state_key = np.frombuffer(np.concatenate([q, q_prev]).tobytes(), dtype=np.uint32)
+        rng = np.random.default_rng([self.cfg.seed, *state_key.tolist()])
+        plan = self.plan(env, q, (q - q_prev) / env.dt, rng)
+        n = len(plan.samples) - 1  # steps in the plan
+        first = min(n, max(self.cfg.horizon, int(math.ceil(self.cfg.handback_fraction * n))))
+        clear = self.clear(env, plan.samples)
+        steps = n
+        for t in range(first, n + 1):
+            if clear[t:t + self.cfg.safe_lookahead + 1].all():
+                steps = t
+                break
+        return plan.samples[1:steps + 1]
+
+
+# ----------------------------------------------------------------------------------------------
+# Figure 5 (planar part): a scenario with an expert demonstration drawn over it
+# ----------------------------------------------------------------------------------------------
+def plot_demonstration(env, episode, path, n_arms=8):
+    """Save the scene of episode['seed'] with faded arms along the demo and the ee path."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env.reset(seed=int(episode["seed"]))
+    q = np.asarray(episode["q"])
+    pts = env.fk(q)  # (T, n_points, dim)
+    if pts.shape[-1] != 2:
+        raise ValueError(f"plot_demonstration draws planar envs (dim 2), got dim {pts.shape[-1]}")
+    fig, ax = plt.subplots(figsize=(5, 5))
+    env.render(ax)
+    for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)):
+        ax.plot(pts[t, :, 0], pts[t, :, 1], "-o", color="tab:orange", ms=3, lw=2,
+                alpha=0.15 + 0.85 * i / max(1, n_arms - 1))
+    ax.plot(pts[:, -1, 0], pts[:, -1, 1], color="tab:red", lw=1.5, label="end-effector path")
+    ax.set_aspect("equal")
+    ax.set_title(f"expert demonstration, seed {episode['seed']} ({len(q)} steps)")
+    ax.legend(loc="lower left", fontsize=8)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    import envs
+
+    env = envs.make_env("planar")
+    oracle = Oracle()
+    seed = env.eval_seeds()[0]
+    t0 = time.perf_counter()
+    episode = oracle.demonstrate(env, seed)
+    print(f"seed {seed}: success {episode['success']}, {len(episode['q'])} steps, "
+          f"{time.perf_counter() - t0:.2f} s")
+    plot_demonstration(env, episode, "oracle_demo.png")
+    print("wrote oracle_demo.png")

@@ -1,0 +1,318 @@
+"""Tests of oracle.py: planner properties on toy collision functions (test doubles defined here),
+then the Oracle on envs.PlanarReacher (demonstrations, determinism, gating, interventions)."""
+import math
+import time
+
+import numpy as np
+import pytest
+
+import envs
+import oracle
+from oracle import (Oracle, OracleConfig, PlanningFailed, edge_free_fraction, edge_resolution,
+                    lever_arms, min_time_lower_bound, path_in_collision, rrt_connect, shortcut,
+                    smooth_corners, solve_ik, time_parameterize)
+
+DT = 0.1
+V_MAX = 0.5
+A_MAX = V_MAX / (4 * DT)
+J_MAX = A_MAX / (2 * DT)
+LIMITS_2D = (np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
+
+
+# ---- toy collision functions (test doubles) --------------------------------------------------
+def wall_with_gap(q, margin=0.0):
+    """2-D: a wall |x| < 0.1 with a gap 0.5 < y < 0.7, inflated by `margin`."""
+    q = np.atleast_2d(q)
+    return (np.abs(q[:, 0]) < 0.1 + margin) & ~((q[:, 1] > 0.5 + margin) & (q[:, 1] < 0.7 - margin))
+
+
+def inflated_wall(q):
+    """The wall inflated by half the planner's check spacing (0.02): no graze between checks
+    (oracle.with_margin explains why planning needs this margin)."""
+    return wall_with_gap(q, margin=0.01)
+
+
+def ring(q, centre=(1.0, 1.0)):
+    """2-D: a closed annulus 0.3 < |q - centre| < 0.5 (its inside is unreachable from outside)."""
+    d = np.linalg.norm(np.atleast_2d(q) - np.asarray(centre), axis=1)
+    return (d > 0.3) & (d < 0.5)
+
+
+def balls_3d(q, margin=0.0):
+    """3-D: two balls of radius 0.4 (+ margin) at (0, 0, 0) and (0.8, 0.8, 0)."""
+    q = np.atleast_2d(q)
+    return ((np.linalg.norm(q, axis=1) < 0.4 + margin)
+            | (np.linalg.norm(q - np.array([0.8, 0.8, 0.0]), axis=1) < 0.4 + margin))
+
+
+def finite_differences(samples, v0, dt=DT, at_rest=True):
+    """Velocity, acceleration, jerk at every sample as the env sees them: sample -1 = q0 - v0 dt
+    (constant velocity before), and (if at_rest) at rest after the last sample."""
+    rest = np.zeros((2 if at_rest else 0, samples.shape[1]))
+    vel = np.concatenate([v0[None], v0[None], np.diff(samples, axis=0) / dt, rest])
+    acc = np.diff(vel, axis=0) / dt
+    return vel, acc, np.diff(acc, axis=0) / dt
+
+
+def assert_limits(samples, v0, v_max=V_MAX, a_max=A_MAX, j_max=J_MAX, dt=DT, at_rest=True):
+    vel, acc, jerk = finite_differences(samples, v0, dt, at_rest)
+    tol = 1 + 1e-9
+    assert np.all(np.abs(vel) <= v_max * tol), np.abs(vel).max()
+    assert np.all(np.abs(acc) <= a_max * tol), np.abs(acc).max()
+    assert np.all(np.abs(jerk) <= j_max * tol), np.abs(jerk).max()
+
+
+# ---- geometry --------------------------------------------------------------------------------
+def test_lever_arms_and_resolution_bound_point_motion():
+    env = envs.make_env("planar")
+    np.testing.assert_allclose(lever_arms(env), np.cumsum(env.link_lengths[::-1])[::-1])
+    res = edge_resolution(env, 0.01)
+    rng = np.random.default_rng(0)
+    q = rng.uniform(*env.joint_limits, size=(2000, env.dof))
+    dq = rng.normal(size=(2000, env.dof))
+    dq /= np.sum(np.abs(dq) / res, axis=1, keepdims=True)  # exactly one check step apart
+    moved = np.linalg.norm(env.fk(q + dq) - env.fk(q), axis=-1).max()
+    assert moved <= 0.01 + 1e-12  # the lever-arm bound holds for every point of the arm
+    assert moved > 0.005  # and is not absurdly loose
+
+
+def test_edge_free_fraction_finds_first_collision():
+    start = np.array([[-1.0, 0.0], [-1.0, 0.6]])
+    end = np.array([[1.0, 0.0], [1.0, 0.6]])
+    free = edge_free_fraction(start, end, wall_with_gap, 0.01)
+    assert free[1] == 1.0  # through the gap
+    assert 0.43 < free[0] < 0.46  # the wall starts at x = -0.1, i.e. 45 % of the way
+
+
+# ---- RRT-Connect, shortcut, corners ----------------------------------------------------------
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rrt_connect_path_is_collision_free_under_denser_check(seed):
+    rng = np.random.default_rng(seed)
+    path = rrt_connect(np.array([-1.0, -1.0]), np.array([[1.0, -1.0]]), inflated_wall, LIMITS_2D,
+                       rng, step_size=0.3, resolution=0.02)
+    np.testing.assert_array_equal(path[0], [-1.0, -1.0])
+    np.testing.assert_array_equal(path[-1], [1.0, -1.0])
+    assert not path_in_collision(path, wall_with_gap, 0.002)  # 10x denser than the planner
+    assert np.all(path >= LIMITS_2D[0]) and np.all(path <= LIMITS_2D[1])
+
+
+def test_rrt_connect_3d_with_several_goals_reaches_a_free_one():
+    goals = np.array([[0.0, 0.0, 0.0],  # inside a ball: must be ignored
+                      [1.5, 1.5, 0.5], [0.8, 0.8, 0.8]])
+    path = rrt_connect(np.array([-1.0, -1.0, 0.0]), goals, lambda q: balls_3d(q, 0.01),
+                       (np.full(3, -2.0), np.full(3, 2.0)), np.random.default_rng(0),
+                       resolution=0.02)
+    assert any(np.array_equal(path[-1], g) for g in goals[1:])
+    assert not path_in_collision(path, balls_3d, 0.002)
+
+
+def test_rrt_connect_fails_cleanly_on_a_closed_ring():
+    # the goal is free but enclosed by the ring: no path exists; the iteration budget ends it
+    with pytest.raises(PlanningFailed) as info:
+        rrt_connect(np.array([-1.0, -1.0]), np.array([[1.0, 1.0]]), ring, LIMITS_2D,
+                    np.random.default_rng(0), resolution=0.02, max_iters=50)
+    assert info.value.iters == 50
+    # and the time budget ends it even with an enormous iteration budget
+    t0 = time.perf_counter()
+    with pytest.raises(PlanningFailed, match="time budget"):
+        rrt_connect(np.array([-1.0, -1.0]), np.array([[1.0, 1.0]]), ring, LIMITS_2D,
+                    np.random.default_rng(0), resolution=0.02, max_iters=10 ** 9, max_time=0.3)
+    assert time.perf_counter() - t0 < 0.3 + 5.0  # one iteration of slack (loaded CI machine)
+
+
+def test_rrt_connect_rejects_bad_input_and_colliding_start():
+    with pytest.raises(ValueError, match="q_goals"):
+        rrt_connect(np.zeros(2), np.zeros((1, 3)), ring, LIMITS_2D, np.random.default_rng(0))
+    with pytest.raises(PlanningFailed, match="start"):
+        rrt_connect(np.array([0.0, 0.0]), np.array([[1.0, -1.0]]), wall_with_gap, LIMITS_2D,
+                    np.random.default_rng(0))
+
+
+def test_shortcut_shortens_and_stays_free():
+    rng = np.random.default_rng(3)
+    path = rrt_connect(np.array([-1.0, -1.0]), np.array([[1.0, -1.0]]), inflated_wall, LIMITS_2D,
+                       rng, step_size=0.2, resolution=0.02)
+    short = shortcut(path, inflated_wall, np.random.default_rng(0), iters=64, resolution=0.02)
+    length = lambda p: np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))  # noqa: E731
+    assert length(short) <= length(path) + 1e-12
+    assert len(short) <= len(path)
+    np.testing.assert_array_equal(short[[0, -1]], path[[0, -1]])
+    assert not path_in_collision(short, wall_with_gap, 0.002)
+    # the shortest path goes through the gap: about 2 * sqrt(1^2 + 1.5^2) = 3.6
+    assert length(short) < 4.2
+
+
+def test_smooth_corners_rounds_free_corners_and_keeps_blocked_ones():
+    path = np.array([[0.0, -1.0], [0.0, 0.0], [1.0, 0.0]])
+    free = lambda q: np.zeros(len(np.atleast_2d(q)), bool)  # noqa: E731
+    inside = lambda q: (np.atleast_2d(q)[:, 0] > 1e-3) & (np.atleast_2d(q)[:, 1] < -1e-3)  # noqa: E731
+    rounded = smooth_corners(path, free, resolution=0.01)
+    assert len(rounded) > len(path)
+    assert not np.any(np.all(rounded == [0.0, 0.0], axis=1))  # the sharp corner is gone
+    turn = np.diff(np.arctan2(*np.diff(rounded, axis=0).T[::-1]))
+    assert np.abs(turn).max() < math.pi / 4  # direction changes gradually
+    kept = smooth_corners(path, inside, resolution=0.01)  # rounding cuts into the obstacle
+    np.testing.assert_array_equal(kept, path)
+    assert not path_in_collision(kept, inside, 0.001)
+
+
+# ---- time parameterization -------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(4))
+def test_time_parameterize_limits_at_every_sample_and_handoff(seed):
+    rng = np.random.default_rng(seed)
+    path = np.cumsum(rng.uniform(-1, 1, (6, 3)), axis=0)
+    v0 = rng.uniform(-V_MAX, V_MAX, 3) if seed % 2 else np.zeros(3)
+    samples = time_parameterize(path, V_MAX, A_MAX, J_MAX, DT, v0=v0)
+    np.testing.assert_array_equal(samples[0], path[0])
+    np.testing.assert_allclose(samples[-1], path[-1], atol=1e-12)  # ends on the goal ...
+    assert_limits(samples, v0)  # ... at rest (limits hold with zero velocity after it)
+    # handoff: from a constant-velocity history, the first step's velocity differs from v0 by
+    # at most one step of maximal jerk
+    assert np.all(np.abs((samples[1] - samples[0]) / DT - v0) <= J_MAX * DT ** 2 * (1 + 1e-9))
+
+
+def test_time_parameterize_straight_line_is_near_time_optimal():
+    path = np.array([[0.0, 0.0, 0.0], [2.0, -1.0, 0.5]])
+    samples = time_parameterize(path, V_MAX, A_MAX, J_MAX, DT)
+    duration = (len(samples) - 1) * DT
+    bound = min_time_lower_bound(path, V_MAX, A_MAX)
+    assert bound <= duration <= 1.1 * bound
+
+
+def test_time_parameterize_repairs_corner_cuts_that_collide():
+    path = np.array([[0.0, -1.0], [0.0, 0.0], [1.0, 0.0]])
+    inside = lambda q: (np.atleast_2d(q)[:, 0] > 0.01) & (np.atleast_2d(q)[:, 1] < -0.01)  # noqa: E731
+    fast = time_parameterize(path, V_MAX, A_MAX, J_MAX, DT)
+    assert path_in_collision(fast, inside, 0.001)  # the filter cuts the corner ...
+    safe = time_parameterize(path, V_MAX, A_MAX, J_MAX, DT, in_collision=inside, resolution=0.005)
+    assert not path_in_collision(safe, inside, 0.0005)  # ... unless slowed down there
+    assert_limits(safe, np.zeros(2))
+    assert len(safe) > len(fast)
+
+
+def test_time_parameterize_rejects_bad_input():
+    with pytest.raises(ValueError, match="v0"):
+        time_parameterize(np.zeros((2, 2)), V_MAX, A_MAX, J_MAX, DT, v0=np.array([1.0, 0.0]))
+    with pytest.raises(ValueError, match="a_max"):
+        time_parameterize(np.zeros((2, 2)), V_MAX, -1.0, J_MAX, DT)
+
+
+# ---- the Oracle on the planar env -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def env():
+    return envs.make_env("planar")
+
+
+@pytest.fixture(scope="module")
+def demo(env):
+    seed = env.eval_seeds()[0]
+    return Oracle().demonstrate(env, seed)
+
+
+def test_solve_ik_reaches_goal_and_is_collision_free(env):
+    env.reset(seed=env.eval_seeds()[1])
+    goals = solve_ik(env, env.goal, np.random.default_rng(0), q_start=env.q, n_seeds=256)
+    assert len(goals) >= 1
+    assert np.all(np.linalg.norm(env.ee(goals) - env.goal, axis=1) <= 1e-3)
+    assert not env.in_collision(goals).any()
+    lo, hi = env.joint_limits
+    assert np.all(goals >= lo) and np.all(goals <= hi)
+    gaps = np.abs(goals[:, None] - goals[None]).max(-1) + np.eye(len(goals)) * 9
+    assert gaps.min() > 0.2  # deduplicated
+
+
+def test_demonstrate_gives_a_valid_successful_expert_episode(env, demo):
+    T = len(demo["q"])
+    assert demo["success"] and demo["seed"] == env.eval_seeds()[0]
+    assert demo["obs"].shape == (T, env.obs_dim) and demo["obs"].dtype == np.float32
+    assert demo["q"].shape == demo["action"].shape == (T, env.dof)
+    assert demo["expert"].dtype == bool and demo["expert"].all()
+    # actions are reachable targets: the env follows them exactly (no speed clipping)
+    np.testing.assert_allclose(demo["q"][1:], demo["action"][:-1], atol=1e-12)
+    assert np.abs(demo["action"] - demo["q"]).max() <= env.max_step * (1 + 1e-9)
+    visited = np.concatenate([demo["q"], demo["action"][-1:]])
+    assert env.goal_reached(visited[-1:])[0]
+    v_max, a_max, j_max = Oracle().limits(env)
+    # the env ends the episode on reaching the goal, possibly before the plan has come to rest
+    assert_limits(visited, np.zeros(env.dof), v_max, a_max, j_max, env.dt, at_rest=False)
+    # collision-free under a check 10x denser than the planner's
+    res = edge_resolution(env, 0.1 * Oracle().sweep(env))
+    assert not path_in_collision(visited, env.in_collision, res)
+
+
+def test_demonstrate_is_deterministic(env, demo):
+    again = Oracle().demonstrate(env, env.eval_seeds()[0])
+    for key in ("q", "action", "obs"):
+        np.testing.assert_array_equal(again[key], demo[key])
+
+
+def test_plan_fails_cleanly_when_the_goal_is_inside_a_closed_ring(env):
+    env.reset(seed=env.eval_seeds()[0])
+    goal = np.array([0.6, 0.0])
+    angles = np.linspace(0, 2 * math.pi, 9)
+    pts = goal + 0.12 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    env.set_scene(np.concatenate([pts[:-1], pts[1:], np.full((8, 1), 0.03)], axis=1), goal)
+    t0 = time.perf_counter()
+    with pytest.raises(PlanningFailed):
+        Oracle(OracleConfig(max_iters=50)).plan(env, env.q, None, np.random.default_rng(0))
+    assert time.perf_counter() - t0 < 30.0  # returned, did not hang
+
+
+def test_gate_triggers_on_collision_and_stall_not_on_safe_progress(env, demo):
+    oracle_ = Oracle()
+    H = oracle_.cfg.horizon
+    env.reset(seed=demo["seed"])
+    gate = oracle_.gate(env)
+    # safe, progressing: the expert's own next H targets after half the demo was driven
+    for t in range(len(demo["q"]) // 2):
+        env.step(demo["action"][t])
+        gate.observe()
+    t = len(demo["q"]) // 2
+    assert gate.check(demo["action"][t:t + H]) is None
+    # a chunk that drives into an obstacle
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-H * env.max_step, H * env.max_step, size=(5000, env.dof)) + env.q
+    target = box[env.in_collision(box)][0]
+    chunk = env.q + np.linspace(0, 1, H + 1)[1:, None] * (target - env.q)
+    assert gate.check(chunk) == "collision"
+    # holding still for the stall window: no progress
+    hold = np.repeat(env.q[None], H, axis=0)
+    assert gate.check(hold) is None  # not stalled yet
+    for _ in range(oracle_.cfg.stall_window + 1):
+        env.step(env.q)
+        gate.observe()
+    assert gate.check(hold) == "stall"
+
+
+def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
+    oracle_ = Oracle()
+    t = 20  # mid-motion: the expert moves at speed here
+    env.reset(seed=demo["seed"])
+    env.set_state(demo["q"][t], demo["q"][t - 1])
+    v0 = (demo["q"][t] - demo["q"][t - 1]) / env.dt
+    assert np.abs(v0).max() > 0.5 * env.max_step / env.dt
+    actions = oracle_.intervention(env)
+    assert len(actions) >= oracle_.cfg.horizon
+    again = oracle_.intervention(env)
+    np.testing.assert_array_equal(actions, again)  # same state -> same plan
+    traj = np.concatenate([env.q[None], actions])
+    v_max, a_max, j_max = oracle_.limits(env)
+    vel = np.diff(traj, axis=0) / env.dt
+    assert np.abs(vel).max() <= v_max.max() * (1 + 1e-9)
+    acc = np.diff(np.concatenate([v0[None], v0[None], vel]), axis=0) / env.dt
+    assert np.abs(acc).max() <= a_max.max() * (1 + 1e-9)
+    assert np.abs(np.diff(acc, axis=0)).max() / env.dt <= j_max.max() * (1 + 1e-9)
+    # the first step continues the policy's motion (velocity matched up to one jerk step)
+    assert np.all(np.abs(vel[0] - v0) <= j_max * env.dt ** 2 * (1 + 1e-9))
+    for a in actions:
+        _, _, terminated, _, info = env.step(a)
+        assert not info["collision"]
+        if terminated:
+            break
+    assert oracle_.clear(env, env.q[None])[0] or info["success"]
+
+
+def test_plot_demonstration_writes_png(env, demo, tmp_path):
+    out = tmp_path / "fig5_planar.png"
+    oracle.plot_demonstration(env, demo, out)
+    assert out.stat().st_size > 10_000
