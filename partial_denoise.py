@@ -1,0 +1,222 @@
+"""Partial denoising: blend an expert action chunk with the policy's own prior (paper Sec. IV-B, IV-C, Fig. 3).
+
+Paper map:
+  - linear interpolation, Eq. (3) ................................ lerp_blend
+  - switching step k_sw = ToInteger(beta K) ...................... switch_step
+  - sigma^2_{k_sw} = 1 - alphabar_{k_sw} (Sec. IV-D) ............ noise_fraction
+  - SDEdit bound, Eq. (7) ........................................ sdedit_bound
+  - partial diffusion as the learned interpolator f_theta, Eq. (4),
+    extended to chunks (Sec. IV-C: flatten (H, dof) into one vector) partial_denoise
+  - Fig. 3 (samples at several beta at one state) ............... plot_partial_denoising
+
+Partial diffusion (Yoneda et al., "To the noise and back"; SDEdit, Meng et al.): diffuse the expert chunk
+forward to an intermediate noise level with Eq. (5), then let the policy run the reverse process Eq. (6)
+back to a clean chunk. beta = 0 keeps the expert chunk, beta = 1 forgets it (unguided sampling).
+
+Index convention (the one place where public code for this method is off by one). With the paper's step
+numbers k = 1..K, beta picks k_sw = ToInteger(beta K) in 0..K, and
+  1. forward:  a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps     (Eq. 5, closed form)
+     i.e. exactly k_sw forward steps; its noise fraction is sigma^2_{k_sw} = 1 - alphabar_{k_sw}, the value
+     noise_fraction() returns and calibrate.py puts into Eqs. (8)-(12);
+  2. reverse:  the first reverse step is Eq. (6) at paper step k_sw, which expects an input at noise level
+     alphabar_{k_sw} -- the level of step 1 -- followed by steps k_sw - 1, ..., 1: k_sw reverse steps.
+In diffusion.py's code indices (code k = paper k + 1... see its docstring: code k <-> paper k + 1) step 1 is
+q_sample(schedule, a*, k_sw - 1, eps) and step 2 is reverse_process from code level k_sw - 1 down to 0.
+The paper's "k_sw - 1 timesteps" is this code index of the switching step (0-based), not a count of steps:
+diffusing to level k_sw but starting the reverse process at k_sw - 1 (or the other way round) would ask the
+network to remove a different amount of noise than the chunk holds. k_sw = 0 runs no step at all and
+returns the expert chunk unchanged; k_sw = K starts from level K, which is pure noise up to sqrt(alphabar_K)
+(~1e-3 for the capped squared-cosine schedule), i.e. unguided sampling.
+"""
+
+import numpy as np
+import torch
+
+from diffusion import _check_array, q_sample
+
+
+# ----------------------------------------------------------------------------------------------
+# Small helpers: the paper's formulas
+
+
+def _check_beta(beta):
+    """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
+    b = np.asarray(beta, dtype=np.float64)
+    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
+        raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
+    return b
+
+
+def switch_step(beta, K):
+    """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas.
+
+    ToInteger = round to the nearest integer, halves up (floor(beta K + 1/2)). Nearest, not floor: beta K is
+    computed in floating point, and 0.29 * 100 = 28.999999999999996 would floor to 28; nearest is also
+    the unbiased choice. Halves up, not Python's round-half-to-even, so that k_sw is monotone in beta.
+    """
+    b = _check_beta(beta)
+    if not isinstance(K, (int, np.integer)) or K < 1:
+        raise ValueError(f"K must be a positive int, got {K!r}")
+    k_sw = np.floor(b * K + 0.5).astype(np.int64)
+    return int(k_sw) if k_sw.ndim == 0 else k_sw
+
+
+def _alphabar_with_zero(schedule):
+    """(K + 1,) float64: alphabar_k for paper steps k = 0..K, with alphabar_0 = 1 (the clean chunk)."""
+    return np.concatenate([[1.0], schedule.alphas_cumprod.double().cpu().numpy()])
+
+
+def noise_fraction(schedule, beta):
+    """sigma^2_{k_sw} = 1 - alphabar_{k_sw} in [0, 1]: the share of noise in the diffused expert chunk."""
+    return 1.0 - _alphabar_with_zero(schedule)[switch_step(beta, schedule.K)]
+
+
+def lerp_blend(a_policy, a_expert, beta):
+    """Eq. (3): a_lerp = beta a_policy + (1 - beta) a_expert (beta = 0: the expert, 1: the policy)."""
+    b = _check_beta(beta)
+    a_policy, a_expert = np.asarray(a_policy, dtype=np.float64), np.asarray(a_expert, dtype=np.float64)
+    if a_policy.shape != a_expert.shape:
+        raise ValueError(f"a_policy {a_policy.shape} and a_expert {a_expert.shape} must have the same shape")
+    if b.ndim == 1:                                         # per-row beta for a batch (B, ...)
+        b = b.reshape((-1,) + (1,) * (a_policy.ndim - 1))
+    # Eq. (3)
+    return b * a_policy + (1.0 - b) * a_expert
+
+
+def sdedit_bound(sigma2, bound, d, delta):
+    """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
+    and a noise prediction with ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1).
+
+    Read it as the scale of the blend, sigma^2_{k_sw} (how the paper uses it in Eqs. 8-12), not as a
+    guarantee for this sampler: its leading term d + 2 sqrt(-d log delta) - 2 log delta is the chi-square
+    tail of the forward noise sigma^2 alone, while DDPM's reverse steps add their own posterior noise. With
+    eps_theta = 0 (bound 0) the error variance is ~1.9 sigma^2 per dimension at beta = 0.2, and the bound
+    holds for ~90% of samples instead of 95% (d = 8; tests/test_partial_denoise.py). A model that pulls the
+    chunk toward its data (every trained policy) removes that noise again and stays within the bound.
+    """
+    sigma2 = np.asarray(sigma2, dtype=np.float64)
+    if np.any(~np.isfinite(sigma2)) or np.any((sigma2 < 0) | (sigma2 > 1)):
+        raise ValueError(f"sigma2 must be a noise fraction in [0, 1], got {sigma2!r}")
+    if not bound >= 0 or not d >= 1 or not 0 < delta < 1:
+        raise ValueError(f"need bound >= 0, d >= 1, 0 < delta < 1; got bound={bound}, d={d}, delta={delta}")
+    log_delta = np.log(delta)
+    # Eq. (7)
+    return sigma2 * (bound * sigma2 + d + 2.0 * np.sqrt(-d * log_delta) - 2.0 * log_delta)
+
+
+# ----------------------------------------------------------------------------------------------
+# The core
+
+
+def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=True):
+    """a_hat = f_theta(a*, beta | o) (Eq. 4) by partial diffusion, batched over B states.
+
+    obs (B, obs_dim), expert_chunk (B, H, dof) in joint units; beta a scalar or (B,) per row.
+    Returns (B, H, dof) float64 in joint units. Index convention: see the module docstring.
+    Random draws: the same per-row layout as policy.sample (diffusion.DiffusionPolicy.draw_noise), so
+    beta = 1 consumes the generator exactly like policy.sample and gives the same chunk up to the
+    sqrt(alphabar_K) a* term; and a batch equals its rows done one by one with the same generator.
+    """
+    cfg = policy.cfg
+    obs = _check_array("obs", obs, (None, cfg.obs_dim))
+    B = obs.shape[0]
+    expert_chunk = _check_array("expert_chunk", expert_chunk, (B, cfg.horizon, cfg.dof))
+    beta = _check_beta(beta)
+    if beta.ndim > 1 or (beta.ndim == 1 and len(beta) != B):
+        raise ValueError(f"beta must be a scalar or have shape ({B},), got shape {beta.shape}")
+    k_sw = np.broadcast_to(switch_step(beta, cfg.K), (B,))   # (B,) paper steps in 0..K
+    dev = policy.device
+    with torch.inference_mode():
+        obs_norm = policy.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=dev))
+        a_star = policy.normalize_actions(torch.as_tensor(expert_chunk, dtype=torch.float32, device=dev))
+        noise = policy.draw_noise(B, generator)                  # (B, K + 1, H, dof)
+        k_start = torch.as_tensor(k_sw - 1, device=dev)          # code level of a_{k_sw}; -1 = no step
+        # Step 1, Eq. (5) in closed form: the expert chunk diffused to paper level k_sw (code k_sw - 1).
+        diffused = q_sample(policy.schedule, a_star, k_start.clamp(min=0), noise[:, 0])
+        a_start = torch.where((k_start >= 0).view(B, 1, 1), diffused, a_star)
+        # Step 2, Eq. (6) k_sw times: code levels k_sw - 1, ..., 0.
+        a_hat = policy.reverse_process(a_start, k_start, obs_norm, noise[:, 1:], use_ema)
+        out = policy.unnormalize_actions(a_hat).double().cpu().numpy()
+    keep = k_sw == 0
+    out[keep] = expert_chunk[keep]                               # beta ~ 0: the expert chunk, bit for bit
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 3
+
+
+def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None,
+                           n_samples=6):
+    """The paper's Fig. 3: at one state, the expert chunk, unguided samples (beta = 1) and partial-denoising
+    samples at several beta, drawn as end-effector paths over the scene (env.render, env.fk).
+
+    obs (obs_dim,), expert_chunk (H, dof) joint targets; q (dof,) the arm's joint positions at obs
+    (default env.q). Each path starts at the current end effector and visits the end effector of every
+    action of the chunk (actions are absolute joint targets, so env.fk of a target is where it leads).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    obs = np.asarray(obs, dtype=np.float32)
+    expert_chunk = np.asarray(expert_chunk, dtype=np.float64)
+    if obs.ndim != 1 or expert_chunk.ndim != 2:
+        raise ValueError(f"plot_partial_denoising takes one state: obs (obs_dim,), expert_chunk (H, dof); "
+                         f"got {obs.shape}, {expert_chunk.shape}")
+    betas = [float(b) for b in _check_beta(np.atleast_1d(betas))]
+    q = np.asarray(env.q if q is None else q, dtype=np.float64)
+    start = env.ee(q[None])                                    # (1, dim)
+
+    def ee_path(chunk):                                        # (H, dof) -> (H + 1, dim)
+        return np.concatenate([start, env.ee(chunk)])
+
+    levels = betas + [1.0]
+    obs_b = np.repeat(obs[None], n_samples * len(levels), axis=0)
+    chunk_b = np.repeat(expert_chunk[None], n_samples * len(levels), axis=0)
+    beta_b = np.repeat(levels, n_samples)
+    samples = partial_denoise(policy, obs_b, chunk_b, beta_b, generator=generator)   # (n * L, H, dof)
+
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    env.render(ax, q=q, alpha=0.35)
+    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(betas)))
+    for i, beta in enumerate(levels):
+        unguided = i == len(betas)
+        color = "tab:red" if unguided else colors[i]
+        label = "unguided policy (beta = 1)" if unguided else f"partial denoising, beta = {beta:.2f}"
+        for j in range(n_samples):
+            path_xy = ee_path(samples[i * n_samples + j])
+            ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color=color, lw=1.2, alpha=0.8,
+                    label=label if j == 0 else None)
+    expert_xy = ee_path(expert_chunk)
+    ax.plot(expert_xy[:, 0], expert_xy[:, 1], "-o", color="tab:blue", lw=2.5, ms=3, label="expert chunk")
+    ax.set_title("Partial denoising at one state (Fig. 3)")
+    ax.legend(loc="lower left", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# Demo: on the two-mode toy task (chunks go up-right or down-left), an expert chunk that bends off the
+# up-right mode. Small beta keeps the expert's bend; large beta forgets it and, at beta = 1, half of the
+# samples even take the other mode (the paper's Fig. 3 in numbers).
+
+if __name__ == "__main__":
+    from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
+
+    obs, chunks = toy_two_mode_data(4000, H=4)
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, width=128, n_blocks=2))
+    train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=1000))
+    n = 500
+    o = np.zeros((n, 2), dtype=np.float32)
+    t = np.arange(1, 5)[:, None] / 4                          # (H, 1)
+    expert = np.repeat((0.5 * t * np.array([[1.0, 0.4]]))[None], n, axis=0)   # (n, H, 2), off the (+, +) mode
+    print(" beta  k_sw  sigma^2  mean ||a* - a_hat||  share of samples in the other mode")
+    for beta in (0.0, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0):
+        a_hat = partial_denoise(policy, o, expert, beta, generator=torch.Generator().manual_seed(0))
+        dist = np.linalg.norm((a_hat - expert).reshape(n, -1), axis=1).mean()
+        other = (a_hat[:, -1].sum(1) < 0).mean()
+        print(f" {beta:4.2f}  {switch_step(beta, 100):4d}  {noise_fraction(policy.schedule, beta):7.4f}"
+              f"  {dist:19.3f}  {other:.0%}")
