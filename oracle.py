@@ -1,4 +1,4 @@
-"""The RRT oracle expert (paper Sec. V, "RRT-based oracle expert"; Sec. III HG-DAgger gating).
+"""The RRT oracle expert (paper Sec. V Experiments; gating of Sec. IV-A Method Design).
 
 The paper replaces the human of HG-DAgger by a deterministic planner that uses privileged simulator
 information. This file builds it from scratch, for any serial arm behind the env interface of
@@ -11,7 +11,7 @@ CONTRACT.md (env.dof, env.joint_limits, env.in_collision, env.fk / env.ee, env.m
   time_parameterize   speed / acceleration / jerk limits at every sample, WITHOUT TOPP-RA (the
                       paper uses TOPP-RA; here: a double moving-average (FIR) filter of a
                       full-speed traversal, verified and locally slowed down where needed)
-  Oracle              demonstrate (full expert episodes for D0) and the HG-DAgger gate (Sec. III:
+  Oracle              demonstrate (full expert episodes for D0) and the HG-DAgger gate (IV-A:
                       "whether the policy's predicted action chunk will drive the robot into
                       collision or if the policy has not yet reached the goal") + intervention,
                       which matches the policy's pose and velocity at the handoff (Sec. V) and
@@ -22,9 +22,11 @@ step dq moves any point of the arm by at most  sum_j R_j |dq_j|,  where R_j boun
 from joint j to the farthest point of the arm beyond it (the arm beyond joint j rotates about it).
 A link's centre line collides iff it comes within (link radius + obstacle radius) of an obstacle,
 so to cross an obstacle unseen it must jump a forbidden band of width >= 2 * link radius. We
-interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= link radius,
-i.e. |dq_j| / eps_j summed <= 1 with eps_j = link_radius / R_j (`edge_resolution`). R_j comes from
-env.fk (`lever_arms`), not from planar constants.
+interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= sweep
+(half the link radius by default), i.e. sum_j |dq_j| / eps_j <= 1 with eps_j = sweep / R_j
+(`edge_resolution`); R_j comes from env.fk (`lever_arms`), not from planar constants. That rules
+out passing through an obstacle; to rule out grazing one between two checks as well, planning
+uses obstacles inflated by a margin >= sweep / 2 (`with_margin`).
 """
 from __future__ import annotations
 
@@ -75,7 +77,7 @@ class OracleConfig:
     margin: float = 1.0  # planning margin, in sweeps (RRT, shortcut, corners)
     verify_margin: float = 0.5  # margin the executed trajectory is verified with, in sweeps;
     # >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
-    relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion from the start
+    relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion of start / goals
     # --- HG-DAgger gating and intervention ---
     horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
     handback_fraction: float = 0.5  # drive at least this fraction of the plan before handing back
@@ -493,8 +495,10 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
     `handoff_point` and then follows path[1:] (the caller plans path[1:] from that point).
     (3) Verify every sample (limits and, if in_collision is given, every output edge at
     `resolution`); where a sample fails, slow the input down by repair_factor over the time window
-    that sample depends on, and repeat. The filter cuts corners by at most the path length
-    traversed within one kernel window, so slowing down also shrinks any colliding corner cut.
+    that sample depends on (and, near a moving handoff, wait at the handoff point a step longer),
+    and repeat. The filter cuts corners by at most the path length traversed within one kernel
+    window, so slowing down also shrinks any colliding corner cut. Raises PlanningFailed if a
+    piece had to go below min_speed_factor of full speed or after max_repairs rounds.
     A straight rest-to-rest move takes L / v_max + (n_acc + n_jerk - 2) dt: an S-curve's time.
     """
     path = np.atleast_2d(np.asarray(path, dtype=np.float64))
@@ -615,20 +619,22 @@ class Plan:
 
 
 class Gate:
-    """Per-episode HG-DAgger gate. Call observe() after reset and after every env step (whoever
-    drove it), and check(chunk) whenever the policy proposes a chunk."""
+    """Per-episode HG-DAgger gate (one per env in a batched rollout). Create it right after
+    env.reset (oracle.gate(env)), call record(env) after every env step whoever drove it, and
+    should_intervene(env, chunk) whenever the policy proposes a chunk."""
 
     def __init__(self, oracle, env):
-        self.oracle, self.env = oracle, env
-        self.distances = []  # ee distance to the goal at every observed step
-        self.observe()
+        self.oracle = oracle
+        self.distances = []  # ee distance to the goal at every recorded step
+        self.record(env)
 
-    def observe(self):
-        ee = self.env.ee(self.env.q[None])[0]
-        self.distances.append(float(np.linalg.norm(ee - self.env.goal)))
+    def record(self, env):
+        ee = env.ee(env.q[None])[0]
+        self.distances.append(float(np.linalg.norm(ee - env.goal)))
 
-    def check(self, chunk):
-        return self.oracle.should_intervene(self.env, chunk, self.distances)
+    def should_intervene(self, env, chunk):
+        """'collision', 'stall' or None (see Oracle.should_intervene)."""
+        return self.oracle.should_intervene(env, chunk, self.distances)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -670,8 +676,8 @@ class Oracle:
         Handoff (Sec. V, "match the policy's induced pose and velocity"): the geometric plan starts
         at handoff_point(q0, v0) -- where the arm coasts while the filter absorbs v0 -- so the
         samples start at q0 with velocity exactly v0. If that coast leaves the joint limits or
-        collides, the handoff velocity is dropped (v0 = 0, an abrupt stop the env allows) and the
-        plan says so in velocity_matched.
+        collides, or the handoff cannot be time-parameterized without collision, the handoff
+        velocity is dropped (v0 = 0, an abrupt stop the env allows) and velocity_matched says so.
         """
         c, t0 = self.cfg, time.perf_counter()
         q0 = np.asarray(q0, dtype=np.float64)
@@ -718,8 +724,15 @@ class Oracle:
         if best is None:
             raise PlanningFailed(f"all {c.n_attempts} RRT-Connect attempts failed: {failures}")
         path = best[0] if not np.any(v0) else np.concatenate([q0[None], best[0]])
-        samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0,
-                                    in_collision=verify, resolution=res)
+        try:
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0,
+                                        in_collision=verify, resolution=res)
+        except PlanningFailed:
+            if not np.any(v0):
+                raise
+            matched = False  # the S-curve stop of the handoff collides: stop abruptly instead
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None,
+                                        in_collision=verify, resolution=res)
         self.last_plan = Plan(samples, best[0], best[1], matched, time.perf_counter() - t0)
         return self.last_plan
 

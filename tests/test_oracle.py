@@ -266,22 +266,22 @@ def test_gate_triggers_on_collision_and_stall_not_on_safe_progress(env, demo):
     # safe, progressing: the expert's own next H targets after half the demo was driven
     for t in range(len(demo["q"]) // 2):
         env.step(demo["action"][t])
-        gate.observe()
+        gate.record(env)
     t = len(demo["q"]) // 2
-    assert gate.check(demo["action"][t:t + H]) is None
+    assert gate.should_intervene(env, demo["action"][t:t + H]) is None
     # a chunk that drives into an obstacle
     rng = np.random.default_rng(0)
     box = rng.uniform(-H * env.max_step, H * env.max_step, size=(5000, env.dof)) + env.q
     target = box[env.in_collision(box)][0]
     chunk = env.q + np.linspace(0, 1, H + 1)[1:, None] * (target - env.q)
-    assert gate.check(chunk) == "collision"
+    assert gate.should_intervene(env, chunk) == "collision"
     # holding still for the stall window: no progress
     hold = np.repeat(env.q[None], H, axis=0)
-    assert gate.check(hold) is None  # not stalled yet
+    assert gate.should_intervene(env, hold) is None  # not stalled yet
     for _ in range(oracle_.cfg.stall_window + 1):
         env.step(env.q)
-        gate.observe()
-    assert gate.check(hold) == "stall"
+        gate.record(env)
+    assert gate.should_intervene(env, hold) == "stall"
 
 
 def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
