@@ -65,6 +65,19 @@ N_EVAL_SEEDS = 100
 TRAIN_SEED_END = EVAL_SEED_START  # training seeds are 0 .. 9_999
 
 
+def eval_seeds():
+    """The 100 fixed evaluation scenarios (paper Sec. V): seeds 10_000 .. 10_099."""
+    return list(range(EVAL_SEED_START, EVAL_SEED_START + N_EVAL_SEEDS))
+
+
+def train_seeds(n, start=0):
+    """n training seeds start .. start + n - 1, from 0 .. 9_999 (disjoint from eval_seeds)."""
+    if n < 0 or start < 0 or start + n > TRAIN_SEED_END:
+        raise ValueError(f"train_seeds(n={n}, start={start}): need 0 <= start and "
+                         f"start + n <= {TRAIN_SEED_END} (the training seed range)")
+    return list(range(start, start + n))
+
+
 # ----------------------------------------------------------------------------------------------
 # Configuration
 # ----------------------------------------------------------------------------------------------
@@ -78,7 +91,9 @@ class PlanarConfig:
     joint_hi: tuple = (math.pi, 2.6, 2.6)
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s)
     dt: float = 0.1  # s per step
-    max_steps: int = 300  # episode step limit; ~3x the typical expert length (scene_difficulty.py)
+    # Episode step limit. benchmarks/scene_difficulty.py: shortest joint-grid paths over the 100
+    # eval scenes take 58 steps (median), 88 (90th pct), 132 (max); a smoothed expert is longer.
+    max_steps: int = 300
     goal_tolerance: float = 0.04  # m, end effector within this distance of the goal = reached
     # States checked for contact within one step (the end state and evenly spaced states before it).
     # At max_step = 0.05 rad on all joints a point of the arm moves at most 0.085 m per step, i.e.
@@ -208,19 +223,16 @@ class PlanarReacher:
     def goal(self):
         return self._goal.copy()
 
-    # ---- seeds -------------------------------------------------------------------------------
+    # ---- seeds (shared by every env of this file) --------------------------------------------
     @staticmethod
     def eval_seeds():
-        """The 100 fixed evaluation scenarios (paper Sec. V): seeds 10_000 .. 10_099."""
-        return list(range(EVAL_SEED_START, EVAL_SEED_START + N_EVAL_SEEDS))
+        """The 100 evaluation seeds (module function eval_seeds)."""
+        return eval_seeds()
 
     @staticmethod
     def train_seeds(n, start=0):
-        """n training seeds start .. start + n - 1, from 0 .. 9_999 (disjoint from eval_seeds)."""
-        if n < 0 or start < 0 or start + n > TRAIN_SEED_END:
-            raise ValueError(f"train_seeds(n={n}, start={start}): need 0 <= start and "
-                             f"start + n <= {TRAIN_SEED_END} (the training seed range)")
-        return list(range(start, start + n))
+        """n training seeds from start (module function train_seeds)."""
+        return train_seeds(n, start)
 
     # ---- kinematics and geometry -------------------------------------------------------------
     def fk(self, q):
@@ -568,11 +580,15 @@ def _capsule_outline(x0, y0, x1, y1, radius, n_arc=13):
     return np.concatenate([end1, end0])
 
 
+ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}  # name -> (env class, its config)
+
+
 def make_env(name="planar", **config):
-    """Environment by name: 'planar' -> PlanarReacher (config fields of PlanarConfig)."""
-    if name == "planar":
-        return PlanarReacher(PlanarConfig(**config))
-    raise ValueError(f"make_env: unknown environment {name!r}; valid: 'planar'")
+    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
+    if name not in ENVIRONMENTS:
+        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
+    env_class, config_class = ENVIRONMENTS[name]
+    return env_class(config_class(**config))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -57,6 +57,8 @@ def test_seed_ranges_are_disjoint():
     assert e.train_seeds(3, start=5) == [5, 6, 7]
     with pytest.raises(ValueError, match="train_seeds"):
         e.train_seeds(10, start=9_995)
+    assert envs.eval_seeds() == ev and envs.train_seeds(2) == [0, 1]
+    assert make_env("planar", max_steps=7).max_steps == 7
 
 
 # ---- kinematics ----------------------------------------------------------------------------------
