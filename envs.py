@@ -417,7 +417,8 @@ class PlanarReacher:
         n_extra = rng.integers(cfg.n_clutter[0], cfg.n_clutter[1] + 1)
         while len(obstacles) < 2 + n_extra:
             ang = rng.uniform(-math.pi, math.pi)
-            centre = self.base + rng.uniform(keep_out, 0.9) * np.array([math.cos(ang), math.sin(ang)])
+            reach = self.link_lengths.sum()
+            centre = self.base + rng.uniform(keep_out, reach) * np.array([math.cos(ang), math.sin(ang)])
             half = rng.uniform(0.0, cfg.clutter_half_length) * (rng.random() < 0.5)  # half are discs
             orient = rng.uniform(0, math.pi)
             h = half * np.array([math.cos(orient), math.sin(orient)])
@@ -499,6 +500,8 @@ class PlanarReacher:
             raise ValueError(f"{name} must have shape ({self.dof},), got {q.shape}")
         if not np.all(np.isfinite(q)):
             raise ValueError(f"{name} must be finite, got {q}")
+        if np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9):
+            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
         return q.copy()
 
     def make_obs(self, q, q_prev):

@@ -273,6 +273,8 @@ def test_bad_input_raises(env):
         env.in_collision(np.zeros((5, 2)))
     with pytest.raises(ValueError, match="finite"):
         env.set_state(np.array([0, np.nan, 0]))
+    with pytest.raises(ValueError, match="joint limits"):
+        env.set_state(np.array([0, 3.0, 0]))
     with pytest.raises(ValueError, match="unknown environment"):
         make_env("nope")
     with pytest.raises(ValueError, match="seed"):
