@@ -1,0 +1,853 @@
+"""Policy calibration: how much noise does the policy itself make? (paper Sec. II-A and IV-D)
+
+DART (Sec. II-A) picks the noise of its augmentation from two statistics of the policy:
+
+    Eq. (1)  Sigma_hat = 1/T E sum_t (pi_theta(s_t) - pi*(s_t)) (pi_theta(s_t) - pi*(s_t))^T
+    Eq. (2)  Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat
+
+The paper measures both offline, without an expert in the loop (Sec. IV-D):
+
+1. `open_loop_sigma` - Sigma_hat_t of Eq. (1) at every other step of the recorded expert data: the
+   policy sees the recorded observation, samples action chunks, and they are compared with the
+   expert's future actions (Fig. 2a).
+2. `blend_rollouts` - closed-loop rollouts in the simulator where each chunk is partial-denoised
+   toward the time-matched expert chunk at blend ratio beta (Sec. IV-B); their settling error x
+   against sigma^2_{k_sw} = 1 - alphabar_{k_sw} follows the equilibrium of Eqs. (8)-(12) (Fig. 2b).
+3. `equilibrium`, `fit_equilibrium` - Eq. (12), x = W s / (s + r (1 - s)), fitted for the policy's
+   settling error W and the gain ratio r = K*/K_theta (Fig. 4).
+4. `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) turns Eq. (2) into
+   Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t (Eq. 14, Fig. 2c) and its pooled form
+   Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
+5. `closed_loop_sigma` - Table I's "closed-loop pooled" variant (our reading; see its docstring).
+6. `calibrate` - all of the above for one DAgger round, returned as a JSON-serializable
+   `Calibration`; `sigma_in_median_steps` reports it in the paper's units (3.9-5.1 median steps
+   per joint on the planar env, Sec. V).
+
+Figures: `plot_method_overview` (Fig. 2 panels a-d) and `plot_blend_fit` (Fig. 4).
+
+Units: joint deviations, W and every covariance are in radians (rad^2), so `relabel.py` can draw
+states from them directly; reports and figures divide by the median per-step joint displacement
+of the base demonstrations (`envs.median_step`), the paper's "median step size".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+import envs
+from diffusion import label_mask
+from partial_denoise import noise_fraction, partial_denoise
+
+
+# ----------------------------------------------------------------------------------------------
+# Config
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class CalibrationConfig:
+    stride: int = 2                      # Sigma_hat_t at every other valid step (paper Fig. 2a)
+    n_samples: int = 8                   # policy chunks sampled per step for Eq. (1)
+    betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each (Sec. IV-D)
+    n_act: int = 8                       # actions executed per decision in closed loop (as in the DAgger loop)
+    blend_segments: int = 4              # blend rollouts start from this many of the longest expert segments
+                                         # (beta i from segment i mod n): long, so that they settle; several,
+                                         # so that W is not one intervention's idiosyncrasy
+    diverge_threshold: float = 30.0      # a rollout whose joint deviation norm ever exceeds this many
+                                         # median steps has left the expert's route: discarded (Sec. IV-D)
+    closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
+    closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
+    max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
+
+
+# ----------------------------------------------------------------------------------------------
+# Helpers: intervention segments, label starts, expert chunks
+# ----------------------------------------------------------------------------------------------
+
+def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
+    """Maximal runs [start, end) of expert-driven steps that are at least `horizon` long.
+
+    Demonstrations give one segment (the whole episode); intervention episodes one per intervention
+    (CONTRACT: shorter interventions are already marked non-expert).
+    """
+    expert = np.asarray(episode["expert"], dtype=bool)
+    segments, t, T = [], 0, len(expert)
+    while t < T:
+        if not expert[t]:
+            t += 1
+            continue
+        end = t
+        while end < T and expert[end]:
+            end += 1
+        if end - t >= horizon:
+            segments.append((t, end))
+        t = end
+    return segments
+
+
+def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
+    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
+    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
+    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
+
+
+def label_starts(episode: dict, horizon: int) -> np.ndarray:
+    """Steps t whose chunk actions[t:t+H] is a valid expert label (CONTRACT's label rule).
+
+    Valid iff expert[t:t+H] are all True, or the episode ends before t+H and expert[t:] are all True
+    (diffusion.label_mask, the rule the training data uses).
+    """
+    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
+
+
+def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
+    """actions[t:t+H] with actions past `end` (default: the episode end) replaced by the last one.
+
+    Past the end of an intervention the recorded actions are the policy's, so the time-matched
+    expert chunk repeats the last expert action instead (the CONTRACT's padding rule).
+    """
+    end = len(actions) if end is None else end
+    idx = np.minimum(np.arange(t, t + horizon), end - 1)
+    return actions[idx]                                                     # (H, dof)
+
+
+def policy_horizon(policy) -> int:
+    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
+    return int(policy.cfg.horizon)
+
+
+def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
+    """policy.sample over rows of obs in slices of at most max_batch rows."""
+    parts = [policy.sample(obs[i:i + max_batch], generator=generator)
+             for i in range(0, len(obs), max_batch)]
+    return np.concatenate(parts, axis=0)                                    # (B, H, dof)
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 1: open-loop Sigma_hat_t along the expert data (Eq. 1)
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class StepCovariances:
+    """Per-step covariances with where they were measured."""
+    sigma: np.ndarray           # (M, dof, dof)
+    episode_index: np.ndarray   # (M,) index into the episode list
+    timestep: np.ndarray        # (M,) step t inside that episode
+
+
+def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: int = 8,
+                    generator: torch.Generator | None = None, max_batch: int = 2048) -> StepCovariances:
+    """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
+
+    At step t the policy sees the recorded observation obs[t] and samples `n_samples` chunks; with
+    d = sampled chunk - expert chunk actions[t:t+H] (both (H, dof)),
+
+        Sigma_hat_t = mean over samples and chunk steps of d d^T          (dof, dof)
+
+    This is DART's Eq. (1) with expectation over the policy's sampling noise: it is *uncentered*
+    (the mean error is included, as in Eq. (1), which compares with the expert action, not with the
+    policy's mean). Like the paper, states come from the clean expert data instead of from noised
+    expert rollouts, so no simulator is needed. All steps go through few batched policy.sample calls.
+    """
+    if stride < 1 or n_samples < 1:
+        raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
+    H = policy_horizon(policy)
+    obs_rows, chunks, ep_idx, steps = [], [], [], []
+    for e, ep in enumerate(episodes):
+        starts = label_starts(ep, H)
+        actions = np.asarray(ep["action"], dtype=np.float64)
+        for start, end in expert_segments(ep, H):
+            for t in starts[(starts >= start) & (starts < end)][::stride]:   # every other step
+                obs_rows.append(ep["obs"][t])
+                chunks.append(expert_chunk(actions, int(t), H, end))
+                ep_idx.append(e)
+                steps.append(int(t))
+    if not obs_rows:
+        raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
+                         "open_loop_sigma needs expert segments of at least H steps")
+    obs = np.repeat(np.stack(obs_rows).astype(np.float32), n_samples, axis=0)   # (M*n, obs_dim)
+    samples = _sample_batched(policy, obs, generator, max_batch).astype(np.float64)
+    M, dof = len(obs_rows), samples.shape[-1]
+    samples = samples.reshape(M, n_samples, H, dof)                             # (M, n, H, dof)
+    d = samples - np.stack(chunks)[:, None]                                     # (M, n, H, dof)
+    # Eq. (1): mean over samples and chunk steps of the outer product d d^T
+    sigma = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * H)                 # (M, dof, dof)
+    return StepCovariances(sigma, np.asarray(ep_idx, dtype=np.int64), np.asarray(steps, dtype=np.int64))
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 2: closed-loop rollouts guided toward the expert (blended trajectories)
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class Rollouts:
+    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ)."""
+    trajectory: np.ndarray      # (B, L + 1, dof) joint positions; entries past n_recorded repeat the last
+    reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
+    n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
+    n_recorded: np.ndarray      # (B,) steps executed (a rollout stops early on divergence, collision, success)
+    diverged: np.ndarray        # (B,) True if the deviation norm ever exceeded the threshold
+    collided: np.ndarray        # (B,) True if the rollout hit an obstacle or itself
+
+    @property
+    def deviation(self) -> np.ndarray:
+        return self.trajectory - self.reference                              # (B, L + 1, dof)
+
+    @property
+    def discarded(self) -> np.ndarray:
+        """True for rollouts that left the expert's route (Sec. IV-D discards them)."""
+        return self.diverged | self.collided
+
+
+def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
+                 diverge_threshold: float) -> Rollouts:
+    """One closed-loop rollout per job (episode, segment), time-matched to that segment's expert.
+
+    Rollout b starts at the segment's first recorded state and runs for the segment's length. At
+    every decision (each n_act steps) chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the
+    chunks of all live rollouts in ONE call (expert = each rollout's time-matched future expert
+    chunk, padded past the segment end); each rollout executes its first n_act actions with
+    env.step. One env serves all rollouts: a rollout's state is put back with set_state, and the
+    scenario is switched with reset(seed) only when the seed changes (rollouts grouped by seed).
+    A rollout stops at the first step whose joint-deviation norm exceeds diverge_threshold
+    (radians), that collides, or that reaches the goal.
+    """
+    B = len(jobs)
+    lengths, refs, q0, q_prev0 = [], [], [], []
+    for episode, (start, end) in jobs:
+        q_exp = np.asarray(episode["q"], dtype=np.float64)
+        n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
+        if n < 1:
+            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
+        lengths.append(n)
+        refs.append(q_exp[start:start + n + 1])
+        q0.append(q_exp[start])
+        q_prev0.append(q_exp[max(start - 1, 0)])
+    L = max(lengths)
+    reference = np.stack([np.concatenate([r, np.repeat(r[-1:], L + 1 - len(r), axis=0)]) for r in refs])
+    traj = np.repeat(reference[:, :1], L + 1, axis=1)                        # (B, L + 1, dof)
+    q, q_prev = np.stack(q0), np.stack(q_prev0)                               # (B, dof) each
+    n_steps = np.asarray(lengths, dtype=np.int64)
+    n_recorded = np.zeros(B, dtype=np.int64)
+    diverged = np.zeros(B, dtype=bool)
+    collided = np.zeros(B, dtype=bool)
+    live = np.ones(B, dtype=bool)
+    seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
+    scenario = [None]                                                        # seed the env holds now
+
+    def use_scenario(seed):
+        if scenario[0] != seed:
+            env.reset(seed=int(seed))
+            scenario[0] = seed
+
+    obs = np.zeros((B, env.obs_dim), dtype=np.float32)
+    for seed in np.unique(seeds):                                            # first observations
+        use_scenario(seed)
+        rows = np.flatnonzero(seeds == seed)
+        obs[rows] = env.make_obs(q[rows], q_prev[rows])                      # (b, obs_dim)
+        for b in rows:
+            episode, (start, _) = jobs[b]
+            if not np.allclose(obs[b], np.asarray(episode["obs"][start], dtype=np.float32), atol=1e-4):
+                raise ValueError(f"the env's scenario for seed {seed} does not reproduce the recorded "
+                                 f"observation at step {start}: the episode was recorded with another "
+                                 "env version or config; re-record it")
+    for t in range(0, L, n_act):
+        live &= n_steps > t
+        rows = np.flatnonzero(live)
+        if len(rows) == 0:
+            break
+        expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
+                                        jobs[b][1][0] + t, horizon, jobs[b][1][1]) for b in rows])
+        chunks = chunk_fn(obs[rows], expert, rows)                           # (b, H, dof), one call
+        for seed in np.unique(seeds[rows]):
+            use_scenario(seed)
+            for b, chunk in zip(rows, chunks):
+                if seeds[b] != seed:
+                    continue
+                env.set_state(q[b], q_prev[b])
+                for j in range(min(n_act, n_steps[b] - t)):
+                    _, _, terminated, _, info = env.step(chunk[j])
+                    i = t + j + 1
+                    traj[b, i:] = env.q
+                    n_recorded[b] = i
+                    collided[b] = bool(info["collision"])
+                    diverged[b] = np.linalg.norm(env.q - reference[b, i]) > diverge_threshold
+                    if collided[b] or diverged[b] or terminated:
+                        live[b] = False
+                        break
+                q[b], q_prev[b] = env.q, env.q_prev
+                obs[b] = env.make_obs(q[b], q_prev[b])
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided)
+
+
+def settling_error(rollouts: Rollouts) -> np.ndarray:
+    """x of Eq. (12) per rollout: RMS joint-deviation norm over the second half of the rollout.
+
+    sqrt(mean_t ||q_t - q*_t||^2) over the recorded steps t in (n/2, n]: the first half is the
+    transient from the expert state toward the blend's equilibrium, the second half is the settled
+    error. Norm, not per joint: see `fit_equilibrium`.
+    """
+    dev = rollouts.deviation
+    x = np.zeros(len(dev))
+    for b, n in enumerate(rollouts.n_recorded):
+        if n == 0:
+            continue
+        window = dev[b, n // 2 + 1:n + 1]                                    # (steps, dof)
+        x[b] = math.sqrt(float(np.mean(np.sum(window ** 2, axis=-1))))
+    return x
+
+
+@dataclass
+class BlendRollouts:
+    """Blended rollouts and the points (s, x) they give for the fit of Eq. (12)."""
+    betas: np.ndarray           # (B,) blend ratios
+    s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
+    x: np.ndarray               # (B,) settling error (radians, joint-deviation norm)
+    kept: np.ndarray            # (B,) False for discarded (diverged or collided) rollouts
+    rollouts: Rollouts
+
+
+def blend_rollouts(env, policy, episode: dict, betas, n_act: int = 8,
+                   generator: torch.Generator | None = None, diverge_threshold: float = 0.5,
+                   segment: tuple[int, int] | None = None) -> BlendRollouts:
+    """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
+
+    From the segment's first state (default: the episode's longest expert segment) every decision
+    calls partial_denoise(policy, obs, expert actions[t:t+H], beta) - one call for all betas - and
+    executes the first n_act actions. diverge_threshold is in radians (joint-deviation norm).
+    Rollouts that exceed it or collide are marked not kept, as in the paper ("we discard the
+    blended trajectories that diverge").
+    """
+    H = policy_horizon(policy)
+    if segment is None:
+        segments = expert_segments(episode, H)
+        if not segments:
+            raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {H} steps")
+        segment = max(segments, key=lambda se: se[1] - se[0])
+    betas = np.asarray(betas, dtype=np.float64).reshape(-1)
+    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_threshold)
+
+
+def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_threshold: float) -> BlendRollouts:
+    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b]."""
+    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
+        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
+
+    def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
+        return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
+
+    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_threshold)
+    s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # sigma^2_{k_sw} per beta
+    return BlendRollouts(betas, s, settling_error(roll), ~roll.discarded, roll)
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 3: the equilibrium of expert and policy (Eqs. 8-12) and its robust fit
+# ----------------------------------------------------------------------------------------------
+
+def equilibrium(s, W, r):
+    """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* at noise fraction s.
+
+    With u* = K* (-x) (Eq. 9), u_theta = K_theta (W - x) (Eq. 10) and u = 0 (Eq. 11):
+    x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
+    """
+    s = np.asarray(s, dtype=np.float64)
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if not r > 0:
+        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    # Eq. (12): x = W s / (s + r (1 - s))
+    return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
+
+
+@dataclass
+class EquilibriumFit:
+    W: float                    # settling error of the unguided policy (same units as x)
+    r: float                    # gain ratio K*/K_theta
+    n_points: int               # points used
+    rms_residual: float         # RMS of x - equilibrium(s, W, r) over the points used
+
+
+def _best_W(s, x, w, r):
+    """For each r in r (G,), the weighted least-squares W (closed form) and its weighted SSE."""
+    g = s[None] / (s[None] + r[:, None] * (1.0 - s[None]))                   # (G, n)
+    W = np.sum(w * g * x, axis=1) / np.maximum(np.sum(w * g * g, axis=1), 1e-300)
+    sse = np.sum(w * (x[None] - W[:, None] * g) ** 2, axis=1)
+    return W, sse
+
+
+def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
+                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
+    """Robust least squares for W and r > 0 in Eq. (12) from points (s_i, x_i).
+
+    We fit the *norm* of the joint deviation, not each joint: with isotropic gains (Eqs. 9-10) every
+    joint follows x_j = W_j g(s) with the same g, so ||x|| = ||W|| g(s) is Eq. (12) again, and
+    Eq. (14) needs only ||W||^2. Signed per-joint deviations would also partly cancel when the
+    policy drifts to different sides along a trajectory.
+
+    For a fixed r the model is linear in W, so W has a closed form; r is searched on a log grid
+    over r_bounds and refined by golden section in log r. Outliers (e.g. a rollout that nearly
+    diverged) are down-weighted by iteratively reweighted least squares with Huber weights
+    (threshold huber_k times the MAD scale of the residuals).
+
+    Needs at least 3 finite points with at least 2 distinct s > 0 (otherwise ValueError). If every
+    x is 0 the policy tracks the expert exactly: W = 0 and r is unidentifiable; r = 1 is returned.
+    """
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if s.shape != x.shape:
+        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
+    ok = np.isfinite(s) & np.isfinite(x)
+    s, x = s[ok], x[ok]
+    if np.any((s < 0) | (s > 1)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
+        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
+                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
+    if not np.any(x != 0):
+        return EquilibriumFit(0.0, 1.0, len(s), 0.0)
+    lo, hi = math.log(r_bounds[0]), math.log(r_bounds[1])
+    grid = np.linspace(lo, hi, n_grid)
+    w = np.ones_like(x)
+    for _ in range(n_iter):
+        _, sse = _best_W(s, x, w, np.exp(grid))
+        i = int(np.argmin(sse))
+        a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
+        log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)
+        W = float(_best_W(s, x, w, np.exp([log_r]))[0][0])
+        res = x - W * s / (s + math.exp(log_r) * (1 - s))
+        scale = 1.4826 * float(np.median(np.abs(res)))                      # MAD scale (normal-consistent)
+        if scale <= 1e-12 * max(1.0, float(np.max(np.abs(x)))):
+            break                                                           # exact fit: nothing to reweight
+        w_new = np.minimum(1.0, huber_k * scale / np.maximum(np.abs(res), 1e-300))
+        if np.max(np.abs(w_new - w)) < 1e-6:
+            break
+        w = w_new
+    r = math.exp(log_r)
+    res = x - W * s / (s + r * (1 - s))
+    return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
+
+
+def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
+    """Minimizer of a unimodal f on [a, b] by golden-section search."""
+    phi = (math.sqrt(5) - 1) / 2
+    c, d = b - phi * (b - a), a + phi * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(n_iter):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - phi * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + phi * (b - a)
+            fd = f(d)
+    return (a + b) / 2
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
+# ----------------------------------------------------------------------------------------------
+
+def dart_alpha(W, T: int) -> float:
+    """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
+    return T * float(np.sum(np.square(W)))
+
+
+def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
+    """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
+    return alpha / (T * tr) * sigma_hat
+
+
+def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
+    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
+
+    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector.
+    Guard: a step with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no
+    direction to keep; it gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
+    """
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
+        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+    w2 = float(np.sum(np.square(W)))
+    d = sigma_hat.shape[-1]
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
+    zero = tr <= 1e-300
+    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
+    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
+    return np.where(zero, w2 / d * np.eye(d), scaled)
+
+
+def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
+    """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
+    sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
+    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
+        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+    sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
+    return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
+
+
+def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
+    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
+    if not median_step > 0:
+        raise ValueError(f"median_step must be > 0, got {median_step}")
+    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 5: the closed-loop variant (Table I, last row)
+# ----------------------------------------------------------------------------------------------
+
+def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
+                      generator: torch.Generator | None = None, diverge_threshold: float = 0.5,
+                      max_segments: int | None = None) -> np.ndarray | None:
+    """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
+
+    Our reading of Table I's "closed-loop pooled" row: from the first state of each intervention
+    segment (longest first, at most max_segments), the *unguided* policy (beta = 1, plain
+    policy.sample) runs in closed loop in the simulator for the segment's length; every executed
+    step contributes the outer product of its state deviation from the time-matched expert state,
+    d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
+    first diverged or colliding step (that step excluded), so a policy that takes another route
+    only contributes its deviations while it still follows the expert's. Scale the result with
+    `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All rollouts
+    run batched (one policy.sample call per decision). Returns None if no rollout executed a
+    usable step.
+    """
+    H = policy_horizon(policy)
+    segs = _segments_longest_first(episodes, H)[:max_segments or None]
+    if not segs:
+        raise ValueError(f"no expert segment of >= {H} steps in {len(episodes)} episodes")
+
+    def chunk_fn(obs, expert, rows):                 # unguided: the expert chunk is ignored
+        return policy.sample(obs, generator=generator)
+
+    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_threshold)
+    # executed steps 1..n of each rollout, without the step that diverged or collided
+    last = roll.n_recorded - roll.discarded.astype(np.int64)
+    steps = np.arange(roll.trajectory.shape[1])[None]
+    used = (steps >= 1) & (steps <= last[:, None])                           # (B, L + 1)
+    d = roll.deviation[used]                                                 # (n, dof)
+    if len(d) == 0:
+        return None                              # every rollout diverged or collided on its first step
+    return np.einsum("ti,tj->ij", d, d) / len(d)                              # Eq. (15), pooled
+
+
+# ----------------------------------------------------------------------------------------------
+# One calibration per DAgger round
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class Calibration:
+    """Everything one round's calibration measured (radians; see `report` for median-step units)."""
+    W: float                        # ||W||: settling error of the unguided policy (Eq. 12), radians
+    r: float | None                 # fitted gain ratio K*/K_theta; None when the fit fell back
+    fit_note: str                   # "fit" or "fallback: <why>" (see `calibrate`)
+    median_step: float              # median per-step joint displacement of the base demos (radians)
+    sigma_hat: np.ndarray           # (M, dof, dof) open-loop Sigma_hat_t (Eq. 1)
+    sigma_alpha: np.ndarray         # (M, dof, dof) per-step Sigma^alpha_t (Eq. 14)
+    episode_index: np.ndarray       # (M,) episode of each step
+    timestep: np.ndarray            # (M,) step inside that episode
+    pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
+    closed_loop_pooled: np.ndarray | None   # (dof, dof) Table I's closed-loop pooled Sigma_bar^alpha
+    blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
+    blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
+    blend_x: np.ndarray             # (B,) their settling errors (radians)
+    blend_kept: np.ndarray          # (B,) False where the rollout diverged or collided
+    blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
+    blend_start: np.ndarray         # (B,) first step of that segment
+    sigma_per_joint: np.ndarray = field(default=None)   # (dof,) sqrt(diag pooled) in median steps
+
+    def __post_init__(self):
+        if self.sigma_per_joint is None:
+            self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
+
+    def to_dict(self) -> dict:
+        """Plain lists and numbers, for json.dump."""
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Calibration":
+        arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
+                  "blend_beta", "sigma_per_joint"}
+        ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
+        kwargs = {}
+        for k, v in data.items():
+            if k in arrays and v is not None:
+                v = np.asarray(v, dtype=np.float64)
+            elif k in ints:
+                v = np.asarray(v, dtype=np.int64)
+            elif k == "blend_kept":
+                v = np.asarray(v, dtype=bool)
+            kwargs[k] = v
+        return cls(**kwargs)
+
+    def report(self) -> str:
+        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V)."""
+        lines = [f"W = {self.W / self.median_step:.2f} median steps (||W||, {self.fit_note}"
+                 + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
+                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)}",
+                 "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
+                 + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
+        if self.closed_loop_pooled is not None:
+            cl = sigma_in_median_steps(self.closed_loop_pooled, self.median_step)
+            lines.append("closed-loop pooled per-joint sigma [median steps]: "
+                         + ", ".join(f"{v:.2f}" for v in cl))
+        return "\n".join(lines)
+
+
+def calibrate(env, policy, episodes: list[dict], median_step: float,
+              cfg: CalibrationConfig | None = None,
+              generator: torch.Generator | None = None) -> Calibration:
+    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
+
+    episodes are the round's intervention episodes D_k (demonstrations work too). Blend rollouts
+    start from the cfg.blend_segments longest expert segments, the 13 ratios dealt round-robin.
+    Fallbacks (documented, never NaN): if fewer than 3 blend rollouts are kept (or the fit is
+    otherwise impossible), W is set to the open-loop error, ||W||^2 = tr(Sigma_bar) - i.e. Sigma^alpha
+    = Sigma_hat unscaled - r is None, and fit_note says why. If every closed-loop rollout fails on
+    its first step, closed_loop_pooled is the open-loop pooled Sigma_bar^alpha (also noted).
+    """
+    cfg = cfg or CalibrationConfig()
+    if not median_step > 0:
+        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
+    H = policy_horizon(policy)
+    threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
+
+    # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
+    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch)
+
+    # Step 2 (Fig. 2b): blended rollouts, beta i from the (i mod n)-th longest segment, all batched
+    segs = _segments_longest_first(episodes, H)[:max(1, cfg.blend_segments)]
+    blend_beta = np.asarray(cfg.betas, dtype=np.float64)
+    chosen = [segs[i % len(segs)] for i in range(len(blend_beta))]
+    blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
+                   generator, threshold)
+    blend_s, blend_x, blend_kept = blend.s, blend.x, blend.kept
+
+    # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
+    try:
+        fit = fit_equilibrium(blend_s[blend_kept], blend_x[blend_kept])
+        W, r, note = fit.W, fit.r, "fit"
+    except ValueError as err:
+        W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
+        r, note = None, f"fallback: W from the open-loop error ({err})"
+
+    # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
+    sigma_alpha = calibrated_sigma(steps.sigma, W)
+    pooled = pooled_sigma(steps.sigma, W)
+
+    # Step 5: Table I's closed-loop pooled variant, scaled the same way (Eq. 16)
+    closed = None
+    if cfg.closed_loop:
+        sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
+                                         cfg.closed_loop_segments)
+        if sigma_bar_cl is None:                  # documented fallback: no usable closed-loop step
+            closed = pooled.copy()
+            note += "; closed loop: every rollout failed at once, open-loop pooled used"
+        else:
+            closed = calibrated_sigma(sigma_bar_cl, W)
+    return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
+                       sigma_hat=steps.sigma, sigma_alpha=sigma_alpha,
+                       episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
+                       closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=blend_s,
+                       blend_x=blend_x, blend_kept=blend_kept,
+                       blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
+                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64))
+
+
+# ----------------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------------
+
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12) and W."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = calibration
+    unit = c.median_step if median_step is None else median_step
+    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    kept = c.blend_kept
+    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
+               label=f"blended rollouts ({int(kept.sum())})")
+    if np.any(~kept):
+        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
+                   label=f"diverged, discarded ({int((~kept).sum())})")
+    if c.r is not None:
+        s = np.linspace(0.0, 1.0, 201)
+        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
+                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
+    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
+               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
+    ax.set_ylabel("settling error [median steps]")
+    ax.set_title("Blend fit for W (paper Fig. 4)")
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def _ee_jacobian(env, q: np.ndarray, h: float = 1e-5) -> np.ndarray:
+    """d ee / d q at each row of q (B, dof) by central differences -> (B, dim, dof)."""
+    B, dof = q.shape
+    offsets = h * np.eye(dof)                                                # (dof, dof)
+    plus = env.ee((q[:, None] + offsets[None]).reshape(-1, dof)).reshape(B, dof, -1)
+    minus = env.ee((q[:, None] - offsets[None]).reshape(-1, dof)).reshape(B, dof, -1)
+    return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                    # (B, dim, dof)
+
+
+def _draw_ellipses(ax, env, q: np.ndarray, sigma: np.ndarray, color, n_std: float = 2.0) -> None:
+    """n_std ellipses of joint covariances sigma (B, dof, dof) at q (B, dof), pushed to the
+    end-effector plane to first order: Sigma_ee = J Sigma J^T (J the fk Jacobian)."""
+    from matplotlib.patches import Ellipse
+
+    J = _ee_jacobian(env, q)                                                 # (B, 2, dof)
+    sigma_ee = J @ sigma @ J.transpose(0, 2, 1)                              # (B, 2, 2)
+    centers = env.ee(q)
+    for c, S in zip(centers, sigma_ee):
+        vals, vecs = np.linalg.eigh(S)
+        vals = np.maximum(vals, 0.0)
+        angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+        ax.add_patch(Ellipse(c, 2 * n_std * math.sqrt(vals[1]), 2 * n_std * math.sqrt(vals[0]),
+                             angle=angle, facecolor=color, edgecolor=color, alpha=0.35, lw=0.8))
+
+
+def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
+                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
+                         n_act: int = 8, diverge_threshold: float = CalibrationConfig.diverge_threshold,
+                         generator: torch.Generator | None = None) -> None:
+    """Fig. 2, panels (a)-(d), on one planar intervention (end-effector plane, 2-sigma ellipses).
+
+    (a) open-loop policy samples (end-effector paths of the chunks) and Sigma_hat_t (Eq. 1) at
+        every `stride`-th label step of the episode's longest expert segment; (b) blended rollouts
+        at several beta from the segment's first state (dashed: discarded); (c) Sigma^alpha_t
+        (Eq. 14) with the calibration's W; (d) the calibration's pooled Sigma_bar^alpha (Eq. 16).
+    Joint covariances are drawn in the end-effector plane through the fk Jacobian, J Sigma J^T.
+    diverge_threshold is in median steps, as in CalibrationConfig.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env.reset(seed=int(episode["seed"]))
+    if env.ee(env.q[None]).shape[-1] != 2:
+        raise ValueError(f"plot_method_overview draws a planar env (2D end effector), got {type(env).__name__}")
+    H = policy_horizon(policy)
+    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
+    q_exp = np.asarray(episode["q"], dtype=np.float64)
+    actions = np.asarray(episode["action"], dtype=np.float64)
+    starts = label_starts(episode, H)
+    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
+    expert_path = env.ee(q_exp[start:end])
+
+    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
+    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
+    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
+    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * H)          # Eq. (1), (m, dof, dof)
+    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
+                           diverge_threshold * calibration.median_step, (start, end))
+
+    fig, axes = plt.subplots(1, 4, figsize=(18, 4.8))
+    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
+              r"(b) blended rollouts, partial denoising at $\beta$",
+              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
+              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
+    for ax, title in zip(axes, titles):
+        env.render(ax, q=q_exp[start], alpha=0.5)
+        ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
+        ax.set_title(title, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+
+    ax = axes[0]
+    for chunks in samples:
+        for chunk in chunks:
+            ax.plot(*env.ee(chunk).T, color="tab:orange", lw=0.7, alpha=0.6)
+    _draw_ellipses(ax, env, q_exp[steps], sigma_hat, "tab:orange")
+    ax.plot([], [], color="tab:orange", label="policy chunks")
+
+    ax = axes[1]
+    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
+    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
+        path_ee = env.ee(blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
+        ax.plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
+                label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
+                      + ("" if blend.kept[b] else " (discarded)"))
+
+    _draw_ellipses(axes[2], env, q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red")
+    _draw_ellipses(axes[3], env, q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
+                   "tab:purple")
+    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
+    axes[3].text(0.02, 0.02, f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes,
+                 fontsize=8)
+    for ax in axes[:2]:
+        ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
+                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------------
+# Demo
+# ----------------------------------------------------------------------------------------------
+
+def straight_line_episodes(env, seeds, min_steps: int = 32, speed: float = 0.8, margin: int = 3) -> list[dict]:
+    """Stand-in expert data for the demo and tests (dagger.py calibrates on the oracle's data).
+
+    In each scenario the arm moves in a straight joint-space line toward the goal configuration
+    nearest its start, at `speed` times the joint speed limit, and the motion is cut `margin` steps
+    before the first contact. Scenarios whose free prefix is shorter than min_steps are skipped.
+    """
+    episodes = []
+    for seed in seeds:
+        env.reset(seed=int(seed))
+        q0, goals = env.q, env.goal_configurations()
+        if len(goals) == 0:
+            continue
+        target = goals[np.argmin(np.abs(goals - q0).max(axis=1))]
+        n = int(np.ceil(np.abs(target - q0).max() / (speed * env.max_step)))
+        line = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (target - q0)    # (n + 1, dof)
+        hits = env.in_collision(line)
+        T = (int(np.argmax(hits)) - margin) if hits.any() else n + 1
+        if T < min_steps:
+            continue
+        q = line[:T]
+        q_prev = np.concatenate([q[:1], q[:-1]])
+        action = np.concatenate([q[1:], q[-1:]])                             # q[t+1] follows from action[t]
+        episodes.append({"obs": env.make_obs(q, q_prev), "q": q, "action": action,
+                         "expert": np.ones(T, dtype=bool), "seed": int(seed)})
+    return episodes
+
+
+if __name__ == "__main__":
+    import time
+
+    from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train
+
+    env = envs.make_env("planar")
+    episodes = straight_line_episodes(env, env.train_seeds(120))
+    unit = envs.median_step(episodes)
+    print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad")
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, width=128, n_blocks=2))
+    train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
+          TrainConfig(steps=1500, warmup_steps=100, log_every=500))
+    t0 = time.time()
+    calibration = calibrate(env, policy, episodes[:6], unit, CalibrationConfig(closed_loop_segments=4),
+                            torch.Generator().manual_seed(0))
+    print(f"calibrate: {time.time() - t0:.1f} s")
+    print(calibration.report())
+    plot_blend_fit(calibration, unit, "fig4_blend_fit.png")
+    plot_method_overview(env, episodes[0], calibration, policy, "fig2_method_overview.png",
+                         generator=torch.Generator().manual_seed(1))
+    print("wrote fig2_method_overview.png, fig4_blend_fit.png")

@@ -1,0 +1,332 @@
+"""Tests of calibrate.py: the math of Eqs. (1), (2), (12)-(16), the fit, and one real calibration."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import calibrate as cal
+
+
+# ----------------------------------------------------------------------------------------------
+# Eq. (12) and its fit
+# ----------------------------------------------------------------------------------------------
+
+def test_equilibrium_limits_and_shape():
+    W, r = 0.3, 5.0
+    assert cal.equilibrium(0.0, W, r) == 0.0                     # pure expert: no error
+    assert cal.equilibrium(1.0, W, r) == pytest.approx(W)        # pure policy: its own settling error
+    s = np.linspace(0, 1, 50)
+    x = cal.equilibrium(s, W, r)
+    assert np.all(np.diff(x) > 0)                                # error grows with the policy's share
+    # r = 1 (equal gains) makes the blend linear in s
+    np.testing.assert_allclose(cal.equilibrium(s, W, 1.0), W * s)
+    with pytest.raises(ValueError, match="r = K"):
+        cal.equilibrium(s, W, 0.0)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        cal.equilibrium(1.5, W, r)
+
+
+def _blend_points(W, r, noise, seed):
+    rng = np.random.default_rng(seed)
+    # s of the 13 ratios under a squared-cosine schedule spans about [0.01, 0.98]
+    beta = np.linspace(0.05, 0.90, 13)
+    s = np.sin(beta * math.pi / 2) ** 2
+    x = cal.equilibrium(s, W, r) * (1 + noise * rng.standard_normal(len(s)))
+    return s, x
+
+
+@pytest.mark.parametrize("W,r", [(0.2, 4.0), (0.05, 0.5), (1.3, 20.0)])
+def test_fit_recovers_W_and_r_from_noisy_points(W, r):
+    s, x = _blend_points(W, r, noise=0.03, seed=1)
+    fit = cal.fit_equilibrium(s, x)
+    assert fit.W == pytest.approx(W, rel=0.08)
+    assert fit.r == pytest.approx(r, rel=0.3)
+    assert fit.n_points == 13
+    exact = cal.fit_equilibrium(*_blend_points(W, r, noise=0.0, seed=0))
+    assert exact.W == pytest.approx(W, rel=1e-5) and exact.r == pytest.approx(r, rel=1e-4)
+
+
+def test_fit_is_robust_to_outliers():
+    W, r = 0.2, 4.0
+    s, x = _blend_points(W, r, noise=0.02, seed=2)
+    x[[4, 9]] *= 3.0                                             # two rollouts that nearly diverged
+    robust = cal.fit_equilibrium(s, x)
+    assert robust.W == pytest.approx(W, rel=0.1)
+    assert robust.r == pytest.approx(r, rel=0.35)
+    # and plain least squares (no reweighting) would be pulled off: the test can tell them apart
+    plain = cal.fit_equilibrium(s, x, n_iter=1)
+    assert abs(math.log(plain.r / r)) > 3 * abs(math.log(robust.r / r))
+
+
+def test_fit_degenerate_inputs():
+    with pytest.raises(ValueError, match=">= 3"):
+        cal.fit_equilibrium([0.2, 0.9], [0.1, 0.2])
+    with pytest.raises(ValueError, match=">= 3"):                # NaNs are not usable points
+        cal.fit_equilibrium([0.2, 0.5, 0.9], [0.1, np.nan, 0.2])
+    with pytest.raises(ValueError, match="distinct"):
+        cal.fit_equilibrium([0.5, 0.5, 0.5], [0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match="same length"):
+        cal.fit_equilibrium([0.1, 0.5, 0.9], [0.1, 0.2])
+    zero = cal.fit_equilibrium([0.1, 0.5, 0.9], [0.0, 0.0, 0.0])
+    assert zero.W == 0.0 and zero.r == 1.0 and math.isfinite(zero.rms_residual)
+
+
+# ----------------------------------------------------------------------------------------------
+# Eqs. (2), (13)-(16)
+# ----------------------------------------------------------------------------------------------
+
+def _random_covariances(n, d, seed):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, d, d))
+    return A @ A.transpose(0, 2, 1) / d                          # (n, d, d) SPD
+
+
+def test_trace_scaling_is_exact_and_keeps_the_shape():
+    S = _random_covariances(20, 3, seed=0)
+    W = np.array([0.1, -0.2, 0.05])
+    S_alpha = cal.calibrated_sigma(S, W)
+    np.testing.assert_allclose(np.trace(S_alpha, axis1=1, axis2=2), np.sum(W ** 2), rtol=1e-12)
+    ratio = S_alpha / S                                          # a positive multiple of each Sigma_hat_t
+    np.testing.assert_allclose(ratio, ratio[:, :1, :1] * np.ones_like(ratio), rtol=1e-10)
+    # the scalar norm gives the same result as the vector
+    np.testing.assert_allclose(cal.calibrated_sigma(S, np.linalg.norm(W)), S_alpha, rtol=1e-12)
+
+
+def test_dart_eq2_with_alpha_from_eq13_is_eq14():
+    S = _random_covariances(5, 3, seed=1)
+    W, T = 0.3, 57
+    np.testing.assert_allclose(cal.dart_sigma(S, cal.dart_alpha(W, T), T), cal.calibrated_sigma(S, W))
+    assert cal.dart_alpha(np.array([3.0, 4.0]), 2) == pytest.approx(50.0)
+
+
+def test_zero_trace_falls_back_to_isotropic():
+    S = _random_covariances(3, 3, seed=2)
+    S[1] = 0.0
+    S_alpha = cal.calibrated_sigma(S, 0.6)
+    assert np.all(np.isfinite(S_alpha))
+    np.testing.assert_allclose(S_alpha[1], 0.36 / 3 * np.eye(3))
+    np.testing.assert_allclose(np.trace(S_alpha, axis1=1, axis2=2), 0.36)
+
+
+def test_pooled_sigma_is_the_scaled_mean_of_the_per_step_ones():
+    S = _random_covariances(40, 3, seed=3)
+    sigma_bar = S.mean(axis=0)
+    # with ||W||^2 = tr(Sigma_bar) Eq. (16) leaves the mean unchanged
+    np.testing.assert_allclose(cal.pooled_sigma(S, math.sqrt(np.trace(sigma_bar))), sigma_bar, rtol=1e-12)
+    pooled = cal.pooled_sigma(S, 0.4)
+    assert np.trace(pooled) == pytest.approx(0.16)
+    np.testing.assert_allclose(pooled, 0.16 / np.trace(sigma_bar) * sigma_bar)
+    with pytest.raises(ValueError, match="non-empty"):
+        cal.pooled_sigma(np.zeros((0, 3, 3)), 0.4)
+
+
+def test_sigma_in_median_steps():
+    sigma = np.diag([4.0, 9.0, 16.0]) * 0.01 ** 2
+    np.testing.assert_allclose(cal.sigma_in_median_steps(sigma, 0.01), [2.0, 3.0, 4.0])
+    with pytest.raises(ValueError, match="median_step"):
+        cal.sigma_in_median_steps(sigma, 0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Segments, labels and Eq. (1) with a test double of known noise
+# ----------------------------------------------------------------------------------------------
+
+def _episode(expert, dof=3, seed=0):
+    rng = np.random.default_rng(seed)
+    T = len(expert)
+    q = np.cumsum(rng.normal(0, 0.01, (T, dof)), axis=0)
+    return {"obs": np.arange(T, dtype=np.float32)[:, None],     # obs = the step index (for the double)
+            "q": q, "action": q + 0.01, "expert": np.asarray(expert, bool), "seed": 0}
+
+
+def test_segments_and_label_starts_follow_the_contract():
+    H = 4
+    expert = [True] * 6 + [False] * 3 + [True] * 3 + [False] * 2 + [True] * 5
+    ep = _episode(expert)
+    assert cal.expert_segments(ep, H) == [(0, 6), (14, 19)]      # the 3-step run is too short
+    # first segment ends inside the episode: t + H <= 6; the last reaches the end: every step
+    np.testing.assert_array_equal(cal.label_starts(ep, H), [0, 1, 2, 14, 15, 16, 17, 18])
+    chunk = cal.expert_chunk(ep["action"], 4, H, end=6)          # padded with the segment's last action
+    np.testing.assert_array_equal(chunk, ep["action"][[4, 5, 5, 5]])
+
+
+class NoisyExpertPolicy:
+    """Test double: returns the expert chunk plus N(mean, S) noise, so Eq. (1) must give S + mean mean^T."""
+
+    class cfg:
+        horizon = 4
+
+    def __init__(self, episode, S, mean):
+        self.actions = episode["action"]
+        self.L = np.linalg.cholesky(S)
+        self.mean = np.asarray(mean)
+        self.calls = 0
+
+    def sample(self, obs, generator=None, use_ema=True):
+        self.calls += 1
+        t = obs[:, 0].astype(int)
+        chunks = np.stack([cal.expert_chunk(self.actions, int(i), self.cfg.horizon) for i in t])
+        z = torch.randn(chunks.shape, generator=generator, dtype=torch.float64).numpy()
+        return chunks + self.mean + z @ self.L.T
+
+
+def test_open_loop_sigma_recovers_a_known_covariance():
+    ep = _episode([True] * 41)
+    S = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, -0.5], [0.0, -0.5, 1.0]]) * 1e-4
+    mean = np.array([0.01, 0.0, -0.02])
+    policy = NoisyExpertPolicy(ep, S, mean)
+    out = cal.open_loop_sigma(policy, [ep], stride=2, n_samples=400, generator=torch.Generator().manual_seed(0),
+                              max_batch=5000)
+    np.testing.assert_array_equal(out.timestep, np.arange(0, 41, 2))   # every other step, to the end
+    np.testing.assert_array_equal(out.episode_index, 0)
+    assert policy.calls == 2                                     # batched: 21 steps x 400 samples, 5000 rows a call
+    pooled = out.sigma.mean(axis=0)
+    expected = S + np.outer(mean, mean)                          # uncentered, as in Eq. (1)
+    np.testing.assert_allclose(pooled, expected, atol=0.05 * np.abs(expected).max())
+    same = cal.open_loop_sigma(policy, [ep], 2, 400, torch.Generator().manual_seed(0), 5000)
+    np.testing.assert_array_equal(same.sigma, out.sigma)        # same seed, same numbers
+
+
+def test_open_loop_sigma_rejects_data_without_labels():
+    ep = _episode([False] * 10)
+    with pytest.raises(ValueError, match="no valid expert label"):
+        cal.open_loop_sigma(NoisyExpertPolicy(ep, np.eye(3), np.zeros(3)), [ep])
+
+
+def test_settling_error_uses_the_second_half():
+    ref = np.zeros((9, 2))
+    traj = np.zeros((2, 9, 2))
+    traj[0, 1:5] = 100.0                                         # a large transient in the first half ...
+    traj[0, 5:, 0] = 3.0                                         # ... then settles 3 away on joint 0
+    traj[1, :, 1] = 4.0
+    roll = cal.Rollouts(traj, np.stack([ref, ref]), np.array([8, 8]), np.array([8, 8]),
+                        np.zeros(2, bool), np.zeros(2, bool))
+    np.testing.assert_allclose(cal.settling_error(roll), [3.0, 4.0])
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibration record
+# ----------------------------------------------------------------------------------------------
+
+def _calibration():
+    S = _random_covariances(6, 3, seed=4)
+    W = 0.05
+    return cal.Calibration(
+        W=W, r=3.0, fit_note="fit", median_step=0.01, sigma_hat=S,
+        sigma_alpha=cal.calibrated_sigma(S, W), episode_index=np.arange(6), timestep=np.arange(6) * 2,
+        pooled=cal.pooled_sigma(S, W), closed_loop_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13),
+        blend_s=np.linspace(0.01, 0.98, 13), blend_x=np.linspace(0.0, 0.04, 13),
+        blend_kept=np.arange(13) < 11, blend_episode=np.arange(13) % 4, blend_start=np.full(13, 5))
+
+
+def test_calibration_json_round_trip(tmp_path):
+    c = _calibration()
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(c.to_dict()))
+    back = cal.Calibration.from_dict(json.loads(path.read_text()))
+    for key, value in c.to_dict().items():
+        got = getattr(back, key)
+        if isinstance(getattr(c, key), np.ndarray):
+            assert got.dtype == getattr(c, key).dtype, key
+            np.testing.assert_array_equal(got, getattr(c, key))
+        else:
+            assert got == value, key
+    assert "median steps" in back.report()
+    np.testing.assert_allclose(back.sigma_per_joint, np.sqrt(np.diag(c.pooled)) / 0.01)
+
+
+def test_plot_blend_fit_writes_a_figure(tmp_path):
+    path = tmp_path / "fig4.png"
+    cal.plot_blend_fit(_calibration(), None, path)
+    assert path.stat().st_size > 10_000
+
+
+# ----------------------------------------------------------------------------------------------
+# The real modules: closed-loop rollouts in the planar env and one whole calibration
+# ----------------------------------------------------------------------------------------------
+
+envs = pytest.importorskip("envs")
+diffusion = pytest.importorskip("diffusion")
+
+
+@pytest.fixture(scope="module")
+def planar():
+    """The planar env, stand-in expert episodes, and a tiny untrained policy (normalizer fitted)."""
+    env = envs.make_env("planar")
+    episodes = cal.straight_line_episodes(env, env.train_seeds(40))[:4]
+    assert len(episodes) == 4
+    policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(
+        obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=10, width=32, n_blocks=1))
+    policy.fit_normalizer(*diffusion.chunk_dataset(episodes, 16))
+    return env, episodes, policy
+
+
+def test_blend_at_beta_zero_retraces_the_expert(planar):
+    env, episodes, policy = planar
+    ep = episodes[0]
+    out = cal.blend_rollouts(env, policy, ep, [0.0, 0.0], generator=torch.Generator().manual_seed(0))
+    T = len(ep["q"])
+    assert np.all(out.rollouts.n_recorded == T - 1) and np.all(out.kept)
+    np.testing.assert_allclose(out.rollouts.trajectory[0], ep["q"], atol=1e-12)   # time-matched, exact
+    np.testing.assert_array_equal(out.x, 0.0)
+    np.testing.assert_array_equal(out.s, 0.0)
+    # several scenarios in one batched run: each rollout follows its own segment's expert
+    jobs = [(e, cal.expert_segments(e, 16)[0]) for e in episodes[:3]]
+    multi = cal._blend(env, policy, jobs, np.zeros(3), 8, None, 0.5)
+    for b, e in enumerate(episodes[:3]):
+        n = len(e["q"]) - 1
+        np.testing.assert_allclose(multi.rollouts.trajectory[b, :n + 1], e["q"], atol=1e-12)
+
+
+def test_rollouts_refuse_episodes_from_another_scenario(planar):
+    env, episodes, policy = planar
+    wrong = dict(episodes[0], seed=episodes[1]["seed"])
+    with pytest.raises(ValueError, match="does not reproduce"):
+        cal.blend_rollouts(env, policy, wrong, [0.5])
+
+
+def test_blend_rollouts_mark_divergence(planar):
+    env, episodes, policy = planar
+    out = cal.blend_rollouts(env, policy, episodes[0], [0.9], generator=torch.Generator().manual_seed(0),
+                             diverge_threshold=1e-6)
+    assert out.rollouts.diverged[0] and not out.kept[0]
+    assert out.rollouts.n_recorded[0] < len(episodes[0]["q"]) - 1             # stopped at divergence
+
+
+def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
+    env, episodes, policy = planar
+    unit = envs.median_step(episodes)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=3)
+    c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
+    M = len(c.timestep)
+    assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
+    assert len(c.blend_beta) == 13 and set(c.blend_episode) <= set(range(4))
+    for value in (c.W, *c.pooled.ravel(), *c.closed_loop_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
+        assert math.isfinite(value)
+    np.testing.assert_allclose(np.trace(c.sigma_alpha, axis1=1, axis2=2), c.W ** 2, rtol=1e-9)
+    assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
+    assert np.trace(c.closed_loop_pooled) == pytest.approx(c.W ** 2)
+    # deterministic: same seed, same calibration
+    again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
+    assert again.to_dict() == c.to_dict()
+    json.dumps(c.to_dict())
+    cal.plot_blend_fit(c, unit, tmp_path / "fig4.png")
+    cal.plot_method_overview(env, episodes[0], c, policy, tmp_path / "fig2.png", n_samples=2,
+                             generator=torch.Generator().manual_seed(1))
+    assert (tmp_path / "fig2.png").stat().st_size > 20_000
+
+
+def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
+    env, episodes, policy = planar
+    unit = envs.median_step(episodes)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=2, diverge_threshold=1e-9)
+    c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
+    assert not c.blend_kept.any()
+    assert c.r is None and c.fit_note.startswith("fallback")
+    assert c.W ** 2 == pytest.approx(np.trace(c.sigma_hat.mean(axis=0)))       # ||W||^2 = tr(Sigma_bar)
+    np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
+    np.testing.assert_allclose(c.closed_loop_pooled, c.pooled)                # closed-loop fallback too
+    assert "closed loop" in c.fit_note
