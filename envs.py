@@ -51,8 +51,6 @@ for which pymunk's GJK reports a zero-depth contact.
 Episode files: save_episodes / load_episodes (one .npz, ragged arrays concatenated with offsets);
 median_step(episodes) gives the paper's "median step size" unit of noise levels (Sec. V).
 """
-from __future__ import annotations
-
 import math
 from dataclasses import dataclass
 
@@ -91,8 +89,9 @@ class PlanarConfig:
     joint_hi: tuple = (math.pi, 2.6, 2.6)
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s)
     dt: float = 0.1  # s per step
-    # Episode step limit. benchmarks/scene_difficulty.py: shortest joint-grid paths over the 100
-    # eval scenes take 58 steps (median), 88 (90th pct), 132 (max); a smoothed expert is longer.
+    # Episode step limit, ~4x a typical expert episode. Measured: shortest joint-grid paths over the
+    # 100 eval scenes take 58 steps (median), 88 (90th pct), 132 (max) (scene_difficulty.py); the
+    # oracle's time-parameterized demos 78 / 121 / 210 (bench_oracle.py, first 30 eval scenes).
     max_steps: int = 300
     goal_tolerance: float = 0.04  # m, end effector within this distance of the goal = reached
     # States checked for contact within one step (the end state and evenly spaced states before it).

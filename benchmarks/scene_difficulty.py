@@ -109,7 +109,8 @@ def main():
     print(f"\nscenes: {len(seeds)} ({args.seeds} seeds), {time.time() - t0:.0f} s")
     print("| measure | value |\n|---|---|")
     print(f"| straight joint-space line to nearest goal configuration collides | {np.mean(blocked):.2f} |")
-    print(f"| straight lines to every goal configuration (1 in 4 tried) collide | {np.mean(all_blocked):.2f} |")
+    print(f"| straight lines to every goal configuration (1 in 4 tried) collide | "
+          f"{np.mean(all_blocked):.2f} |")
     print(f"| straight-line length, steps (median / 90th pct / max) | "
           f"{np.median(s):.0f} / {np.percentile(s, 90):.0f} / {s.max()} |")
     if solvable:
