@@ -287,8 +287,8 @@ class EpsNet(nn.Module):
         return self.out(self.out_norm(h))
 
 
-def _check_array(name, x, shape):
-    """x must be a finite array of the given shape (None = any size on that axis)."""
+def check_array(name, x, shape):
+    """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
     x = np.asarray(x) if not torch.is_tensor(x) else x
     if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
         raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
@@ -335,12 +335,12 @@ class DiffusionPolicy(nn.Module):
 
     def fit_normalizer(self, obs, actions):
         """Min-max fit on the dataset: obs (N, obs_dim); actions (N, H, dof) or (M, dof), joint units."""
-        obs = _check_array("obs", obs, (None, self.cfg.obs_dim))
+        obs = check_array("obs", obs, (None, self.cfg.obs_dim))
         actions = np.asarray(actions)
         if actions.ndim == 3:
-            _check_array("actions", actions, (None, self.cfg.horizon, self.cfg.dof))
+            check_array("actions", actions, (None, self.cfg.horizon, self.cfg.dof))
         else:
-            _check_array("actions", actions, (None, self.cfg.dof))
+            check_array("actions", actions, (None, self.cfg.dof))
         actions = actions.reshape(-1, self.cfg.dof)
         if len(obs) == 0 or len(actions) == 0:
             raise ValueError("fit_normalizer needs at least one observation and one action")
@@ -429,7 +429,7 @@ class DiffusionPolicy(nn.Module):
 
     def sample(self, obs, generator=None, use_ema=True):
         """Unguided sampling: obs (B, obs_dim) np.ndarray -> chunks (B, H, dof) float64 in joint units."""
-        obs = _check_array("obs", obs, (None, self.cfg.obs_dim))
+        obs = check_array("obs", obs, (None, self.cfg.obs_dim))
         B = obs.shape[0]
         with torch.inference_mode():
             obs_norm = self.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
@@ -542,8 +542,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
       random streams, so the resumed run ends with the same numbers as an uninterrupted one.
     """
     pc = policy.cfg
-    obs = _check_array("obs", obs, (None, pc.obs_dim))
-    chunks = _check_array("chunks", chunks, (None, pc.horizon, pc.dof))
+    obs = check_array("obs", obs, (None, pc.obs_dim))
+    chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
     if len(obs) != len(chunks) or len(obs) == 0:
         raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
     n_aug = int(round(cfg.aug_fraction * cfg.batch_size))
@@ -583,8 +583,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         o, a = obs_n[idx], chunks_n[idx]
         if n_aug:
             o_aug, a_aug = sampler(n_aug, rng)
-            o_aug = _check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
-            a_aug = _check_array("sampler chunks", a_aug, (n_aug, pc.horizon, pc.dof))
+            o_aug = check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
+            a_aug = check_array("sampler chunks", a_aug, (n_aug, pc.horizon, pc.dof))
             with torch.no_grad():
                 o = torch.cat([o, policy.normalize_obs(torch.as_tensor(o_aug, dtype=torch.float32, device=dev))])
                 a = torch.cat([a, policy.normalize_actions(torch.as_tensor(a_aug, dtype=torch.float32,

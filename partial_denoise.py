@@ -20,19 +20,21 @@ numbers k = 1..K, beta picks k_sw = ToInteger(beta K) in 0..K, and
      noise_fraction() returns and calibrate.py puts into Eqs. (8)-(12);
   2. reverse:  the first reverse step is Eq. (6) at paper step k_sw, which expects an input at noise level
      alphabar_{k_sw} -- the level of step 1 -- followed by steps k_sw - 1, ..., 1: k_sw reverse steps.
-In diffusion.py's code indices (code k = paper k + 1... see its docstring: code k <-> paper k + 1) step 1 is
+In diffusion.py's 0-based code indices (code k <-> paper step k + 1), step 1 is
 q_sample(schedule, a*, k_sw - 1, eps) and step 2 is reverse_process from code level k_sw - 1 down to 0.
-The paper's "k_sw - 1 timesteps" is this code index of the switching step (0-based), not a count of steps:
-diffusing to level k_sw but starting the reverse process at k_sw - 1 (or the other way round) would ask the
-network to remove a different amount of noise than the chunk holds. k_sw = 0 runs no step at all and
-returns the expert chunk unchanged; k_sw = K starts from level K, which is pure noise up to sqrt(alphabar_K)
-(~1e-3 for the capped squared-cosine schedule), i.e. unguided sampling.
+We read the paper's "k_sw - 1 timesteps" as this 0-based code index of the switching step; counted as
+steps it would stop one level short of the sigma^2_{k_sw} that Eq. (7) and Eqs. (8)-(12) use. Diffusing to
+one level but starting the reverse process at a neighbouring one would ask the network to remove a
+different amount of noise than the chunk holds (tests/test_partial_denoise.py checks the level the first
+reverse step receives). k_sw = 0 runs no step and returns the expert chunk unchanged; k_sw = K starts from
+level K, which is pure noise up to sqrt(alphabar_K) a* (5e-4 a* for the capped squared-cosine schedule at
+K = 100), i.e. unguided sampling.
 """
 
 import numpy as np
 import torch
 
-from diffusion import _check_array, q_sample
+from diffusion import check_array, q_sample
 
 
 # ----------------------------------------------------------------------------------------------
@@ -118,9 +120,9 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
     sqrt(alphabar_K) a* term; and a batch equals its rows done one by one with the same generator.
     """
     cfg = policy.cfg
-    obs = _check_array("obs", obs, (None, cfg.obs_dim))
+    obs = check_array("obs", obs, (None, cfg.obs_dim))
     B = obs.shape[0]
-    expert_chunk = _check_array("expert_chunk", expert_chunk, (B, cfg.horizon, cfg.dof))
+    expert_chunk = check_array("expert_chunk", expert_chunk, (B, cfg.horizon, cfg.dof))
     beta = _check_beta(beta)
     if beta.ndim > 1 or (beta.ndim == 1 and len(beta) != B):
         raise ValueError(f"beta must be a scalar or have shape ({B},), got shape {beta.shape}")
