@@ -78,6 +78,7 @@ class OracleConfig:
     verify_margin: float = 0.5  # margin the executed trajectory is verified with, in sweeps;
     # >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
     relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion of start / goals
+    min_sweep_fraction: float = 0.25  # if no path is found, halve sweep and margins down to this
     # --- HG-DAgger gating and intervention ---
     horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
     handback_fraction: float = 0.5  # drive at least this fraction of the plan before handing back
@@ -698,31 +699,18 @@ class Oracle:
                          dedup=c.goal_dedup)
         if len(goals) == 0:
             raise PlanningFailed("no collision-free IK solution for the goal")
-        # Margins everywhere except near q0 (and its coast) and near the goal configurations.
-        zones = np.concatenate([q0[None], goals])
-        radii = np.concatenate([[coast], np.zeros(len(goals))]) + c.relax_sweeps * sweep
-        collides = with_margin(env, c.margin * sweep, zones, radii)
-        verify = with_margin(env, c.verify_margin * sweep, zones, radii)
-        best, failures = None, []
-        for seed in rng.integers(0, 2 ** 63, size=c.n_attempts):
-            attempt_rng = np.random.default_rng(seed)
+        # Narrow passages can be closed by the margin: then search again with checks twice as
+        # dense and margins (in sweeps) twice as thin, down to min_sweep_fraction of the sweep.
+        failures = []
+        while True:
             try:
-                path = rrt_connect(start, goals, collides, (lo, hi), attempt_rng,
-                                   step_size=c.step_size, resolution=res, max_iters=c.max_iters,
-                                   max_time=c.max_time, batch=c.rrt_batch)
-            except PlanningFailed as e:
-                failures.append(e.reason)
-                continue
-            direct = len(path) == 2  # a straight line: every attempt would return the same one
-            path = shortcut(path, collides, attempt_rng, c.shortcut_iters, res)
-            path = smooth_corners(path, collides, res, c.corner_fraction, c.corner_points)
-            length = self.ee_length(env, path)
-            if best is None or length < best[1]:  # strict: ties keep the earlier attempt
-                best = (path, length)
-            if direct:
+                best, verify, res = self._search(env, q0, coast, start, goals, sweep, rng)
                 break
-        if best is None:
-            raise PlanningFailed(f"all {c.n_attempts} RRT-Connect attempts failed: {failures}")
+            except PlanningFailed as e:
+                failures.append(f"sweep {sweep:.4g} m: {e.reason}")
+                sweep *= 0.5
+                if sweep < c.min_sweep_fraction * self.sweep(env) - 1e-12:
+                    raise PlanningFailed("; ".join(failures)) from None
         path = best[0] if not np.any(v0) else np.concatenate([q0[None], best[0]])
         try:
             samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0,
@@ -735,6 +723,38 @@ class Oracle:
                                         in_collision=verify, resolution=res)
         self.last_plan = Plan(samples, best[0], best[1], matched, time.perf_counter() - t0)
         return self.last_plan
+
+    def _search(self, env, q0, coast, start, goals, sweep, rng):
+        """RRT-Connect attempts + shortcut + corners at one check density; the plan with the
+        smallest ee arc length. Returns ((path, length), verify predicate, resolution)."""
+        c = self.cfg
+        res = edge_resolution(env, sweep)
+        # Margins everywhere except near q0 (and its coast) and near the goal configurations.
+        zones = np.concatenate([q0[None], goals])
+        radii = np.concatenate([[coast], np.zeros(len(goals))]) + c.relax_sweeps * sweep
+        collides = with_margin(env, c.margin * sweep, zones, radii)
+        verify = with_margin(env, c.verify_margin * sweep, zones, radii)
+        best, failures = None, []
+        for attempt, seed in enumerate(rng.integers(0, 2 ** 63, size=c.n_attempts)):
+            attempt_rng = np.random.default_rng(seed)
+            try:
+                path = rrt_connect(start, goals, collides, env.joint_limits, attempt_rng,
+                                   step_size=c.step_size, resolution=res, max_iters=c.max_iters,
+                                   max_time=c.max_time, batch=c.rrt_batch)
+            except PlanningFailed as e:
+                if attempt == 0:  # a full budget found nothing: more attempts rarely would
+                    raise
+                failures.append(e.reason)
+                continue
+            direct = len(path) == 2  # a straight line: every attempt would return the same one
+            path = shortcut(path, collides, attempt_rng, c.shortcut_iters, res)
+            path = smooth_corners(path, collides, res, c.corner_fraction, c.corner_points)
+            length = self.ee_length(env, path)
+            if best is None or length < best[1]:  # strict: ties keep the earlier attempt
+                best = (path, length)
+            if direct:
+                break
+        return best, verify, res
 
     # ---- D0: full demonstrations ----------------------------------------------------------
     def demonstrate(self, env, seed):

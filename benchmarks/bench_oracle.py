@@ -8,10 +8,16 @@ For every scenario: Oracle.demonstrate (plan + execute with env.step). Reports
                  smoothed path that was executed (min_time_lower_bound(plan.path));
     line bound:  the same over the straight joint-space line start -> chosen goal configuration
                  (no path from start to that configuration can be faster),
+    traversal:   the full-speed time of the executed path (each piece at its dominant joint's v_max)
+                 plus v_max / a_max: the cost of the time parameterization itself,
   and checks the velocity / acceleration / jerk limits at every sample of every plan.
 Failures are listed with their seed and reason.
+Interventions (--n-interventions scenarios): the state 30 % into the demo is perturbed by a random
+joint offset and a random velocity (a policy drifting off the expert's path); Oracle.intervention
+plans from there. Reports its planning time, how often the handoff velocity was matched, the
+number of steps driven, and whether executing them collided.
 
-Usage:  python benchmarks/bench_oracle.py [--n 100] [--seeds eval|train]
+Usage:  python benchmarks/bench_oracle.py [--n 100] [--seeds eval|train] [--n-interventions 20]
 """
 import argparse
 import os
@@ -23,6 +29,12 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from envs import make_env  # noqa: E402
 from oracle import Oracle, PlanningFailed, min_time_lower_bound  # noqa: E402
+
+
+def traversal_time(path, v_max, a_max):
+    """Full-speed traversal of the polyline (each piece at its dominant joint's v_max) + v/a."""
+    return float(np.sum(np.max(np.abs(np.diff(path, axis=0)) / v_max, axis=1))
+                 + np.max(v_max / a_max))
 
 
 def limit_ratios(samples, v_max, a_max, j_max, dt):
@@ -38,6 +50,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--n", type=int, default=100, help="number of scenarios")
     parser.add_argument("--seeds", choices=["eval", "train"], default="eval")
+    parser.add_argument("--n-interventions", type=int, default=20)
     args = parser.parse_args()
     env = make_env("planar")
     oracle = Oracle()
@@ -61,6 +74,7 @@ def main():
             plan_time=plan.planning_time, duration=duration,
             path_ratio=duration / min_time_lower_bound(plan.path, v_max, a_max),
             line_ratio=duration / min_time_lower_bound(plan.samples[[0, -1]], v_max, a_max),
+            traversal_ratio=duration / traversal_time(plan.path, v_max, a_max),
             limits=max(limit_ratios(plan.samples, v_max, a_max, j_max, env.dt))))
         if not episode["success"]:
             failures.append((seed, f"execution failed after {len(episode['q'])} steps "
@@ -86,10 +100,51 @@ def main():
               f"{col('path_ratio').max():.2f} |")
         print(f"| duration / straight-line bound (median / max) | {np.median(col('line_ratio')):.2f}"
               f" / {col('line_ratio').max():.2f} |")
+        print(f"| duration / full-speed traversal of the path (median / max) | "
+              f"{np.median(col('traversal_ratio')):.2f} / {col('traversal_ratio').max():.2f} |")
         print(f"| max limit use over all samples (|v|/v_max, |a|/a_max, |j|/j_max) | "
               f"{col('limits').max():.6f} |")
     for seed, reason in failures:
         print(f"failure: seed {seed}: {reason}")
+    if args.n_interventions:
+        bench_interventions(env, oracle, [r["seed"] for r in rows][: args.n_interventions])
+
+
+def bench_interventions(env, oracle, seeds):
+    rng = np.random.default_rng(0)
+    times, matched, lengths, collided, failed = [], [], [], 0, []
+    for seed in seeds:
+        demo = oracle.demonstrate(env, seed)
+        t = int(0.3 * len(demo["q"]))
+        lo, hi = env.joint_limits
+        q = np.clip(demo["q"][t] + rng.normal(0, 4 * env.max_step, env.dof), lo, hi)
+        q_prev = q - rng.uniform(-env.max_step, env.max_step, env.dof)
+        if env.in_collision(np.stack([q, q_prev])).any():
+            continue
+        env.set_state(q, q_prev)
+        t0 = time.perf_counter()
+        try:
+            actions = oracle.intervention(env)
+        except PlanningFailed as e:
+            failed.append((seed, e.reason))
+            continue
+        times.append(time.perf_counter() - t0)
+        matched.append(oracle.last_plan.velocity_matched)
+        lengths.append(len(actions))
+        for a in actions:
+            _, _, terminated, _, info = env.step(a)
+            collided += info["collision"]
+            if terminated:
+                break
+    print(f"\ninterventions: {len(times)} from perturbed mid-demo states")
+    print("| measure | value |\n|---|---|")
+    if times:
+        print(f"| planning time, s (median / max) | {np.median(times):.2f} / {max(times):.2f} |")
+        print(f"| handoff velocity matched | {np.mean(matched):.2f} |")
+        print(f"| steps driven (median / min / max) | {np.median(lengths):.0f} / {min(lengths)} / "
+              f"{max(lengths)} |")
+    print(f"| executions that collided | {collided} |")
+    print(f"| planning failures | {len(failed)} {failed} |")
 
 
 if __name__ == "__main__":
