@@ -527,6 +527,24 @@ def update_ema(policy, step, decay):
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
 
 
+def _as_torch(x):
+    """numpy arrays -> tensors inside nested dicts / lists (checkpoints are read with weights_only=True)."""
+    if isinstance(x, dict):
+        return {k: _as_torch(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_as_torch(v) for v in x]
+    return torch.from_numpy(np.ascontiguousarray(x)) if isinstance(x, np.ndarray) else x
+
+
+def _as_numpy(x):
+    """The inverse of _as_torch."""
+    if isinstance(x, dict):
+        return {k: _as_numpy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_as_numpy(v) for v in x]
+    return x.numpy() if torch.is_tensor(x) else x
+
+
 def _checkpoint_path(cfg, step):
     return cfg.checkpoint_path.replace("{step}", str(step))
 
@@ -539,7 +557,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
     - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)): augmented pairs made on the fly; they fill
       round(cfg.aug_fraction * batch_size) rows of every batch (co-training, Sec. IV-A step 4).
     - resume_from: a checkpoint written by this function; restores weights, EMA, optimizer, step and both
-      random streams, so the resumed run ends with the same numbers as an uninterrupted one.
+      random streams, so the resumed run ends with the same numbers as an uninterrupted one. A sampler with
+      state_dict() / load_state_dict() (e.g. a pool of generated pairs) is saved and restored with them.
     """
     pc = policy.cfg
     obs = check_array("obs", obs, (None, pc.obs_dim))
@@ -572,6 +591,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         rng.bit_generator.state = json.loads(state["numpy_rng"])
         gen.set_state(state["torch_rng"])
         step = int(state["step"])
+        if state.get("sampler") is not None and hasattr(sampler, "load_state_dict"):
+            sampler.load_state_dict(_as_numpy(state["sampler"]))
 
     policy.train()
     t0, losses, last_step = time.time(), [], step
@@ -609,7 +630,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
             policy.save(_checkpoint_path(cfg, step), extra={
                 "step": step, "optimizer": optimizer.state_dict(),
                 "numpy_rng": json.dumps(rng.bit_generator.state), "torch_rng": gen.get_state(),
-                "train_config": json.dumps(asdict(cfg))})
+                "train_config": json.dumps(asdict(cfg)),
+                "sampler": _as_torch(sampler.state_dict()) if hasattr(sampler, "state_dict") else None})
     policy.eval()
     return policy
 

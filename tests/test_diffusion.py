@@ -248,12 +248,29 @@ def test_lr_schedule_warmup_and_cosine():
     assert lr_at(1000, cfg) == pytest.approx(0.0, abs=1e-12)
 
 
-def _aug_sampler(calls):
-    def sampler(n, rng):
-        calls.append(n)
-        obs = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+class PoolSampler:
+    """A co-training sampler with state (a pool of pairs, partly refreshed every call), like relabel's."""
+
+    def __init__(self, calls):
+        self.calls, self.pool = calls, None
+
+    def __call__(self, n, rng):
+        self.calls.append(n)
+        if self.pool is None:
+            self.pool = rng.uniform(-1, 1, (16, 2)).astype(np.float32)
+        self.pool[rng.integers(0, 16)] = rng.uniform(-1, 1, 2)
+        obs = self.pool[rng.integers(0, 16, n)] + self.pool.mean(0)       # depends on the whole pool
         return obs, np.repeat(obs[:, None, :], 4, axis=1)
-    return sampler
+
+    def state_dict(self):
+        return {"pool": None if self.pool is None else self.pool.copy()}
+
+    def load_state_dict(self, state):
+        self.pool = None if state["pool"] is None else np.array(state["pool"], dtype=np.float32)
+
+
+def _aug_sampler(calls):
+    return PoolSampler(calls)
 
 
 def test_resume_equals_uninterrupted(tmp_path):
