@@ -158,9 +158,9 @@ def with_margin(env, margin, relax_at=None, relax_radius=0.0):
     margin is approximated by probes: q counts as colliding if q or one of its 2 dof one-joint
     displacements of +-margin / R_j collides (each moves the arm by at most `margin`).
     Near relax_at (K, dof) (arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius_k for some
-    k, in m) only the plain env check applies: a start inside the margin band (an intervention often
-    begins close to an obstacle) must be able to leave it, and a goal configuration squeezed
-    between obstacles must be reachable; grazes are then possible only in these small zones.
+    k, in m) only the plain env check applies: a start inside the margin band (an intervention
+    often begins close to an obstacle) must be able to leave it, and a goal configuration
+    squeezed between obstacles must be reachable; grazes are then possible only in these zones.
     """
     lever = lever_arms(env)
     relax_at = None if relax_at is None else np.atleast_2d(relax_at)
@@ -212,7 +212,7 @@ def numeric_jacobian(ee, q, h=1e-6):
     return d.transpose(0, 2, 1)
 
 
-def solve_ik(env, goal, rng, q_start=None, n_seeds=32, iters=60, damping=0.05, tolerance=1e-3,
+def solve_ik(env, goal, rng, q_start=None, n_seeds=512, iters=40, damping=0.05, tolerance=1e-3,
              max_goals=8, dedup=0.2, in_collision=None):
     """Collision-free goal configurations (M, dof), M <= max_goals, nearest to q_start first.
 
@@ -843,7 +843,11 @@ class Oracle:
 # Figure 5 (planar part): a scenario with an expert demonstration drawn over it
 # ----------------------------------------------------------------------------------------------
 def plot_demonstration(env, episode, path, n_arms=8):
-    """Save the scene of episode['seed'] with faded arms along the demo and the ee path."""
+    """Save the scene of episode['seed'] with faded arms along the demo and the ee path.
+
+    Arms are drawn by env.render(ax, q=..., alpha=..., color=..., show_scene=False) when the env
+    offers those options (links to scale), else as fk polylines.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -854,19 +858,24 @@ def plot_demonstration(env, episode, path, n_arms=8):
     if pts.shape[-1] != 2:
         raise ValueError(f"plot_demonstration draws planar envs (dim 2), got dim {pts.shape[-1]}")
     fig, ax = plt.subplots(figsize=(5, 5))
-    env.render(ax)
-    for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)):
-        ax.plot(pts[t, :, 0], pts[t, :, 1], "-o", color="tab:orange", ms=3, lw=2,
-                alpha=0.15 + 0.85 * i / max(1, n_arms - 1))
+    env.render(ax)  # scene and the arm at the start
+    for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)[1:], start=1):
+        alpha = 0.15 + 0.6 * i / max(1, n_arms - 1)
+        try:
+            env.render(ax, q=q[t], alpha=alpha, color="tab:orange", show_scene=False)
+        except TypeError:  # an env whose render draws only the scene
+            ax.plot(pts[t, :, 0], pts[t, :, 1], "-o", color="tab:orange", ms=3, lw=2, alpha=alpha)
     ax.plot(pts[:, -1, 0], pts[:, -1, 1], color="tab:red", lw=1.5, label="end-effector path")
     ax.set_aspect("equal")
-    ax.set_title(f"expert demonstration, seed {episode['seed']} ({len(q)} steps)")
+    ax.set_title(f"expert demonstration, seed {episode['seed']} ({len(q)} steps; start in blue)")
     ax.legend(loc="lower left", fontsize=8)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
 if __name__ == "__main__":
+    import os
+
     import envs
 
     env = envs.make_env("planar")
@@ -874,7 +883,22 @@ if __name__ == "__main__":
     seed = env.eval_seeds()[0]
     t0 = time.perf_counter()
     episode = oracle.demonstrate(env, seed)
+    plan = oracle.last_plan
+    v_max, a_max, _ = oracle.limits(env)
     print(f"seed {seed}: success {episode['success']}, {len(episode['q'])} steps, "
-          f"{time.perf_counter() - t0:.2f} s")
-    plot_demonstration(env, episode, "oracle_demo.png")
-    print("wrote oracle_demo.png")
+          f"planning {plan.planning_time:.2f} s, total {time.perf_counter() - t0:.2f} s, "
+          f"ee arc length {plan.ee_length:.2f} m, duration / bang-bang bound "
+          f"{(len(plan.samples) - 1) * env.dt / min_time_lower_bound(plan.path, v_max, a_max):.2f}")
+    # an intervention: the arm 30 % into the demo, drifted off it and moving
+    t = int(0.3 * len(episode["q"]))
+    q, step = episode["q"][t] + 0.1, episode["q"][t] - episode["q"][t - 1]
+    env.set_state(q, q - step)
+    gate = oracle.gate(env)
+    reason = gate.should_intervene(env, episode["action"][t:t + oracle.cfg.horizon])
+    print(f"gate on the expert's old chunk from the drifted state: {reason}")
+    actions = oracle.intervention(env)
+    print(f"intervention from a drifted state: drives {len(actions)} steps, handoff velocity "
+          f"matched: {oracle.last_plan.velocity_matched}")
+    os.makedirs("runs", exist_ok=True)
+    plot_demonstration(env, episode, os.path.join("runs", "oracle_demo.png"))
+    print("wrote runs/oracle_demo.png")
