@@ -596,9 +596,6 @@ def make_env(name="planar", **config):
 # ----------------------------------------------------------------------------------------------
 # Episode files and the noise unit
 # ----------------------------------------------------------------------------------------------
-_EPISODE_ARRAYS = ("obs", "q", "action", "expert")
-
-
 def save_episodes(path, episodes):
     """Write a list of episode dicts to one .npz: per-step arrays concatenated, plus offsets.
 
