@@ -179,21 +179,30 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     beta_b = np.repeat(levels, n_samples)
     samples = partial_denoise(policy, obs_b, chunk_b, beta_b, generator=generator)   # (n * L, H, dof)
 
-    fig, ax = plt.subplots(figsize=(5.5, 5.5))
-    env.render(ax, q=q, alpha=0.35)
+    # Left: the whole scene; right: a close-up of the paths (same drawing, tighter limits).
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
     colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(betas)))
-    for i, beta in enumerate(levels):
-        unguided = i == len(betas)
-        color = "tab:red" if unguided else colors[i]
-        label = "unguided policy (beta = 1)" if unguided else f"partial denoising, beta = {beta:.2f}"
-        for j in range(n_samples):
-            path_xy = ee_path(samples[i * n_samples + j])
-            ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color=color, lw=1.2, alpha=0.8,
-                    label=label if j == 0 else None)
     expert_xy = ee_path(expert_chunk)
-    ax.plot(expert_xy[:, 0], expert_xy[:, 1], "-o", color="tab:blue", lw=2.5, ms=3, label="expert chunk")
-    ax.set_title("Partial denoising at one state (Fig. 3)")
-    ax.legend(loc="lower left", fontsize=7)
+    all_xy = [expert_xy]
+    for ax in axes:
+        env.render(ax, q=q, alpha=0.35)
+        for i, beta in enumerate(levels):
+            unguided = i == len(betas)
+            color = "tab:red" if unguided else colors[i]
+            label = "unguided policy (beta = 1)" if unguided else f"partial denoising, beta = {beta:.2f}"
+            for j in range(n_samples):
+                path_xy = ee_path(samples[i * n_samples + j])
+                all_xy.append(path_xy)
+                ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color=color, lw=1.2, alpha=0.8,
+                        label=label if j == 0 else None)
+        ax.plot(expert_xy[:, 0], expert_xy[:, 1], "-o", color="tab:blue", lw=2.5, ms=3, label="expert chunk")
+    lo, hi = np.min(np.concatenate(all_xy), axis=0), np.max(np.concatenate(all_xy), axis=0)
+    center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.05) * 1.15
+    axes[1].set_xlim(center[0] - half, center[0] + half)
+    axes[1].set_ylim(center[1] - half, center[1] + half)
+    axes[0].set_title("Partial denoising at one state (Fig. 3)")
+    axes[1].set_title("close-up of the end-effector paths")
+    axes[1].legend(loc="best", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
