@@ -57,7 +57,10 @@ class CalibrationConfig:
                                          # (beta i from segment i mod n): long, so that they settle; several,
                                          # so that W is not one intervention's idiosyncrasy
     diverge_threshold: float = 30.0      # a rollout whose joint deviation norm ever exceeds this many
-                                         # median steps has left the expert's route: discarded (Sec. IV-D)
+                                         # median steps has left the expert's route: discarded (Sec. IV-D);
+                                         # kept planar rollouts of a trained policy stay under ~20
+    discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop:
+                                         # in these narrow passages nearly all of them do)
     closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
     closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
@@ -190,20 +193,22 @@ class Rollouts:
     n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
     n_recorded: np.ndarray      # (B,) steps executed (a rollout stops early on divergence, collision, success)
     diverged: np.ndarray        # (B,) True if the deviation norm ever exceeded the threshold
-    collided: np.ndarray        # (B,) True if the rollout hit an obstacle or itself
+    collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself at some step
 
     @property
     def deviation(self) -> np.ndarray:
         return self.trajectory - self.reference                              # (B, L + 1, dof)
 
+    discard_collisions: bool = False   # True: a contact counts as leaving the route (see _closed_loop)
+
     @property
     def discarded(self) -> np.ndarray:
         """True for rollouts that left the expert's route (Sec. IV-D discards them)."""
-        return self.diverged | self.collided
+        return self.diverged | (self.collided & self.discard_collisions)
 
 
 def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                 diverge_threshold: float) -> Rollouts:
+                 diverge_threshold: float, stop_on_collision: bool = False) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), time-matched to that segment's expert.
 
     Rollout b starts at the segment's first recorded state and runs for the segment's length. At
@@ -213,7 +218,13 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
     env.step. One env serves all rollouts: a rollout's state is put back with set_state, and the
     scenario is switched with reset(seed) only when the seed changes (rollouts grouped by seed).
     A rollout stops at the first step whose joint-deviation norm exceeds diverge_threshold
-    (radians), that collides, or that reaches the goal.
+    (radians) - it has left the expert's route - and, if stop_on_collision, at its first contact.
+    By default a contact is only recorded: the env's state is kinematic (env.step moves the arm
+    whether or not it touches), so the deviation from the expert stays well defined, and in these
+    cluttered scenes the oracle's paths pass obstacles so closely that a deviation of a few median
+    steps already grazes one - measured on the planar env, 12 of 13 blend rollouts of a trained
+    policy touched an obstacle, one at beta = 0.05 with a largest deviation of 3.6 median steps,
+    none diverged. Stopping (and discarding) them would keep only the luckiest rollouts.
     """
     B = len(jobs)
     lengths, refs, q0, q_prev0 = [], [], [], []
@@ -269,18 +280,18 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     continue
                 env.set_state(q[b], q_prev[b])
                 for j in range(min(n_act, n_steps[b] - t)):
-                    _, _, terminated, _, info = env.step(chunk[j])
-                    i = t + j + 1
+                    _, _, _, _, info = env.step(chunk[j])     # runs the segment's length: success,
+                    i = t + j + 1                             # like contact, does not end the rollout
                     traj[b, i:] = env.q
                     n_recorded[b] = i
-                    collided[b] = bool(info["collision"])
+                    collided[b] |= bool(info["collision"])
                     diverged[b] = np.linalg.norm(env.q - reference[b, i]) > diverge_threshold
-                    if collided[b] or diverged[b] or terminated:
+                    if diverged[b] or (collided[b] and stop_on_collision):
                         live[b] = False
                         break
                 q[b], q_prev[b] = env.q, env.q_prev
                 obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided)
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, stop_on_collision)
 
 
 def settling_error(rollouts: Rollouts) -> np.ndarray:
@@ -311,15 +322,16 @@ class BlendRollouts:
 
 
 def blend_rollouts(env, policy, episode: dict, betas, n_act: int = 8,
-                   generator: torch.Generator | None = None, diverge_threshold: float = 0.5,
-                   segment: tuple[int, int] | None = None) -> BlendRollouts:
+                   generator: torch.Generator | None = None, diverge_threshold: float = 0.8,
+                   segment: tuple[int, int] | None = None, discard_collisions: bool = False) -> BlendRollouts:
     """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
 
     From the segment's first state (default: the episode's longest expert segment) every decision
     calls partial_denoise(policy, obs, expert actions[t:t+H], beta) - one call for all betas - and
-    executes the first n_act actions. diverge_threshold is in radians (joint-deviation norm).
-    Rollouts that exceed it or collide are marked not kept, as in the paper ("we discard the
-    blended trajectories that diverge").
+    executes the first n_act actions. diverge_threshold is in radians (joint-deviation norm; the
+    default 0.8 is about 30 median steps of the planar oracle demos). Rollouts that exceed it are
+    marked not kept, as in the paper ("we discard the blended trajectories that diverge"); contacts
+    only when discard_collisions (see `_closed_loop` for why not by default).
     """
     H = policy_horizon(policy)
     if segment is None:
@@ -328,10 +340,12 @@ def blend_rollouts(env, policy, episode: dict, betas, n_act: int = 8,
             raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {H} steps")
         segment = max(segments, key=lambda se: se[1] - se[0])
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_threshold)
+    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_threshold,
+                  discard_collisions)
 
 
-def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_threshold: float) -> BlendRollouts:
+def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_threshold: float,
+           discard_collisions: bool = False) -> BlendRollouts:
     """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b]."""
     if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
         raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
@@ -339,7 +353,8 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
     def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
 
-    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_threshold)
+    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_threshold,
+                        discard_collisions)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # sigma^2_{k_sw} per beta
     return BlendRollouts(betas, s, settling_error(roll), ~roll.discarded, roll)
 
@@ -504,8 +519,8 @@ def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
-                      generator: torch.Generator | None = None, diverge_threshold: float = 0.5,
-                      max_segments: int | None = None) -> np.ndarray | None:
+                      generator: torch.Generator | None = None, diverge_threshold: float = 0.8,
+                      max_segments: int | None = None, discard_collisions: bool = False) -> np.ndarray | None:
     """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
 
     Our reading of Table I's "closed-loop pooled" row: from the first state of each intervention
@@ -513,8 +528,9 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
     policy.sample) runs in closed loop in the simulator for the segment's length; every executed
     step contributes the outer product of its state deviation from the time-matched expert state,
     d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
-    first diverged or colliding step (that step excluded), so a policy that takes another route
-    only contributes its deviations while it still follows the expert's. Scale the result with
+    first diverged step (that step excluded; with discard_collisions also at its first contact), so
+    a policy that takes another route only contributes its deviations while it still follows the
+    expert's. diverge_threshold in radians, as in `blend_rollouts`. Scale the result with
     `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All rollouts
     run batched (one policy.sample call per decision). Returns None if no rollout executed a
     usable step.
@@ -527,7 +543,8 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
     def chunk_fn(obs, expert, rows):                 # unguided: the expert chunk is ignored
         return policy.sample(obs, generator=generator)
 
-    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_threshold)
+    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_threshold,
+                        discard_collisions)
     # executed steps 1..n of each rollout, without the step that diverged or collided
     last = roll.n_recorded - roll.discarded.astype(np.int64)
     steps = np.arange(roll.trajectory.shape[1])[None]
@@ -627,7 +644,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     blend_beta = np.asarray(cfg.betas, dtype=np.float64)
     chosen = [segs[i % len(segs)] for i in range(len(blend_beta))]
     blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold)
+                   generator, threshold, cfg.discard_collisions)
     blend_s, blend_x, blend_kept = blend.s, blend.x, blend.kept
 
     # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
@@ -646,7 +663,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     closed = None
     if cfg.closed_loop:
         sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
-                                         cfg.closed_loop_segments)
+                                         cfg.closed_loop_segments, cfg.discard_collisions)
         if sigma_bar_cl is None:                  # documented fallback: no usable closed-loop step
             closed = pooled.copy()
             note += "; closed loop: every rollout failed at once, open-loop pooled used"

@@ -296,6 +296,20 @@ def test_blend_rollouts_mark_divergence(planar):
     assert out.rollouts.n_recorded[0] < len(episodes[0]["q"]) - 1             # stopped at divergence
 
 
+def test_contacts_are_recorded_and_discarded_only_on_request(planar):
+    env, _, policy = planar
+    # an expert path that runs 3 steps into an obstacle: at beta = 0 the rollout retraces it exactly
+    ep = cal.straight_line_episodes(env, env.train_seeds(40), margin=-3)[0]
+    env.reset(seed=ep["seed"])
+    first_contact = int(np.argmax(env.in_collision(ep["q"])))                # its scenario's geometry
+    kept = cal.blend_rollouts(env, policy, ep, [0.0])
+    assert kept.rollouts.collided[0] and kept.kept[0] and kept.x[0] == 0.0
+    assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1                    # ran through the contact
+    dropped = cal.blend_rollouts(env, policy, ep, [0.0], discard_collisions=True)
+    assert dropped.rollouts.collided[0] and not dropped.kept[0]
+    assert dropped.rollouts.n_recorded[0] == first_contact                    # stopped at the contact
+
+
 def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
