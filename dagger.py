@@ -44,7 +44,6 @@ import relabel
 # ----------------------------------------------------------------------------------------------
 # Configuration: one dataclass, three presets
 # ----------------------------------------------------------------------------------------------
-ENV_NAMES = ("planar", "engine3d")  # envs.make_env names: Table I and Table II
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in median steps
 ALL_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
                "pooled", "per_step", "closed_loop")
@@ -96,8 +95,8 @@ class Config:
             raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(ALL_METHODS)}")
         # BC and HG-DAgger anchor every comparison (paired design): always present, listed first.
         self.methods = ("bc", "hg_dagger") + tuple(m for m in self.methods if m not in ("bc", "hg_dagger"))
-        if self.env not in ENV_NAMES:
-            raise ValueError(f"unknown env {self.env!r}; valid: {', '.join(ENV_NAMES)}")
+        if self.env not in envs.ENVIRONMENTS:
+            raise ValueError(f"unknown env {self.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
         for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
                     "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
             if getattr(self, key) < 1:
@@ -735,7 +734,7 @@ def make_figures(run, demos, stats):
     episode = D1[e]
     calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
     calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
-                                   episode_index=e, generator=gen())
+                                   generator=gen())
     relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
                           np.random.default_rng(stage_seed(cfg, "fig1")), stats)
     t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
@@ -757,7 +756,7 @@ def parse_args(argv):
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
                    help="run size: smoke (CI, ~1 min), quick (default, ~10 min), paper (Table I protocol)")
-    p.add_argument("--env", default=None, choices=list(ENV_NAMES), help="environment (default planar)")
+    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
@@ -800,27 +799,39 @@ def parse_args(argv):
     return args, cfg
 
 
-def main(argv=None):
-    args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
-    run = Run(args.out or os.path.join("runs", cfg.name), cfg)
+def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
+    """The whole method for one config into run folder `root` (resuming whatever is already there).
+
+    lineage: run only this lineage (the shared D0 and BC stages first, if missing);
+    prepare: only the shared stages (D0, BC and its evaluation); report_only: only the report.
+    """
+    run = Run(root, cfg)
     t0 = time.time()
-    torch.manual_seed(cfg.seed)  # nothing should draw from it; a guard for determinism
-    if not args.report:
-        run.log(f"Policy-Calibrated DAgger, profile {args.profile}, env {cfg.env}, folder {run.root}")
+    if not report_only:
+        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}")
         demos = stage_demos(run)
         bc = stage_bc(run, demos)
         stage_evaluate(run, run.path("eval", "bc.json"), bc, "bc (pi_0)")
-        if not args.prepare:
-            stats = relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
-            lineages = [args.lineage] if args.lineage is not None else range(cfg.lineages)
-            for lineage in lineages:
-                run_lineage(run, lineage, demos, stats)
+        if not prepare:
+            stats = demo_statistics(cfg, demos)
+            for l in ([lineage] if lineage is not None else range(cfg.lineages)):
+                run_lineage(run, l, demos, stats)
     demos = envs.load_episodes(run.path("data", "D0.npz"))
-    stats = relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
     text = write_report(run)
-    make_figures(run, demos, stats)
+    make_figures(run, demos, demo_statistics(cfg, demos))
     run.log(f"done in {time.time() - t0:.0f} s; table, results and figures in {run.root}\n\n{text}")
     return run.root
+
+
+def demo_statistics(cfg, demos):
+    """The base demonstrations' median step (the unit of noise) and speed/acceleration limits."""
+    return relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
+
+
+def main(argv=None):
+    args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
+    return run_experiment(cfg, args.out or os.path.join("runs", cfg.name), lineage=args.lineage,
+                          prepare=args.prepare, report_only=args.report)
 
 
 if __name__ == "__main__":

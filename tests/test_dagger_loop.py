@@ -1,0 +1,111 @@
+"""dagger.py end to end on a tiny config: every output file, resume after an interruption, CLI errors."""
+import json
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import dagger
+
+TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, width=32,
+                     bc_steps=30, finetune_steps=12, batch_size=32,
+                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
+                     calib_blend_episodes=1, calib_samples=2, eval_scenarios=3, eval_repeats=1)
+
+OUTPUTS = ["config.json", "log.txt", "results.json", "results.csv", "table.md", "data/D0.npz",
+           "checkpoints/bc.pt", "eval/bc.json", "lineage_0/round_1/D.npz",
+           "lineage_0/round_1/calibration.json",
+           *[f"lineage_0/round_1/checkpoints/{m}.pt" for m in TINY.methods if m != "bc"],
+           *[f"lineage_0/round_1/eval/{m}.json" for m in TINY.methods if m != "bc"],
+           *[f"figures/{f}.png" for f in ("fig1_recovery", "fig2_method_overview", "fig3_partial_denoising",
+                                          "fig4_blend_fit", "fig5_environment", "success_vs_round")]]
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    root = str(tmp_path_factory.mktemp("full"))
+    dagger.run_experiment(TINY, root)
+    return root
+
+
+def test_every_output_file(full_run):
+    missing = [f for f in OUTPUTS if not os.path.isfile(os.path.join(full_run, f))]
+    assert not missing
+    table = open(os.path.join(full_run, "table.md")).read()
+    for method in TINY.methods:
+        assert dagger.METHOD_LABELS[method] in table
+    results = json.load(open(os.path.join(full_run, "results.json")))
+    assert set(results["success"]) == set(TINY.methods)
+    for method, rows in results["success"].items():
+        for row in rows.values():
+            assert all(0.0 <= v <= 100.0 for v in row)
+
+
+def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeypatch):
+    root = str(tmp_path / "interrupted")
+    real = dagger.stage_train_method
+
+    def crash_on_pooled(run, lineage, k, method, *args):
+        if method == "pooled":
+            raise KeyboardInterrupt("stopped by the test")
+        return real(run, lineage, k, method, *args)
+
+    monkeypatch.setattr(dagger, "stage_train_method", crash_on_pooled)
+    with pytest.raises(KeyboardInterrupt):
+        dagger.run_experiment(TINY, root)
+    # what finished before the stop is on disk, what did not is not
+    assert os.path.isfile(os.path.join(root, "lineage_0/round_1/eval/fixed_4.json"))
+    assert not os.path.exists(os.path.join(root, "lineage_0/round_1/eval/pooled.json"))
+    monkeypatch.setattr(dagger, "stage_train_method", real)
+    dagger.run_experiment(TINY, root)
+    a = json.load(open(os.path.join(full_run, "results.json")))["success"]
+    b = json.load(open(os.path.join(root, "results.json")))["success"]
+    assert a == b
+    # identical data, too
+    ca = json.load(open(os.path.join(full_run, "lineage_0/round_1/calibration.json")))
+    cb = json.load(open(os.path.join(root, "lineage_0/round_1/calibration.json")))
+    assert np.allclose(ca["pooled"], cb["pooled"])
+
+
+def test_run_folder_refuses_a_different_config(full_run):
+    with pytest.raises(ValueError, match="different config"):
+        dagger.Run(full_run, replace(TINY, bc_steps=31))
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--profile", "huge"], "invalid choice"),
+    (["--env", "mars"], "invalid choice"),
+    (["--methods", "bc,magic"], "valid choices"),
+    (["--profile", "quick", "--lineage", "3"], "valid lineages are 0..0"),
+    (["--rounds", "0"], "rounds must be >= 1"),
+    (["--device", "tpu"], "use cpu or cuda"),
+])
+def test_bad_cli_arguments(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.parse_args(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_config_rejects_unknown_method():
+    with pytest.raises(ValueError, match="unknown method"):
+        dagger.Config(methods=("bc", "dart"))
+
+
+def test_summarize_paired_statistics():
+    cfg = replace(TINY, rounds=2, lineages=3, methods=("bc", "hg_dagger", "fixed_2", "fixed_8", "pooled"))
+    results = {"bc": {"all": [60.0]},
+               "hg_dagger": {"0": [70, 72], "1": [71, 73], "2": [69, 74]},
+               "fixed_2": {"0": [73, 75], "1": [74, 76], "2": [72, 77]},
+               "fixed_8": {"0": [71, 72], "1": [70, 73], "2": [70, 74]},
+               "pooled": {"0": [73, 76], "1": [74, 75], "2": [73, 77]}}
+    table, stats = dagger.summarize(cfg, results)
+    assert table["hg_dagger"][0][0] == pytest.approx(70.0) and table["hg_dagger"][0][2] == 3
+    assert stats["best_fixed"] == "fixed_2"
+    assert stats["paired_vs_hg_dagger"]["pooled"]["diff"] == pytest.approx(
+        np.mean([74.5 - 71, 74.5 - 72, 75 - 71.5]))
+    assert stats["paired_vs_hg_dagger"]["pooled"]["df"] == 2
+    assert stats["tost_vs_best_fixed"]["pooled"]["vs"] == "fixed_2"
+    text = dagger.format_table(cfg, table, stats)
+    assert "| HG-DAgger | 70.0 ± 0.6 (3) | 73.0 ± 0.6 (3) |" in text

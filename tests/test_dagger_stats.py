@@ -1,0 +1,107 @@
+"""Statistics of dagger.py (self-written, no scipy) against closed forms and known table values."""
+import math
+
+import numpy as np
+import pytest
+
+import dagger
+
+
+def t_pdf(x, df):
+    c = math.exp(math.lgamma((df + 1) / 2) - math.lgamma(df / 2)) / math.sqrt(df * math.pi)
+    return c * (1 + x * x / df) ** (-(df + 1) / 2)
+
+
+@pytest.mark.parametrize("t", [-3.0, -0.5, 0.0, 0.7, 1.0, 4.2])
+def test_t_cdf_closed_forms(t):
+    # df = 1 is the Cauchy distribution, df = 2 has a simple closed form
+    assert dagger.student_t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
+    assert dagger.student_t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
+
+
+@pytest.mark.parametrize("df,quantile,prob", [(4, 2.776445, 0.975), (5, 2.570582, 0.975),
+                                              (10, 1.812461, 0.95), (30, 2.042272, 0.975),
+                                              (3, 5.840909, 0.995)])
+def test_t_cdf_table_quantiles(df, quantile, prob):
+    assert dagger.student_t_cdf(quantile, df) == pytest.approx(prob, abs=1e-6)
+    assert dagger.student_t_cdf(-quantile, df) == pytest.approx(1 - prob, abs=1e-6)
+
+
+@pytest.mark.parametrize("df", [1.5, 3, 7, 25])
+def test_t_cdf_matches_numeric_integration(df):
+    xs = np.linspace(-60, 1.3, 400_001)
+    pdf = np.array([t_pdf(x, df) for x in xs[::100]])  # coarse check of shape first
+    assert np.all(pdf > 0)
+    fine = t_pdf_vec(xs, df)
+    integral = np.trapezoid(fine, xs) + tail_below(-60, df)
+    assert dagger.student_t_cdf(1.3, df) == pytest.approx(integral, abs=2e-5)
+
+
+def t_pdf_vec(x, df):
+    c = math.exp(math.lgamma((df + 1) / 2) - math.lgamma(df / 2)) / math.sqrt(df * math.pi)
+    return c * (1 + x * x / df) ** (-(df + 1) / 2)
+
+
+def tail_below(x, df):
+    # P(T < x) for very negative x: integrate the pdf's power-law tail analytically (approximation
+    # c |x|^-df / df, error O(|x|^-df-2), negligible at x = -60).
+    c = math.exp(math.lgamma((df + 1) / 2) - math.lgamma(df / 2)) / math.sqrt(df * math.pi)
+    return c * df ** ((df + 1) / 2) * abs(x) ** (-df) / df
+
+
+def test_incomplete_beta_symmetry_and_bounds():
+    for a, b, x in [(2.0, 3.0, 0.3), (0.5, 0.5, 0.9), (10.0, 0.5, 0.95)]:
+        assert dagger.incomplete_beta(a, b, x) == pytest.approx(1 - dagger.incomplete_beta(b, a, 1 - x), abs=1e-12)
+    # I_x(1, 1) = x (uniform), I_x(a, 1) = x^a
+    assert dagger.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
+    assert dagger.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
+    with pytest.raises(ValueError, match="0 <= x <= 1"):
+        dagger.incomplete_beta(1.0, 1.0, 1.5)
+
+
+def test_paired_ttest_known_value():
+    a = [81.9, 84.8, 85.1, 88.6, 89.1]
+    b = [79.9, 81.9, 83.3, 85.3, 87.3]
+    d = np.subtract(a, b)
+    t_expected = d.mean() / (d.std(ddof=1) / math.sqrt(5))
+    t, df, p = dagger.paired_ttest(a, b)
+    assert df == 4
+    assert t == pytest.approx(t_expected)
+    assert p == pytest.approx(2 * (1 - dagger.student_t_cdf(abs(t_expected), 4)))
+    # the paper's reported t(4) = 5.75 gives p ~ 0.005
+    assert 2 * (1 - dagger.student_t_cdf(5.75, 4)) == pytest.approx(0.0045, abs=3e-4)
+
+
+def test_paired_ttest_symmetry_and_errors():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=6), rng.normal(size=6)
+    t1, _, p1 = dagger.paired_ttest(a, b)
+    t2, _, p2 = dagger.paired_ttest(b, a)
+    assert t1 == pytest.approx(-t2) and p1 == pytest.approx(p2)
+    with pytest.raises(ValueError, match="at least 2"):
+        dagger.paired_ttest([1.0], [2.0])
+
+
+def test_tost_equivalent_and_not():
+    ref = np.array([85.0, 86.0, 87.0, 88.0, 89.0])
+    close = ref + np.array([0.2, -0.1, 0.1, -0.2, 0.0])
+    far = ref + np.array([4.8, 5.2, 5.0, 4.9, 5.1])
+    p_close, _, _ = dagger.tost(close, ref, 2.0)
+    p_far, _, _ = dagger.tost(far, ref, 2.0)
+    assert p_close < 0.01
+    assert p_far > 0.5
+    with pytest.raises(ValueError, match="margin"):
+        dagger.tost(close, ref, 0.0)
+
+
+def test_drop_short_interventions():
+    expert = np.array([0, 1, 1, 0, 1, 1, 1, 1, 0, 1, 1], bool)
+    out = dagger.drop_short_interventions(expert, 3)
+    assert out.tolist() == [0, 0, 0, 0, 1, 1, 1, 1, 0, 0, 0]
+    assert dagger.drop_short_interventions(expert, 2).tolist() == expert.tolist()
+
+
+def test_mean_se():
+    m, se, n = dagger.mean_se([80.0, 82.0, 84.0])
+    assert (m, n) == (82.0, 3)
+    assert se == pytest.approx(2.0 / math.sqrt(3))
