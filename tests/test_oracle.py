@@ -84,6 +84,32 @@ def test_edge_free_fraction_finds_first_collision():
     assert 0.43 < free[0] < 0.46  # the wall starts at x = -0.1, i.e. 45 % of the way
 
 
+class _NoMarginEnv:
+    """The planar env's geometry behind an in_collision without the `margin` keyword."""
+
+    def __init__(self, env):
+        self.env, self.dof, self.joint_limits, self.fk = env, env.dof, env.joint_limits, env.fk
+
+    def in_collision(self, q):
+        return self.env.in_collision(q)
+
+
+def test_with_margin_probes_and_relax_zones():
+    env = envs.make_env("planar")
+    env.reset(seed=env.eval_seeds()[2])
+    q = np.random.default_rng(0).uniform(*env.joint_limits, size=(4000, env.dof))
+    plain, true_margin = env.in_collision(q), env.in_collision(q, margin=0.02)
+    probes = oracle.with_margin(_NoMarginEnv(env), 0.02)(q)
+    # each probe moves the arm by <= margin, so a colliding probe means distance < margin
+    assert np.all(plain <= probes) and np.all(probes <= true_margin)
+    assert probes.sum() > plain.sum()  # and it does inflate
+    native = oracle.with_margin(env, 0.02)(q)
+    np.testing.assert_array_equal(native, true_margin)  # the env's own margin is used if offered
+    relaxed = oracle.with_margin(env, 0.02, relax_at=q[:10], relax_radius=1e-9)(q)
+    np.testing.assert_array_equal(relaxed[:10], plain[:10])  # plain check inside the zones
+    np.testing.assert_array_equal(relaxed[10:], true_margin[10:])
+
+
 # ---- RRT-Connect, shortcut, corners ----------------------------------------------------------
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_rrt_connect_path_is_collision_free_under_denser_check(seed):
