@@ -268,7 +268,8 @@ class _Tree:
         return self.n - 1
 
     def nearest(self, q):
-        return int(np.argmin(np.sum((self.nodes[:self.n] - q) ** 2, axis=1)))
+        """Indices (B,) of the nodes nearest (Euclidean, joint space) to q (B, dof)."""
+        return np.argmin(((q[:, None] - self.nodes[None, :self.n]) ** 2).sum(-1), axis=1)
 
     def branch(self, i):
         """Nodes from node i back to its root, (k, dof)."""
@@ -332,7 +333,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
         a, b = trees[it % 2], trees[1 - it % 2]
         # EXTEND tree A toward `batch` uniform samples (one batched check)
         q_rand = rng.uniform(lo, hi, size=(batch, len(lo)))  # (batch, dof)
-        near = np.argmin(((q_rand[:, None] - a.nodes[None, :a.n]) ** 2).sum(-1), axis=1)
+        near = a.nearest(q_rand)
         d = q_rand - a.nodes[near]
         dist = np.linalg.norm(d, axis=1)
         q_new = a.nodes[near] + d * np.minimum(1.0, step_size / np.maximum(dist, 1e-12))[:, None]
@@ -343,7 +344,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
         new = _grow(a, near[useful], q_new[useful], free[useful], step_size)  # one node each
         # CONNECT tree B toward every new node (one batched check)
         targets = a.nodes[new]
-        near_b = np.argmin(((targets[:, None] - b.nodes[None, :b.n]) ** 2).sum(-1), axis=1)
+        near_b = b.nearest(targets)
         free_b = edge_free_fraction(b.nodes[near_b], targets, in_collision, resolution)
         last_b = _grow(b, near_b, targets, free_b, step_size)
         reached = np.flatnonzero(free_b == 1.0)
@@ -378,7 +379,8 @@ def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
         later = np.arange(i + 1, len(path))
         free = edge_free_fraction(np.repeat(path[i][None], len(later), 0), path[later],
                                   in_collision, resolution)
-        i = later[np.flatnonzero(free == 1.0).max()]  # i + 1 is always free (an edge of path)
+        free[0] = 1.0  # i -> i + 1 is an edge of the given path: valid by assumption
+        i = later[np.flatnonzero(free == 1.0).max()]
         out.append(path[i])
     path = np.array(out)
     for _ in range(iters // batch):
