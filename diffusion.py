@@ -406,6 +406,7 @@ class DiffusionPolicy(nn.Module):
         rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
         return torch.stack(rows).to(self.device) if rows else torch.empty(shape, device=self.device)
 
+    @torch.inference_mode()
     def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
         """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.
 
