@@ -33,7 +33,7 @@ of the base demonstrations (`envs.median_step`), the paper's "median step size".
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -317,7 +317,7 @@ class BlendRollouts:
     betas: np.ndarray           # (B,) blend ratios
     s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
     x: np.ndarray               # (B,) settling error (radians, joint-deviation norm)
-    kept: np.ndarray            # (B,) False for discarded (diverged or collided) rollouts
+    kept: np.ndarray            # (B,) False for discarded rollouts (diverged; or touched, if discard_collisions)
     rollouts: Rollouts
 
 
@@ -407,6 +407,9 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
     over r_bounds and refined by golden section in log r. Outliers (e.g. a rollout that nearly
     diverged) are down-weighted by iteratively reweighted least squares with Huber weights
     (threshold huber_k times the MAD scale of the residuals).
+
+    W is x extrapolated to s = 1, beyond the largest measured s (0.98 for the default betas): it can
+    exceed the largest x by a factor up to 1 + r (1 - s_max) / s_max, which r_bounds keeps finite.
 
     Needs at least 3 finite points with at least 2 distinct s > 0 (otherwise ValueError). If every
     x is 0 the policy tracks the expert exactly: W = 0 and r is unidentifiable; r = 1 is returned.
@@ -575,10 +578,10 @@ class Calibration:
     blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
     blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
     blend_x: np.ndarray             # (B,) their settling errors (radians)
-    blend_kept: np.ndarray          # (B,) False where the rollout diverged or collided
+    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged)
     blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
     blend_start: np.ndarray         # (B,) first step of that segment
-    sigma_per_joint: np.ndarray = field(default=None)   # (dof,) sqrt(diag pooled) in median steps
+    sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
 
     def __post_init__(self):
         if self.sigma_per_joint is None:
@@ -848,6 +851,8 @@ def straight_line_episodes(env, seeds, min_steps: int = 32, speed: float = 0.8, 
 
 
 if __name__ == "__main__":
+    # Calibrate a small policy trained on stand-in expert paths (dagger.py does this on the oracle's
+    # interventions, once per round) and draw Figs. 2 and 4 into the current folder.
     import time
 
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train
@@ -855,16 +860,16 @@ if __name__ == "__main__":
     env = envs.make_env("planar")
     episodes = straight_line_episodes(env, env.train_seeds(120))
     unit = envs.median_step(episodes)
-    print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad")
+    print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad; training a small policy")
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, width=128, n_blocks=2))
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
-          TrainConfig(steps=1500, warmup_steps=100, log_every=500))
+          TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     t0 = time.time()
-    calibration = calibrate(env, policy, episodes[:6], unit, CalibrationConfig(closed_loop_segments=4),
-                            torch.Generator().manual_seed(0))
+    calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(), torch.Generator().manual_seed(0))
     print(f"calibrate: {time.time() - t0:.1f} s")
     print(calibration.report())
     plot_blend_fit(calibration, unit, "fig4_blend_fit.png")
-    plot_method_overview(env, episodes[0], calibration, policy, "fig2_method_overview.png",
+    first = int(calibration.blend_episode[0])
+    plot_method_overview(env, episodes[first], calibration, policy, "fig2_method_overview.png",
                          generator=torch.Generator().manual_seed(1))
     print("wrote fig2_method_overview.png, fig4_blend_fit.png")
