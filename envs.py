@@ -31,6 +31,12 @@ PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; go
 gives collision-free closed-form IK solutions of the goal; pymunk_in_collision(q) is the
 simulator's (slow) version of in_collision; clip_action(q, action) is step's motion rule.
 
+EngineReach3D: the UR5 reaching an engine lever through a narrow, cluttered passage (Sec. V,
+Table II), with pybullet (DIRECT mode) as the simulator and the same vectorized numpy check beside
+it, in 3-D. Extras: set_scene(obstacles, goal, kinds), goal_configurations() (closed-form UR5 IK),
+clearance(q) (signed distance), pybullet_in_collision(q), render_image(q) (a small RGB camera image
+from pybullet's TinyRenderer: the image-observation option), render_scene_image(env, path).
+
 Step semantics (CONTRACT.md): q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
 ValueError. An episode ends on success (goal reached, no collision), on collision (terminated),
@@ -55,6 +61,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import pybullet as pb
 import pymunk
 
 # Seed ranges. Evaluation scenarios never appear in training (paper Sec. V: 100 fixed scenarios).
@@ -582,7 +589,799 @@ def _capsule_outline(x0, y0, x1, y1, radius, n_arc=13):
     return np.concatenate([end1, end0])
 
 
-ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}  # name -> (env class, its config)
+# ----------------------------------------------------------------------------------------------
+# UR5 engine-lever reaching (paper Sec. V, Table II, Fig. 5 left)
+# ----------------------------------------------------------------------------------------------
+# UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
+# ("DH parameters for calculations of kinematics and dynamics", universal-robots.com, UR5 row).
+# Frame i follows frame i-1 by T_i = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i); frame 6 is the flange.
+UR5_D = np.array([0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823])  # m, offsets along z_{i-1}
+UR5_A = np.array([0.0, -0.425, -0.39225, 0.0, 0.0, 0.0])  # m, lengths along x_i
+UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  # rad, twists
+
+# The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
+# wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
+ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
+# Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
+# never count. In the wrist, the DH offsets keep some non-consecutive capsules at a FIXED distance,
+# whatever the joint angles: forearm-wrist 2 exactly d4 = 0.109 m apart (radii sum 0.095),
+# wrist 1-wrist 3 exactly d5 = 0.0947 (0.09), wrist 2-probe d6 = 0.0823 (0.07), wrist 1-probe
+# >= d5, wrist 2-fingers >= d6 + tool, wrist 3-fingers >= tool length. They can never touch, and
+# with a planner's inflation margin of a few mm they would flag EVERY configuration, so they are
+# left out too. The pairs that remain can meet when the arm folds (tests/test_engine3d.py checks
+# that the left-out ones stay apart on random configurations):
+ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs forearm .. fingers
+                             + [(1, j) for j in range(3, 8)]  # upper arm vs wrist 1 .. fingers
+                             + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
+
+
+@dataclass
+class EngineConfig:
+    # --- robot (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and upper arm
+    #     housings, ~0.10 m forearm, ~0.09 m wrists; the tool is this project's own) ---
+    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, ENGINE_LINK_NAMES order
+    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6
+    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
+    #                                   they make joint 6 matter (all else is symmetric about z6)
+    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
+    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
+    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
+    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
+    joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
+    joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)
+    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
+    dt: float = 0.1  # s per step
+    max_steps: int = 300  # episode step limit
+    goal_tolerance: float = 0.04  # m, TCP within this distance of the goal = reached (as planar)
+    # States checked for contact per step (the end state and evenly spaced states before it). At
+    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
+    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
+    # between checks -- less than the thinnest band a centre line must cross to pass through an
+    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
+    n_substeps: int = 4
+    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
+    # --- scene generator (see EngineReach3D._draw_scene); the bay lies along -x, where the arm
+    #     points at q1 = 0 ---
+    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
+    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
+    bay_height: float = 0.50  # m, top rails of the housing
+    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
+    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
+    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
+    # Pipes. Measured on 8 eval scenes with the oracle (CPU s per demo, median; all solved):
+    # no pipes 4.2, these defaults 9.6, two passage pipes at 0.04-0.09 m + 1-3 clutter 15.8.
+    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
+    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
+    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
+    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
+    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
+    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
+    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
+    #   a needle's eye that no planner (or IK from random seeds) finds reliably
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
+    n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
+    n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
+    image_obs: bool = False  # True: reset/step also return info['image'] (render_image)
+    image_size: int = 64  # pixels, square camera image for image observations
+
+
+def segment_distance_3d(a0, a1, b0, b1):
+    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
+
+    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the
+    closest points of the infinite lines, clamped to the segments, re-projected once. A zero-length
+    segment (a sphere) goes through the same formulas with its squared length floored at 1e-18.
+    Coordinates come as separate x, y, z arrays (first axis) because every operation below then
+    runs on contiguous memory: 4-5x faster than reducing a trailing axis of size 3.
+    """
+    (ax, ay, az), (bx, by, bz) = a0, b0
+    ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
+    vx, vy, vz = b1[0] - bx, b1[1] - by, b1[2] - bz
+    wx, wy, wz = ax - bx, ay - by, az - bz
+    uu = np.maximum(ux * ux + uy * uy + uz * uz, 1e-18)
+    vv = np.maximum(vx * vx + vy * vy + vz * vz, 1e-18)
+    uv = ux * vx + uy * vy + uz * vz
+    uw = ux * wx + uy * wy + uz * wz
+    vw = vx * wx + vy * wy + vz * wz
+    denom = uu * vv - uv * uv  # >= 0; ~0 for parallel segments, where any s works: take s = 0
+    s = np.where(denom > 1e-12 * uu * vv, np.minimum(np.maximum((uv * vw - uw * vv) / np.maximum(denom, 1e-300), 0.0), 1.0), 0.0)
+    t = (uv * s + vw) / vv  # closest point of b's line to a(s)
+    # t outside [0, 1]: clamp it and recompute s as the closest point of a to that end of b
+    s = np.where(t < 0, np.minimum(np.maximum(-uw / uu, 0.0), 1.0),
+                 np.where(t > 1, np.minimum(np.maximum((uv - uw) / uu, 0.0), 1.0), s))
+    t = np.minimum(np.maximum(t, 0.0), 1.0)
+    dx, dy, dz = wx + s * ux - t * vx, wy + s * uy - t * vy, wz + s * uz - t * vz
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+def dh_transform(theta, d, a, alpha):
+    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha), batched: (...) -> (..., 4, 4)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    d, a, alpha = (np.broadcast_to(np.asarray(x, dtype=np.float64), theta.shape) for x in (d, a, alpha))
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    T = np.zeros(theta.shape + (4, 4))
+    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2], T[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2], T[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    T[..., 2, 1], T[..., 2, 2], T[..., 2, 3] = sa, ca, d
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def ur5_frames(q):
+    """World frames of the UR5 DH chain: (B, 7, 4, 4) = base, frames 1..6 (frame 6 = flange)."""
+    T = dh_transform(q, UR5_D, UR5_A, UR5_ALPHA)  # (B, 6, 4, 4): frame i in frame i-1
+    frames = np.empty((len(T), 7, 4, 4))
+    frames[:, 0] = np.eye(4)
+    for i in range(6):
+        frames[:, i + 1] = frames[:, i] @ T[:, i]
+    return frames
+
+
+def ur5_ik(flange):
+    """Closed-form inverse kinematics: flange poses (P, 4, 4) -> joint solutions (P, 8, 6).
+
+    The 8 branches are shoulder left/right x wrist up/down x elbow up/down; NaN rows where a branch
+    does not exist (pose out of reach). Angles wrapped to [-pi, pi). The geometry of the UR5's DH
+    chain (the derivation of Hawkins, "Analytic inverse kinematics for the Universal Robots
+    UR-5/UR-10 arms", 2013, redone for the frames of ur5_frames):
+      * the wrist-3 centre p5 = p6 - d6 z6 lies at distance d4 from the plane of the shoulder and
+        elbow, which contains the base axis: p5 . z1 = d4, with z1 = (sin q1, -cos q1, 0)
+        => q1 = atan2(p5y, p5x) + pi/2 +- acos(d4 / |p5xy|);
+      * z1 seen from the flange is (sin q5 cos q6, -sin q5 sin q6, cos q5) => q5 = +-acos, then q6;
+      * frame 4 = flange T6^-1 T5^-1, seen from frame 1, is a planar 2-link problem in q2, q3
+        (lengths a2, a3), and q2 + q3 + q4 is the angle of its x axis.
+    """
+    P = len(flange)
+    d1, d4, d5, d6 = UR5_D[0], UR5_D[3], UR5_D[4], UR5_D[5]
+    a2, a3 = UR5_A[1], UR5_A[2]
+    R, p5 = flange[:, :3, :3], flange[:, :3, 3] - d6 * flange[:, :3, 2]  # (P, 3, 3), (P, 3)
+    rho = np.hypot(p5[:, 0], p5[:, 1])
+    shoulder = np.arccos(np.clip(d4 / np.maximum(rho, 1e-12), -1.0, 1.0))
+    out = np.full((P, 2, 2, 2, 6), np.nan)  # (P, shoulder, wrist, elbow, 6)
+    for i, s1 in enumerate((1.0, -1.0)):
+        q1 = np.arctan2(p5[:, 1], p5[:, 0]) + math.pi / 2 + s1 * shoulder  # (P,)
+        z1 = np.stack([np.sin(q1), -np.cos(q1), np.zeros(P)], axis=1)
+        v = np.einsum("pji,pj->pi", R, z1)  # z1 in flange coordinates
+        for j, s5 in enumerate((1.0, -1.0)):
+            q5 = s5 * np.arccos(np.clip(v[:, 2], -1.0, 1.0))
+            sin5 = np.sin(q5)
+            singular = np.abs(sin5) < 1e-9  # wrist singularity: q6 is free, take 0
+            sin5 = np.where(singular, 1.0, sin5)
+            q6 = np.where(singular, 0.0, np.arctan2(-v[:, 1] / sin5, v[:, 0] / sin5))
+            frame4 = (np.linalg.inv(dh_transform(q1, d1, 0.0, math.pi / 2)) @ flange
+                      @ np.linalg.inv(dh_transform(q6, d6, 0.0, 0.0))
+                      @ np.linalg.inv(dh_transform(q5, d5, 0.0, -math.pi / 2)))  # (P, 4, 4) in frame 1
+            x, y = frame4[:, 0, 3], frame4[:, 1, 3]
+            cos3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2 * a2 * a3)
+            for k, s3 in enumerate((1.0, -1.0)):
+                q3 = s3 * np.arccos(np.clip(cos3, -1.0, 1.0))
+                q2 = np.arctan2(y, x) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+                q4 = np.arctan2(frame4[:, 1, 0], frame4[:, 0, 0]) - q2 - q3
+                q = np.stack([q1, q2, q3, q4, q5, q6], axis=1)
+                q = (q + math.pi) % (2 * math.pi) - math.pi
+                q[(rho < d4) | (np.abs(cos3) > 1.0)] = np.nan
+                out[:, i, j, k] = q
+    return out.reshape(P, 8, 6)
+
+
+def fibonacci_sphere(n):
+    """n unit vectors (n, 3) spread evenly over the sphere (golden-angle spiral)."""
+    z = 1.0 - 2.0 * (np.arange(n) + 0.5) / n
+    angle = np.arange(n) * math.pi * (3.0 - math.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(angle), r * np.sin(angle), z], axis=1)
+
+
+def _quaternion_z_to(direction):
+    """Quaternions (x, y, z, w) (N, 4) turning the z axis onto unit vectors direction (N, 3)."""
+    x, y, z = direction[:, 0], direction[:, 1], direction[:, 2]
+    # half-angle form: q = (z_hat x d, 1 + z_hat . d), normalised; z_hat x d = (-y, x, 0)
+    quat = np.stack([-y, x, np.zeros_like(z), 1.0 + z], axis=1)
+    flipped = 1.0 + z < 1e-9  # d = -z: any half turn about a horizontal axis
+    quat[flipped] = (1.0, 0.0, 0.0, 0.0)
+    return quat / np.linalg.norm(quat, axis=1, keepdims=True)
+
+
+class EngineReach3D:
+    """UR5 reaching an engine lever through a cluttered, narrow passage (paper Sec. V, Table II).
+
+    The paper renders its mockup with Gaussian splats; this project has no scan, so the scene is
+    pybullet's own geometry: a housing (frame of beams), an engine block, a T-handle lever and
+    pipes, all capsules. Per seed, the scene is built around a collision-free reaching posture
+    (the witness): the lever sits at its tool tip, one pipe hugs its forearm or wrist a few
+    centimetres away (the narrow passage), others cross the bay's opening. Passing takes precise
+    motion of every joint; the straight joint-space line from the start to any goal posture
+    collides in most scenes (benchmarks/bench_engine3d.py).
+
+    One geometry definition (capsules: segment + radius, in `self.obstacles` and `link_segments`)
+    feeds both
+      * pybullet in DIRECT mode (the simulator): one body per arm capsule placed by our own FK,
+        static obstacle bodies, a ground plane; contacts from pybullet -- used by step();
+      * the vectorized numpy check `in_collision` (segment-segment distances) -- used by the
+        planner, relabeling and evaluation.
+    They agree on every random configuration tested, and 1e-6 rad on either side of points on the
+    contact boundary (tests/test_engine3d.py): capsule-capsule distances are exact in both.
+
+    Observation layout (float32, obs_dim = 2 dof + 3 + 7 n_max_obstacles = 127):
+        [0:6]     q       current joint positions (rad)
+        [6:12]    q_prev  joint positions one step earlier (rad)
+        [12:15]   goal    TCP goal (x, y, z) in m
+        [15:127]  obstacles, n_max_obstacles slots of (x0, y0, z0, x1, y1, z1, radius) in m
+    Image observations (optional): render_image(q) -> (S, S, 3) uint8 from a fixed camera with
+    pybullet's TinyRenderer; with EngineConfig.image_obs, reset/step put it in info['image'].
+    """
+
+    dim = 3  # workspace dimension
+
+    # Interface plumbing identical to PlanarReacher's, written once there (same file):
+    # read-only state, set_state / input checks, the step's speed limit, end effector, goal test;
+    # and the module's seed ranges (eval 10_000..10_099, train 0..9_999).
+    joint_limits = PlanarReacher.joint_limits
+    q = PlanarReacher.q
+    q_prev = PlanarReacher.q_prev
+    goal = PlanarReacher.goal
+    set_state = PlanarReacher.set_state
+    _check_q = PlanarReacher._check_q
+    clip_action = PlanarReacher.clip_action
+    ee = PlanarReacher.ee
+    goal_reached = PlanarReacher.goal_reached
+    eval_seeds = staticmethod(eval_seeds)
+    train_seeds = staticmethod(train_seeds)
+
+    def __init__(self, config: EngineConfig | None = None):
+        self.cfg = cfg = config or EngineConfig()
+        self.dof = 6
+        self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
+        if self.link_radii.shape != (len(ENGINE_LINK_NAMES),) or np.any(self.link_radii <= 0):
+            raise ValueError(f"link_radii must be {len(ENGINE_LINK_NAMES)} positive radii "
+                             f"({', '.join(ENGINE_LINK_NAMES)}), got {cfg.link_radii}")
+        # the thinnest arm capsule: planners derive their edge-check spacing from it (oracle.py)
+        self.link_radius = float(self.link_radii.min())
+        self.max_step = float(cfg.max_step)
+        self.max_steps = int(cfg.max_steps)
+        self.dt = float(cfg.dt)
+        self.goal_tolerance = float(cfg.goal_tolerance)
+        self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
+        self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
+        self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
+        # scenario state (set by reset)
+        self.seed = None
+        self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
+        self.obstacle_kinds = []  # 'frame' | 'engine' | 'lever' | 'pipe', for drawing
+        self.witness = None  # (6,) the collision-free goal posture the scene was built around
+        self._goal = np.zeros(self.dim)
+        self._q = np.zeros(self.dof)
+        self._q_prev = np.zeros(self.dof)
+        self.step_count = 0
+        self._client = None  # pybullet DIRECT client, created by the first set_scene
+        seg = self.link_segments(np.zeros(self.dof))[0]
+        self.link_lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)  # (8,) rigid: same at every q
+        i, j = ENGINE_SELF_PAIRS.T
+        self._self_reach = 0.5 * (self.link_lengths[i] + self.link_lengths[j]) + self.link_radii[i] + self.link_radii[j]
+        self._self_contact = self.link_radii[i] + self.link_radii[j]  # (P,)
+        self._has_state = False  # step() needs reset() or set_state() first
+        self.set_scene(np.zeros((0, 7)))
+
+    # ---- kinematics and geometry -------------------------------------------------------------
+    def _capsule_points(self, q):
+        """(B, 10, 3): the DH frame origins 0..6, TCP, and the two finger ends."""
+        frames = ur5_frames(q)  # (B, 7, 4, 4)
+        origins = frames[:, :, :3, 3]  # (B, 7, 3) base, shoulder, elbow, wrist 1-3 centres, flange
+        z6, x6 = frames[:, 6, :3, 2], frames[:, 6, :3, 0]
+        tcp = origins[:, 6] + self.cfg.tool_length * z6  # the probe runs along the flange axis
+        # The finger bar crosses the probe just behind the TCP, where its tips are exactly as far
+        # from the wrist-3 centre as the TCP is: no point of the arm is farther from joint j than
+        # the fk chain beyond joint j is long, the lever-arm bound planners derive from fk.
+        reach = UR5_D[5] + self.cfg.tool_length  # wrist-3 centre to TCP
+        w = self.cfg.finger_half_width
+        centre = origins[:, 5] + math.sqrt(reach * reach - w * w) * z6
+        return np.concatenate([origins, tcp[:, None], (centre - w * x6)[:, None], (centre + w * x6)[:, None]],
+                              axis=1)
+
+    def fk(self, q):
+        """Joint points (B, 7, 3): base, shoulder, elbow, wrist 1, wrist 2, wrist 3, TCP. (dof,) -> (7, 3).
+
+        One point on the axis of each joint (the origins of the UR5's DH frames 0..5; the DH model
+        puts the shoulder and elbow offsets of the real arm into d4) plus the tool centre point,
+        the end effector. The flange lies on the line from wrist 3 to the TCP.
+        """
+        q, single = _as_batch(q, self.dof)
+        points = self._capsule_points(q)[:, [0, 1, 2, 3, 4, 5, 7]]
+        return points[0] if single else points
+
+    def link_segments(self, q):
+        """Arm capsules (B, 8, 2, 3): segment end points in ENGINE_LINK_NAMES order (radii link_radii)."""
+        q, _ = _as_batch(q, self.dof)
+        p = self._capsule_points(q)  # (B, 10, 3)
+        return np.concatenate([np.stack([p[:, :7], p[:, 1:8]], axis=2),  # base .. probe (B, 7, 2, 3)
+                               p[:, None, 8:10]], axis=1)  # fingers (B, 1, 2, 3)
+
+    def clearance(self, q):
+        """Signed distance (B,) from the arm at q to everything it may not touch, in m.
+
+        The minimum over: every arm capsule vs every obstacle capsule (segment distance minus the
+        two radii), the self-collision pairs ENGINE_SELF_PAIRS, and the forearm .. fingers vs the
+        ground plane z = 0. Negative = penetration.
+        """
+        q, single = _as_batch(q, self.dof)
+        if not np.all(np.isfinite(q)):
+            raise ValueError("clearance/in_collision: q contains NaN or inf")
+        # chunks of 256 configurations keep the (chunk, 8, N) temporaries in cache: 2x faster
+        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])
+        return d[0] if single else d
+
+    def _arm_components(self, q):
+        """Arm capsule end points, components first: a0, a1 (3, B, 8) (contiguous, for speed)."""
+        seg = self.link_segments(q)  # (B, 8, 2, 3)
+        return (np.ascontiguousarray(np.moveaxis(seg[:, :, 0], -1, 0)),
+                np.ascontiguousarray(np.moveaxis(seg[:, :, 1], -1, 0)))
+
+    def _ground_clearance(self, a0, a1):
+        """(B,) lowest point of the forearm .. fingers above the ground plane z = 0.
+
+        The base column stands on the ground, and the upper arm cannot reach it: with the shoulder
+        in [-pi, 0] it points upward, its lowest point is always 0.089 - 0.06 m up.
+        """
+        return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
+
+    def _clearance(self, q):
+        """clearance for a (B, dof) batch: every pair, no broad phase."""
+        a0, a1 = self._arm_components(q)
+        r, (i, j) = self.link_radii, ENGINE_SELF_PAIRS.T
+        d = (segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
+             - r[i] - r[j]).min(axis=1)  # (B,) self-collision pairs
+        d = np.minimum(d, self._ground_clearance(a0, a1))
+        if len(self.obstacles):
+            g = self._geom
+            dist = segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None],
+                                       g["end"][:, None, None])  # (B, 8, N)
+            d = np.minimum(d, (dist - g["contact"]).min(axis=(1, 2)))
+        return d
+
+    def in_collision(self, q, margin=0.0):
+        """True where the arm at q penetrates an obstacle, the ground or itself. (B,) bool.
+
+        With margin > 0 (m), True also where anything is closer than margin: the inflated check
+        planners use to keep clear between their collision checks. The same predicate as
+        clearance(q) < margin (a test checks it), computed in two phases for speed:
+          broad phase: bounding spheres of every (config, arm capsule, obstacle or other arm
+            capsule) -- a cheap test that rules out most pairs;
+          narrow phase: exact segment-segment distances of the remaining pairs, in one call.
+        The base column never moves (joint 1 turns it about its own axis): its clearance is a
+        constant of the scene, computed once by set_scene.
+        """
+        q, single = _as_batch(q, self.dof)
+        if not np.all(np.isfinite(q)):
+            raise ValueError("in_collision: q contains NaN or inf")
+        if not (np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
+        chunk = 1024  # configurations per pass: temporaries stay in cache
+        hit = np.concatenate([self._in_collision_chunk(q[k:k + chunk], float(margin))
+                              for k in range(0, len(q), chunk)])
+        return hit[0] if single else hit
+
+    def _in_collision_chunk(self, q, margin):
+        a0, a1 = self._arm_components(q)  # (3, B, 8) each
+        hit = (self._ground_clearance(a0, a1) < margin) | (self._base_clearance < margin)  # (B,)
+        centre = 0.5 * (a0 + a1)  # (3, B, 8) capsule centres
+        g = self._geom  # obstacle arrays precomputed by set_scene
+        # broad phase, arm capsules 1..7 vs obstacles: (B, 7, N) squared centre distances
+        d2 = sum((centre[k][:, 1:, None] - g["centre"][k]) ** 2 for k in range(3))
+        b_obs, link, o = np.nonzero(d2 < (g["reach"][1:] + margin) ** 2)
+        link += 1
+        # broad phase, self-collision pairs: (B, P)
+        i, j = ENGINE_SELF_PAIRS.T
+        d2 = sum((centre[k][:, i] - centre[k][:, j]) ** 2 for k in range(3))
+        b_self, pair = np.nonzero(d2 < (self._self_reach + margin) ** 2)
+        # narrow phase on all candidates: segment A = an arm capsule, segment B = obstacle / capsule
+        dist = segment_distance_3d(
+            np.concatenate([a0[:, b_obs, link], a0[:, b_self, i[pair]]], axis=1),
+            np.concatenate([a1[:, b_obs, link], a1[:, b_self, i[pair]]], axis=1),
+            np.concatenate([g["start"][:, o], a0[:, b_self, j[pair]]], axis=1),
+            np.concatenate([g["end"][:, o], a1[:, b_self, j[pair]]], axis=1))
+        contact = np.concatenate([g["contact"][link, o], self._self_contact[pair]]) + margin
+        hit[np.concatenate([b_obs, b_self])[dist < contact]] = True
+        return hit
+
+    # ---- scene installation -------------------------------------------------------------------
+    def set_scene(self, obstacles, goal=None, kinds=None):
+        """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
+
+        reset() calls this with a generated scene; tests and figures may call it with a built one.
+        kinds: one of 'frame', 'engine', 'lever', 'pipe' per obstacle (colours only; default pipe).
+        Derives everything both collision checks need from this one array.
+        """
+        self._set_obstacles(obstacles, kinds)
+        if goal is not None:
+            goal = np.asarray(goal, dtype=np.float64)
+            if goal.shape != (self.dim,) or not np.all(np.isfinite(goal)):
+                raise ValueError(f"set_scene: goal must be a finite ({self.dim},) array, got {goal}")
+            self._goal = goal.copy()
+        self._obstacle_obs = np.zeros(7 * self.cfg.n_max_obstacles, dtype=np.float32)
+        self._obstacle_obs[: self.obstacles.size] = self.obstacles.ravel()
+        self._build_bullet()
+
+    def _set_obstacles(self, obstacles, kinds=None):
+        """Obstacle array and the broad-phase geometry of in_collision (no pybullet rebuild)."""
+        obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 7)
+        if len(obstacles) > self.cfg.n_max_obstacles:
+            raise ValueError(f"set_scene: {len(obstacles)} obstacles, the observation holds at "
+                             f"most n_max_obstacles={self.cfg.n_max_obstacles}")
+        if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 6] <= 0):
+            raise ValueError("set_scene: obstacles must be finite with radius > 0")
+        kinds = ["pipe"] * len(obstacles) if kinds is None else list(kinds)
+        valid = ("frame", "engine", "lever", "pipe")
+        if len(kinds) != len(obstacles) or any(k not in valid for k in kinds):
+            raise ValueError(f"set_scene: kinds must give one of {valid} per obstacle, got {kinds}")
+        self.obstacles, self.obstacle_kinds = obstacles, kinds
+        start, end, radius = obstacles[:, 0:3].T, obstacles[:, 3:6].T, obstacles[:, 6]  # (3, N)
+        bound = 0.5 * np.linalg.norm(end - start, axis=0) + radius  # obstacle bounding-sphere radius
+        link_bound = 0.5 * self.link_lengths + self.link_radii  # (8,)
+        self._geom = dict(start=start.copy(), end=end.copy(), centre=0.5 * (start + end),
+                          reach=link_bound[:, None] + bound,  # (8, N) centre distance for overlap
+                          contact=self.link_radii[:, None] + radius)  # (8, N) radii sums
+        base_a, base_b = self.link_segments(np.zeros(self.dof))[0, 0]  # the same at every q
+        self._base_clearance = float(np.min(
+            segment_distance_3d(base_a[:, None], base_b[:, None], start, end) - self.link_radii[0] - radius,
+            initial=np.inf))
+
+    # ---- pybullet mirror (the simulator) -----------------------------------------------------
+    def _build_bullet(self):
+        """pybullet DIRECT world of the current scene: arm capsule bodies, obstacles, ground."""
+        if self._client is None:
+            self._client = pb.connect(pb.DIRECT)
+        cid = self._client
+        pb.resetSimulation(physicsClientId=cid)
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=cid)
+        floor_visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[1.5, 1.5, 0.005],
+                                            visualFramePosition=[0, 0, -0.005],
+                                            rgbaColor=[0.85, 0.85, 0.82, 1], physicsClientId=cid)
+        self._ground = pb.createMultiBody(0, plane, floor_visual, physicsClientId=cid)
+        # arm: one capsule body per link, placed by our FK. Mass > 0 makes them dynamic bodies,
+        # which pybullet tests against the static obstacles (static-static pairs are skipped);
+        # we never call stepSimulation, so nothing moves by itself.
+        self._link_bodies = []
+        for name, length, radius in zip(ENGINE_LINK_NAMES, self.link_lengths, self.link_radii):
+            color = [0.2, 0.5, 0.85, 1] if name in ("probe", "fingers") else [0.75, 0.78, 0.82, 1]
+            self._link_bodies.append(self._capsule_body(float(length), float(radius), color, mass=1.0))
+        checked = {tuple(pair) for pair in ENGINE_SELF_PAIRS.tolist()}
+        for i in range(len(self._link_bodies)):  # arm pairs outside ENGINE_SELF_PAIRS: no contacts
+            for j in range(i + 1, len(self._link_bodies)):
+                if (i, j) not in checked:
+                    pb.setCollisionFilterPair(self._link_bodies[i], self._link_bodies[j], -1, -1, 0,
+                                              physicsClientId=cid)
+        for body in self._link_bodies[:2]:  # base and upper arm never reach the ground (_ground_clearance)
+            pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
+        colors = {"frame": [0.45, 0.45, 0.48, 1], "engine": [0.25, 0.25, 0.28, 1],
+                  "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1]}
+        for (x0, y0, z0, x1, y1, z1, radius), kind in zip(self.obstacles, self.obstacle_kinds):
+            a, b = np.array([x0, y0, z0]), np.array([x1, y1, z1])
+            body = self._capsule_body(float(np.linalg.norm(b - a)), float(radius), colors[kind], mass=0.0)
+            self._place(body, a, b)
+        goal_visual = pb.createVisualShape(pb.GEOM_SPHERE, radius=self.goal_tolerance / 2,
+                                           rgbaColor=[0.1, 0.8, 0.2, 1], physicsClientId=cid)
+        pb.createMultiBody(0, -1, goal_visual, basePosition=self._goal.tolist(), physicsClientId=cid)
+
+    def _capsule_body(self, length, radius, color, mass):
+        cid = self._client
+        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length, physicsClientId=cid)
+        visual = pb.createVisualShape(pb.GEOM_CAPSULE, radius=radius, length=length, rgbaColor=color,
+                                      physicsClientId=cid)
+        return pb.createMultiBody(mass, shape, visual, physicsClientId=cid)
+
+    def _place(self, body, a, b):
+        """Put a capsule body (axis = its local z) on the segment a -> b."""
+        direction = (b - a) / max(np.linalg.norm(b - a), 1e-12)
+        quat = _quaternion_z_to(direction[None])[0]
+        pb.resetBasePositionAndOrientation(body, ((a + b) / 2).tolist(), quat.tolist(),
+                                           physicsClientId=self._client)
+
+    def _pose_arm(self, q):
+        """Place the arm's capsule bodies at configuration q (dof,)."""
+        seg = self.link_segments(q)[0]  # (8, 2, 3)
+        centres = seg.mean(axis=1)
+        directions = seg[:, 1] - seg[:, 0]
+        quats = _quaternion_z_to(directions / np.linalg.norm(directions, axis=1, keepdims=True))
+        for body, c, quat in zip(self._link_bodies, centres, quats):
+            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(), physicsClientId=self._client)
+
+    def pybullet_in_collision(self, q):
+        """Same predicate as in_collision, from pybullet contacts (one config at a time, slower)."""
+        q, single = _as_batch(q, self.dof)
+        out = np.zeros(len(q), dtype=bool)
+        for b in range(len(q)):
+            self._pose_arm(q[b])
+            pb.performCollisionDetection(physicsClientId=self._client)
+            # contacts are reported a little before touching; penetration = negative distance
+            out[b] = any(c[8] < 0.0 for c in pb.getContactPoints(physicsClientId=self._client))
+        return out[0] if single else out
+
+    # ---- scenarios ---------------------------------------------------------------------------
+    def goal_configurations(self, goal=None, n_directions=None, n_rolls=None):
+        """Collision-free joint configurations with the TCP exactly at the goal. (M, 6).
+
+        Closed-form IK (ur5_ik) for a fixed set of tool orientations: n_directions tool axes z6
+        spread over the sphere, each with n_rolls rotations of the fingers about it, and up to 8
+        arm branches per orientation. Solutions outside the joint limits or in collision are dropped.
+        """
+        goal = self._goal if goal is None else np.asarray(goal, dtype=np.float64)
+        n_dir = n_directions or self.cfg.n_goal_directions
+        n_roll = n_rolls or self.cfg.n_goal_rolls
+        axes = fibonacci_sphere(n_dir)  # (D, 3) tool axes z6
+        helper = np.where(np.abs(axes[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        x0 = np.cross(helper, axes)
+        x0 /= np.linalg.norm(x0, axis=1, keepdims=True)  # (D, 3) a finger direction _|_ z6
+        y0 = np.cross(axes, x0)
+        roll = np.arange(n_roll) * math.pi / n_roll  # the finger bar is symmetric under a half turn
+        x6 = np.cos(roll)[:, None, None] * x0 + np.sin(roll)[:, None, None] * y0  # (R, D, 3)
+        z6 = np.broadcast_to(axes, x6.shape)
+        flange = np.zeros(x6.shape[:2] + (4, 4))  # (R, D, 4, 4)
+        flange[..., :3, 0], flange[..., :3, 1], flange[..., :3, 2] = x6, np.cross(z6, x6), z6
+        flange[..., :3, 3] = goal - self.cfg.tool_length * z6  # TCP on the goal
+        flange[..., 3, 3] = 1.0
+        q = ur5_ik(flange.reshape(-1, 4, 4)).reshape(-1, self.dof)  # (R D 8, 6)
+        q = q[~np.isnan(q).any(axis=1)]
+        q = q[np.all((q >= self._lo) & (q <= self._hi), axis=1)]
+        return q[~self.in_collision(q)] if len(q) else q
+
+    def _sample_witness(self, rng, fixed):
+        """A collision-free posture reaching into the bay, tool pointing down: (q (6,), TCP, frame6).
+
+        Joint ranges of a reach over the housing's near face and down into it (elbow up); among
+        256 draws the first whose TCP lies in lever_box with the tool axis pointing down
+        (z6_z < -0.5) and which is free of the housing and engine (`fixed`) is taken.
+        """
+        lo = np.array([-0.5, -1.8, 0.8, -2.9, -2.4, -1.2])
+        hi = np.array([0.5, -0.7, 2.4, -0.6, -0.7, 1.2])
+        q = rng.uniform(lo, hi, size=(256, self.dof))
+        frames = ur5_frames(q)
+        tcp = frames[:, 6, :3, 3] + self.cfg.tool_length * frames[:, 6, :3, 2]
+        box = np.array(self.cfg.lever_box)  # (3, 2)
+        ok = np.all((tcp >= box[:, 0]) & (tcp <= box[:, 1]), axis=1) & (frames[:, 6, 2, 2] < -0.5)
+        if not ok.any():
+            return None
+        idx = np.flatnonzero(ok)
+        self._set_obstacles(fixed)
+        free = idx[~self.in_collision(q[idx])]
+        if len(free) == 0:
+            return None
+        k = free[0]
+        return q[k], tcp[k], frames[k, 6]
+
+    def _pipe_clear_of(self, pipe, witness_seg, min_gap):
+        """True if capsule pipe (7,) is at least min_gap from every witness arm capsule."""
+        d = segment_distance_3d(witness_seg[:, 0].T, witness_seg[:, 1].T, pipe[:3, None], pipe[3:6, None])
+        return bool(np.all(d - self.link_radii - pipe[6] >= min_gap))
+
+    def _draw_scene(self, rng):
+        """One candidate scene: (obstacles (N, 7), kinds, goal (3,), witness (6,)) or None.
+
+        Housing: four posts and four top rails around the bay, shifted by a few cm; an engine
+        block (a fat capsule along y) with a valve cover on top. Witness: a free posture reaching
+        over the near rail into the bay. Lever: a T-handle just beyond the witness TCP along its
+        tool axis, its shaft running on into the engine. Pipes: n_passage_pipes hug the witness's
+        forearm or wrist 1 at passage_clearance (the narrow passage the arm has to thread); the
+        clutter pipes cross the bay's opening at random heights and angles, kept at least
+        clutter_clearance from the witness.
+        """
+        cfg = self.cfg
+        shift = np.array([*rng.uniform(-0.03, 0.03, size=2), 0.0])  # move the housing in x, y
+        (x_far, x_near), (y_lo, y_hi), top = cfg.bay_x, cfg.bay_y, cfg.bay_height
+        obstacles, kinds = [], []
+
+        def add(a, b, radius, kind):
+            obstacles.append([*a, *b, radius])
+            kinds.append(kind)
+
+        beam = 0.025  # m, radius of the housing's beams
+        corners = [np.array([x, y, 0.0]) + shift for x in (x_near, x_far) for y in (y_lo, y_hi)]
+        for c in corners:  # posts
+            add(c, c + [0, 0, top], beam, "frame")
+        for i, j in [(0, 1), (2, 3), (0, 2), (1, 3)]:  # top rails: near, far, sides
+            add(corners[i] + [0, 0, top], corners[j] + [0, 0, top], beam, "frame")
+        block_x = x_far + 0.17 + shift[0]
+        add((block_x, y_lo + 0.12, 0.15), (block_x, y_hi - 0.12, 0.15), 0.15, "engine")  # block
+        add((block_x - 0.02, y_lo + 0.15, 0.34), (block_x - 0.02, y_hi - 0.15, 0.34), 0.07, "engine")
+        witness = self._sample_witness(rng, np.asarray(obstacles))
+        if witness is None:
+            return None
+        q_goal, goal, frame6 = witness
+        tool_axis, handle_axis = frame6[:3, 2], frame6[:3, 1]
+        handle = goal + cfg.lever_offset * tool_axis  # T-handle across the fingers' grasp
+        add(handle - 0.05 * handle_axis, handle + 0.05 * handle_axis, 0.02, "lever")
+        add(handle, handle + 0.25 * tool_axis, 0.015, "lever")  # shaft, on into the engine
+        witness_seg = self.link_segments(q_goal)[0]  # (8, 2, 3)
+        n_passage = rng.integers(cfg.n_passage_pipes[0], cfg.n_passage_pipes[1] + 1)
+        for _ in range(n_passage):  # tangent to a link of the witness posture, a few cm away
+            for _attempt in range(20):
+                link = rng.choice(cfg.passage_links)
+                a, b = witness_seg[link]
+                axis = (b - a) / np.linalg.norm(b - a)
+                normal = rng.normal(size=3)
+                normal -= normal.dot(axis) * axis
+                normal /= np.linalg.norm(normal)
+                radius = rng.uniform(0.02, 0.035)
+                gap = rng.uniform(*cfg.passage_clearance)
+                centre = a + rng.uniform(0.2, 0.8) * (b - a) + normal * (self.link_radii[link] + radius + gap)
+                along = np.cross(axis, normal)  # perpendicular to the link and to the offset
+                half = rng.uniform(0.15, 0.3)
+                pipe = np.array([*(centre - half * along), *(centre + half * along), radius])
+                if self._pipe_clear_of(pipe, witness_seg, cfg.passage_clearance[0]):
+                    add(pipe[:3], pipe[3:6], radius, "pipe")
+                    break
+        n_clutter = rng.integers(cfg.n_clutter_pipes[0], cfg.n_clutter_pipes[1] + 1)
+        for _ in range(n_clutter):  # across the opening of the bay, from side to side
+            for _attempt in range(20):
+                radius = rng.uniform(0.025, 0.04)
+                z = rng.uniform(top - 0.1, top + 0.25, size=2)
+                x = rng.uniform(x_far, x_near + 0.05, size=2)
+                a = np.array([x[0], y_lo, z[0]]) + shift
+                b = np.array([x[1], y_hi, z[1]]) + shift
+                pipe = np.array([*a, *b, radius])
+                if self._pipe_clear_of(pipe, witness_seg, cfg.clutter_clearance):
+                    add(a, b, radius, "pipe")
+                    break
+        return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
+
+    def reset(self, seed=None):
+        """Draw the scenario of `seed` (housing, lever, pipes, start) and put the arm at the start.
+
+        Rejection sampling with one rng stream, so the scene is a deterministic function of seed.
+        The goal always has a collision-free configuration (the witness posture the scene is built
+        around); scenes whose witness collides with the lever or pipes are re-drawn, and so are
+        start configurations in collision, with the TCP inside the housing or near the goal.
+        """
+        if seed is None:
+            seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
+        if not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
+        rng = np.random.default_rng(int(seed))
+        cfg = self.cfg
+        while True:
+            scene = self._draw_scene(rng)
+            if scene is None:
+                continue
+            obstacles, kinds, goal, self.witness = scene
+            self._set_obstacles(obstacles, kinds)
+            self._goal = goal
+            if self.in_collision(self.witness):
+                continue
+            if len(self.goal_configurations()) < cfg.min_goal_configurations:
+                continue
+            # start: arm turned away from the bay, elbow up, wrist anywhere sensible
+            side = rng.choice([-1.0, 1.0])
+            lo = np.array([0.9, -2.1, 0.6, -2.8, -2.6, -1.5])
+            hi = np.array([2.4, -1.0, 2.4, -0.4, -0.6, 1.5])
+            candidates = rng.uniform(lo, hi, size=(64, self.dof))
+            candidates[:, 0] *= side
+            tcp = self.ee(candidates)
+            (x_far, x_near), (y_lo, y_hi) = cfg.bay_x, cfg.bay_y
+            inside = ((tcp[:, 0] < x_near + 0.1) & (tcp[:, 1] > y_lo - 0.1) & (tcp[:, 1] < y_hi + 0.1)
+                      & (tcp[:, 2] < cfg.bay_height + 0.1))
+            far = np.linalg.norm(tcp - self._goal, axis=1) >= cfg.start_goal_min_dist
+            ok = far & ~inside & ~self.in_collision(candidates)
+            if ok.any():
+                start = candidates[np.argmax(ok)]
+                break
+        self.seed = int(seed)
+        self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
+        self.set_state(start)
+        info = {"q": self.q, "goal": self.goal, "seed": self.seed}
+        if cfg.image_obs:
+            info["image"] = self.render_image()
+        return self.make_obs(self._q, self._q_prev), info
+
+    # ---- observations, stepping --------------------------------------------------------------
+    def make_obs(self, q, q_prev):
+        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
+        q, single = _as_batch(q, self.dof, "q")
+        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
+        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
+        d = self.dof
+        obs[:, :d] = q
+        obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
+        obs[:, 2 * d:2 * d + self.dim] = self._goal
+        obs[:, 2 * d + self.dim:] = self._obstacle_obs
+        return obs[0] if single else obs
+
+    def step(self, action):
+        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
+
+        Collision is judged by pybullet contacts at the end state and at n_substeps - 1 evenly
+        spaced states before it (see EngineConfig.n_substeps). reward = 1 on success else 0.
+        """
+        if not self._has_state:
+            raise ValueError("step called before reset (or set_state)")
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.dof,):
+            raise ValueError(f"action must have shape ({self.dof},), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite (no NaN/inf), got {action}")
+        q_next = self.clip_action(self._q, action)
+        fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
+        sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
+        collision = bool(any(self.pybullet_in_collision(sweep)))
+        self._q_prev, self._q = self._q, q_next
+        self.step_count += 1
+        success = (not collision) and bool(self.goal_reached(q_next))
+        terminated = collision or success
+        truncated = (not terminated) and self.step_count >= self.max_steps
+        info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
+        if self.cfg.image_obs:
+            info["image"] = self.render_image()
+        return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
+
+    # ---- images and drawing ------------------------------------------------------------------
+    def render_image(self, q=None, size=None, eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2)):
+        """RGB image (size, size, 3) uint8 of the scene with the arm at q (default: current state).
+
+        pybullet's software renderer (ER_TINY_RENDERER, works without a display) from a fixed
+        camera beside and above the robot, looking into the bay. size defaults to cfg.image_size.
+        """
+        size = int(size or self.cfg.image_size)
+        if size < 8:
+            raise ValueError(f"render_image: size must be >= 8 pixels, got {size}")
+        return self._camera_image(self._q if q is None else q, size, size, eye, target)
+
+    def _camera_image(self, q, width, height, eye, target, fov=55.0):
+        q = self._check_q(q, "q")
+        self._pose_arm(q)
+        view = pb.computeViewMatrix(list(eye), list(target), [0, 0, 1])
+        projection = pb.computeProjectionMatrixFOV(fov, width / height, 0.05, 5.0)
+        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
+                                             lightDirection=[0.6, -0.5, 1.0], shadow=0,
+                                             physicsClientId=self._client)
+        return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[..., :3]
+
+    def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
+        """Draw the scene and the arm at q (default: current state; (dof,) or (B, dof)).
+
+        On a 3-D axis (projection='3d') capsules are drawn as thick lines; on a 2-D axis the
+        pybullet camera image of the scene (arm at the first q) is shown with imshow.
+        """
+        q = self._q if q is None else np.asarray(q, dtype=np.float64)
+        if not hasattr(ax, "get_zlim"):
+            ax.imshow(self._camera_image(np.atleast_2d(q)[0], 480, 360, (0.55, -1.25, 1.05),
+                                         (-0.55, -0.05, 0.2)))
+            ax.set_axis_off()
+            return ax
+        widths = {"frame": 3, "engine": 14, "lever": 2, "pipe": 4}
+        colors = {"frame": "0.45", "engine": "0.2", "lever": "tab:red", "pipe": "tab:orange"}
+        if show_scene:
+            for (x0, y0, z0, x1, y1, z1, _), kind in zip(self.obstacles, self.obstacle_kinds):
+                ax.plot([x0, x1], [y0, y1], [z0, z1], color=colors[kind], linewidth=widths[kind])
+            ax.scatter(*self._goal, color="tab:green", s=40)
+            ax.set_xlim(-1.0, 0.3)
+            ax.set_ylim(-0.65, 0.65)
+            ax.set_zlim(0.0, 1.0)
+            ax.set_box_aspect((1.3, 1.3, 1.0))
+        for seg in self.link_segments(np.atleast_2d(q)):
+            for (a, b), radius in zip(seg, self.link_radii):
+                ax.plot(*np.stack([a, b], axis=1), color=color, alpha=alpha,
+                        linewidth=max(1.0, 60 * radius), solid_capstyle="round")
+        return ax
+
+    def close(self):
+        """Disconnect the pybullet client (the env can be reset again afterwards)."""
+        if self._client is not None:
+            pb.disconnect(physicsClientId=self._client)
+            self._client = None
+
+
+def render_scene_image(env, path, q=None, width=640, height=480):
+    """Save a pybullet TinyRenderer image of env's current scene (arm at q) to path (.png)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    image = env._camera_image(env.q if q is None else q, width, height, (0.55, -1.25, 1.05), (-0.55, -0.05, 0.2))
+    plt.imsave(path, image)
+    return image
+
+
+ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig),  # name -> (env class, its config)
+                "engine3d": (EngineReach3D, EngineConfig)}
 
 
 def make_env(name="planar", **config):
