@@ -1362,10 +1362,17 @@ class EngineReach3D:
         return ax
 
     def close(self):
-        """Disconnect the pybullet client (the env can be reset again afterwards)."""
+        """Disconnect the pybullet client (reset() connects a new one)."""
         if self._client is not None:
             pb.disconnect(physicsClientId=self._client)
             self._client = None
+            self._has_state = False
+
+    def __del__(self):  # free the pybullet client when the env is garbage-collected
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: pybullet may already be gone
+            pass
 
 
 def render_scene_image(env, path, q=None, width=640, height=480):

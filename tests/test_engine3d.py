@@ -333,3 +333,8 @@ def test_bad_input_raises_value_error(scene_env):
         EngineReach3D(EngineConfig(link_radii=(0.1,) * 7))
     with pytest.raises(ValueError, match="before reset"):
         EngineReach3D().step(np.zeros(6))
+    closed = EngineReach3D()
+    closed.reset(seed=10_000)
+    closed.close()
+    with pytest.raises(ValueError, match="before reset"):
+        closed.step(closed.q)
