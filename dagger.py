@@ -767,6 +767,9 @@ def parse_args(argv):
     p.add_argument("--seed", type=int, default=None, help="master seed")
     p.add_argument("--device", default=None, help="torch device: cpu (default) or cuda")
     p.add_argument("--out", default=None, help="run folder (default runs/<profile>[_<env>])")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1: the networks are small, and more threads than free "
+                        "cores slow torch down many times on a shared machine)")
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
     args = p.parse_args(argv)
     cfg = PROFILES[args.profile]
@@ -794,6 +797,8 @@ def parse_args(argv):
         cfg = replace(cfg, **over)
     except ValueError as err:
         p.error(str(err))
+    if args.threads < 1:
+        p.error(f"--threads {args.threads}: must be >= 1")
     if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
         p.error(f"--lineage {args.lineage}: valid lineages are 0..{cfg.lineages - 1}")
     return args, cfg
@@ -830,6 +835,7 @@ def demo_statistics(cfg, demos):
 
 def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
+    torch.set_num_threads(args.threads)
     return run_experiment(cfg, args.out or os.path.join("runs", cfg.name), lineage=args.lineage,
                           prepare=args.prepare, report_only=args.report)
 
