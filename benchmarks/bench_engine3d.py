@@ -8,7 +8,7 @@ Measures, over the evaluation scenes:
     EVERY collision-free goal configuration (env.goal_configurations, closed-form IK) collides;
   * the oracle (oracle.py): expert success, planning CPU time and demo length over the scenes.
 
-Usage:  python benchmarks/bench_engine3d.py [--seconds 1.0] [--scenes 100] [--no-oracle]
+Usage:  python benchmarks/bench_engine3d.py [--seconds 1.0] [--scenes 100] [--no-oracle] [--max-time S]
 Rates are given per wall-clock second and per CPU second of this process (what one core delivers
 when other jobs share the machine).
 """
@@ -77,10 +77,10 @@ def straight_line_collides(env, resolution):
     return True
 
 
-def oracle_rows(env, n_scenes):
+def oracle_rows(env, n_scenes, max_time=None):
     import oracle
 
-    orc = oracle.Oracle()
+    orc = oracle.Oracle() if max_time is None else oracle.Oracle(oracle.OracleConfig(max_time=max_time))
     succ, cpu, length, straight, reasons = [], [], [], [], []
     t_start = time.perf_counter()
     for k, seed in enumerate(env.eval_seeds()[:n_scenes]):
@@ -114,13 +114,15 @@ def main():
     parser.add_argument("--seconds", type=float, default=1.0, help="time per speed measurement")
     parser.add_argument("--scenes", type=int, default=100, help="eval scenes for the oracle run")
     parser.add_argument("--no-oracle", action="store_true", help="speed measurements only")
+    parser.add_argument("--max-time", type=float, default=None,
+                        help="OracleConfig.max_time (s per RRT attempt); default: the oracle's own")
     args = parser.parse_args()
     env = make_env("engine3d")
     rng = np.random.default_rng(0)
     rows = speed_rows(env, args.seconds, 3, rng)
     reasons = []
     if not args.no_oracle:
-        more, reasons = oracle_rows(env, args.scenes)
+        more, reasons = oracle_rows(env, args.scenes, args.max_time)
         rows += more
     print("\n| measurement | value(s) | unit | note |\n|---|---|---|---|")
     for name, values, unit, note in rows:

@@ -75,6 +75,19 @@ def test_fk_planar_chain_formula_at_random_angles(env):
     np.testing.assert_allclose(flange(q), wrist3 + [0, -D6, 0], atol=1e-12)
 
 
+def test_fast_fk_equals_the_dh_chain_at_random_angles(env):
+    # env.fk / link_segments write the DH chain out point by point; ur5_frames multiplies the
+    # 4x4 DH transforms: the same kinematics
+    rng = np.random.default_rng(8)
+    q = rng.uniform(-4, 4, size=(500, 6))
+    frames = ur5_frames(q)
+    points = env.fk(q)
+    np.testing.assert_allclose(points[:, :6], frames[:, :6, :3, 3], atol=1e-12)
+    np.testing.assert_allclose(points[:, 6], frames[:, 6, :3, 3] + TOOL * frames[:, 6, :3, 2], atol=1e-12)
+    finger_bar = env.link_segments(q)[:, 7]  # (B, 2, 3), along x6 through the probe axis
+    np.testing.assert_allclose(np.cross(finger_bar[:, 1] - finger_bar[:, 0], frames[:, 6, :3, 0]), 0, atol=1e-12)
+
+
 def test_no_arm_point_is_farther_from_a_joint_than_the_fk_chain_beyond_it(env):
     # the lever-arm bound planners derive from fk (oracle.lever_arms): the fingers included
     rng = np.random.default_rng(7)
