@@ -602,6 +602,10 @@ UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  #
 # The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
 # wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
+# The fixed camera of image observations and figures: beside and above the robot, into the bay.
+ENGINE_CAMERA = dict(eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2), fov=55.0)  # m, m, deg
+_CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
+_CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
 # Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
 # never count. In the wrist, the DH offsets keep some non-consecutive capsules at a FIXED distance,
 # whatever the joint angles: forearm-wrist 2 exactly d4 = 0.109 m apart (radii sum 0.095),
@@ -610,8 +614,6 @@ ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3
 # with a planner's inflation margin of a few mm they would flag EVERY configuration, so they are
 # left out too. The pairs that remain can meet when the arm folds (tests/test_engine3d.py checks
 # that the left-out ones stay apart on random configurations):
-_CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
-_CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
 ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs forearm .. fingers
                              + [(1, j) for j in range(3, 8)]  # upper arm vs wrist 1 .. fingers
                              + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
@@ -621,7 +623,7 @@ ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs for
 class EngineConfig:
     # --- robot (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and upper arm
     #     housings, ~0.10 m forearm, ~0.09 m wrists; the tool is this project's own) ---
-    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, ENGINE_LINK_NAMES order
+    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
     tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6
     finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
     #                                   they make joint 6 matter (all else is symmetric about z6)
@@ -686,7 +688,8 @@ def segment_distance_3d(a0, a1, b0, b1):
     uw = ux * wx + uy * wy + uz * wz
     vw = vx * wx + vy * wy + vz * wz
     denom = uu * vv - uv * uv  # >= 0; ~0 for parallel segments, where any s works: take s = 0
-    s = np.where(denom > 1e-12 * uu * vv, np.minimum(np.maximum((uv * vw - uw * vv) / np.maximum(denom, 1e-300), 0.0), 1.0), 0.0)
+    s = np.minimum(np.maximum((uv * vw - uw * vv) / np.maximum(denom, 1e-300), 0.0), 1.0)
+    s = np.where(denom > 1e-12 * uu * vv, s, 0.0)
     t = (uv * s + vw) / vv  # closest point of b's line to a(s)
     # t outside [0, 1]: clamp it and recompute s as the closest point of a to that end of b
     s = np.where(t < 0, np.minimum(np.maximum(-uw / uu, 0.0), 1.0),
@@ -904,7 +907,7 @@ class EngineReach3D:
         return p
 
     def fk(self, q):
-        """Joint points (B, 7, 3): base, shoulder, elbow, wrist 1, wrist 2, wrist 3, TCP. (dof,) -> (7, 3).
+        """Joint points (B, 7, 3): base, shoulder, elbow, wrist 1-3, TCP. (dof,) -> (7, 3).
 
         One point on the axis of each joint (the origins of the UR5's DH frames 0..5; the DH model
         puts the shoulder and elbow offsets of the real arm into d4) plus the tool centre point,
@@ -915,7 +918,7 @@ class EngineReach3D:
         return points[0] if single else points
 
     def link_segments(self, q):
-        """Arm capsules (B, 8, 2, 3): segment end points in ENGINE_LINK_NAMES order (radii link_radii)."""
+        """Arm capsules (B, 8, 2, 3): end points in ENGINE_LINK_NAMES order (radii: link_radii)."""
         q, _ = _as_batch(q, self.dof)
         p = self._capsule_points(q)  # (B, 10, 3)
         return np.stack([p[:, _CAPSULE_START], p[:, _CAPSULE_END]], axis=2)
@@ -1048,12 +1051,11 @@ class EngineReach3D:
         self.obstacles, self.obstacle_kinds = obstacles, kinds
         start, end, radius = obstacles[:, 0:3].T, obstacles[:, 3:6].T, obstacles[:, 6]  # (3, N)
         self._geom = dict(start=start.copy(), end=end.copy(),
-                          lo=np.minimum(start, end) - radius, hi=np.maximum(start, end) + radius,  # boxes
+                          lo=np.minimum(start, end) - radius, hi=np.maximum(start, end) + radius,
                           contact=self.link_radii[:, None] + radius)  # (8, N) radii sums
         base_a, base_b = self.link_segments(np.zeros(self.dof))[0, 0]  # the same at every q
-        self._base_clearance = float(np.min(
-            segment_distance_3d(base_a[:, None], base_b[:, None], start, end) - self.link_radii[0] - radius,
-            initial=np.inf))
+        base = segment_distance_3d(base_a[:, None], base_b[:, None], start, end)  # (N,)
+        self._base_clearance = float(np.min(base - self.link_radii[0] - radius, initial=np.inf))
 
     # ---- pybullet mirror (the simulator) -----------------------------------------------------
     def _build_bullet(self):
@@ -1080,7 +1082,7 @@ class EngineReach3D:
                 if (i, j) not in checked:
                     pb.setCollisionFilterPair(self._link_bodies[i], self._link_bodies[j], -1, -1, 0,
                                               physicsClientId=cid)
-        for body in self._link_bodies[:2]:  # base and upper arm never reach the ground (_ground_clearance)
+        for body in self._link_bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
             pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
         colors = {"frame": [0.45, 0.45, 0.48, 1], "engine": [0.25, 0.25, 0.28, 1],
                   "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1]}
@@ -1094,7 +1096,8 @@ class EngineReach3D:
 
     def _capsule_body(self, length, radius, color, mass):
         cid = self._client
-        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length, physicsClientId=cid)
+        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length,
+                                        physicsClientId=cid)
         visual = pb.createVisualShape(pb.GEOM_CAPSULE, radius=radius, length=length, rgbaColor=color,
                                       physicsClientId=cid)
         return pb.createMultiBody(mass, shape, visual, physicsClientId=cid)
@@ -1113,7 +1116,8 @@ class EngineReach3D:
         directions = seg[:, 1] - seg[:, 0]
         quats = _quaternion_z_to(directions / np.linalg.norm(directions, axis=1, keepdims=True))
         for body, c, quat in zip(self._link_bodies, centres, quats):
-            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(), physicsClientId=self._client)
+            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(),
+                                               physicsClientId=self._client)
 
     def pybullet_in_collision(self, q):
         """Same predicate as in_collision, from pybullet contacts (one config at a time, slower)."""
@@ -1232,7 +1236,8 @@ class EngineReach3D:
                 normal /= np.linalg.norm(normal)
                 radius = rng.uniform(0.02, 0.035)
                 gap = rng.uniform(*cfg.passage_clearance)
-                centre = a + rng.uniform(0.2, 0.8) * (b - a) + normal * (self.link_radii[link] + radius + gap)
+                offset = self.link_radii[link] + radius + gap  # centre-line distance from the link
+                centre = a + rng.uniform(0.2, 0.8) * (b - a) + offset * normal
                 along = np.cross(axis, normal)  # perpendicular to the link and to the offset
                 half = rng.uniform(0.15, 0.3)
                 pipe = np.array([*(centre - half * along), *(centre + half * along), radius])
@@ -1342,23 +1347,29 @@ class EngineReach3D:
         return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
 
     # ---- images and drawing ------------------------------------------------------------------
-    def render_image(self, q=None, size=None, eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2)):
-        """RGB image (size, size, 3) uint8 of the scene with the arm at q (default: current state).
+    def render_image(self, q=None, size=None):
+        """The image observation: RGB (size, size, 3) uint8 with the arm at q (default: current).
 
-        pybullet's software renderer (ER_TINY_RENDERER, works without a display) from a fixed
-        camera beside and above the robot, looking into the bay. size defaults to cfg.image_size.
+        size defaults to cfg.image_size (64). See camera_image.
         """
         size = int(size or self.cfg.image_size)
         if size < 8:
             raise ValueError(f"render_image: size must be >= 8 pixels, got {size}")
-        return self._camera_image(self._q if q is None else q, size, size, eye, target)
+        return self.camera_image(q, size, size)
 
-    def _camera_image(self, q, width, height, eye, target, fov=55.0):
-        q = self._check_q(q, "q")
+    def camera_image(self, q=None, width=640, height=480):
+        """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current).
+
+        pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed) from the fixed
+        camera ENGINE_CAMERA, beside and above the robot, looking into the bay.
+        """
+        q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
-        view = pb.computeViewMatrix(list(eye), list(target), [0, 0, 1])
-        projection = pb.computeProjectionMatrixFOV(fov, width / height, 0.05, 5.0)
-        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
+        cam = ENGINE_CAMERA
+        view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
+        projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
+        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection,
+                                             renderer=pb.ER_TINY_RENDERER,
                                              lightDirection=[0.6, -0.5, 1.0], shadow=0,
                                              physicsClientId=self._client)
         return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[..., :3]
@@ -1371,8 +1382,7 @@ class EngineReach3D:
         """
         q = self._q if q is None else np.asarray(q, dtype=np.float64)
         if not hasattr(ax, "get_zlim"):
-            ax.imshow(self._camera_image(np.atleast_2d(q)[0], 480, 360, (0.55, -1.25, 1.05),
-                                         (-0.55, -0.05, 0.2)))
+            ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
             ax.set_axis_off()
             return ax
         widths = {"frame": 3, "engine": 14, "lever": 2, "pipe": 4}
@@ -1406,14 +1416,11 @@ class EngineReach3D:
 
 
 def render_scene_image(env, path, q=None, width=640, height=480):
-    """Save a pybullet TinyRenderer image of env's current scene (arm at q) to path (.png)."""
-    import matplotlib
+    """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
+    from matplotlib.image import imsave
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    image = env._camera_image(env.q if q is None else q, width, height, (0.55, -1.25, 1.05), (-0.55, -0.05, 0.2))
-    plt.imsave(path, image)
+    image = env.camera_image(q, width, height)
+    imsave(path, image)
     return image
 
 

@@ -308,6 +308,13 @@ def test_render_image_is_small_rgb_and_shows_the_arm(scene_env):
     assert info["image"].shape == (32, 32, 3)
 
 
+def test_render_scene_image_writes_a_png(scene_env, tmp_path):
+    from envs import render_scene_image
+    path = tmp_path / "scene.png"
+    image = render_scene_image(scene_env, path, q=scene_env.witness, width=80, height=60)
+    assert image.shape == (60, 80, 3) and path.stat().st_size > 1000
+
+
 def test_render_draws_3d_and_2d(scene_env):
     import matplotlib
     matplotlib.use("Agg")
