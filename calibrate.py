@@ -171,6 +171,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
     if not obs_rows:
         raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
                          "open_loop_sigma needs expert segments of at least H steps")
+    # >>> exercise 5: open-loop Sigma_hat_t along the expert data (Eq. 1)
     obs = np.repeat(np.stack(obs_rows).astype(np.float32), n_samples, axis=0)   # (M*n, obs_dim)
     samples = _sample_batched(policy, obs, generator, max_batch).astype(np.float64)
     M, dof = len(obs_rows), samples.shape[-1]
@@ -179,6 +180,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
     # Eq. (1): mean over samples and chunk steps of the outer product d d^T
     sigma = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * H)                 # (M, dof, dof)
     return StepCovariances(sigma, np.asarray(ep_idx, dtype=np.int64), np.asarray(steps, dtype=np.int64))
+    # <<< exercise 5
 
 
 # ----------------------------------------------------------------------------------------------
@@ -374,8 +376,10 @@ def equilibrium(s, W, r):
         raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
     if not r > 0:
         raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     # Eq. (12): x = W s / (s + r (1 - s))
     return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
+    # <<< exercise 6
 
 
 @dataclass
@@ -388,10 +392,12 @@ class EquilibriumFit:
 
 def _best_W(s, x, w, r):
     """For each r in r (G,), the weighted least-squares W (closed form) and its weighted SSE."""
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     g = s[None] / (s[None] + r[:, None] * (1.0 - s[None]))                   # (G, n)
     W = np.sum(w * g * x, axis=1) / np.maximum(np.sum(w * g * g, axis=1), 1e-300)
     sse = np.sum(w * (x[None] - W[:, None] * g) ** 2, axis=1)
     return W, sse
+    # <<< exercise 6
 
 
 def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
@@ -427,6 +433,7 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
                          f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
     if not np.any(x != 0):
         return EquilibriumFit(0.0, 1.0, len(s), 0.0)
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     lo, hi = math.log(r_bounds[0]), math.log(r_bounds[1])
     grid = np.linspace(lo, hi, n_grid)
     w = np.ones_like(x)
@@ -447,6 +454,7 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
     r = math.exp(log_r)
     res = x - W * s / (s + r * (1 - s))
     return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
+    # <<< exercise 6
 
 
 def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
@@ -472,14 +480,18 @@ def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
 
 def dart_alpha(W, T: int) -> float:
     """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     return T * float(np.sum(np.square(W)))
+    # <<< exercise 7
 
 
 def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
     """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
     tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
     return alpha / (T * tr) * sigma_hat
+    # <<< exercise 7
 
 
 def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
@@ -492,6 +504,7 @@ def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
     sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
     if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
         raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     w2 = float(np.sum(np.square(W)))
     d = sigma_hat.shape[-1]
     tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
@@ -499,6 +512,7 @@ def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
     # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
     scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
     return np.where(zero, w2 / d * np.eye(d), scaled)
+    # <<< exercise 7
 
 
 def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
@@ -506,8 +520,10 @@ def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
     sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
     if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
         raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
     return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
+    # <<< exercise 7
 
 
 def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
