@@ -292,6 +292,7 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
                          f"t_end in [{t_end.min()}, {t_end.max()}]")
     if window is not None and window < 1:
         raise ValueError(f"window must be >= 1 or None, got {window}")
+    # >>> exercise 8: the monotone closest-point projection (Sec. IV-E)
     width = int((t_end - t_start).max(initial=1))
     if window is not None:
         width = min(width, int(window))
@@ -301,6 +302,7 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
     diff = trajectory[idx] - q[:, None, :]  # (B, W, dof)
     best = t_start + np.argmin(np.einsum("bwd,bwd->bw", diff, diff), axis=1)  # squared distances
     return int(best[0]) if single else best
+    # <<< exercise 8
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,8 +322,10 @@ def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
     """
     if not np.isfinite(settle_steps) or settle_steps <= 0:
         raise ValueError(f"settle_steps must be a positive number of steps, got {settle_steps!r}")
+    # >>> exercise 9: the critically damped PD return chunk, accelerations clamped (Sec. IV-E)
     p = np.exp(-5.83 / settle_steps)  # 5.83: (1 + x) e^{-x} = 0.02 at x = 5.83 (2 % settling)
     return float((1 - p) ** 2), float(1 - p ** 2)
+    # <<< exercise 9
 
 
 def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max_lookahead: int) -> np.ndarray:
@@ -385,6 +389,7 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     start = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)) + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,))
     if B and (np.any(start < 0) or np.any(t_end > T) or np.any(t_end < 1)):
         raise ValueError(f"need t_proj + lookahead >= 0 and 1 <= t_end <= T={T}")
+    # >>> exercise 9: the critically damped PD return chunk, accelerations clamped (Sec. IV-E)
     kp, kd = critically_damped_gains(H / 2 if settle_steps is None else settle_steps)
     # reference r_{-1} .. r_H, held at the segment's last point
     idx = np.minimum(start[:, None] + np.arange(-1, H + 1)[None, :], t_end[:, None] - 1)  # (B, H+2)
@@ -409,6 +414,7 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
         q = q_next
         chunk[:, k] = q
     return chunk[0] if single else chunk
+    # <<< exercise 9
 
 
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
