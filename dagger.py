@@ -69,6 +69,7 @@ class Config:
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
     episodes_per_round: int = 100  # HG-DAgger rollouts on fresh training scenarios per round
+    oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     # --- policy and training ---
     horizon: int = 16  # H, actions per chunk (paper: interventions shorter than H are discarded)
     n_act: int = 8  # actions executed per chunk before the policy is asked again
@@ -112,8 +113,10 @@ PROFILES = {
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
-    "quick": Config(name="quick", n_demos=200, rounds=2, lineages=1, episodes_per_round=60,
-                    bc_steps=4000, finetune_steps=3000, eval_scenarios=100, eval_repeats=3),
+    "quick": Config(name="quick", n_demos=100, rounds=2, lineages=1, episodes_per_round=40, oracle_attempts=1,
+                    width=128, batch_size=128, bc_steps=3000, finetune_steps=1500,
+                    methods=("bc", "hg_dagger", "fixed_4", "fixed_16", "pooled", "per_step", "closed_loop"),
+                    eval_scenarios=100, eval_repeats=1),
     # Table I's protocol.
     "paper": Config(name="paper"),
 }
@@ -362,7 +365,8 @@ def tost(a, b, margin):
 # The stages of the loop (Sec. IV-A). Each one returns its result, or loads it if already on disk.
 # ----------------------------------------------------------------------------------------------
 def make_oracle(cfg):
-    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle"), horizon=cfg.horizon))
+    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle"), horizon=cfg.horizon,
+                                                     n_attempts=cfg.oracle_attempts))
 
 
 def stage_demos(run):
