@@ -330,6 +330,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
     for it in range(max_iters):
         if time.perf_counter() - t0 > max_time:
             raise PlanningFailed(f"time budget of {max_time} s exhausted", iters=it)
+        # >>> exercise 10: RRT-Connect's EXTEND and CONNECT (Sec. V, the RRT oracle)
         a, b = trees[it % 2], trees[1 - it % 2]
         # EXTEND tree A toward `batch` uniform samples (one batched check)
         q_rand = rng.uniform(lo, hi, size=(batch, len(lo)))  # (batch, dof)
@@ -353,6 +354,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
             branch_a, branch_b = a.branch(new[e]), b.branch(last_b[e])
             start_side, goal_side = (branch_a, branch_b) if it % 2 == 0 else (branch_b, branch_a)
             return _drop_duplicates(np.concatenate([start_side[::-1], goal_side]))
+        # <<< exercise 10
     raise PlanningFailed(f"no path within max_iters={max_iters}", iters=max_iters)
 
 
@@ -467,9 +469,11 @@ def filter_kernel(v_max, a_max, j_max, dt):
     slope <= v_max / (n_acc dt) <= a_max; averaging again over n_jerk steps turns each acceleration
     step into a ramp of slope <= a_max / (n_jerk dt) <= j_max (the FIR form of an S-curve).
     """
+    # >>> exercise 11: time parameterization under speed, acceleration and jerk limits (Sec. V)
     n_acc = int(math.ceil(np.max(v_max / (a_max * dt)) - 1e-9))
     n_jerk = int(math.ceil(np.max(a_max / (j_max * dt)) - 1e-9))
     return np.convolve(np.ones(n_acc) / n_acc, np.ones(n_jerk) / n_jerk)
+    # <<< exercise 11
 
 
 def handoff_point(q0, v0, kernel, dt):
@@ -542,6 +546,7 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
         w_ext = np.concatenate([np.repeat(v0[None], L - 1, 0), w, np.zeros((L - 1, dof))])
         y = np.stack([np.convolve(w_ext[:, j], kernel, "valid") for j in range(dof)], axis=1)
         samples = q0 + np.concatenate([np.zeros((1, dof)), np.cumsum(y * dt, axis=0)])  # (T, dof)
+        # >>> exercise 11: time parameterization under speed, acceleration and jerk limits (Sec. V)
         # Finite differences seen by the env, from sample -1 (q0 - v0 dt) to rest after the end.
         vel = np.concatenate([v0[None], v0[None], y, np.zeros((1, dof))])  # samples -1 .. T
         acc = np.diff(vel, axis=0) / dt  # acc[i] at sample i
@@ -553,6 +558,7 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
             free = edge_free_fraction(samples[:-1], samples[1:], in_collision, resolution)
             bad.append(np.flatnonzero(free < 1.0) + 1)
         bad = np.unique(np.concatenate(bad))
+        # <<< exercise 11
         if len(bad) == 0:
             samples[-1] = path[-1]  # remove float round-off of the cumulative sum at the goal
             return samples
@@ -594,6 +600,7 @@ def rollout_chunk(env, chunk, q=None):
 
     CONTRACT step rule: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
     """
+    # >>> exercise 12: the HG-DAgger gate: predicted collision or stall (Sec. IV-A)
     lo, hi = env.joint_limits
     q = env.q if q is None else np.asarray(q, dtype=np.float64)
     states = [q]
@@ -601,15 +608,18 @@ def rollout_chunk(env, chunk, q=None):
         q = np.clip(q + np.clip(action - q, -env.max_step, env.max_step), lo, hi)
         states.append(q)
     return np.array(states)
+    # <<< exercise 12
 
 
 def stalled(distances, window, min_progress):
     """True if the best distance to the goal over the last `window` steps is not at least
     `min_progress` better than the best one before them (False while the history is shorter)."""
+    # >>> exercise 12: the HG-DAgger gate: predicted collision or stall (Sec. IV-A)
     if len(distances) <= window:
         return False
     d = np.asarray(distances, dtype=np.float64)
     return bool(d[-window:].min() > d[:-window].min() - min_progress)
+    # <<< exercise 12
 
 
 @dataclass
@@ -799,11 +809,13 @@ class Oracle:
     def should_intervene(self, env, chunk, distances):
         """'collision' if the policy's chunk would collide, 'stall' if the ee made no progress
         toward the goal over the last stall_window steps (distances: one per step), else None."""
+        # >>> exercise 12: the HG-DAgger gate: predicted collision or stall (Sec. IV-A)
         if self.chunk_collides(env, chunk):
             return "collision"
         if stalled(distances, self.cfg.stall_window, self.cfg.stall_progress):
             return "stall"
         return None
+        # <<< exercise 12
 
     def clear(self, env, states):
         """(T,) True where a state has clearance: moving any one joint by +-clearance sweep
