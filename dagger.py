@@ -331,11 +331,13 @@ def paired_ttest(a, b):
     n = d.size
     if n < 2:
         raise ValueError(f"a paired t-test needs at least 2 pairs (lineages), got {n}")
+    # >>> exercise 13: the paired t-test and TOST of Table I (Sec. V)
     mean, sd = d.mean(), d.std(ddof=1)
     if sd == 0:
         return (0.0 if mean == 0 else math.copysign(math.inf, mean)), n - 1, (1.0 if mean == 0 else 0.0)
     t = mean / (sd / math.sqrt(n))
     return t, n - 1, 2.0 * (1.0 - student_t_cdf(abs(t), n - 1))
+    # <<< exercise 13
 
 
 def tost(a, b, margin):
@@ -350,6 +352,7 @@ def tost(a, b, margin):
         raise ValueError(f"TOST needs at least 2 pairs (lineages), got {n}")
     if margin <= 0:
         raise ValueError(f"TOST margin must be > 0, got {margin}")
+    # >>> exercise 13: the paired t-test and TOST of Table I (Sec. V)
     mean, se = d.mean(), d.std(ddof=1) / math.sqrt(n)
     if se == 0:
         p = 0.0 if abs(mean) < margin else 1.0
@@ -359,6 +362,7 @@ def tost(a, b, margin):
     p_lower = 1.0 - student_t_cdf(t_lower, n - 1)
     p_upper = student_t_cdf(t_upper, n - 1)
     return max(p_lower, p_upper), t_lower, t_upper
+    # <<< exercise 13
 
 
 # ----------------------------------------------------------------------------------------------
