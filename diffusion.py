@@ -137,10 +137,12 @@ def make_schedule(K=100, kind="squaredcos"):
         # Nichol & Dhariwal (2021): alphabar(t) = f(t) / f(0), f(t) = cos^2((t + s) / (1 + s) * pi / 2).
         # s = 0.008 keeps beta_1 from being vanishingly small; the cap 0.999 avoids the singular last step
         # (f(1) = 0 would give beta_K = 1). This is diffusers' 'squaredcos_cap_v2', used by diffusion policy.
+        # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
         s = 0.008
         t = np.arange(K + 1, dtype=np.float64) / K
         f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
         betas = np.minimum(1.0 - f[1:] / f[:-1], 0.999)
+        # <<< exercise 1
     elif kind == "linear":
         # Ho et al.'s 1e-4 .. 0.02 are for K = 1000; scaled by 1000 / K (Nichol & Dhariwal) so that
         # alphabar_K ~ 4e-5 for any K and the reverse process may start from N(0, I). Unscaled at K = 100,
@@ -151,13 +153,17 @@ def make_schedule(K=100, kind="squaredcos"):
             raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
     else:
         raise ValueError(f"schedule kind must be 'squaredcos' or 'linear', got {kind!r}")
+    # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
     alphas = 1.0 - betas
     alphas_cumprod = np.cumprod(alphas)
     alphas_cumprod_prev = np.concatenate([[1.0], alphas_cumprod[:-1]])
+    # <<< exercise 1
+    # >>> exercise 2: the DDPM posterior and one reverse step p_sample (Eq. 6)
     # Posterior q(a_{k-1} | a_k, a_0) = N(coef1 a_0 + coef2 a_k, beta~ I)  (DDPM Eqs. 6-7).
     posterior_variance = betas * (1.0 - alphas_cumprod_prev) / (1.0 - alphas_cumprod)
     posterior_mean_coef1 = betas * np.sqrt(alphas_cumprod_prev) / (1.0 - alphas_cumprod)
     posterior_mean_coef2 = (1.0 - alphas_cumprod_prev) * np.sqrt(alphas) / (1.0 - alphas_cumprod)
+    # <<< exercise 2
     arrays = dict(
         betas=betas, alphas=alphas, alphas_cumprod=alphas_cumprod, alphas_cumprod_prev=alphas_cumprod_prev,
         sqrt_alphas_cumprod=np.sqrt(alphas_cumprod),
@@ -187,9 +193,11 @@ def q_sample(schedule, a0, k, eps):
     independent Gaussians is Gaussian) to the closed form
         a_k = sqrt(alphabar_k) a_0 + sqrt(1 - alphabar_k) eps,   eps ~ N(0, I).
     """
+    # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
     # Eq. (5), closed form over k + 1 steps.
     return (_per_row(schedule.sqrt_alphas_cumprod, k, a0) * a0
             + _per_row(schedule.sqrt_one_minus_alphas_cumprod, k, a0) * eps)
+    # <<< exercise 1
 
 
 def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
@@ -204,6 +212,7 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
     normalized action box [-1, 1] that the data came from (diffusion policy's clip_sample).
     noise: the z to use (B, H, dof); drawn from `generator` when None.
     """
+    # >>> exercise 2: the DDPM posterior and one reverse step p_sample (Eq. 6)
     a0_hat = (_per_row(schedule.sqrt_recip_alphas_cumprod, k, a_k) * a_k
               - _per_row(schedule.sqrt_recipm1_alphas_cumprod, k, a_k) * eps_pred)
     if clip:
@@ -216,6 +225,7 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
                             device=generator.device if generator is not None else a_k.device)
     # Eq. (6): + sigma_k z, sigma_k^2 = posterior variance (0 at k = 0, so the last step adds no noise)
     return mean + _per_row(schedule.posterior_variance, k, a_k).sqrt() * noise.to(a_k.device)
+    # <<< exercise 2
 
 
 # ----------------------------------------------------------------------------------------------

@@ -59,8 +59,10 @@ def switch_step(beta, K):
     b = _check_beta(beta)
     if not isinstance(K, (int, np.integer)) or K < 1:
         raise ValueError(f"K must be a positive int, got {K!r}")
+    # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
     k_sw = np.floor(b * K + 0.5).astype(np.int64)
     return int(k_sw) if k_sw.ndim == 0 else k_sw
+    # <<< exercise 3
 
 
 def _alphabar_with_zero(schedule):
@@ -70,7 +72,9 @@ def _alphabar_with_zero(schedule):
 
 def noise_fraction(schedule, beta):
     """sigma^2_{k_sw} = 1 - alphabar_{k_sw} in [0, 1]: the share of noise in the diffused expert chunk."""
+    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
     return 1.0 - _alphabar_with_zero(schedule)[switch_step(beta, schedule.K)]
+    # <<< exercise 4
 
 
 def lerp_blend(a_policy, a_expert, beta):
@@ -79,10 +83,12 @@ def lerp_blend(a_policy, a_expert, beta):
     a_policy, a_expert = np.asarray(a_policy, dtype=np.float64), np.asarray(a_expert, dtype=np.float64)
     if a_policy.shape != a_expert.shape:
         raise ValueError(f"a_policy {a_policy.shape} and a_expert {a_expert.shape} must have the same shape")
+    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
     if b.ndim == 1:                                         # per-row beta for a batch (B, ...)
         b = b.reshape((-1,) + (1,) * (a_policy.ndim - 1))
     # Eq. (3)
     return b * a_policy + (1.0 - b) * a_expert
+    # <<< exercise 4
 
 
 def sdedit_bound(sigma2, bound, d, delta):
@@ -101,9 +107,11 @@ def sdedit_bound(sigma2, bound, d, delta):
         raise ValueError(f"sigma2 must be a noise fraction in [0, 1], got {sigma2!r}")
     if not bound >= 0 or not d >= 1 or not 0 < delta < 1:
         raise ValueError(f"need bound >= 0, d >= 1, 0 < delta < 1; got bound={bound}, d={d}, delta={delta}")
+    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
     log_delta = np.log(delta)
     # Eq. (7)
     return sigma2 * (bound * sigma2 + d + 2.0 * np.sqrt(-d * log_delta) - 2.0 * log_delta)
+    # <<< exercise 4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -132,12 +140,14 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
         obs_norm = policy.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=dev))
         a_star = policy.normalize_actions(torch.as_tensor(expert_chunk, dtype=torch.float32, device=dev))
         noise = policy.draw_noise(B, generator)                  # (B, K + 1, H, dof)
+        # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
         k_start = torch.as_tensor(k_sw - 1, device=dev)          # code level of a_{k_sw}; -1 = no step
         # Step 1, Eq. (5) in closed form: the expert chunk diffused to paper level k_sw (code k_sw - 1).
         diffused = q_sample(policy.schedule, a_star, k_start.clamp(min=0), noise[:, 0])
         a_start = torch.where((k_start >= 0).view(B, 1, 1), diffused, a_star)
         # Step 2, Eq. (6) k_sw times: code levels k_sw - 1, ..., 0.
         a_hat = policy.reverse_process(a_start, k_start, obs_norm, noise[:, 1:], use_ema)
+        # <<< exercise 3
         out = policy.unnormalize_actions(a_hat).double().cpu().numpy()
     keep = k_sw == 0
     out[keep] = expert_chunk[keep]                               # beta ~ 0: the expert chunk, bit for bit
