@@ -57,6 +57,8 @@ class PolicyConfig:
     n_blocks: int = 3            # residual FiLM blocks
     cond_dim: int = 64           # size of the observation / step codes that produce the FiLM parameters
     step_embed_dim: int = 64     # size of the sinusoidal diffusion-step embedding
+    joint_obs: bool = False      # obs starts with (q_t, q_{t-1}) as in envs.py: learn chunks relative to q_t and
+                                 # give the network the joint velocity q_t - q_{t-1} (see DiffusionPolicy)
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
@@ -70,6 +72,14 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {self.schedule!r}")
         if self.step_embed_dim % 2:
             raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {self.step_embed_dim}")
+        if self.joint_obs and self.obs_dim < 2 * self.dof:
+            raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * self.dof} (obs starts with "
+                             f"q_t, q_t-1), got obs_dim={self.obs_dim}; use joint_obs=False")
+
+    @property
+    def cond_input_dim(self):
+        """Length of the network's observation input: the observation, plus the velocity if joint_obs."""
+        return self.obs_dim + (self.dof if self.joint_obs else 0)
 
 
 @dataclass
@@ -264,7 +274,7 @@ class EpsNet(nn.Module):
         self.n_blocks, self.width, self.K, self.step_embed_dim = nb, width, cfg.K, cfg.step_embed_dim
         # The codes are narrow (cond_dim) so that the per-row FiLM projection stays cheap in training:
         # cond_dim x (n_blocks * 2 * width) instead of width x (n_blocks * 2 * width) multiply-adds.
-        self.obs_encoder = nn.Sequential(nn.Linear(cfg.obs_dim, width), nn.SiLU(),
+        self.obs_encoder = nn.Sequential(nn.Linear(cfg.cond_input_dim, width), nn.SiLU(),
                                          nn.Linear(width, cfg.cond_dim), nn.SiLU())
         self.obs_film = nn.Linear(cfg.cond_dim, nb * 2 * width)
         self.step_encoder = nn.Sequential(nn.Linear(cfg.step_embed_dim, width), nn.SiLU(),
@@ -279,7 +289,7 @@ class EpsNet(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def obs_terms(self, obs_norm):
-        """(B, obs_dim) -> (B, n_blocks, 2 * width): the observation part of every block's FiLM."""
+        """(B, cond_input_dim) -> (B, n_blocks, 2 * width): the observation part of every block's FiLM."""
         return self.obs_film(self.obs_encoder(obs_norm)).view(-1, self.n_blocks, 2 * self.width)
 
     def step_table(self):
@@ -310,7 +320,18 @@ def check_array(name, x, shape):
 
 
 class DiffusionPolicy(nn.Module):
-    """pi_theta(a_{t:t+H} | o_t): DDPM over normalized action chunks, with an EMA copy for sampling."""
+    """pi_theta(a_{t:t+H} | o_t): DDPM over normalized action chunks, with an EMA copy for sampling.
+
+    Normalization (min-max to [-1, 1], fitted on the dataset, saved with the weights). With
+    cfg.joint_obs the policy uses that the observation starts with (q_t, q_{t-1}) (envs.py's layout):
+      - the chunk is normalized relative to the current joint position, (a - q_t - center) / half. A chunk
+        moves at most H * max_step (0.8 rad planar) while the joints range over 2 pi: normalized over the
+        joint range, the motion that decides the path would be a small fraction of [-1, 1] and only the
+        last few diffusion steps would resolve it;
+      - the velocity q_t - q_{t-1}, min-max normalized, is appended to the network's observation input; as
+        the difference of two inputs of range 2 pi it would be a tiny signal for the first layer to find.
+    The interface stays in joint units and absolute targets: sample() returns q_t + the predicted motion.
+    """
 
     def __init__(self, cfg, device="cpu"):
         super().__init__()
@@ -323,6 +344,8 @@ class DiffusionPolicy(nn.Module):
         # Min-max normalizer (center, half range) -> [-1, 1]; part of state_dict, so saved with the weights.
         self.register_buffer("obs_center", torch.zeros(cfg.obs_dim))
         self.register_buffer("obs_half", torch.ones(cfg.obs_dim))
+        self.register_buffer("vel_center", torch.zeros(cfg.dof))    # used with joint_obs only
+        self.register_buffer("vel_half", torch.ones(cfg.dof))
         self.register_buffer("act_center", torch.zeros(cfg.dof))
         self.register_buffer("act_half", torch.ones(cfg.dof))
         self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
@@ -344,17 +367,24 @@ class DiffusionPolicy(nn.Module):
     # -- normalization -----------------------------------------------------------------------------
 
     def fit_normalizer(self, obs, actions):
-        """Min-max fit on the dataset: obs (N, obs_dim); actions (N, H, dof) or (M, dof), joint units."""
-        obs = check_array("obs", obs, (None, self.cfg.obs_dim))
-        actions = np.asarray(actions)
-        if actions.ndim == 3:
-            check_array("actions", actions, (None, self.cfg.horizon, self.cfg.dof))
+        """Min-max fit on the dataset: obs (N, obs_dim) and actions (N, H, dof), joint units. Without joint_obs
+        the actions may also be any (M, dof) set of actions."""
+        cfg = self.cfg
+        obs = np.asarray(check_array("obs", obs, (None, cfg.obs_dim)), dtype=np.float64)
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.ndim == 3 or cfg.joint_obs:
+            check_array("actions", actions, (len(obs) if cfg.joint_obs else None, cfg.horizon, cfg.dof))
         else:
-            check_array("actions", actions, (None, self.cfg.dof))
-        actions = actions.reshape(-1, self.cfg.dof)
+            check_array("actions", actions, (None, cfg.dof))
         if len(obs) == 0 or len(actions) == 0:
             raise ValueError("fit_normalizer needs at least one observation and one action")
-        for prefix, x in (("obs", np.asarray(obs, np.float64)), ("act", actions.astype(np.float64))):
+        parts = {"obs": obs}
+        if cfg.joint_obs:
+            q, q_prev = obs[:, :cfg.dof], obs[:, cfg.dof:2 * cfg.dof]
+            parts["vel"] = q - q_prev
+            actions = actions - q[:, None, :]                          # (N, H, dof) motion from q_t
+        parts["act"] = actions.reshape(-1, cfg.dof)
+        for prefix, x in parts.items():
             lo, hi = x.min(axis=0), x.max(axis=0)
             half = (hi - lo) / 2
             # A constant dimension would divide by zero: give it half range 1 so it maps to 0.
@@ -364,13 +394,29 @@ class DiffusionPolicy(nn.Module):
         self.normalizer_fitted.fill_(True)
 
     def normalize_obs(self, obs):
-        return (obs - self.obs_center) / self.obs_half
+        """Raw observations (B, obs_dim) -> the network's conditioning input (B, cfg.cond_input_dim)."""
+        o = (obs - self.obs_center) / self.obs_half
+        if not self.cfg.joint_obs:
+            return o
+        d = self.cfg.dof
+        vel = (obs[:, :d] - obs[:, d:2 * d] - self.vel_center) / self.vel_half
+        return torch.cat([o, vel], dim=1)
 
-    def normalize_actions(self, a):
-        return (a - self.act_center) / self.act_half
+    def _origin(self, obs):
+        """(B, 1, dof): what chunks are measured from -- q_t with joint_obs, else nothing (zero)."""
+        if not self.cfg.joint_obs:
+            return torch.zeros((), device=self.device)
+        if obs is None:
+            raise ValueError("with joint_obs, normalize_actions / unnormalize_actions need the raw obs")
+        return obs[:, None, :self.cfg.dof]
 
-    def unnormalize_actions(self, a):
-        return a * self.act_half + self.act_center
+    def normalize_actions(self, a, obs=None):
+        """Chunks (B, H, dof) in joint units -> normalized; obs: the raw (B, obs_dim), needed with joint_obs."""
+        return (a - self._origin(obs) - self.act_center) / self.act_half
+
+    def unnormalize_actions(self, a, obs=None):
+        """The inverse of normalize_actions."""
+        return a * self.act_half + self.act_center + self._origin(obs)
 
     # -- the network -------------------------------------------------------------------------------
 
@@ -383,7 +429,7 @@ class DiffusionPolicy(nn.Module):
         return net.obs_terms(obs_norm), net.step_table()
 
     def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
-        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm (B, obs_dim) -> (B, H, dof).
+        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
 
         cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps.
         """
@@ -443,12 +489,13 @@ class DiffusionPolicy(nn.Module):
         obs = check_array("obs", obs, (None, self.cfg.obs_dim))
         B = obs.shape[0]
         with torch.inference_mode():
-            obs_norm = self.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            obs_norm = self.normalize_obs(obs_t)
             noise = self.draw_noise(B, generator)
             a_K = noise[:, 0]                                          # pure noise stands in for level K - 1
             k_start = torch.full((B,), self.cfg.K - 1, device=self.device)
             a0 = self.reverse_process(a_K, k_start, obs_norm, noise[:, 1:], use_ema)
-            return self.unnormalize_actions(a0).double().cpu().numpy()
+            return self.unnormalize_actions(a0.double(), obs_t.double()).cpu().numpy()
 
     # -- persistence -------------------------------------------------------------------------------
 
@@ -584,8 +631,10 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         policy.fit_normalizer(obs, chunks)
     dev = policy.device
     with torch.no_grad():
-        obs_n = policy.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=dev))
-        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev))
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)
+        obs_n = policy.normalize_obs(obs_t)
+        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
+        del obs_t
 
     optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                                   foreach=True)
@@ -618,9 +667,10 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
             o_aug = check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
             a_aug = check_array("sampler chunks", a_aug, (n_aug, pc.horizon, pc.dof))
             with torch.no_grad():
-                o = torch.cat([o, policy.normalize_obs(torch.as_tensor(o_aug, dtype=torch.float32, device=dev))])
-                a = torch.cat([a, policy.normalize_actions(torch.as_tensor(a_aug, dtype=torch.float32,
-                                                                           device=dev))])
+                o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
+                a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
+                o = torch.cat([o, policy.normalize_obs(o_aug)])
+                a = torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
         if cfg.obs_noise > 0:
             # Observation noise in normalized units, labels unchanged (Sec. V: common practice).
             o = o + cfg.obs_noise * torch.randn(o.shape, generator=gen, device=dev)

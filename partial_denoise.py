@@ -137,8 +137,9 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
     k_sw = np.broadcast_to(switch_step(beta, cfg.K), (B,))   # (B,) paper steps in 0..K
     dev = policy.device
     with torch.inference_mode():
-        obs_norm = policy.normalize_obs(torch.as_tensor(obs, dtype=torch.float32, device=dev))
-        a_star = policy.normalize_actions(torch.as_tensor(expert_chunk, dtype=torch.float32, device=dev))
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)
+        obs_norm = policy.normalize_obs(obs_t)
+        a_star = policy.normalize_actions(torch.as_tensor(expert_chunk, dtype=torch.float32, device=dev), obs_t)
         noise = policy.draw_noise(B, generator)                  # (B, K + 1, H, dof)
         # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
         k_start = torch.as_tensor(k_sw - 1, device=dev)          # code level of a_{k_sw}; -1 = no step
@@ -148,7 +149,7 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
         # Step 2, Eq. (6) k_sw times: code levels k_sw - 1, ..., 0.
         a_hat = policy.reverse_process(a_start, k_start, obs_norm, noise[:, 1:], use_ema)
         # <<< exercise 3
-        out = policy.unnormalize_actions(a_hat).double().cpu().numpy()
+        out = policy.unnormalize_actions(a_hat.double(), obs_t.double()).cpu().numpy()
     keep = k_sw == 0
     out[keep] = expert_chunk[keep]                               # beta ~ 0: the expert chunk, bit for bit
     return out

@@ -190,6 +190,53 @@ def test_normalizer_round_trip_and_constant_dims():
     assert torch.allclose(policy.unnormalize_actions(an), a, atol=1e-5)
 
 
+def constant_velocity_data(n, H=4, seed=0):
+    """obs = (q_t, q_{t-1}) for a 2-joint arm; the chunk keeps the velocity: a_{t+j} = q_t + (j + 1) v."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-3, 3, (n, 2))
+    v = rng.uniform(-0.05, 0.05, (n, 2))
+    obs = np.concatenate([q, q - v], axis=1).astype(np.float32)
+    chunks = q[:, None, :] + np.arange(1, H + 1)[None, :, None] * v[:, None, :]
+    return obs, chunks.astype(np.float32)
+
+
+def test_joint_obs_normalizes_relative_to_q_and_adds_velocity():
+    policy = tiny_policy(obs_dim=4, joint_obs=True)
+    obs, chunks = constant_velocity_data(200)
+    policy.fit_normalizer(obs, chunks)
+    o, a = torch.as_tensor(obs), torch.as_tensor(chunks)
+    an = policy.normalize_actions(a, o)
+    # The motion from q_t spans at most 4 * 0.05 rad: it fills [-1, 1], not a sliver of the 6 rad joint range.
+    assert an.min().item() == pytest.approx(-1, abs=1e-4) and an.max().item() == pytest.approx(1, abs=1e-4)
+    assert torch.allclose(policy.unnormalize_actions(an, o), a, atol=1e-5)
+    feats = policy.normalize_obs(o)
+    assert feats.shape == (200, policy.cfg.cond_input_dim) == (200, 6)
+    v = o[:, :2] - o[:, 2:]
+    assert torch.allclose(feats[:, 4:], (v - policy.vel_center) / policy.vel_half, atol=1e-6)
+    with pytest.raises(ValueError):
+        policy.normalize_actions(a)                                      # the origin q_t is needed
+    with pytest.raises(ValueError):
+        policy.fit_normalizer(obs, chunks.reshape(-1, 2))                # chunks must pair with obs
+    with pytest.raises(ValueError):
+        PolicyConfig(obs_dim=3, dof=2, joint_obs=True)                   # no room for (q_t, q_t-1)
+
+
+def test_joint_obs_policy_continues_the_velocity_precisely():
+    """With joint_obs the velocity is an input and the chunk is learned relative to q_t: after a short
+    training run the sampled chunk keeps the velocity to a small fraction of a step (velocities are up to
+    0.05 rad per step). The same budget without joint_obs is ~100x less precise (measured 0.09 rad)."""
+    obs, chunks = constant_velocity_data(2000, seed=1)
+    test_obs, test_chunks = constant_velocity_data(200, seed=2)
+    errors = {}
+    for joint_obs in (True, False):
+        policy = tiny_policy(obs_dim=4, joint_obs=joint_obs)
+        train(policy, obs, chunks, TrainConfig(steps=600, batch_size=128, lr=2e-3, warmup_steps=50, log_every=0))
+        samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
+        errors[joint_obs] = np.abs(samples - test_chunks).mean()
+    assert errors[True] < 0.01, f"mean error {errors[True]:.4f} rad"
+    assert errors[False] > 5 * errors[True]
+
+
 @pytest.mark.parametrize("bad", [np.zeros((4, 3)), np.zeros(2), np.full((4, 2), np.nan), np.full((4, 2), np.inf)])
 def test_sample_rejects_bad_obs(bad):
     with pytest.raises(ValueError):

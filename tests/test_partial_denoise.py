@@ -263,9 +263,11 @@ def test_plot_partial_denoising_writes_figure(tmp_path):
     obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
     q = info["q"]
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=20, width=32, n_blocks=1,
-                                          cond_dim=16))
+                                          cond_dim=16, joint_obs=True))
     expert = q[None, :] + np.linspace(0.02, 0.3, 16)[:, None] * np.array([[1.0, -0.5, 0.3]])   # (H, dof)
-    policy.fit_normalizer(obs[None], expert)
+    policy.fit_normalizer(np.stack([obs, obs]), np.stack([expert, expert + 0.1]))
+    # beta = 0 returns the expert chunk also through the joint_obs normalization (relative to q_t).
+    assert np.array_equal(partial_denoise(policy, obs[None], expert[None], 0.0), expert[None])
     path = str(tmp_path / "fig3.png")
     plot_partial_denoising(env, policy, obs, expert, (0.1, 0.5), path, generator(), q=q, n_samples=3)
     with open(path, "rb") as f:
