@@ -94,12 +94,17 @@ def exercises(root: Path = ROOT) -> dict[int, list[Region]]:
     return dict(sorted(out.items()))
 
 
+def hole(region: Region) -> str:
+    """The line that replaces a region's body in the student copy."""
+    message = f"exercise {region.exercise}: {region.title} -- see tests/exercises/README.md"
+    return f"{region.indent}raise NotImplementedError({message!r})"
+
+
 def blank(text: str, regions: list[Region], path: str) -> str:
     """`text` (one module) with the given regions' bodies replaced by a raise; checked to parse."""
     lines = text.splitlines()
     for region in sorted(regions, key=lambda r: r.start, reverse=True):  # bottom up: indices stay valid
-        message = f"exercise {region.exercise}: {region.title} -- see tests/exercises/README.md"
-        lines[region.start + 1:region.end] = [f"{region.indent}raise NotImplementedError({message!r})"]
+        lines[region.start + 1:region.end] = [hole(region)]
     out = "\n".join(lines) + ("\n" if text.endswith("\n") else "")
     try:
         ast.parse(out, filename=path)

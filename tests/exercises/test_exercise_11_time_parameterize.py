@@ -58,10 +58,11 @@ def test_corners_and_a_moving_handoff_stay_within_every_limit():
 def test_colliding_corner_cuts_are_slowed_down_until_free():
     path = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
 
-    def corner_cut(q):                                               # forbids cutting the corner by > 0.02
+    def corner_cut(q):                                               # forbids cutting the corner by > 0.005
         q = np.atleast_2d(q)
-        return (q[:, 0] < 0.98) & (q[:, 1] > 0.02)
+        return (q[:, 0] < 0.995) & (q[:, 1] > 0.005)
 
+    assert corner_cut(time_parameterize(path, V, A, J, DT)).any()     # at full speed the filter cuts it
     samples = time_parameterize(path, V, A, J, DT, in_collision=corner_cut, resolution=0.002)
     assert not corner_cut(samples).any()
     v, a, j = finite_differences(samples, np.zeros(3), DT)

@@ -24,15 +24,18 @@ def test_gains_place_a_discrete_double_pole_that_settles_in_time(settle):
 
 
 def test_unclamped_error_follows_the_critically_damped_map():
-    """With generous clamps the chunk is the reference plus the error of the linear map (e, e' = v - u)."""
+    """With generous clamps the chunk is the reference plus the error of the linear map (e, e' = v - u),
+    also on a curved path: the reference's own acceleration is fed forward."""
     kp, kd = critically_damped_gains(8.0)
+    t = np.arange(60)[:, None]
+    curved = SPEED * t + 0.5 * np.array([-4e-4, 3e-4, 1e-4]) * t ** 2       # constant acceleration
     e0 = np.array([0.05, -0.03, 0.02])
-    chunk = pd_return_chunk(TRAJ[10] + e0, SPEED, TRAJ, 10, 16, 0, 1.0, 1.0)      # v0 = the path's speed
+    chunk = pd_return_chunk(curved[10] + e0, curved[10] - curved[9], curved, 10, 16, 0, 1.0, 1.0)
     e, de = e0.copy(), np.zeros(3)
     for k in range(16):
         e, de = (1 - kp) * e + (1 - kd) * de, -kp * e + (1 - kd) * de
-        np.testing.assert_allclose(chunk[k], TRAJ[11 + k] + e, atol=1e-12)
-    assert np.all(np.abs(chunk[-1] - TRAJ[26]) < 0.01 * np.abs(e0))       # rejoined, then follows the path
+        np.testing.assert_allclose(chunk[k], curved[11 + k] + e, atol=1e-12)
+    assert np.all(np.abs(chunk[-1] - curved[26]) < 0.01 * np.abs(e0))     # rejoined, then follows the path
 
 
 def test_clamps_hold_and_the_saturated_return_does_not_overshoot_much():
