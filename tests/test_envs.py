@@ -179,7 +179,7 @@ def test_numpy_and_pymunk_agree_at_the_contact_boundary():
     n_points = 0
     for seed in (10_004, 10_005):
         e.reset(seed=seed)
-        qa, qb = rng.uniform(lo, hi, size=(2, 150, 3))
+        qa, qb = rng.uniform(lo, hi, size=(2, 250, 3))
         differ = e.in_collision(qa) != e.in_collision(qb)
         a, b = qa[differ], qb[differ]
         t0, t1 = np.zeros(len(a)), np.ones(len(a))  # in_collision(a + t0 d) == in_collision(a)
