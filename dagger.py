@@ -75,6 +75,8 @@ class Config:
     n_act: int = 8  # actions executed per chunk before the policy is asked again
     K: int = 100  # diffusion steps
     width: int = 256  # epsilon-network width
+    joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
+    #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
     bc_steps: int = 75_000  # BC training steps (paper: pi_0 = BC's 75k checkpoint)
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256
@@ -397,7 +399,8 @@ def stage_demos(run):
 
 def make_policy(cfg, env):
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, width=cfg.width, seed=stage_seed(cfg, "init"))
+                                K=cfg.K, width=cfg.width, joint_obs=cfg.joint_obs,
+                                seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
 
 
