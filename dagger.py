@@ -384,12 +384,13 @@ def stage_demos(run):
     demos, seed, t0, failures = [], 0, time.time(), 0
     run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
     while len(demos) < cfg.n_demos:
-        try:
-            demos.append(expert.demonstrate(env, env.train_seeds(1, start=seed)[0]))
-        except oracle_mod.PlanningFailed:
-            failures += 1
         seed += 1
-        if len(demos) % max(1, cfg.n_demos // 10) == 0 or len(demos) == cfg.n_demos:
+        try:
+            demos.append(expert.demonstrate(env, env.train_seeds(1, start=seed - 1)[0]))
+        except oracle_mod.PlanningFailed:
+            failures += 1  # a scene the planner cannot solve in its budget is skipped
+            continue
+        if len(demos) % max(1, cfg.n_demos // 10) == 0:
             rate = len(demos) / (time.time() - t0)
             run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
                     f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")

@@ -549,12 +549,17 @@ class PlanarReacher:
         """The next joint positions from `action` (absolute targets): speed limit, then limits."""
         return np.clip(q + np.clip(action - q, -self.max_step, self.max_step), self._lo, self._hi)
 
+    def simulator_in_collision(self, q):
+        """The simulator's contact check used by step: pymunk."""
+        return self.pymunk_in_collision(q)
+
     def step(self, action):
         """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
 
-        Collision is judged by pymunk contacts at the end state and at n_substeps - 1 evenly
-        spaced states before it (see PlanarConfig.n_substeps: nothing tunnels through an obstacle).
-        reward = 1 on success else 0 (the method does not use rewards).
+        Collision is judged by the simulator's contacts (simulator_in_collision: pymunk here) at the
+        end state and at n_substeps - 1 evenly spaced states before it (see PlanarConfig.n_substeps:
+        nothing tunnels through an obstacle). reward = 1 on success else 0 (the method does not use
+        rewards).
         """
         if not self._has_state:
             raise ValueError("step called before reset (or set_state)")
@@ -566,7 +571,7 @@ class PlanarReacher:
         q_next = self.clip_action(self._q, action)
         fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
         sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
-        collision = bool(any(self.pymunk_in_collision(sweep)))
+        collision = bool(any(self.simulator_in_collision(sweep)))
         self._q_prev, self._q = self._q, q_next
         self.step_count += 1
         success = (not collision) and bool(self.goal_reached(q_next))
@@ -1346,31 +1351,16 @@ class EngineReach3D:
         return obs[0] if single else obs
 
     def step(self, action):
-        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
-
-        Collision is judged by pybullet contacts at the end state and at n_substeps - 1 evenly
-        spaced states before it (see EngineConfig.n_substeps). reward = 1 on success else 0.
-        """
-        if not self._has_state:
-            raise ValueError("step called before reset (or set_state)")
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.dof,):
-            raise ValueError(f"action must have shape ({self.dof},), got {action.shape}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite (no NaN/inf), got {action}")
-        q_next = self.clip_action(self._q, action)
-        fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
-        sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
-        collision = bool(any(self.pybullet_in_collision(sweep)))
-        self._q_prev, self._q = self._q, q_next
-        self.step_count += 1
-        success = (not collision) and bool(self.goal_reached(q_next))
-        terminated = collision or success
-        truncated = (not terminated) and self.step_count >= self.max_steps
-        info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
+        """PlanarReacher.step (same semantics), judged by pybullet contacts at n_substeps states of
+        the step (see EngineConfig.n_substeps); with cfg.image_obs, info['image'] is the camera image."""
+        obs, reward, terminated, truncated, info = PlanarReacher.step(self, action)
         if self.cfg.image_obs:
             info["image"] = self.render_image()
-        return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
+        return obs, reward, terminated, truncated, info
+
+    def simulator_in_collision(self, q):
+        """The simulator's contact check used by step: pybullet."""
+        return self.pybullet_in_collision(q)
 
     # ---- images and drawing ------------------------------------------------------------------
     def render_image(self, q=None, size=None):
