@@ -1506,6 +1506,28 @@ def load_episodes(path):
     return episodes
 
 
+def straight_line_episode(env, seed, peak=0.04, expert_from=5):
+    """Stand-in expert data for module demos, tests and benchmarks (no oracle needed).
+
+    In scenario `seed` the arm moves in a straight joint-space line from its start toward the goal
+    configuration nearest to it, stopped at 90 % of the way to the first contact, timed with a
+    smoothstep (rest to rest, peak speed `peak` rad/step). Steps from `expert_from` on are marked
+    as expert-driven (an "intervention" that runs to the end of the episode).
+    """
+    env.reset(seed=int(seed))
+    q0 = env.q
+    goals = env.goal_configurations()
+    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
+    f = np.linspace(0, 1, 401)
+    hit = env.in_collision(q0 + f[:, None] * (target - q0))
+    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
+    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
+    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d  # (T, dof), smoothstep
+    prev = np.concatenate([q[:1], q[:-1]])
+    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
+            "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
+
+
 def median_step(episodes):
     """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
 

@@ -716,21 +716,7 @@ if __name__ == "__main__":
 
     env = envs.make_env("planar")
     rng = np.random.default_rng(0)
-    episodes = []
-    for seed in range(40):
-        env.reset(seed=seed)
-        q0 = env.q
-        goals = env.goal_configurations()
-        target = goals[np.argmin(np.abs(goals - q0).sum(1))]
-        frac = np.linspace(0, 1, 401)
-        hit = env.in_collision(q0 + frac[:, None] * (target - q0))
-        d = (0.9 * frac[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
-        tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / 0.04)) + 1)  # peak 0.04 rad/step
-        q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d  # smoothstep: rest to rest
-        if len(q) >= 40:
-            prev = np.concatenate([q[:1], q[:-1]])
-            episodes.append({"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
-                             "expert": np.arange(len(q)) >= 5, "seed": seed})
+    episodes = [ep for ep in (envs.straight_line_episode(env, s) for s in range(40)) if len(ep["q"]) >= 40]
     stats = demo_stats(episodes, envs.median_step(episodes), env.max_step)
     print(f"{len(episodes)} episodes; median step {stats.median_step:.4f} rad, median speed "
           f"{stats.median_speed:.4f} rad/step, accel clamp {np.round(stats.accel_max, 4)} rad/step²")

@@ -25,24 +25,13 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import relabel  # noqa: E402
-from envs import make_env, median_step  # noqa: E402
+from envs import make_env, median_step, straight_line_episode  # noqa: E402
 
 
-def straight_episode(env, seed, min_len=40, peak=0.04):
-    env.reset(seed=seed)
-    q0 = env.q
-    goals = env.goal_configurations()
-    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
-    f = np.linspace(0, 1, 401)
-    hit = env.in_collision(q0 + f[:, None] * (target - q0))
-    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
-    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
-    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d
-    if len(q) < min_len:
-        return None
-    prev = np.concatenate([q[:1], q[:-1]])
-    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
-            "expert": np.arange(len(q)) >= 5, "seed": seed}
+def straight_episode(env, seed, min_len=40):
+    """envs.straight_line_episode, or None when shorter than min_len steps."""
+    ep = straight_line_episode(env, seed)
+    return ep if len(ep["q"]) >= min_len else None
 
 
 def per_second(fn, items, seconds=1.0):

@@ -569,25 +569,6 @@ def test_plot_recovery_writes_a_png(tmp_path, stats):
 
 # ---------------------------------------------------------------- the real planar env
 
-def straight_demo(env, seed, expert_from=5, peak=0.04):
-    """An expert-like episode in a real PlanarReacher scenario without the oracle: a straight
-    joint-space path from the start toward the nearest goal configuration, stopped at 90 % of the
-    way to the first collision, timed with a smoothstep (rest to rest, peak speed `peak`)."""
-    env.reset(seed=seed)
-    q0 = env.q
-    goals = env.goal_configurations()
-    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
-    f = np.linspace(0, 1, 401)
-    hit = env.in_collision(q0 + f[:, None] * (target - q0))
-    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
-    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
-    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d
-    prev = np.concatenate([q[:1], q[:-1]])
-    expert = np.arange(len(q)) >= expert_from  # the "intervention" runs to the end of the episode
-    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
-            "expert": expert, "seed": seed}
-
-
 PLANAR_SEEDS = (4, 13, 30)  # scenarios where that straight path is >= 60 steps long
 
 
@@ -595,7 +576,7 @@ PLANAR_SEEDS = (4, 13, 30)  # scenarios where that straight path is >= 60 steps 
 def planar():
     import envs
     env = envs.make_env("planar")
-    eps = [straight_demo(env, s) for s in PLANAR_SEEDS]
+    eps = [envs.straight_line_episode(env, s) for s in PLANAR_SEEDS]
     st = demo_stats(eps, envs.median_step(eps), env.max_step)
     return envs, eps, st
 
