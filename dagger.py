@@ -733,7 +733,12 @@ def make_figures(run, demos, stats):
     fig = lambda name: run.path("figures", name)  # noqa: E731
     env = envs.make_env(cfg.env)
     rdir = os.path.join(run.root, "lineage_0", "round_1")
-    oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
+    planar = env.dim == 2  # figs 1-3 and the fig5 drawing are planar; the UR5 gets a pybullet render
+    if planar:
+        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
+    else:
+        env.reset(seed=int(demos[0]["seed"]))
+        envs.render_scene_image(env, fig("fig5_environment.png"))
     if not os.path.exists(os.path.join(rdir, "calibration.json")):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")
         return
@@ -745,6 +750,9 @@ def make_figures(run, demos, stats):
     e = int(np.argmax([ep["expert"].sum() for ep in D1]))
     episode = D1[e]
     calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
+    if not planar:
+        run.log("figures 1-3 draw end-effector paths in the plane: drawn for the planar env only")
+        return
     calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
                                    generator=gen())
     relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
