@@ -1321,7 +1321,7 @@ class EngineReach3D:
             candidates = rng.uniform(lo, hi, size=(64, self.dof))
             candidates[:, 0] *= side
             tcp = self.ee(candidates)
-            (x_far, x_near), (y_lo, y_hi) = cfg.bay_x, cfg.bay_y
+            x_near, (y_lo, y_hi) = cfg.bay_x[1], cfg.bay_y
             inside = ((tcp[:, 0] < x_near + 0.1) & (tcp[:, 1] > y_lo - 0.1) & (tcp[:, 1] < y_hi + 0.1)
                       & (tcp[:, 2] < cfg.bay_height + 0.1))
             far = np.linalg.norm(tcp - self._goal, axis=1) >= cfg.start_goal_min_dist

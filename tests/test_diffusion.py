@@ -10,13 +10,6 @@ from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset
                        make_schedule, p_sample, q_sample, toy_two_mode_data, train)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The test networks are tiny: a second torch thread only adds contention on the shared 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def tiny_policy(**overrides):

@@ -11,13 +11,6 @@ from partial_denoise import (lerp_blend, noise_fraction, partial_denoise, plot_p
                              sdedit_bound, switch_step)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The test networks are tiny: a second torch thread only adds contention on the shared 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 class StubPolicy(DiffusionPolicy):
