@@ -240,19 +240,10 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None):
 
 def drop_short_interventions(expert, H):
     """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False."""
-    expert = np.asarray(expert, bool).copy()
-    t = 0
-    while t < len(expert):
-        if expert[t]:
-            end = t
-            while end < len(expert) and expert[end]:
-                end += 1
-            if end - t < H:
-                expert[t:end] = False
-            t = end
-        else:
-            t += 1
-    return expert
+    kept = np.zeros(len(expert), bool)
+    for start, end in calibrate.expert_segments({"expert": expert}, H):  # runs of >= H expert steps
+        kept[start:end] = True
+    return kept
 
 
 def evaluate(policy, env_name, seeds, repeats, n_act, seed):
