@@ -29,7 +29,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -61,6 +61,9 @@ METHOD_LABELS = {
 class Config:
     name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
     env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II)
+    image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
+    #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
+    image_size: int = 32  # pixels of the square camera image (with image_obs)
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
     methods: tuple = ALL_METHODS  # methods compared (BC and HG-DAgger always run: others pair with them)
@@ -104,6 +107,11 @@ class Config:
                     "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
+        if self.image_obs and self.env != "engine3d":
+            raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
+                             f"got env={self.env!r}")
+        if self.image_size < 8:
+            raise ValueError(f"image_size must be >= 8 pixels, got {self.image_size}")
         if self.eval_scenarios > 100:
             raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {self.eval_scenarios}")
 
@@ -148,7 +156,9 @@ class Run:
                 old = json.load(f)
             old["methods"] = tuple(old["methods"])
             saved["methods"] = tuple(saved["methods"])
-            changed = {k for k in saved if k not in ("device",) and old.get(k) != saved[k]}
+            # a field added after the run started counts as unchanged if it has its default value
+            defaults = {f.name: f.default for f in fields(Config)}
+            changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}
             if changed:
                 raise ValueError(f"{root} holds a run with a different config ({sorted(changed)} differ); "
                                  f"use --out for a new folder or delete {root}")
@@ -254,8 +264,10 @@ def drop_short_interventions(expert, H):
     return kept
 
 
-def evaluate(policy, env_name, seeds, repeats, n_act, seed):
+def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None):
     """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
+
+    env_options: keyword arguments of envs.make_env (e.g. image_obs=True), the same as in training.
 
     All len(seeds) * repeats episodes run in lockstep (one policy call per decision). The sampling
     generator is seeded identically for every method, so methods face the same scenarios and the
@@ -264,7 +276,7 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed):
     env_list = []
     for _ in range(repeats):
         for s in seeds:
-            e = envs.make_env(env_name)
+            e = envs.make_env(env_name, **(env_options or {}))
             e.reset(seed=int(s))
             env_list.append(e)
     gen = torch.Generator(device=policy.device).manual_seed(seed)
@@ -369,6 +381,16 @@ def tost(a, b, margin):
 # ----------------------------------------------------------------------------------------------
 # The stages of the loop (Sec. IV-A). Each one returns its result, or loads it if already on disk.
 # ----------------------------------------------------------------------------------------------
+def env_options(cfg):
+    """envs.make_env keyword arguments of this run (image observations are an env option)."""
+    return {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
+
+
+def make_run_env(cfg):
+    """A fresh env of this run's kind (one per scenario in rollouts)."""
+    return envs.make_env(cfg.env, **env_options(cfg))
+
+
 def make_oracle(cfg):
     return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle"), horizon=cfg.horizon,
                                                      n_attempts=cfg.oracle_attempts))
@@ -379,7 +401,7 @@ def stage_demos(run):
     cfg, path = run.cfg, run.path("data", "D0.npz")
     if os.path.exists(path):
         return envs.load_episodes(path)
-    env, expert = envs.make_env(cfg.env), make_oracle(cfg)
+    env, expert = make_run_env(cfg), make_oracle(cfg)
     demos, seed, t0, failures = [], 0, time.time(), 0
     run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
     while len(demos) < cfg.n_demos:
@@ -399,7 +421,7 @@ def stage_demos(run):
 
 def make_policy(cfg, env):
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, width=cfg.width, joint_obs=cfg.joint_obs,
+                                K=cfg.K, width=cfg.width, joint_obs=cfg.joint_obs, image_shape=env.image_shape,
                                 seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
 
@@ -430,7 +452,7 @@ def stage_bc(run, demos):
     cfg, path = run.cfg, run.path("checkpoints", "bc.pt")
     if os.path.exists(path):
         return diffusion.DiffusionPolicy.load(path, device=cfg.device)
-    env = envs.make_env(cfg.env)
+    env = make_run_env(cfg)
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
     policy = make_policy(cfg, env)
@@ -444,12 +466,12 @@ def stage_collect(run, lineage, k, policy):
         return envs.load_episodes(path)
     # fresh scenarios for every (lineage, round), after D0's seed range
     start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
-    seeds = envs.make_env(cfg.env).train_seeds(cfg.episodes_per_round, start=start)
+    seeds = make_run_env(cfg).train_seeds(cfg.episodes_per_round, start=start)
     run.log(f"lineage {lineage} round {k}: HG-DAgger collection on {len(seeds)} training scenarios")
     t0 = time.time()
     env_list = []
     for s in seeds:
-        e = envs.make_env(cfg.env)
+        e = make_run_env(cfg)
         e.reset(seed=int(s))
         env_list.append(e)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", lineage, k))
@@ -473,7 +495,7 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
     ccfg = calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
                                        blend_segments=cfg.calib_blend_episodes)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
-    cal = calibrate.calibrate(envs.make_env(cfg.env), policy, episodes, median_step, ccfg, gen)
+    cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, median_step, ccfg, gen)
     run.log(f"lineage {lineage} round {k}: calibration ({time.time() - t0:.0f} s)\n  "
             + cal.report().replace("\n", "\n  "))
     write_json(path, cal.to_dict())
@@ -524,7 +546,7 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibrations
         for D, cal in zip(rounds_data, calibrations):
             kind, sigma = noise_model(method, cal)
             samplers.append(relabel.AugmentationSampler(
-                D, lambda: envs.make_env(cfg.env), stats, kind, sigma,
+                D, lambda: make_run_env(cfg), stats, kind, sigma,
                 relabel.RelabelConfig(horizon=cfg.horizon)))
             weights.append(sum(int(diffusion.label_mask(ep["expert"], cfg.horizon).sum()) for ep in D))
         sampler, aug = MixtureSampler(samplers, weights), cfg.aug_fraction
@@ -541,8 +563,8 @@ def stage_evaluate(run, path, policy, label):
     if os.path.exists(path):
         return np.asarray(read_json(path)["success"], bool)
     t0 = time.time()
-    seeds = envs.make_env(cfg.env).eval_seeds()[: cfg.eval_scenarios]
-    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"))
+    seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
+    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"), env_options(cfg))
     run.log(f"  eval {label}: success {100 * ok.mean():.1f}% "
             f"({ok.size} episodes, {time.time() - t0:.0f} s)")
     write_json(path, {"success": ok.tolist(), "seeds": list(map(int, seeds))})
@@ -730,7 +752,7 @@ def make_figures(run, demos, stats):
     """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
     cfg = run.cfg
     fig = lambda name: run.path("figures", name)  # noqa: E731
-    env = envs.make_env(cfg.env)
+    env = make_run_env(cfg)
     rdir = os.path.join(run.root, "lineage_0", "round_1")
     planar = env.dim == 2  # figs 1-3 and the fig5 drawing are planar; the UR5 gets a pybullet render
     if planar:
@@ -777,6 +799,8 @@ def parse_args(argv):
                    help="run size: smoke (CI, ~1 min), quick (default, ~10 min), mid (~40 min per lineage), "
                         "paper (Table I protocol)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
+    p.add_argument("--image-obs", action="store_true",
+                   help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
@@ -802,6 +826,8 @@ def parse_args(argv):
         if bad:
             p.error(f"--methods: unknown {bad}; valid choices: {', '.join(ALL_METHODS)}")
         over["methods"] = tuple(names)
+    if args.image_obs:
+        over["image_obs"] = True
     for key in ("rounds", "lineages", "seed"):
         if getattr(args, key) is not None:
             over[key] = getattr(args, key)
@@ -812,6 +838,7 @@ def parse_args(argv):
             p.error(f"--device {args.device}: no CUDA device is available here; use --device cpu")
         over["device"] = args.device
     name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
+    name += "_images" if args.image_obs else ""
     over["name"] = name
     try:
         cfg = replace(cfg, **over)
@@ -850,7 +877,7 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
 
 def demo_statistics(cfg, demos):
     """The base demonstrations' median step (the unit of noise) and speed/acceleration limits."""
-    return relabel.demo_stats(demos, envs.median_step(demos), envs.make_env(cfg.env).max_step)
+    return relabel.demo_stats(demos, envs.median_step(demos), make_run_env(cfg).max_step)
 
 
 def main(argv=None):

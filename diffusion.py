@@ -7,6 +7,7 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - epsilon network eps_theta(a, k | o) over chunks ..... DiffusionPolicy (Chi et al.'s diffusion policy,
                                                           here with a residual MLP, see below)
   - action chunks of horizon H, labels (Sec. IV-C) ...... chunk_dataset, label_mask
+  - image observations (Sec. V, the UR5 task) ............ ImageEncoder, a small CNN (PolicyConfig.image_shape)
   - BC / fine-tuning / co-training (Alg. step 4) ........ train
 
 Index convention (read this once, it is used everywhere):
@@ -27,6 +28,12 @@ need; a residual MLP over the flattened chunk with FiLM conditioning (Perez et a
 samples a batch of 300 in a fraction of a second. FiLM is the sum of an observation term and a step term,
 so the observation part is computed once per sampling call and the step part once per step for the whole
 batch (a K-row table): sampling then costs two width x width matmuls per block and step.
+
+Image observations: the observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its
+last C*H*W entries are an image (channel-first, flattened, pixels in [0, 1]; envs.EngineReach3D with
+image_obs=True). A small CNN (ImageEncoder) turns the image into image_features numbers that join the
+low-dimensional part in front of the observation encoder. Because the image is part of the observation
+code, the CNN runs once per sampling call, not once per diffusion step.
 """
 
 import copy
@@ -59,6 +66,9 @@ class PolicyConfig:
     step_embed_dim: int = 64     # size of the sinusoidal diffusion-step embedding
     joint_obs: bool = False      # obs starts with (q_t, q_{t-1}) as in envs.py: learn chunks relative to q_t and
                                  # give the network the joint velocity q_t - q_{t-1} (see DiffusionPolicy)
+    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image (channel-first, in [0, 1]) that a small
+                                 # CNN encodes (ImageEncoder); () = no image. envs: env.image_shape
+    image_features: int = 64     # size of the CNN's image code
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
@@ -72,14 +82,36 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {self.schedule!r}")
         if self.step_embed_dim % 2:
             raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {self.step_embed_dim}")
-        if self.joint_obs and self.obs_dim < 2 * self.dof:
+        self.image_shape = tuple(int(n) for n in self.image_shape)
+        if self.image_shape and (len(self.image_shape) != 3 or min(self.image_shape[1:]) < 8
+                                 or self.image_shape[0] < 1):
+            raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
+                             f"width >= 8 (three stride-2 convolutions), got {self.image_shape}")
+        if self.image_shape and self.image_dim >= self.obs_dim:
+            raise ValueError(f"PolicyConfig.image_shape {self.image_shape} holds {self.image_dim} numbers; the "
+                             f"observation (obs_dim={self.obs_dim}) must be longer (joint positions come first)")
+        if not isinstance(self.image_features, (int, np.integer)) or self.image_features < 1:
+            raise ValueError(f"PolicyConfig.image_features must be a positive int, got {self.image_features!r}")
+        if self.joint_obs and self.low_dim < 2 * self.dof:
             raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * self.dof} (obs starts with "
                              f"q_t, q_t-1), got obs_dim={self.obs_dim}; use joint_obs=False")
 
     @property
+    def image_dim(self):
+        """Entries of the observation that are image pixels (its last ones); 0 without an image."""
+        return int(np.prod(self.image_shape)) if self.image_shape else 0
+
+    @property
+    def low_dim(self):
+        """Entries of the observation before the image: joint positions, goal, obstacles."""
+        return self.obs_dim - self.image_dim
+
+    @property
     def cond_input_dim(self):
-        """Length of the network's observation input: the observation, plus the velocity if joint_obs."""
-        return self.obs_dim + (self.dof if self.joint_obs else 0)
+        """Length of the observation encoder's input: the low-dimensional observation, the velocity if
+        joint_obs, the CNN's image code if there is an image."""
+        return (self.low_dim + (self.dof if self.joint_obs else 0)
+                + (self.image_features if self.image_shape else 0))
 
 
 @dataclass
@@ -265,6 +297,27 @@ class FiLMBlock(nn.Module):
         return h + self.fc2(nn.functional.silu(y))
 
 
+class ImageEncoder(nn.Module):
+    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
+
+    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
+    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
+    """
+
+    def __init__(self, shape, features):
+        super().__init__()
+        channels, height, width = shape
+        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
+                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
+                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
+        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
+            height, width = (height + 1) // 2, (width + 1) // 2
+        self.fc = nn.Linear(32 * height * width, features)
+
+    def forward(self, image):
+        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
+
+
 class EpsNet(nn.Module):
     """eps_theta(a_k, k | o): flattened chunk in, predicted noise out, FiLM-conditioned on (o, k)."""
 
@@ -287,9 +340,17 @@ class EpsNet(nn.Module):
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
+        self.image_shape = cfg.image_shape
+        if cfg.image_shape:  # built last: without an image the other weights are initialised as before
+            self.image_encoder = ImageEncoder(cfg.image_shape, cfg.image_features)
 
     def obs_terms(self, obs_norm):
-        """(B, cond_input_dim) -> (B, n_blocks, 2 * width): the observation part of every block's FiLM."""
+        """normalize_obs's output (B, ...) -> (B, n_blocks, 2 * width): the observation part of every block's
+        FiLM. With an image, obs_norm's last C*H*W entries are its pixels: the CNN encodes them first."""
+        if self.image_shape:
+            n_pix = int(np.prod(self.image_shape))
+            code = self.image_encoder(obs_norm[:, -n_pix:].reshape(-1, *self.image_shape))
+            obs_norm = torch.cat([obs_norm[:, :-n_pix], code], dim=1)
         return self.obs_film(self.obs_encoder(obs_norm)).view(-1, self.n_blocks, 2 * self.width)
 
     def step_table(self):
@@ -368,9 +429,10 @@ class DiffusionPolicy(nn.Module):
 
     def fit_normalizer(self, obs, actions):
         """Min-max fit on the dataset: obs (N, obs_dim) and actions (N, H, dof), joint units. Without joint_obs
-        the actions may also be any (M, dof) set of actions."""
+        the actions may also be any (M, dof) set of actions. Image pixels are not fitted: [0, 1] -> [-1, 1]."""
         cfg = self.cfg
-        obs = np.asarray(check_array("obs", obs, (None, cfg.obs_dim)), dtype=np.float64)
+        obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]  # the pixels need no float64 copy
+        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
         actions = np.asarray(actions, dtype=np.float64)
         if actions.ndim == 3 or cfg.joint_obs:
             check_array("actions", actions, (len(obs) if cfg.joint_obs else None, cfg.horizon, cfg.dof))
@@ -389,18 +451,28 @@ class DiffusionPolicy(nn.Module):
             half = (hi - lo) / 2
             # A constant dimension would divide by zero: give it half range 1 so it maps to 0.
             half = np.where(half > 1e-6, half, 1.0)
-            getattr(self, f"{prefix}_center").copy_(torch.as_tensor((hi + lo) / 2))
-            getattr(self, f"{prefix}_half").copy_(torch.as_tensor(half))
+            n = x.shape[1]
+            getattr(self, f"{prefix}_center")[:n].copy_(torch.as_tensor((hi + lo) / 2))
+            getattr(self, f"{prefix}_half")[:n].copy_(torch.as_tensor(half))
+        self.obs_center[cfg.low_dim:] = 0.5                             # image pixels: [0, 1] -> [-1, 1]
+        self.obs_half[cfg.low_dim:] = 0.5
         self.normalizer_fitted.fill_(True)
 
     def normalize_obs(self, obs):
-        """Raw observations (B, obs_dim) -> the network's conditioning input (B, cfg.cond_input_dim)."""
+        """Raw observations (B, obs_dim) -> the network's observation input: the normalized low-dimensional
+        observation, then the normalized velocity (dof) if joint_obs, then the image pixels if any (the CNN
+        reads them from the end, EpsNet.obs_terms). Without an image: (B, cfg.cond_input_dim)."""
+        cfg = self.cfg
         o = (obs - self.obs_center) / self.obs_half
-        if not self.cfg.joint_obs:
+        if not cfg.joint_obs and not cfg.image_shape:
             return o
-        d = self.cfg.dof
-        vel = (obs[:, :d] - obs[:, d:2 * d] - self.vel_center) / self.vel_half
-        return torch.cat([o, vel], dim=1)
+        parts = [o[:, :cfg.low_dim]]
+        if cfg.joint_obs:
+            d = cfg.dof
+            parts.append((obs[:, :d] - obs[:, d:2 * d] - self.vel_center) / self.vel_half)
+        if cfg.image_shape:
+            parts.append(o[:, cfg.low_dim:])
+        return torch.cat(parts, dim=1)
 
     def _origin(self, obs):
         """(B, 1, dof): what chunks are measured from -- q_t with joint_obs, else nothing (zero)."""

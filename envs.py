@@ -18,7 +18,8 @@ Every environment in this file has the same interface (gymnasium conventions, no
     obs, reward, terminated, truncated, info = env.step(action)   # action: absolute joint target
     env.q, env.q_prev                         # current / previous joint positions (read-only)
     env.set_state(q, q_prev=None, step_count=0)
-    env.make_obs(q, q_prev)                   # batched observations for the current scenario
+    env.make_obs(q, q_prev, image=None)       # batched observations for the current scenario
+    env.image_shape                           # () or (3, S, S): the image at the end of each obs
     env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy);
                                               # margin (m) inflates every pair's contact distance
     env.fk(q)                                 # (B, n_points, dim) joint points, base .. end effector
@@ -35,7 +36,8 @@ EngineReach3D: the UR5 reaching an engine lever through a narrow, cluttered pass
 Table II), with pybullet (DIRECT mode) as the simulator and the same vectorized numpy check beside
 it, in 3-D. Extras: set_scene(obstacles, goal, kinds), goal_configurations() (closed-form UR5 IK),
 clearance(q) (signed distance), pybullet_in_collision(q), render_image(q) (a small RGB camera image
-from pybullet's TinyRenderer: the image-observation option), render_scene_image(env, path).
+from pybullet's TinyRenderer), render_scene_image(env, path). With EngineConfig(image_obs=True) the
+observation ends with that image (obs_image(obs) reads it back), for the policy's CNN encoder.
 
 Step semantics (CONTRACT.md): q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
@@ -532,8 +534,14 @@ class PlanarReacher:
             raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
         return q.copy()
 
-    def make_obs(self, q, q_prev):
-        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
+    image_shape = ()  # no image observations in the planar env (EngineReach3D has the option)
+
+    def make_obs(self, q, q_prev, image=None):
+        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
+
+        `image` exists for EngineReach3D's image observations; here it must be None."""
+        if image is not None:
+            raise ValueError("make_obs: the planar env has no image observations; pass image=None")
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         q_prev = np.broadcast_to(q_prev, q.shape)
@@ -696,8 +704,10 @@ class EngineConfig:
     start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
-    image_obs: bool = False  # True: reset/step also return info['image'] (render_image)
-    image_size: int = 64  # pixels, square camera image for image observations
+    image_obs: bool = False  # True: the observation ends with the camera image instead of the obstacle list
+    #   (layout in EngineReach3D's docstring), and reset/step also put it in info['image']
+    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
+    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
 
 
 def segment_distance_3d(a0, a1, b0, b1):
@@ -843,8 +853,16 @@ class EngineReach3D:
         [6:12]    q_prev  joint positions one step earlier (rad)
         [12:15]   goal    TCP goal (x, y, z) in m
         [15:127]  obstacles, n_max_obstacles slots of (x0, y0, z0, x1, y1, z1, radius) in m
-    Image observations (optional): render_image(q) -> (S, S, 3) uint8 from a fixed camera with
-    pybullet's TinyRenderer; with EngineConfig.image_obs, reset/step put it in info['image'].
+    With EngineConfig(image_obs=True) (the paper's policy sees images, Sec. V) the obstacle slots are
+    replaced by the camera image, and obs_dim = 15 + 3 S^2 (3,087 at S = 32):
+        [15:]     image   render_image(q): RGB (S, S, 3) from a fixed camera with pybullet's
+                          TinyRenderer, stored channel-first (3, S, S), flattened, scaled to [0, 1]
+    so the observation stays one flat float32 vector: every consumer (datasets, rollouts, the
+    augmentation) handles it unchanged, and diffusion.PolicyConfig(image_shape=env.image_shape) gives
+    the policy a CNN encoder for the last 3 S^2 entries. The clutter is then seen only in the image;
+    the lever's position stays given as coordinates. make_obs(q, q_prev, image=...) takes the image
+    part from given rows instead of rendering: relabel.py uses it so that noised states reuse the
+    original image (the paper's approximation, Sec. V). obs_image(obs) reads the image back.
     """
 
     dim = 3  # workspace dimension
@@ -877,7 +895,11 @@ class EngineReach3D:
         self.max_steps = int(cfg.max_steps)
         self.dt = float(cfg.dt)
         self.goal_tolerance = float(cfg.goal_tolerance)
-        self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
+        if cfg.image_obs and (not isinstance(cfg.image_size, (int, np.integer)) or cfg.image_size < 8):
+            raise ValueError(f"EngineConfig.image_size must be an int >= 8 pixels, got {cfg.image_size!r}")
+        self.image_shape = (3, int(cfg.image_size), int(cfg.image_size)) if cfg.image_obs else ()
+        self.obs_dim = 2 * self.dof + self.dim + (int(np.prod(self.image_shape)) if cfg.image_obs
+                                                  else 7 * cfg.n_max_obstacles)
         self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
         self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
         # scenario state (set by reset)
@@ -1333,29 +1355,59 @@ class EngineReach3D:
         self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
         self.set_state(start)
         info = {"q": self.q, "goal": self.goal, "seed": self.seed}
+        obs = self.make_obs(self._q, self._q_prev)
         if cfg.image_obs:
-            info["image"] = self.render_image()
-        return self.make_obs(self._q, self._q_prev), info
+            info["image"] = self.obs_image(obs)
+        return obs, info
 
     # ---- observations, stepping --------------------------------------------------------------
-    def make_obs(self, q, q_prev):
-        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
+    def make_obs(self, q, q_prev, image=None):
+        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
+
+        With image observations the image part is rendered with the arm at each q, unless `image`
+        gives it: rows (B, 3 S^2), or one row (3 S^2,) or (1, 3 S^2) for all, in the observation's layout (e.g.
+        obs[..., -3 S^2:] of recorded observations). Without image observations image must be None.
+        """
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d = self.dof
+        d, low = self.dof, 2 * self.dof + self.dim
         obs[:, :d] = q
         obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
-        obs[:, 2 * d:2 * d + self.dim] = self._goal
-        obs[:, 2 * d + self.dim:] = self._obstacle_obs
+        obs[:, 2 * d:low] = self._goal
+        if not self.cfg.image_obs:
+            if image is not None:
+                raise ValueError("make_obs: image given, but this env has no image observations "
+                                 "(EngineConfig(image_obs=True) turns them on); pass image=None")
+            obs[:, low:] = self._obstacle_obs
+        elif image is None:  # render the camera image with the arm at every q
+            for i in range(len(q)):
+                obs[i, low:] = self.render_image(q[i]).transpose(2, 0, 1).reshape(-1) / np.float32(255)
+        else:
+            image = np.asarray(image, dtype=np.float32)
+            n_pix = self.obs_dim - low
+            if image.shape not in ((n_pix,), (1, n_pix), (len(q), n_pix)):
+                raise ValueError(f"make_obs: image must have shape ({n_pix},), (1, {n_pix}) or ({len(q)}, {n_pix}) "
+                                 f"(the image part of observations), got {image.shape}")
+            obs[:, low:] = image
         return obs[0] if single else obs
+
+    def obs_image(self, obs):
+        """The camera image in observations: (..., obs_dim) -> (..., S, S, 3) uint8 (image_obs only)."""
+        if not self.cfg.image_obs:
+            raise ValueError("obs_image: this env's observations hold no image (EngineConfig(image_obs=True))")
+        obs = np.asarray(obs)
+        if obs.shape[-1] != self.obs_dim:
+            raise ValueError(f"obs_image: observations must end in obs_dim={self.obs_dim}, got {obs.shape}")
+        pixels = obs[..., 2 * self.dof + self.dim:].reshape(*obs.shape[:-1], *self.image_shape)
+        return np.round(np.moveaxis(pixels, -3, -1) * 255).astype(np.uint8)
 
     def step(self, action):
         """PlanarReacher.step (same semantics), judged by pybullet contacts at n_substeps states of
         the step (see EngineConfig.n_substeps); with cfg.image_obs, info['image'] is the camera image."""
         obs, reward, terminated, truncated, info = PlanarReacher.step(self, action)
         if self.cfg.image_obs:
-            info["image"] = self.render_image()
+            info["image"] = self.obs_image(obs)
         return obs, reward, terminated, truncated, info
 
     def simulator_in_collision(self, q):
@@ -1366,7 +1418,7 @@ class EngineReach3D:
     def render_image(self, q=None, size=None):
         """The image observation: RGB (size, size, 3) uint8 with the arm at q (default: current).
 
-        size defaults to cfg.image_size (64). See camera_image.
+        size defaults to cfg.image_size (32). See camera_image.
         """
         size = int(size or self.cfg.image_size)
         if size < 8:

@@ -456,7 +456,9 @@ class AugmentationSampler:
     A pair is made like this: draw (episode, t) uniformly among the intervention steps with a valid
     label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); q̃_prev = q̃ - (q_t - q_{t-1}) so the
     observed velocity is the expert's; obs = env.make_obs(q̃, q̃_prev) in the episode's scenario;
-    chunk = `corrective_labels` (monotone projection, PD return).
+    chunk = `corrective_labels` (monotone projection, PD return). With image observations
+    (env.image_shape non-empty) the noised state reuses the recorded image of state t, and only the
+    joint positions change: the paper's approximation for its image policy (Sec. V).
 
     Cost: env calls cost per call, not per state, so pairs are generated in batches grouped by
     scenario and kept in a pool of `cfg.pool_size` pairs. Each call returns n pairs drawn uniformly
@@ -484,6 +486,7 @@ class AugmentationSampler:
         # One flat table of every labelable intervention step; the expert segments of all episodes
         # are concatenated into one trajectory array so projection and PD run once for a whole batch.
         traj, center, vel, t_glob, end_glob, factors, seeds, ep_of, offset = [], [], [], [], [], [], [], [], 0
+        self._episode_obs = [ep["obs"] for ep in episodes]  # recorded images are reused (references, no copy)
         for e, ep in enumerate(episodes):
             q, expert = _check_episode(ep)
             t, seg_end = label_steps(expert, H)
@@ -526,6 +529,7 @@ class AugmentationSampler:
         self.factors = np.ascontiguousarray(np.concatenate(factors))  # (N, dof, dof)
         self.seeds = np.concatenate(seeds)
         self.episode_of = np.concatenate(ep_of)
+        self.step_of = self.t_glob - np.concatenate([[0], np.cumsum([len(q) for q in traj])])[self.episode_of]
         # contiguous block of rows per episode, for the "episodes first" draw
         self._ep_ids, self._ep_start, self._ep_count = np.unique(self.episode_of, return_index=True, return_counts=True)
         self._pool_obs = self._pool_chunks = None
@@ -557,7 +561,15 @@ class AugmentationSampler:
             q_tilde, kept = _draw_valid(self.center[r], self.factors[r], rng, env, self.cfg.max_tries)
             q_tilde, r = q_tilde[kept], r[kept]
             if r.size:
-                obs_parts.append(np.asarray(env.make_obs(q_tilde, q_tilde - self.velocity[r]), dtype=np.float32))
+                q_prev = q_tilde - self.velocity[r]
+                n_pix = int(np.prod(env.image_shape)) if getattr(env, "image_shape", ()) else 0
+                if n_pix:  # Sec. V: noised states reuse the original image; only the joints are noised
+                    image = np.stack([self._episode_obs[e][t, -n_pix:]
+                                      for e, t in zip(self.episode_of[r], self.step_of[r])])
+                    obs = env.make_obs(q_tilde, q_prev, image=image)
+                else:
+                    obs = env.make_obs(q_tilde, q_prev)
+                obs_parts.append(np.asarray(obs, dtype=np.float32))
                 rows_kept.append(r)
                 q_parts.append(q_tilde)
         self.n_drawn += m

@@ -80,6 +80,7 @@ def test_run_folder_refuses_a_different_config(full_run):
     (["--profile", "quick", "--lineage", "3"], "valid lineages are 0..0"),
     (["--rounds", "0"], "rounds must be >= 1"),
     (["--device", "tpu"], "use cpu or cuda"),
+    (["--image-obs"], "option of the engine3d env only"),
 ])
 def test_bad_cli_arguments(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -109,3 +110,41 @@ def test_summarize_paired_statistics():
     assert stats["tost_vs_best_fixed"]["pooled"]["vs"] == "fixed_2"
     text = dagger.format_table(cfg, table, stats)
     assert "| HG-DAgger | 70.0 ± 0.6 (3) | 73.0 ± 0.6 (3) |" in text
+
+
+def test_image_obs_flag_names_the_run_and_reaches_the_env():
+    _, cfg = dagger.parse_args(["--env", "engine3d", "--image-obs", "--profile", "smoke"])
+    assert cfg.image_obs and cfg.name == "smoke_engine3d_images"
+    env = dagger.make_run_env(cfg)
+    assert env.image_shape == (3, cfg.image_size, cfg.image_size)
+    policy = dagger.make_policy(cfg, env)
+    assert policy.cfg.image_shape == env.image_shape and policy.cfg.obs_dim == env.obs_dim
+    with pytest.raises(ValueError, match="image_size must be >= 8"):
+        replace(cfg, image_size=4)
+
+
+def test_evaluate_runs_an_image_policy_on_image_observations():
+    """evaluate passes env_options to every env: the policy's obs_dim only matches with the image layout."""
+    cfg = replace(dagger.PROFILES["smoke"], env="engine3d", image_obs=True, image_size=8, K=4, width=32)
+    env = dagger.make_run_env(cfg)
+    policy = dagger.make_policy(cfg, env)
+    obs, _ = env.reset(seed=int(env.train_seeds(1)[0]))
+    policy.fit_normalizer(obs[None], np.repeat(env.q[None, None], cfg.horizon, axis=1))
+    seen = []
+    sample = policy.sample
+    policy.sample = lambda o, generator=None: seen.append(o.shape) or sample(o, generator)
+    ok = dagger.evaluate(policy, "engine3d", env.eval_seeds()[:2], 1, cfg.n_act, 0, dagger.env_options(cfg))
+    assert ok.shape == (2, 1) and seen and all(shape[1] == env.obs_dim == 15 + 3 * 8 * 8 for shape in seen)
+    with pytest.raises(ValueError, match="obs must have shape"):
+        dagger.evaluate(policy, "engine3d", env.eval_seeds()[:1], 1, cfg.n_act, 0)  # no images: 127 != 207
+
+
+def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_path):
+    old = json.load(open(os.path.join(full_run, "config.json")))
+    del old["image_obs"], old["image_size"]  # a run folder written before these fields existed
+    root = tmp_path / "older"
+    root.mkdir()
+    json.dump(old, open(root / "config.json", "w"))
+    dagger.Run(str(root), TINY)  # no error: the new fields have their defaults
+    with pytest.raises(ValueError, match="image_size"):
+        dagger.Run(str(root), replace(TINY, image_size=48))

@@ -345,3 +345,68 @@ def test_training_lowers_loss_and_logs_progress():
     assert "steps/s" in lines[0] and "s left" in lines[0]
     first, last = (float(line.split("| loss ")[1].split(" ")[0]) for line in lines)
     assert last < first < 1.2
+
+
+# ---------------------------------------------------------------------------------------------- image observations
+
+def image_direction_data(n, seed=0, side=8):
+    """obs = (q_t, q_t-1, a 1 x side x side image); the chunk moves both joints up if the image's bright
+    square is in its left half, down if in its right half: the direction is in the image only."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-1, 1, (n, 2))
+    left = rng.random(n) < 0.5
+    images = np.zeros((n, 1, side, side), np.float32)
+    for i in range(n):
+        row = rng.integers(0, side - 2)
+        col = rng.integers(0, side // 2 - 2) + (0 if left[i] else side // 2)
+        images[i, 0, row:row + 3, col:col + 2] = 1.0
+    obs = np.concatenate([q, q, images.reshape(n, -1)], axis=1).astype(np.float32)
+    v = np.where(left, 0.05, -0.05)[:, None, None] * np.ones((1, 1, 2))
+    chunks = q[:, None, :] + np.arange(1, 5)[None, :, None] * v
+    return obs, chunks.astype(np.float32), left
+
+
+def test_image_policy_reads_the_direction_from_the_image():
+    obs, chunks, _ = image_direction_data(2000, seed=0)
+    test_obs, _, left = image_direction_data(200, seed=1)
+    policy = tiny_policy(obs_dim=obs.shape[1], joint_obs=True, image_shape=(1, 8, 8), image_features=16)
+    train(policy, obs, chunks, TrainConfig(steps=600, batch_size=128, lr=2e-3, warmup_steps=50, log_every=0))
+    samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
+    moved_up = (samples[:, -1] - test_obs[:, None, :2][:, 0]).mean(axis=1) > 0
+    # without the CNN passing the image on this would be a coin flip (~50 %)
+    assert (moved_up == left).mean() > 0.95
+
+
+def test_image_policy_normalizer_layout_and_round_trip(tmp_path):
+    obs, chunks, _ = image_direction_data(100, seed=3)
+    policy = tiny_policy(obs_dim=obs.shape[1], joint_obs=True, image_shape=(1, 8, 8), image_features=16)
+    assert policy.cfg.low_dim == 4 and policy.cfg.image_dim == 64
+    assert policy.cfg.cond_input_dim == 4 + 2 + 16                # low-dim, velocity, image code
+    policy.fit_normalizer(obs, chunks)
+    assert torch.all(policy.obs_center[4:] == 0.5) and torch.all(policy.obs_half[4:] == 0.5)
+    assert policy.obs_half[:2].min() > 0.5                          # joint columns fitted on the data
+    o = torch.as_tensor(obs)
+    feats = policy.normalize_obs(o)
+    assert feats.shape == (100, 4 + 2 + 64)                         # pixels last, for the CNN
+    assert torch.allclose(feats[:, 6:], 2 * o[:, 4:] - 1)
+    path = tmp_path / "image_policy.pt"
+    policy.save(path)
+    loaded = DiffusionPolicy.load(path)
+    assert loaded.cfg.image_shape == (1, 8, 8)
+    a = policy.sample(obs[:5], generator=torch.Generator().manual_seed(1))
+    b = loaded.sample(obs[:5], generator=torch.Generator().manual_seed(1))
+    assert np.array_equal(a, b)
+
+
+def test_image_option_leaves_image_free_policies_unchanged_and_checks_shapes():
+    plain, with_image = tiny_policy(obs_dim=68), tiny_policy(obs_dim=68, image_shape=(1, 8, 8))
+    assert not any("image_encoder" in k for k in plain.state_dict())
+    shared = {k: v for k, v in with_image.net.state_dict().items() if not k.startswith("image_encoder")}
+    assert sorted(shared) == sorted(plain.net.state_dict())         # the CNN is an addition, nothing else moved
+    assert torch.equal(shared["inp.weight"], plain.net.state_dict()["inp.weight"])
+    with pytest.raises(ValueError, match="image_shape must be"):
+        PolicyConfig(obs_dim=100, dof=2, image_shape=(8, 8))
+    with pytest.raises(ValueError, match="image_shape must be"):
+        PolicyConfig(obs_dim=100, dof=2, image_shape=(1, 4, 4))
+    with pytest.raises(ValueError, match="must be longer"):
+        PolicyConfig(obs_dim=64, dof=2, image_shape=(1, 8, 8))
