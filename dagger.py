@@ -179,7 +179,7 @@ class Run:
 
 
 def write_json(path, data):
-    tmp = f"{path}.tmp"
+    tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
     with open(tmp, "w") as f:
         json.dump(data, f, indent=1)
     os.replace(tmp, path)  # a stage is finished only when its file is complete
