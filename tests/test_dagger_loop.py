@@ -162,3 +162,22 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
     assert D0[0]["obs"].shape[1] == 15 + 3 * 16 * 16                 # the images are in the data
     for f in ("fig5_environment.png", "fig5_policy_view.png", "lineage_0/round_1/checkpoints/pooled.pt"):
         assert os.path.isfile(os.path.join(root, f if "/" in f else os.path.join("figures", f)))
+
+
+def test_evaluate_runs_groups_of_at_most_max_parallel_in_scenario_order(monkeypatch):
+    """Each group is one lockstep rollout; results land in (scenario, repeat) order whatever the grouping."""
+    groups = []
+
+    def fake_rollout(env_list, policy, n_act, generator, oracle=None, log=None):
+        groups.append(len(env_list))
+        return [{"success": e.seed % 3 == 0} for e in env_list]
+
+    monkeypatch.setattr(dagger, "rollout", fake_rollout)
+    policy = type("NoPolicy", (), {"device": "cpu"})()
+    seeds = list(range(10_000, 10_007))
+    expected = np.array([[s % 3 == 0] * 2 for s in seeds])
+    for max_parallel, sizes in ((None, [14]), (4, [4, 4, 4, 2]), (7, [7, 7])):
+        groups.clear()
+        ok = dagger.evaluate(policy, "planar", seeds, 2, 8, 0, max_parallel=max_parallel)
+        assert groups == sizes and np.array_equal(ok, expected)
+    assert dagger.MAX_PARALLEL_ENVS["engine3d"] == 100  # 300 pybullet clients would take ~9 GB
