@@ -45,8 +45,13 @@ import relabel
 # Configuration: one dataclass, three presets
 # ----------------------------------------------------------------------------------------------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in median steps
-ALL_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
-               "pooled", "per_step", "closed_loop")
+TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
+                   "pooled", "per_step", "closed_loop")
+# Not in the paper: the co-training pipeline with sigma = 0 (augmented pairs are intervention states with
+# their PD-return labels, no noise). It separates the effect of the noise from the effect of giving part of
+# every batch to augmented pairs (a noised method sees fewer real chunks in the same step budget).
+CONTROL_METHODS = ("zero_noise",)
+ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
 METHOD_LABELS = {
     "bc": "BC (no aggregation)",
     "hg_dagger": "HG-DAgger",
@@ -54,6 +59,7 @@ METHOD_LABELS = {
     "pooled": "Pooled Sigma-bar^alpha (Ours)",
     "per_step": "Per-step Sigma^alpha (Ours)",
     "closed_loop": "Closed-loop pooled Sigma-bar^alpha (Ours)",
+    "zero_noise": "Co-training control (sigma=0; not in the paper)",
 }
 
 
@@ -66,7 +72,7 @@ class Config:
     image_size: int = 32  # pixels of the square camera image (with image_obs)
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
-    methods: tuple = ALL_METHODS  # methods compared (BC and HG-DAgger always run: others pair with them)
+    methods: tuple = TABLE_I_METHODS  # methods compared (BC and HG-DAgger always run: others pair with them)
     # --- data ---
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
@@ -520,6 +526,8 @@ def noise_model(method, cal):
     """(noise kind, sigma) for relabel.AugmentationSampler, for the data of one round."""
     if method.startswith("fixed_"):
         return "isotropic", float(method.split("_")[1])  # Table I: sigma in median steps
+    if method == "zero_noise":
+        return "isotropic", 0.0  # the control: augmented pairs without noise
     if method == "pooled":
         return "pooled", cal.pooled  # Eq. (16)
     if method == "closed_loop":

@@ -110,6 +110,18 @@ def test_summarize_paired_statistics():
     assert stats["tost_vs_best_fixed"]["pooled"]["vs"] == "fixed_2"
     text = dagger.format_table(cfg, table, stats)
     assert "| HG-DAgger | 70.0 ± 0.6 (3) | 73.0 ± 0.6 (3) |" in text
+    # the sigma = 0 control is paired with HG-DAgger but never the "best fixed noise"
+    cfg = replace(cfg, methods=cfg.methods + ("zero_noise",))
+    results["zero_noise"] = {"0": [90, 90], "1": [91, 91], "2": [92, 92]}
+    _, stats = dagger.summarize(cfg, results)
+    assert stats["best_fixed"] == "fixed_2" and "zero_noise" in stats["paired_vs_hg_dagger"]
+    assert "zero_noise" not in stats["tost_vs_best_fixed"]
+
+
+def test_zero_noise_control_is_the_pipeline_without_noise():
+    assert dagger.noise_model("zero_noise", None) == ("isotropic", 0.0)
+    assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)
+    assert "zero_noise" not in dagger.Config().methods  # the paper profile runs Table I's rows only
 
 
 def test_image_obs_flag_names_the_run_and_reaches_the_env():
