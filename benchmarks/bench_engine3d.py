@@ -61,9 +61,28 @@ def speed_rows(env, seconds, n_scenes, rng):
             env.set_state(start)
         env.step(env.q + 0.01 * np.sin(env.step_count + np.arange(env.dof)))
     rows.append(("env.step (pybullet, 4 substeps)", rate(wiggle, 1, seconds), "steps/s", ""))
-    rows.append(("render_image 64x64 (TinyRenderer)", rate(lambda: env.render_image(start), 1, seconds),
-                 "images/s", ""))
+    for size in (32, 64):
+        rows.append((f"render_image {size}x{size} (TinyRenderer)",
+                     rate(lambda: env.render_image(start, size), 1, seconds), "images/s",
+                     "the image observation (32: EngineConfig.image_size's default)" if size == 32 else ""))
+    rows.append(("memory per env (its pybullet client)", [memory_per_env(20)], "MB",
+                 "why dagger.evaluate runs UR5 episodes in groups of 100"))
     return rows
+
+
+def memory_per_env(n):
+    """Resident memory added per EngineReach3D (reset to a scene), from /proc over n envs."""
+    def rss_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    before = rss_mb()
+    envs_ = [make_env("engine3d") for _ in range(n)]
+    for i, e in enumerate(envs_):
+        e.reset(seed=10_000 + i)
+    per_env = (rss_mb() - before) / n
+    for e in envs_:
+        e.close()
+    return per_env
 
 
 def straight_line_collides(env, resolution):
