@@ -344,3 +344,19 @@ def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
     np.testing.assert_allclose(c.closed_loop_pooled, c.pooled)                # closed-loop fallback too
     assert "closed loop" in c.fit_note
+
+
+def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, monkeypatch):
+    """Kept rollouts only at small s can make the Eq. (12) fit extrapolate W to thousands of median
+    steps; calibrate caps W at the divergence threshold and says so."""
+    env, episodes, policy = planar
+    unit = envs.median_step(episodes)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False)
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(1e5 * unit, 1e3, len(s), 0.0))
+    c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
+    assert c.W == pytest.approx(cfg.diverge_threshold * unit)
+    assert c.fit_note.startswith("fit, W capped") and "100000 median steps" in c.fit_note
+    assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(5 * unit, 0.1, len(s), 0.0))
+    c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
+    assert c.W == pytest.approx(5 * unit) and c.fit_note == "fit"             # below the threshold: as fitted
