@@ -52,6 +52,10 @@ class CalibrationConfig:
     stride: int = 2                      # Sigma_hat_t at every other valid step (paper Fig. 2a)
     n_samples: int = 8                   # policy chunks sampled per step for Eq. (1)
     betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each (Sec. IV-D)
+    rollouts_per_beta: int = 1           # the paper rolls out each ratio once. A weak policy's rollouts at the larger
+                                         # ratios diverge and are discarded, leaving 2-4 points and a W that swings
+                                         # with the seed (6 to 27 median steps, or a capped extrapolation, for one
+                                         # pi_0 and one D_1 of the mid profile); more rollouts per ratio steady it
     n_act: int = 8                       # actions executed per decision in closed loop (as in the DAgger loop)
     blend_segments: int = 4              # blend rollouts start from this many of the longest expert segments
                                          # (beta i from segment i mod n): long, so that they settle; several,
@@ -661,7 +665,9 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
 
     # Step 2 (Fig. 2b): blended rollouts, beta i from the (i mod n)-th longest segment, all batched
     segs = _segments_longest_first(episodes, H)[:max(1, cfg.blend_segments)]
-    blend_beta = np.asarray(cfg.betas, dtype=np.float64)
+    if not isinstance(cfg.rollouts_per_beta, (int, np.integer)) or cfg.rollouts_per_beta < 1:
+        raise ValueError(f"CalibrationConfig.rollouts_per_beta must be an int >= 1, got {cfg.rollouts_per_beta!r}")
+    blend_beta = np.tile(np.asarray(cfg.betas, dtype=np.float64), cfg.rollouts_per_beta)
     chosen = [segs[i % len(segs)] for i in range(len(blend_beta))]
     blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
                    generator, threshold, cfg.discard_collisions)

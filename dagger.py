@@ -95,6 +95,7 @@ class Config:
     # --- calibration (Sec. IV-D) ---
     calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
     calib_samples: int = 8  # policy samples per open-loop timestep
+    calib_rollouts_per_beta: int = 1  # blended rollouts per blend ratio (paper: 1; see calibrate.CalibrationConfig)
     # --- evaluation (Sec. V) ---
     eval_scenarios: int = 100  # the fixed held-out scenarios
     eval_repeats: int = 3  # evaluations per scenario
@@ -110,7 +111,8 @@ class Config:
         if self.env not in envs.ENVIRONMENTS:
             raise ValueError(f"unknown env {self.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
         for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
-                    "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
+                    "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
+                    "calib_rollouts_per_beta"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
         if self.image_obs and self.env != "engine3d":
@@ -513,7 +515,8 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
         return calibrate.Calibration.from_dict(read_json(path))
     t0 = time.time()
     ccfg = calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                       blend_segments=cfg.calib_blend_episodes)
+                                       blend_segments=cfg.calib_blend_episodes,
+                                       rollouts_per_beta=cfg.calib_rollouts_per_beta)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
     cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, median_step, ccfg, gen)
     run.log(f"lineage {lineage} round {k}: calibration ({time.time() - t0:.0f} s)\n  "

@@ -360,3 +360,15 @@ def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, mo
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(5 * unit, 0.1, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert c.W == pytest.approx(5 * unit) and c.fit_note == "fit"             # below the threshold: as fitted
+
+
+def test_rollouts_per_beta_repeats_every_ratio_on_other_segments(planar):
+    env, episodes, policy = planar
+    unit = envs.median_step(episodes)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, rollouts_per_beta=2)
+    c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
+    assert len(c.blend_beta) == 26
+    np.testing.assert_array_equal(c.blend_beta[:13], c.blend_beta[13:])
+    assert np.any(c.blend_episode[:13] != c.blend_episode[13:])              # the repeat starts elsewhere
+    with pytest.raises(ValueError, match="rollouts_per_beta must be an int >= 1"):
+        cal.calibrate(env, policy, episodes, unit, cal.CalibrationConfig(rollouts_per_beta=0))
