@@ -647,12 +647,14 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
 
     episodes are the round's intervention episodes D_k (demonstrations work too). Blend rollouts
-    start from the cfg.blend_segments longest expert segments, the 13 ratios dealt round-robin.
+    start from the cfg.blend_segments longest expert segments, the 13 ratios (cfg.rollouts_per_beta
+    times each) dealt round-robin.
     Fallbacks (documented, never NaN): if fewer than 3 blend rollouts are kept (or the fit is
     otherwise impossible), W is set to the open-loop error, ||W||^2 = tr(Sigma_bar) - i.e. Sigma^alpha
-    = Sigma_hat unscaled - r is None, and fit_note says why. A fitted W above the divergence threshold
-    (cfg.diverge_threshold median steps) is capped at it (fit_note says so and gives the fitted value). If every closed-loop rollout fails on
-    its first step, closed_loop_pooled is the open-loop pooled Sigma_bar^alpha (also noted).
+    = Sigma_hat unscaled - r is None, and fit_note says why. A fitted W above the divergence
+    threshold (cfg.diverge_threshold median steps) is capped at it (fit_note says so and gives the
+    fitted value). If every closed-loop rollout fails on its first step, closed_loop_pooled is the
+    open-loop pooled Sigma_bar^alpha (also noted).
     """
     cfg = cfg or CalibrationConfig()
     if not median_step > 0:

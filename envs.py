@@ -1365,8 +1365,9 @@ class EngineReach3D:
         """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
 
         With image observations the image part is rendered with the arm at each q, unless `image`
-        gives it: rows (B, 3 S^2), or one row (3 S^2,) or (1, 3 S^2) for all, in the observation's layout (e.g.
-        obs[..., -3 S^2:] of recorded observations). Without image observations image must be None.
+        gives it: rows (B, 3 S^2), or one row (3 S^2,) or (1, 3 S^2) for all, in the observation's
+        layout (e.g. obs[..., -3 S^2:] of recorded observations). Without image observations image
+        must be None.
         """
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
@@ -1387,8 +1388,8 @@ class EngineReach3D:
             image = np.asarray(image, dtype=np.float32)
             n_pix = self.obs_dim - low
             if image.shape not in ((n_pix,), (1, n_pix), (len(q), n_pix)):
-                raise ValueError(f"make_obs: image must have shape ({n_pix},), (1, {n_pix}) or ({len(q)}, {n_pix}) "
-                                 f"(the image part of observations), got {image.shape}")
+                raise ValueError(f"make_obs: image must have shape ({n_pix},), (1, {n_pix}) or "
+                                 f"({len(q)}, {n_pix}) (the image part of observations), got {image.shape}")
             obs[:, low:] = image
         return obs[0] if single else obs
 
