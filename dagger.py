@@ -137,8 +137,8 @@ PROFILES = {
                     eval_scenarios=100, eval_repeats=1),
     # Between quick and paper: BC strong enough (~30 % at 30k steps, still rising) for the comparison
     # to mean something, the fixed-sigma sweep where the paper finds the best level, and 3 lineages for
-    # the paired statistics. About 40 min per lineage on one core; lineages run in parallel with
-    # --prepare, then --lineage i, then --report (README).
+    # the paired statistics. Measured: the shared prepare (D0, BC) 15 min, then ~30 min of one core per
+    # lineage; lineages run in parallel with --prepare, then --lineage i, then --report (README).
     "mid": Config(name="mid", n_demos=400, rounds=1, lineages=3, episodes_per_round=100, oracle_attempts=1,
                   width=256, batch_size=128, bc_steps=40_000, finetune_steps=15_000,
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled"),
@@ -843,7 +843,7 @@ def parse_args(argv):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
-                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min), mid (~40 min per lineage), "
+                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min), mid (~30 min per lineage), "
                         "paper (Table I protocol)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
