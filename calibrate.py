@@ -680,11 +680,12 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
         fit = fit_equilibrium(blend_s[blend_kept], blend_x[blend_kept])
         W, r, note = fit.W, fit.r, "fit"
         if W > threshold:
-            # W is x extrapolated to s = 1. When the kept rollouts all sit at small s (a weak policy's
-            # rollouts at larger beta diverge and are discarded), the extrapolation is unsupported and
-            # can run to thousands of median steps (measured: 135,000 and 179,000 for two of five seeds
-            # of the mid run's pi_0, against 22 and 27 for two others). A settling error beyond the divergence threshold
-            # is what the discarding rule calls divergence, so the data say only "W >= threshold".
+            # W is Eq. (12)'s x extrapolated to s = 1. When the kept rollouts all sit at small s (a weak
+            # policy's rollouts at larger beta diverge and are discarded), the extrapolation is
+            # unsupported and can run to thousands of median steps (measured: 135,000 and 179,000 for
+            # two of five seeds of the mid run's pi_0, against 22 and 27 for two others). A settling
+            # error beyond the divergence threshold is what the discarding rule calls divergence, so
+            # the data say only "W >= threshold".
             note = (f"fit, W capped at the divergence threshold (the fit extrapolated to "
                     f"{W / median_step:.0f} median steps)")
             W = threshold

@@ -340,17 +340,16 @@ class EpsNet(nn.Module):
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
-        self.image_shape = cfg.image_shape
+        self.image_shape, self.n_pixels = cfg.image_shape, cfg.image_dim
         if cfg.image_shape:  # built last: without an image the other weights are initialised as before
             self.image_encoder = ImageEncoder(cfg.image_shape, cfg.image_features)
 
     def obs_terms(self, obs_norm):
         """normalize_obs's output (B, ...) -> (B, n_blocks, 2 * width): the observation part of every block's
         FiLM. With an image, obs_norm's last C*H*W entries are its pixels: the CNN encodes them first."""
-        if self.image_shape:
-            n_pix = int(np.prod(self.image_shape))
-            code = self.image_encoder(obs_norm[:, -n_pix:].reshape(-1, *self.image_shape))
-            obs_norm = torch.cat([obs_norm[:, :-n_pix], code], dim=1)
+        if self.n_pixels:
+            code = self.image_encoder(obs_norm[:, -self.n_pixels:].reshape(-1, *self.image_shape))
+            obs_norm = torch.cat([obs_norm[:, :-self.n_pixels], code], dim=1)
         return self.obs_film(self.obs_encoder(obs_norm)).view(-1, self.n_blocks, 2 * self.width)
 
     def step_table(self):
