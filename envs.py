@@ -90,87 +90,95 @@ def train_seeds(n, start=0):
 # ----------------------------------------------------------------------------------------------
 @dataclass
 class PlanarConfig:
-    link_lengths: tuple = (0.35, 0.30, 0.25)  # m, base to end effector; total reach 0.9 m
-    link_radius: float = 0.03  # m, half the link thickness (links are capsules)
-    base: tuple = (0.0, 0.0)  # m, fixed position of joint 0
-    # rad; joint 0 turns fully, joints 1-2 stop before the links fold onto each other
-    joint_lo: tuple = (-math.pi, -2.6, -2.6)
-    joint_hi: tuple = (math.pi, 2.6, 2.6)
-    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s)
+    # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
+    link_lengths: tuple = (0.30, 0.25, 0.10)  # m, joint to joint (shoulder, elbow, wrist link)
+    link_widths: tuple = (0.04, 0.035, 0.03)  # m, thickness of each box link
+    # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
+    # link's frame: a palm and two fingers. The sizes are this project's approximation of its
+    # 85 mm-aperture outline (the URDF's meshes are not read here); the end-effector point lies
+    # between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre).
+    palm_size: tuple = (0.07, 0.09)  # m, (length along the link, width across it)
+    finger_size: tuple = (0.08, 0.015)  # m, each finger; the pair spans 0.07 .. 0.15 past the base
+    finger_gap: float = 0.075  # m, clear width between the two fingers (fixed open)
+    gripper_reach: float = 0.15  # m, gripper base (end of the wrist link) to the end-effector point
+    base: tuple = (0.0, 0.0)  # m, the shoulder pivot in the (x, z) plane of the arm
+    joint_lo: tuple = (-math.pi, -math.pi, -math.pi)  # rad, the URDF's limits on every joint
+    joint_hi: tuple = (math.pi, math.pi, math.pi)
+    # --- timing. The authors run 30 Hz with a 0.5 rad/s joint speed limit and episodes of at most
+    #     1000 steps (33 s). We keep the speed and the seconds and run 10 Hz by default: a third of
+    #     the env steps and policy calls on a CPU, the same motion (dt = 1/30 gives the paper's rate).
     dt: float = 0.1  # s per step
-    # Episode step limit, ~4x a typical expert episode. Measured: shortest joint-grid paths over the
-    # 100 eval scenes take 58 steps (median), 88 (90th pct), 132 (max) (scene_difficulty.py); the
-    # oracle's time-parameterized demos 78 / 121 / 210 (bench_oracle.py, first 30 eval scenes).
-    max_steps: int = 300
-    goal_tolerance: float = 0.04  # m, end effector within this distance of the goal = reached
-    # States checked for contact within one step (the end state and evenly spaced states before it).
-    # At max_step = 0.05 rad on all joints a point of the arm moves at most 0.085 m per step, i.e.
-    # 0.021 m between checks -- far less than the thinnest forbidden band a link centre line must
-    # cross (2 * (link_radius + thinnest obstacle radius 0.025) = 0.11 m): nothing tunnels through.
+    speed_limit: float = 0.5  # rad/s per joint; max_step = speed_limit * dt rad per step
+    episode_seconds: float = 1000 / 30  # s; max_steps = episode_seconds / dt
+    goal_tolerance: float = 0.06  # m, success: end effector within this distance of the target centre
+    contact_margin: float = 0.005  # m, bodies closer than this are in collision (the authors' 5 mm)
+    # States checked for contact within one step (the end state and evenly spaced ones before it).
+    # At the speed limit the farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m
+    # a step at 10 Hz, 0.02 m between checks: less than the thinnest band a part must cross to pass
+    # through something (a 1.5 cm finger and the 3.5 cm link 2: 5 cm), so nothing tunnels.
     n_substeps: int = 4
-    n_max_obstacles: int = 8  # obstacle slots in the observation (absent ones are zeros)
-    # --- scene generator (see PlanarReacher._draw_scene) ---
-    goal_radius: tuple = (0.6, 0.85)  # m, distance of the goal from the base (reach 0.9)
-    base_clearance: float = 0.02  # m, obstacles stay this far outside the disc link 0 sweeps
-    wall_gap: tuple = (0.2, 0.28)  # m, clear width of the gap in the wall (link diameter 0.06)
-    wall_radius: float = 0.025  # m, half thickness of the wall pieces
-    wall_length: tuple = (0.2, 0.4)  # m, length of each of the two wall pieces
-    wall_to_goal: float = 0.1  # m, the wall's centre line is at least this far before the goal
-    gap_offset: float = 0.2  # m, the gap's centre lies within +-gap_offset of the base-goal line
-    gap_clearance: float = 0.06  # m, clutter keeps this far beyond the gap's half width from its centre
-    # The scenario family. Like the paper's reacher (one task layout with randomized obstacles), the
-    # goal lies in one sector and the arm starts near one home pose on the opposite side, so it has to
-    # swing past the posts and thread the wall's gap. Measured (benchmarks/ and the README): with a
-    # goal anywhere on the circle, a random start and 2-5 random clutter pieces, BC from 100-500
-    # oracle demos trained for minutes on a CPU stayed at 0-1% success -- the policy could not tell
-    # obstacles apart in unordered observation slots; it learned the route but not the avoidance.
-    goal_sector: tuple = (math.pi / 2, 0.35)  # rad, goal direction = centre +- half width
-    start_home: tuple = (-math.pi / 2, 0.0, 0.0)  # rad, the start is this pose +- start_jitter
-    start_jitter: float = 0.3  # rad, uniform per joint around start_home
-    post_angles: tuple = (0.0, math.pi)  # rad, one post on each side of the swing, in this slot order
-    post_jitter: float = 0.35  # rad, uniform around each post angle
-    n_clutter: tuple = (0, 1)  # extra short capsules anywhere (inclusive), after the posts
-    clutter_radius: tuple = (0.03, 0.06)  # m
-    clutter_half_length: float = 0.1  # m, half length of the capsules (discs: 0)
+    # --- the scene (PAPER_SETUP.md §1): a target block and two obstacle blocks placed polar
+    #     around the shoulder; a scene is re-drawn if blocks overlap, the start collides or the
+    #     target cannot be reached collision-free ---
+    target_size: float = 0.05  # m, the target cube (touching it is not a collision)
+    obstacle_size: float = 0.07  # m, each obstacle cube
+    n_obstacles: int = 2
+    target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
+    obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
+    block_clearance: float = 0.02  # m, blocks closer than this to each other overlap (re-draw)
+    # The start: 'random' draws all joints uniformly within their limits until the arm is
+    # collision-free (the authors' env reset and evaluation config, q_start null; often folded);
+    # 'fixed' starts every scenario at fixed_start (one of the authors' demonstration configs).
+    start: str = "random"
+    fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
     n_goal_angles: int = 180  # last-link orientations tried when searching goal configurations
-    # A scene is kept only if at least this many of the 2 n_goal_angles IK candidates are free: a
-    # goal reachable in only a sliver of joint space is a needle-eye no planner finds reliably.
+    # A scene is kept only if at least this many of the 2 n_goal_angles closed-form IK candidates
+    # of the target centre are collision-free (the solvability check; see goal_configurations).
     min_goal_configurations: int = 8
 
 
 # ----------------------------------------------------------------------------------------------
-# Vectorized capsule geometry (numpy). x and y components are kept in separate arrays (no
-# trailing axis of length 2), so every operation runs on contiguous memory.
+# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
+# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
 # ----------------------------------------------------------------------------------------------
-def _point_segment_dist_sq(px, py, ax, ay, dx, dy, inv_len_sq):
-    """Squared distance from point p to segment a + s d, s in [0, 1] (all arrays broadcast)."""
-    s = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) * inv_len_sq, 0.0), 1.0)
-    ex = px - ax - s * dx
-    ey = py - ay - s * dy
-    return ex * ex + ey * ey
+def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
+    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
+    dx, dy = px - cx, py - cy
+    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
+    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
+    return np.sqrt(lx * lx + ly * ly)
 
 
-def segment_distance_sq(ax, ay, ux, uy, bx, by, vx, vy):
-    """Squared distance between segments a + s u and b + t v (s, t in [0, 1]), broadcasting.
+def box_corners(cx, cy, cos, sin, hx, hy):
+    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
+    xs, ys = [], []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        xs.append(cx + sx * hx * cos - sy * hy * sin)
+        ys.append(cy + sx * hx * sin + sy * hy * cos)
+    return xs, ys
 
-    Two segments in the plane either cross (distance 0) or their closest pair of points involves an
-    endpoint of one of them, so the distance is the smallest of four point-segment distances.
+
+def box_distance(a, b):
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
+
+    Two facts of 2-D convex geometry make this short and exact:
+      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
+      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
+        smallest of the 8 corner-to-box distances.
     """
-    inv_u = 1.0 / np.maximum(ux * ux + uy * uy, 1e-300)  # zero-length segment (disc): s = 0
-    inv_v = 1.0 / np.maximum(vx * vx + vy * vy, 1e-300)
-    d = np.minimum(
-        np.minimum(_point_segment_dist_sq(bx, by, ax, ay, ux, uy, inv_u),
-                   _point_segment_dist_sq(bx + vx, by + vy, ax, ay, ux, uy, inv_u)),
-        np.minimum(_point_segment_dist_sq(ax, ay, bx, by, vx, vy, inv_v),
-                   _point_segment_dist_sq(ax + ux, ay + uy, bx, by, vx, vy, inv_v)))
-    # Proper crossing: each segment's endpoints lie strictly on opposite sides of the other's line.
-    wx, wy = bx - ax, by - ay
-    side_b0 = ux * wy - uy * wx
-    side_b1 = ux * (wy + vy) - uy * (wx + vx)
-    side_a0 = vy * wx - vx * wy
-    side_a1 = vx * (uy - wy) - vy * (ux - wx)
-    crossing = (side_b0 * side_b1 < 0.0) & (side_a0 * side_a1 < 0.0)
-    return np.where(crossing, 0.0, d)
+    acx, acy, ac, as_, ahx, ahy = a
+    bcx, bcy, bc, bs, bhx, bhy = b
+    dx, dy = bcx - acx, bcy - acy
+    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
+    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
+        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
+        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
+        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
+    d = np.full(overlap.shape, np.inf)
+    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
+        for x, y in zip(xs, ys):
+            d = np.minimum(d, point_box_distance(x, y, *box))
+    return np.where(overlap, 0.0, d)
 
 
 def _as_batch(q, dof, name="q"):
@@ -188,35 +196,68 @@ def _as_batch(q, dof, name="q"):
 # The planar reacher
 # ----------------------------------------------------------------------------------------------
 class PlanarReacher:
-    """3-link planar arm among capsule obstacles (paper Sec. V, Fig. 5 right).
+    """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Fig. 5 right).
 
-    Observation layout (float32, obs_dim = 2 dof + 2 + 5 n_max_obstacles = 48):
-        [0:3]    q       current joint positions (rad)
-        [3:6]    q_prev  joint positions one step earlier (rad)
-        [6:8]    goal    end-effector goal (x, y) in m
-        [8:48]   obstacles, n_max_obstacles slots of (x0, y0, x1, y1, radius) in m; absent = zeros
+    Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
+    observation.environment_state, PAPER_SETUP.md §1):
+        [0:3]    q        current joint positions (rad)
+        [3:6]    q_prev   joint positions one step earlier (rad)
+        [6:8]    target   centre of the target block (x, z) in m
+        [8:10]   obstacle 1 centre (x, z) in m
+        [10:12]  obstacle 2 centre (x, z) in m
+        [12:14]  end effector (x, z) in m: forward kinematics of q, so any state, noised ones
+                 included, gets its own (relabel.py relies on this)
+    The arm moves in the vertical (x, z) plane of the URDF; arrays call the second axis y.
     """
 
     dim = 2  # workspace dimension
+    # Arm parts: (link, centre along the link from its joint, centre across it, half length, half
+    # width) filled in by __init__ from the config; parts 3-5 (palm, fingers) ride on link 2.
+    PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")
+    # Self-collision pairs: parts whose links are not joined by a joint. Link 1 vs link 3 and the
+    # gripper; link 2 vs the gripper (the gripper is a child of link 3, so link 2 and the palm are
+    # not adjacent in the URDF's sense). Adjacent links share a joint and never count.
+    SELF_PAIRS = ((0, 2), (0, 3), (0, 4), (0, 5), (1, 3), (1, 4), (1, 5))
 
     def __init__(self, config: PlanarConfig | None = None):
         self.cfg = cfg = config or PlanarConfig()
-        self.dof = len(cfg.link_lengths)
-        if self.dof != 3:
-            raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}")
+        if len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3:
+            raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}, "
+                             f"link_widths={cfg.link_widths}")
+        if cfg.start not in ("random", "fixed"):
+            raise ValueError(f"PlanarConfig.start must be 'random' or 'fixed', got {cfg.start!r}")
+        if not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0):
+            raise ValueError(f"PlanarConfig needs dt, speed_limit, episode_seconds > 0, got {cfg.dt}, "
+                             f"{cfg.speed_limit}, {cfg.episode_seconds}")
+        self.dof = 3
         self.link_lengths = np.asarray(cfg.link_lengths, dtype=np.float64)
-        self.link_radius = float(cfg.link_radius)
         self.base = np.asarray(cfg.base, dtype=np.float64)
-        self.max_step = float(cfg.max_step)
-        self.max_steps = int(cfg.max_steps)
         self.dt = float(cfg.dt)
+        self.max_step = float(cfg.speed_limit * cfg.dt)  # rad per step (0.05 at 10 Hz)
+        self.max_steps = int(round(cfg.episode_seconds / cfg.dt))  # 333 at 10 Hz, 1000 at 30 Hz
         self.goal_tolerance = float(cfg.goal_tolerance)
-        self.obs_dim = 2 * self.dof + self.dim + 5 * cfg.n_max_obstacles
+        self.contact_margin = float(cfg.contact_margin)
+        # Half the thinnest link's thickness: planners derive their check spacing from it (oracle.py).
+        self.link_radius = 0.5 * float(min(cfg.link_widths))
+        # The end effector lies gripper_reach past the wrist link: a 3-link chain of reach 0.80 m.
+        self.chain_lengths = np.array([*self.link_lengths[:2], self.link_lengths[2] + cfg.gripper_reach])
+        l3 = self.link_lengths[2]
+        (palm_len, palm_w), (finger_len, finger_w) = cfg.palm_size, cfg.finger_size
+        finger_side = 0.5 * (cfg.finger_gap + finger_w)
+        self.parts = np.array([  # (link, along, across, half length, half width)
+            [0, 0.5 * self.link_lengths[0], 0.0, 0.5 * self.link_lengths[0], 0.5 * cfg.link_widths[0]],
+            [1, 0.5 * self.link_lengths[1], 0.0, 0.5 * self.link_lengths[1], 0.5 * cfg.link_widths[1]],
+            [2, 0.5 * l3, 0.0, 0.5 * l3, 0.5 * cfg.link_widths[2]],
+            [2, l3 + 0.5 * palm_len, 0.0, 0.5 * palm_len, 0.5 * palm_w],
+            [2, l3 + palm_len + 0.5 * finger_len, finger_side, 0.5 * finger_len, 0.5 * finger_w],
+            [2, l3 + palm_len + 0.5 * finger_len, -finger_side, 0.5 * finger_len, 0.5 * finger_w],
+        ])
+        self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
         self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
         self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
         # scenario state (set by reset)
         self.seed = None
-        self.obstacles = np.zeros((0, 5))  # (N, 5): x0, y0, x1, y1, radius
+        self.obstacles = np.zeros((0, 5))  # (N, 5): centre x, y, half x, half y, angle
         self._goal = np.zeros(self.dim)
         self._q = np.zeros(self.dof)
         self._q_prev = np.zeros(self.dof)
@@ -254,13 +295,13 @@ class PlanarReacher:
 
     # ---- kinematics and geometry -------------------------------------------------------------
     def fk(self, q):
-        """Joint points (B, 4, 2): base, elbow 1, elbow 2, end effector. (dof,) -> (4, 2)."""
+        """Chain points (B, 4, 2): shoulder, elbow, wrist, end effector. (dof,) -> (4, 2)."""
         q, single = _as_batch(q, self.dof)
         angles = np.cumsum(q, axis=1)  # (B, 3) absolute link angles
         points = np.empty((len(q), self.dof + 1, 2))  # (B, 4, 2)
         points[:, 0] = self.base
-        points[:, 1:, 0] = self.base[0] + np.cumsum(self.link_lengths * np.cos(angles), axis=1)
-        points[:, 1:, 1] = self.base[1] + np.cumsum(self.link_lengths * np.sin(angles), axis=1)
+        points[:, 1:, 0] = self.base[0] + np.cumsum(self.chain_lengths * np.cos(angles), axis=1)
+        points[:, 1:, 1] = self.base[1] + np.cumsum(self.chain_lengths * np.sin(angles), axis=1)
         return points[0] if single else points
 
     def ee(self, q):
@@ -271,16 +312,30 @@ class PlanarReacher:
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
         return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
 
-    def in_collision(self, q, margin=0.0):
-        """True where configuration q touches an obstacle or itself (links 0 and 2). (B,) bool.
+    def part_boxes(self, q):
+        """The arm's boxes at q: (cx, cy, cos, sin, hx, hy), each (n_parts, B)."""
+        angles = np.cumsum(q.T, axis=0)  # (3, B) absolute link angles
+        cos, sin = np.cos(angles), np.sin(angles)
+        jx = np.empty_like(cos)  # (3, B) joint positions: shoulder, elbow, wrist
+        jy = np.empty_like(sin)
+        jx[0], jy[0] = self.base
+        jx[1:] = self.base[0] + np.cumsum(self.link_lengths[:2, None] * cos[:2], axis=0)
+        jy[1:] = self.base[1] + np.cumsum(self.link_lengths[:2, None] * sin[:2], axis=0)
+        link = self.parts[:, 0].astype(int)
+        along, across = self.parts[:, 1:2], self.parts[:, 2:3]  # (n_parts, 1)
+        c, s = cos[link], sin[link]  # (n_parts, B)
+        cx = jx[link] + along * c - across * s
+        cy = jy[link] + along * s + across * c
+        hx = np.broadcast_to(self.parts[:, 3:4], c.shape)
+        hy = np.broadcast_to(self.parts[:, 4:5], c.shape)
+        return cx, cy, c, s, hx, hy
 
-        A capsule pair collides when the distance of its segments is < the sum of the radii
-        (+ margin: with margin > 0, True also where a pair is closer than margin m -- the
-        inflated check planners use to keep clear of obstacles between their collision checks).
-        Adjacent links share a joint and never count. Vectorized over the batch in two phases:
-          broad phase: bounding circles of every (config, link, obstacle) pair -- a cheap test that
-            rules out most pairs (about 5 in 6 in the generated scenes);
-          narrow phase: exact segment-segment distances for the remaining pairs only.
+    def in_collision(self, q, margin=0.0):
+        """True where configuration q touches an obstacle or itself. (B,) bool.
+
+        A pair of boxes is in contact when their distance is below contact_margin (the authors'
+        5 mm) + margin (planners pass margin > 0 to keep clear between their checks). Pairs: every
+        arm part with every obstacle, and SELF_PAIRS. The target block is not an obstacle.
         Large batches run in chunks so the temporaries stay in cache.
         """
         q, single = _as_batch(q, self.dof)
@@ -288,87 +343,82 @@ class PlanarReacher:
             raise ValueError("in_collision: q contains NaN or inf")
         if not (np.isfinite(margin) and margin >= 0):
             raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
-        chunk = 2048  # configurations per pass: temporaries stay in cache (faster than 4096 here)
-        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], float(margin))
+        chunk = 4096  # configurations per pass
+        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], self.contact_margin + margin)
                               for i in range(0, len(q), chunk)])
         return hit[0] if single else hit
 
     def _in_collision_chunk(self, q, margin):
+        arm = self.part_boxes(q)  # 6 arrays (n_parts, B)
         B = len(q)
-        angles = np.cumsum(q.T, axis=0)  # (3, B) absolute link angles
-        ux = np.cos(angles) * self.link_lengths[:, None]  # (3, B) link vectors
-        uy = np.sin(angles) * self.link_lengths[:, None]
-        ax = np.empty_like(ux)  # (3, B) link start points: base, then running sums
-        ay = np.empty_like(uy)
-        ax[0], ay[0] = self.base
-        ax[1:] = self.base[0] + np.cumsum(ux[:-1], axis=0)
-        ay[1:] = self.base[1] + np.cumsum(uy[:-1], axis=0)
-        g = self._geom  # obstacle arrays precomputed by set_scene
-        # broad phase: link bounding circle (centre = link midpoint) vs obstacle bounding circle
-        dx = (ax + 0.5 * ux)[:, :, None] - g["cx"]  # (3, B, N)
-        dy = (ay + 0.5 * uy)[:, :, None] - g["cy"]
-        near = dx * dx + dy * dy < ((g["reach"] + margin) ** 2)[:, None, :]  # (3, B, N)
-        link, b, o = np.nonzero(near)
-        flat = link * B + b  # index into the raveled (3, B) link arrays
-        # narrow phase on the candidate pairs (link, obstacle) plus, for every configuration, the
-        # non-adjacent link pair (0, 2): segment A = a link, segment B = an obstacle or link 2
-        d2 = segment_distance_sq(
-            np.concatenate([ax.ravel()[flat], ax[0]]), np.concatenate([ay.ravel()[flat], ay[0]]),
-            np.concatenate([ux.ravel()[flat], ux[0]]), np.concatenate([uy.ravel()[flat], uy[0]]),
-            np.concatenate([g["bx"][o], ax[2]]), np.concatenate([g["by"][o], ay[2]]),
-            np.concatenate([g["vx"][o], ux[2]]), np.concatenate([g["vy"][o], uy[2]]))
-        contact = np.concatenate([g["contact"][o], np.full(B, 2 * self.link_radius)]) + margin
-        contact_sq = contact * contact
+        i, j = np.array(self.SELF_PAIRS).T
+        pairs_a = [x[i] for x in arm]  # self pairs: (n_pairs, B) each
+        pairs_b = [x[j] for x in arm]
+        if len(self.obstacles):  # and every part with every obstacle: (n_parts * N, B) each
+            n_obs = len(self.obstacles)
+            pairs_a = [np.concatenate([pa, np.repeat(x, n_obs, axis=0)]) for pa, x in zip(pairs_a, arm)]
+            pairs_b = [np.concatenate([pb, np.broadcast_to(np.tile(g, len(self.parts))[:, None],
+                                                           (len(self.parts) * n_obs, B))])
+                       for pb, g in zip(pairs_b, self._obstacle_boxes)]
+        # broad phase: bounding circles (centre, half diagonal) rule out most pairs cheaply
+        cxa, cya, _, _, hxa, hya = pairs_a
+        cxb, cyb, _, _, hxb, hyb = pairs_b
+        reach = np.hypot(hxa, hya) + np.hypot(hxb, hyb) + margin
+        near = (cxa - cxb) ** 2 + (cya - cyb) ** 2 < reach * reach  # (n_pairs, B)
+        pair, b = np.nonzero(near)
+        # narrow phase: exact box distances of the remaining pairs
+        d = box_distance(tuple(x[pair, b] for x in pairs_a), tuple(x[pair, b] for x in pairs_b))
         hit = np.zeros(B, dtype=bool)
-        hit[np.concatenate([b, np.arange(B)])[d2 < contact_sq]] = True
+        hit[b[d < margin]] = True
         return hit
 
     def set_scene(self, obstacles, goal=None):
-        """Install a scene: obstacles (N, 5) rows (x0, y0, x1, y1, radius), goal (2,).
+        """Install a scene: obstacles (N, 5) rows (centre x, y, half x, half y, angle), goal (2,).
 
         reset() calls this with a generated scene; tests and figures may call it with a built one.
         Derives everything both collision checks need from this one array.
         """
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
-        if len(obstacles) > self.cfg.n_max_obstacles:
-            raise ValueError(f"set_scene: {len(obstacles)} obstacles, the observation holds at "
-                             f"most n_max_obstacles={self.cfg.n_max_obstacles}")
-        if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 4] < 0):
-            raise ValueError("set_scene: obstacles must be finite with radius >= 0")
+        if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0):
+            raise ValueError("set_scene: obstacles must be finite with half extents > 0")
+        if len(obstacles) not in (0, self.cfg.n_obstacles):
+            raise ValueError(f"set_scene: the observation holds exactly n_obstacles="
+                             f"{self.cfg.n_obstacles} obstacles (or none, for tests), got {len(obstacles)}")
         self.obstacles = obstacles
         if goal is not None:
             self._goal = np.asarray(goal, dtype=np.float64).reshape(self.dim).copy()
-        bx, by = obstacles[:, 0], obstacles[:, 1]
-        vx, vy = obstacles[:, 2] - bx, obstacles[:, 3] - by
-        bound = 0.5 * np.hypot(vx, vy) + obstacles[:, 4]  # obstacle bounding-circle radius
-        link_bound = 0.5 * self.link_lengths + self.link_radius  # (3,)
-        self._geom = dict(bx=bx, by=by, vx=vx, vy=vy, cx=bx + 0.5 * vx, cy=by + 0.5 * vy,
-                          reach=link_bound[:, None] + bound,  # (3, N) centre distance for overlap
-                          contact=self.link_radius + obstacles[:, 4])  # (N,) radii sums
-        self._obstacle_obs = np.zeros(5 * self.cfg.n_max_obstacles, dtype=np.float32)
-        self._obstacle_obs[: obstacles.size] = obstacles.ravel()
+        cx, cy, hx, hy, angle = obstacles.T
+        self._obstacle_boxes = (cx, cy, np.cos(angle), np.sin(angle), hx, hy)
+        centres = obstacles[:, :2].ravel() if len(obstacles) else np.zeros(2 * self.cfg.n_obstacles)
+        self._scene_obs = np.concatenate([self._goal, centres]).astype(np.float32)
         self._build_space()
 
     # ---- pymunk mirror (the simulator) -------------------------------------------------------
     def _build_space(self):
-        """pymunk space of the current scene: kinematic link bodies + static obstacle shapes."""
+        """pymunk space of the current scene: kinematic bodies carrying the arm's box parts,
+        static obstacle boxes. Every pymunk polygon is rounded by half the contact margin, so two
+        shapes touch in pymunk exactly when their boxes are closer than the margin."""
         space = pymunk.Space()
-        self._link_bodies, self._link_shapes = [], []
-        for length in self.link_lengths:
-            body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
-            shape = pymunk.Segment(body, (0.0, 0.0), (float(length), 0.0), self.link_radius)
-            space.add(body, shape)
-            self._link_bodies.append(body)
-            self._link_shapes.append(shape)
+        rounding = 0.5 * self.contact_margin
+        self._link_bodies = [pymunk.Body(body_type=pymunk.Body.KINEMATIC) for _ in range(self.dof)]
+        space.add(*self._link_bodies)
+        self._part_shapes = []
+        for link, along, across, hx, hy in self.parts:
+            corners = [(along + sx * hx, across + sy * hy) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+            shape = pymunk.Poly(self._link_bodies[int(link)], corners, radius=rounding)
+            space.add(shape)
+            self._part_shapes.append(shape)
         self._obstacle_shapes = []
-        for x0, y0, x1, y1, rad in self.obstacles:
-            # discs too are Segments (zero length): pymunk 7.3 reports Segment-Circle contacts
-            # from shape_query with the sign of the distance flipped
-            shape = pymunk.Segment(space.static_body, (x0, y0), (x1, y1), float(rad))
+        for cx, cy, hx, hy, angle in self.obstacles:
+            c, s = math.cos(angle), math.sin(angle)
+            corners = [(cx + sx * hx * c - sy * hy * s, cy + sx * hx * s + sy * hy * c)
+                       for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+            shape = pymunk.Poly(space.static_body, corners, radius=rounding)
             space.add(shape)
             self._obstacle_shapes.append(shape)
         space.reindex_static()  # compute the static shapes' world geometry once
         self._space = space
+        self._pairs_that_count = {frozenset(p) for p in self.SELF_PAIRS}
 
     def pymunk_in_collision(self, q):
         """Same predicate as in_collision, from pymunk contacts (one config at a time, slow)."""
@@ -386,91 +436,56 @@ class PlanarReacher:
         return out[0] if single else out
 
     def _pymunk_contact(self):
-        """True if a link penetrates an obstacle or a non-adjacent link in the posed space."""
-        links = self._link_shapes
-        for i, shape in enumerate(links):
+        """True if a part penetrates an obstacle or a non-adjacent part in the posed space."""
+        parts = self._part_shapes
+        for i, shape in enumerate(parts):
             for hit in self._space.shape_query(shape):
                 other = hit.shape
-                if other in links and abs(links.index(other) - i) <= 1:
-                    continue  # adjacent links share a joint: not a collision
+                if other in parts and frozenset((i, parts.index(other))) not in self._pairs_that_count:
+                    continue  # the same link or adjacent links: not a collision
                 if any(pt.distance < 0.0 for pt in hit.contact_point_set.points):
                     return True
         return False
 
     # ---- scenarios ---------------------------------------------------------------------------
     def _draw_scene(self, rng):
-        """One candidate scene: (obstacles (N, 5), goal (2,)). May be rejected by reset.
+        """One candidate scene: (obstacles (N, 5), goal (2,)), or None where blocks overlap.
 
-        Layout: the goal lies in goal_sector, and a wall with a narrow gap lies across the line from
-        the base to the goal, so the arm has to thread links 1-2 through the gap, often with a bent
-        elbow; one post on each side of the swing from the home pose (post_angles) and a few loose
-        capsules block the obvious ways of bending, so the arm must sometimes untangle itself
-        (switch elbow sides) on a roundabout route.
-        Nothing enters the disc that link 0 sweeps (radius l1 + link_radius + base_clearance):
-        an obstacle there would cut joint 0's range in two and make many scenes unsolvable.
+        The authors' placement (PAPER_SETUP.md §1): the target and each obstacle at an angle uniform
+        in [0, 2 pi) around the shoulder, at a distance uniform in target_radius / obstacle_radius.
+        The obstacles may or may not block the way: nothing else constrains them.
         """
         cfg = self.cfg
-        keep_out = self.link_lengths[0] + self.link_radius + cfg.base_clearance
-        goal_angle = cfg.goal_sector[0] + rng.uniform(-cfg.goal_sector[1], cfg.goal_sector[1])
-        goal_dist = rng.uniform(*cfg.goal_radius)
-        normal = np.array([math.cos(goal_angle), math.sin(goal_angle)])
-        tangent = np.array([-normal[1], normal[0]])
-        goal = self.base + goal_dist * normal
-        obstacles = []
-        keep_clear = [(self.base, keep_out)]  # (centre, radius) discs clutter must not enter
-        # wall across the approach to the goal, its gap offset sideways
-        wr = cfg.wall_radius
-        wall_dist = rng.uniform(keep_out + wr, goal_dist - cfg.wall_to_goal)
-        gap = rng.uniform(*cfg.wall_gap)
-        gap_center = rng.uniform(-cfg.gap_offset, cfg.gap_offset)
-        for side in (-1.0, 1.0):
-            inner = gap_center + side * (gap / 2 + wr)
-            outer = inner + side * rng.uniform(*cfg.wall_length)
-            p0 = self.base + wall_dist * normal + inner * tangent
-            p1 = self.base + wall_dist * normal + outer * tangent
-            obstacles.append([*p0, *p1, wr])
-        # the gap itself stays open (a post right in it would leave only a sliver of a passage)
-        keep_clear.append((self.base + wall_dist * normal + gap_center * tangent,
-                           gap / 2 + cfg.gap_clearance))
-        reach = self.link_lengths.sum()
 
-        def piece(angle, half):
-            """A capsule (disc if half = 0) at `angle` from the base, outside link 0's disc."""
-            centre = self.base + rng.uniform(keep_out, reach) * np.array([math.cos(angle), math.sin(angle)])
-            orient = rng.uniform(0, math.pi)
-            h = half * np.array([math.cos(orient), math.sin(orient)])
-            return centre - h, centre + h, rng.uniform(*cfg.clutter_radius)
+        def polar(radius_range):
+            angle, radius = rng.uniform(0.0, 2 * math.pi), rng.uniform(*radius_range)
+            return self.base + radius * np.array([math.cos(angle), math.sin(angle)])
 
-        def is_clear(p0, p1, rad):
-            d = p1 - p0
-            inv = 1.0 / max(d @ d, 1e-300)
-            return all(math.sqrt(_point_segment_dist_sq(*c, *p0, *d, inv)) - rad >= clear
-                       for c, clear in keep_clear)
-
-        # posts (discs) on both sides of the swing from the home pose to the goal, always in the same
-        # observation slots; then a few short capsules anywhere in the elbow's and wrist's workspace
-        for angle in cfg.post_angles:
-            while not is_clear(*(post := piece(angle + rng.uniform(-cfg.post_jitter, cfg.post_jitter), 0.0))):
-                pass
-            obstacles.append([*post[0], *post[1], post[2]])
-        n_extra = rng.integers(cfg.n_clutter[0], cfg.n_clutter[1] + 1)
-        while len(obstacles) < 2 + len(cfg.post_angles) + n_extra:
-            half = rng.uniform(0.0, cfg.clutter_half_length) * (rng.random() < 0.5)  # half are discs
-            p0, p1, rad = piece(rng.uniform(-math.pi, math.pi), half)
-            if is_clear(p0, p1, rad):
-                obstacles.append([*p0, *p1, rad])
-        return np.asarray(obstacles, dtype=np.float64), goal
+        goal = polar(cfg.target_radius)
+        centres = np.array([polar(cfg.obstacle_radius) for _ in range(cfg.n_obstacles)])
+        half = 0.5 * np.array([cfg.target_size] + [cfg.obstacle_size] * cfg.n_obstacles)
+        blocks = np.concatenate([goal[None], centres])  # axis-aligned squares
+        for i in range(len(blocks)):
+            for j in range(i):
+                # axis-aligned squares: the gap is the larger of the per-axis gaps
+                gap = np.max(np.abs(blocks[i] - blocks[j]) - half[i] - half[j])
+                if gap < cfg.block_clearance:
+                    return None
+        h = 0.5 * cfg.obstacle_size
+        obstacles = np.c_[centres, np.full((cfg.n_obstacles, 2), h), np.zeros(cfg.n_obstacles)]
+        return obstacles, goal
 
     def goal_configurations(self, goal=None, n_angles=None):
         """Collision-free joint configurations whose end effector is exactly at the goal. (M, 3).
 
-        Closed-form IK of the 3-link arm: for each orientation phi of the last link the wrist is
-        at goal - l3 (cos phi, sin phi), and the 2-link IK of the wrist has two elbow solutions.
-        Configurations outside the joint limits or in collision are dropped.
+        Closed-form IK of the 3-link chain (the last link reaches to the end effector): for each
+        orientation phi of the last link the wrist is at goal - l3 (cos phi, sin phi), and the
+        2-link IK of the wrist has two elbow solutions. Configurations outside the joint limits or
+        in collision are dropped.
         """
         goal = self._goal if goal is None else np.asarray(goal, dtype=np.float64)
         n = n_angles or self.cfg.n_goal_angles
-        l1, l2, l3 = self.link_lengths
+        l1, l2, l3 = self.chain_lengths
         phi = np.linspace(-math.pi, math.pi, n, endpoint=False)
         wx = goal[0] - self.base[0] - l3 * np.cos(phi)  # (n,) wrist positions
         wy = goal[1] - self.base[1] - l3 * np.sin(phi)
@@ -489,12 +504,13 @@ class PlanarReacher:
         return q[~self.in_collision(q)] if len(q) else q
 
     def reset(self, seed=None):
-        """Draw the scenario of `seed` (obstacles, goal, start) and put the arm at the start.
+        """Draw the scenario of `seed` (target, obstacles, start) and put the arm at the start.
 
-        Rejection sampling with one rng stream, so the scene is a deterministic function of seed:
-        scenes whose goal has fewer than min_goal_configurations collision-free IK candidates are
-        re-drawn; the start is the first collision-free one of 64 draws of start_home +- start_jitter
-        (none: re-draw the scene).
+        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed.
+        A scene is re-drawn when blocks overlap, when its target has fewer than
+        min_goal_configurations collision-free IK solutions, or when no start is found: a 'random'
+        start is the first of 64 uniform draws within the joint limits that is collision-free and
+        not already at the target; a 'fixed' start must itself satisfy both.
         """
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
@@ -502,12 +518,17 @@ class PlanarReacher:
             raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
         rng = np.random.default_rng(int(seed))
         while True:
-            self.set_scene(*self._draw_scene(rng))
+            scene = self._draw_scene(rng)
+            if scene is None:
+                continue
+            self.set_scene(*scene)
             if len(self.goal_configurations()) < self.cfg.min_goal_configurations:
                 continue
-            jitter = rng.uniform(-self.cfg.start_jitter, self.cfg.start_jitter, size=(64, self.dof))
-            candidates = np.clip(np.asarray(self.cfg.start_home) + jitter, self._lo, self._hi)
-            ok = ~self.in_collision(candidates)
+            if self.cfg.start == "random":
+                candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
+            else:
+                candidates = np.asarray(self.cfg.fixed_start, dtype=np.float64)[None]
+            ok = ~self.in_collision(candidates) & ~self.goal_reached(candidates)
             if ok.any():
                 start = candidates[np.argmax(ok)]
                 break
@@ -539,7 +560,8 @@ class PlanarReacher:
     def make_obs(self, q, q_prev, image=None):
         """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
 
-        `image` exists for EngineReach3D's image observations; here it must be None."""
+        The end effector is computed from q (forward kinematics). `image` exists for EngineReach3D's
+        image observations; here it must be None."""
         if image is not None:
             raise ValueError("make_obs: the planar env has no image observations; pass image=None")
         q, single = _as_batch(q, self.dof, "q")
@@ -549,8 +571,8 @@ class PlanarReacher:
         d = self.dof
         obs[:, :d] = q
         obs[:, d:2 * d] = q_prev
-        obs[:, 2 * d:2 * d + 2] = self._goal
-        obs[:, 2 * d + 2:] = self._obstacle_obs
+        obs[:, 2 * d:-2] = self._scene_obs  # target, obstacle centres
+        obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
     def clip_action(self, q, action):
@@ -590,39 +612,38 @@ class PlanarReacher:
 
     # ---- drawing -----------------------------------------------------------------------------
     def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
-        """Draw obstacles, goal and the arm at q (default: current state; (dof,) or (B, dof)).
+        """Draw obstacles, the target and the arm at q (default: current state; (dof,) or (B, dof)).
 
-        Capsules are drawn as exact polygons in data units, so link thickness is to scale.
-        alpha / color style the arm; show_scene=False draws only the arm (for paths over a scene).
+        Boxes are drawn as polygons in data units, so sizes are to scale. The dashed circle is the
+        success radius around the target. alpha / color style the arm; show_scene=False draws only
+        the arm (for paths over a scene).
         """
         from matplotlib.patches import Circle, Polygon
 
         if show_scene:
-            for row in self.obstacles:
-                ax.add_patch(Polygon(_capsule_outline(*row), closed=True, color="0.35", lw=0))
-            ax.add_patch(Circle(self._goal, self.goal_tolerance, color="tab:green", alpha=0.7, lw=0))
+            for cx, cy, hx, hy, angle in self.obstacles:
+                xs, ys = box_corners(cx, cy, math.cos(angle), math.sin(angle), hx, hy)
+                ax.add_patch(Polygon(np.c_[xs, ys], closed=True, color="0.35", lw=0))
+            h = 0.5 * self.cfg.target_size
+            ax.add_patch(Polygon(self._goal + np.array([[h, h], [-h, h], [-h, -h], [h, -h]]),
+                                 closed=True, color="tab:green", alpha=0.8, lw=0))
+            ax.add_patch(Circle(self._goal, self.goal_tolerance, fill=False, color="tab:green",
+                                linestyle="--", lw=1))
             ax.plot(*self.base, "ks", markersize=5)
-            reach = self.link_lengths.sum() + self.link_radius
+            reach = self.chain_lengths.sum() + 0.05
             ax.set_xlim(self.base[0] - reach, self.base[0] + reach)
             ax.set_ylim(self.base[1] - reach, self.base[1] + reach)
             ax.set_aspect("equal")
         q = self._q if q is None else q
-        for pts in self.fk(np.atleast_2d(q)):  # (4, 2) per configuration
-            for i in range(self.dof):
-                ax.add_patch(Polygon(_capsule_outline(*pts[i], *pts[i + 1], self.link_radius),
-                                     closed=True, color=color, alpha=alpha, lw=0))
-            ax.plot(pts[:-1, 0], pts[:-1, 1], "o", color="k", markersize=2, alpha=alpha)
+        q = np.atleast_2d(q)
+        cx, cy, c, s, hx, hy = self.part_boxes(q)  # (n_parts, B) each
+        for b in range(len(q)):
+            for p in range(len(self.parts)):
+                xs, ys = box_corners(cx[p, b], cy[p, b], c[p, b], s[p, b], hx[p, b], hy[p, b])
+                ax.add_patch(Polygon(np.c_[xs, ys], closed=True, color=color, alpha=alpha, lw=0))
+            joints = self.fk(q[b])[:-1]
+            ax.plot(joints[:, 0], joints[:, 1], "o", color="k", markersize=2, alpha=alpha)
         return ax
-
-
-def _capsule_outline(x0, y0, x1, y1, radius, n_arc=13):
-    """Polygon (2 n_arc, 2) of a capsule: two half circles joined by straight sides."""
-    heading = math.atan2(y1 - y0, x1 - x0)
-    arc = np.linspace(-math.pi / 2, math.pi / 2, n_arc)
-    end1 = np.c_[x1 + radius * np.cos(heading + arc), y1 + radius * np.sin(heading + arc)]
-    end0 = np.c_[x0 + radius * np.cos(heading + math.pi + arc), y0 + radius * np.sin(heading + math.pi + arc)]
-    return np.concatenate([end1, end0])
-
 
 # ----------------------------------------------------------------------------------------------
 # UR5 engine-lever reaching (paper Sec. V, Table II, Fig. 5 left)
