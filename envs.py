@@ -381,15 +381,16 @@ class PlanarReacher:
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
         if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0):
             raise ValueError("set_scene: obstacles must be finite with half extents > 0")
-        if len(obstacles) not in (0, self.cfg.n_obstacles):
-            raise ValueError(f"set_scene: the observation holds exactly n_obstacles="
-                             f"{self.cfg.n_obstacles} obstacles (or none, for tests), got {len(obstacles)}")
+        if len(obstacles) > self.cfg.n_obstacles:
+            raise ValueError(f"set_scene: {len(obstacles)} obstacles, the observation holds at most "
+                             f"n_obstacles={self.cfg.n_obstacles}")
         self.obstacles = obstacles
         if goal is not None:
             self._goal = np.asarray(goal, dtype=np.float64).reshape(self.dim).copy()
         cx, cy, hx, hy, angle = obstacles.T
         self._obstacle_boxes = (cx, cy, np.cos(angle), np.sin(angle), hx, hy)
-        centres = obstacles[:, :2].ravel() if len(obstacles) else np.zeros(2 * self.cfg.n_obstacles)
+        centres = np.zeros(2 * self.cfg.n_obstacles)  # absent obstacles (hand-built scenes): zeros
+        centres[:obstacles[:, :2].size] = obstacles[:, :2].ravel()
         self._scene_obs = np.concatenate([self._goal, centres]).astype(np.float32)
         self._build_space()
 
@@ -443,7 +444,9 @@ class PlanarReacher:
                 other = hit.shape
                 if other in parts and frozenset((i, parts.index(other))) not in self._pairs_that_count:
                     continue  # the same link or adjacent links: not a collision
-                if any(pt.distance < 0.0 for pt in hit.contact_point_set.points):
+                # distance <= 0, not < 0: for a box centred exactly across a link (a tie between
+                # two penetration directions) pymunk 7 reports a contact of distance 0.0
+                if any(pt.distance <= 0.0 for pt in hit.contact_point_set.points):
                     return True
         return False
 
@@ -503,6 +506,27 @@ class PlanarReacher:
         q = q[np.all((q >= self._lo) & (q <= self._hi), axis=1)]
         return q[~self.in_collision(q)] if len(q) else q
 
+    def _shoulder_can_reach(self, start, goal_qs, n=720):
+        """A necessary condition for a path from start to one of goal_qs: the shoulder can turn there.
+
+        Joint 0 has hard limits at +-pi (no wrap-around), and an obstacle within link 1's reach
+        blocks link 1 at some angles whatever the other joints do. The angles where link 1 alone is
+        collision-free form intervals; the start's and at least one goal configuration's joint 0
+        must lie in the same one. (Measured: this removes the scenes where the arm is walled in
+        by its own joint limit, the main kind of unsolvable scene that the other checks keep.)
+        """
+        q0 = np.linspace(self._lo[0], self._hi[0], n)
+        cx, cy, c, s, hx, hy = (x[:1] for x in self.part_boxes(np.c_[q0, np.zeros((n, 2))]))
+        free = np.ones(n, dtype=bool)
+        for box in zip(*self._obstacle_boxes):
+            free &= box_distance((cx, cy, c, s, hx, hy), tuple(np.asarray(v) for v in box))[0] >= self.contact_margin
+        # the interval of free samples around the start (a blocked sample ends it)
+        i = int(np.clip(np.searchsorted(q0, start[0]), 0, n - 1))
+        blocked = np.flatnonzero(~free)
+        lo = q0[blocked[blocked < i].max()] if np.any(blocked < i) else -np.inf
+        hi = q0[blocked[blocked >= i].min()] if np.any(blocked >= i) else np.inf
+        return bool(np.any((goal_qs[:, 0] > lo) & (goal_qs[:, 0] < hi)))
+
     def reset(self, seed=None):
         """Draw the scenario of `seed` (target, obstacles, start) and put the arm at the start.
 
@@ -522,15 +546,18 @@ class PlanarReacher:
             if scene is None:
                 continue
             self.set_scene(*scene)
-            if len(self.goal_configurations()) < self.cfg.min_goal_configurations:
+            goal_qs = self.goal_configurations()
+            if len(goal_qs) < self.cfg.min_goal_configurations:
                 continue
             if self.cfg.start == "random":
                 candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
             else:
                 candidates = np.asarray(self.cfg.fixed_start, dtype=np.float64)[None]
             ok = ~self.in_collision(candidates) & ~self.goal_reached(candidates)
-            if ok.any():
-                start = candidates[np.argmax(ok)]
+            if not ok.any():
+                continue
+            start = candidates[np.argmax(ok)]
+            if self._shoulder_can_reach(start, goal_qs):
                 break
         self.seed = int(seed)
         self.set_state(start)

@@ -16,7 +16,7 @@ def env():
 
 
 def empty_env(obstacles=()):
-    """An env whose scene is replaced by hand-built obstacles (N, 5)."""
+    """An env whose scene is replaced by hand-built obstacles (N, 5): centre x, y, half x, half y, angle."""
     e = PlanarReacher()
     e.reset(seed=0)
     e.set_scene(obstacles)
@@ -58,12 +58,13 @@ def test_seed_ranges_are_disjoint():
     with pytest.raises(ValueError, match="train_seeds"):
         e.train_seeds(10, start=9_995)
     assert envs.eval_seeds() == ev and envs.train_seeds(2) == [0, 1]
-    assert make_env("planar", max_steps=7).max_steps == 7
+    assert make_env("planar", episode_seconds=0.7).max_steps == 7  # at dt = 0.1 s
 
 
 # ---- kinematics ----------------------------------------------------------------------------------
 def test_fk_at_known_angles(env):
-    l1, l2, l3 = env.link_lengths
+    l1, l2, l3 = env.chain_lengths  # the last one reaches to the end effector: 0.10 + 0.15 m
+    assert (l1, l2) == (0.30, 0.25) and l3 == pytest.approx(0.25)
     pts = env.fk(np.zeros(3))
     np.testing.assert_allclose(pts, [[0, 0], [l1, 0], [l1 + l2, 0], [l1 + l2 + l3, 0]], atol=1e-12)
     pts = env.fk(np.array([math.pi / 2, -math.pi / 2, math.pi / 2]))
@@ -74,6 +75,7 @@ def test_fk_at_known_angles(env):
 
 
 def test_goal_reached_uses_tolerance(env):
+    assert env.goal_tolerance == 0.06  # the authors' success radius
     goal_q = env.goal_configurations()[0]
     assert env.goal_reached(goal_q)
     # rotate the base joint until the end effector is just outside / inside the tolerance
@@ -83,79 +85,104 @@ def test_goal_reached_uses_tolerance(env):
     assert env.goal_reached(inside) and not env.goal_reached(outside)
 
 
-# ---- collision truth -----------------------------------------------------------------------------
-def test_link_crossing_a_thin_wall_collides():
-    # a long thin wall at x = 0.5 crossing the straight arm (which reaches x = 0.9)
-    e = empty_env([[0.5, -0.4, 0.5, 0.4, 0.001]])
-    assert e.in_collision(np.zeros(3))
-    assert e.pymunk_in_collision(np.zeros(3))
-    # pointing the other way: clear
-    assert not e.in_collision(np.array([math.pi, 0, 0]))
+def test_timing_follows_the_authors_speed_and_episode_length():
+    e = make_env("planar")
+    assert e.dt == 0.1 and e.max_step == pytest.approx(0.05) and e.max_steps == 333  # 0.5 rad/s, 33 s
+    e30 = make_env("planar", dt=1 / 30)
+    assert e30.max_step == pytest.approx(0.5 / 30) and e30.max_steps == 1000  # the paper's rate
 
 
-def test_touching_within_radius_and_clear_by_a_hair():
-    r = PlanarReacher().link_radius
-    obs_r = 0.02
-    for eps, expected in [(-1e-6, True), (1e-6, False)]:
-        # disc above the straight arm's link 1, surface distance eps from the link surface
-        e = empty_env([[0.5, r + obs_r + eps, 0.5, r + obs_r + eps, obs_r]])
-        assert e.in_collision(np.zeros(3)) == expected
-        assert e.pymunk_in_collision(np.zeros(3)) == expected
-        # a capsule beyond the end effector tip (x = 0.9), end to end. It is tilted a little:
-        # for exactly collinear capsules pymunk's GJK reports a zero-depth contact at any overlap.
-        tip = float(e.link_lengths.sum())
-        e = empty_env([[tip + r + obs_r + eps, 0.0, tip + 0.3, 0.05, obs_r]])
-        assert e.in_collision(np.zeros(3)) == expected
-        assert e.pymunk_in_collision(np.zeros(3)) == expected
+# ---- box geometry truth cases --------------------------------------------------------------------
+def box(cx, cy, hx, hy, angle=0.0):
+    return (np.float64(cx), np.float64(cy), np.cos(angle), np.sin(angle), np.float64(hx), np.float64(hy))
 
 
-def test_margin_inflates_every_capsule_pair():
-    r = PlanarReacher().link_radius
-    gap = 0.01  # surface gap between link 1 and a disc above it
-    e = empty_env([[0.5, r + 0.02 + gap, 0.5, r + 0.02 + gap, 0.02]])
-    q = np.zeros(3)
+def test_box_distance_truth_cases():
+    d = lambda a, b: float(envs.box_distance(a, b))  # noqa: E731
+    unit = box(0, 0, 0.5, 0.5)
+    assert d(unit, box(2, 0, 0.5, 0.5)) == pytest.approx(1.0)  # side by side: face to face
+    assert d(unit, box(2, 2, 0.5, 0.5)) == pytest.approx(math.sqrt(2))  # corner to corner
+    assert d(unit, box(0.9, 0.2, 0.5, 0.5)) == 0.0  # overlapping
+    assert d(unit, box(0, 0, 0.1, 0.1)) == 0.0  # one inside the other: no corner of the big one
+    # a plus sign: two long thin boxes crossing, no corner of either inside the other (the SAT case)
+    assert d(box(0, 0, 1.0, 0.05), box(0, 0, 0.05, 1.0)) == 0.0
+    # a diamond (rotated 45 deg) whose corner points at a face: the corner is the closest point
+    diamond = box(1.0 + math.sqrt(2) * 0.25, 0.0, 0.25, 0.25, math.pi / 4)
+    assert d(unit, diamond) == pytest.approx(0.5)
+    assert d(diamond, unit) == pytest.approx(0.5)  # symmetric
+    # rotated thin box parallel to a face at a known gap
+    assert d(unit, box(0.0, 0.8, 1.0, 0.1, 1e-12)) == pytest.approx(0.2)
+    assert envs.point_box_distance(3.0, 0.0, *unit) == pytest.approx(2.5)
+    assert envs.point_box_distance(0.2, 0.1, *unit) == 0.0
+
+
+def test_box_distance_against_a_sampled_reference():
+    # brute force: the smallest distance between points sampled densely on both boxes' outlines
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        a = box(*rng.uniform(-1, 1, 2), *rng.uniform(0.05, 0.5, 2), rng.uniform(0, math.pi))
+        b = box(*rng.uniform(-1, 1, 2), *rng.uniform(0.05, 0.5, 2), rng.uniform(0, math.pi))
+        def outline(bx, n=400):
+            cx, cy, c, s, hx, hy = bx
+            t = np.linspace(-1, 1, n)
+            local = np.concatenate([np.c_[t * hx, np.full(n, hy)], np.c_[t * hx, np.full(n, -hy)],
+                                    np.c_[np.full(n, hx), t * hy], np.c_[np.full(n, -hx), t * hy]])
+            return np.c_[cx + local[:, 0] * c - local[:, 1] * s, cy + local[:, 0] * s + local[:, 1] * c]
+        pa, pb = outline(a), outline(b)
+        exact = float(envs.box_distance(a, b))
+        if exact > 0:
+            brute = np.sqrt(((pa[:, None] - pb[None]) ** 2).sum(-1)).min()
+            assert exact == pytest.approx(brute, abs=2e-3)
+            assert exact <= brute + 1e-12  # sampling can only overestimate
+
+
+def test_an_obstacle_on_a_link_collides_and_the_contact_margin_is_5_mm():
+    q = np.zeros(3)  # the arm straight along +x; link 1 spans x in [0, 0.30], y in [-0.02, 0.02]
+    e = empty_env([[0.15, 0.5, 0.035, 0.035, 0.0]])
     assert not e.in_collision(q)
-    assert not e.in_collision(q, margin=0.9 * gap) and e.in_collision(q, margin=1.1 * gap)
-    # self-collision: a folded arm whose link 2 is clear of link 0: margin just below / above the clearance
+    h = 0.035  # obstacle half size
+    for gap, expected in [(0.0049, True), (0.0051, False), (-0.01, True)]:
+        # an obstacle above link 1, its lower face `gap` m above the link's upper face
+        e = empty_env([[0.15, 0.02 + gap + h, h, h, 0.0]])
+        assert e.in_collision(q) == expected, gap
+        assert e.pymunk_in_collision(q) == expected, gap
+    # the margin argument adds to the contact margin
+    e = empty_env([[0.15, 0.02 + 0.02 + h, h, h, 0.0]])
+    assert not e.in_collision(q, margin=0.014) and e.in_collision(q, margin=0.016)
+
+
+def test_the_target_block_is_not_an_obstacle():
     e = empty_env()
-    lo_q = np.array([0.0, 2.5, 1.0])  # less folded: clear of link 0
-    assert not e.in_collision(lo_q)
-    pts = e.fk(lo_q)
-    d = math.sqrt(envs.segment_distance_sq(*pts[0], *(pts[1] - pts[0]), *pts[2], *(pts[3] - pts[2])))
-    clearance = d - 2 * r
-    assert clearance > 0
-    assert not e.in_collision(lo_q, margin=0.99 * clearance)
-    assert e.in_collision(lo_q, margin=1.01 * clearance)
-    # a random batch: margin never removes collisions, and agrees with looped calls
-    e.reset(seed=10_001)
-    lo, hi = e.joint_limits
-    qs = np.random.default_rng(0).uniform(lo, hi, size=(500, 3))
-    assert np.all(e.in_collision(qs, margin=0.02) >= e.in_collision(qs))
-    assert e.in_collision(qs, margin=0.02).sum() > e.in_collision(qs).sum()
-    with pytest.raises(ValueError, match="margin"):
-        e.in_collision(qs, margin=-0.1)
+    q = np.zeros(3)
+    e.set_scene(np.zeros((0, 5)), goal=e.ee(q))  # the target right at the end effector
+    assert e.goal_reached(q) and not e.in_collision(q) and not e.pymunk_in_collision(q)
+
+
+def test_gripper_parts_collide_too():
+    # an obstacle between the open fingers (behind the end-effector point) touches nothing;
+    # one on a finger collides
+    e = empty_env()
+    l_wrist = e.link_lengths.sum()  # 0.65: the gripper base on the straight arm
+    cfg = e.cfg
+    between = l_wrist + cfg.palm_size[0] + 0.02
+    e.set_scene([[between, 0.0, 0.01, 0.01, 0.0]])
+    assert not e.in_collision(np.zeros(3))  # 2 cm wide block in the 7.5 cm gap
+    finger_y = 0.5 * (cfg.finger_gap + cfg.finger_size[1])
+    e.set_scene([[between, finger_y, 0.01, 0.01, 0.0]])
+    assert e.in_collision(np.zeros(3)) and e.pymunk_in_collision(np.zeros(3))
 
 
 def test_self_collision_of_non_adjacent_links_only():
     e = empty_env()
-    # fold link 2 back over link 0: q1 = 2.5, q2 = 2.5 -> link 2 points back across link 0
-    folded = np.array([0.0, 2.5, 2.5])
-    pts = e.fk(folded)
-    d = np.sqrt(envs.segment_distance_sq(*pts[0], *(pts[1] - pts[0]), *pts[2], *(pts[3] - pts[2])))
-    assert d < 2 * e.link_radius  # the geometry really overlaps
-    assert e.in_collision(folded) and e.pymunk_in_collision(folded)
-    # adjacent links always touch at their joint, and a sharp elbow alone is not a collision
-    elbow = np.array([0.0, 2.5, 0.0])
-    assert not e.in_collision(elbow) and not e.pymunk_in_collision(elbow)
-
-
-def test_segment_distance_cases():
-    d = lambda a, u, b, v: float(np.sqrt(envs.segment_distance_sq(*a, *u, *b, *v)))
-    assert d((0, 0), (1, 0), (0.5, -1), (0, 2)) == 0.0  # crossing
-    assert d((0, 0), (1, 0), (2, 1), (0, 0)) == pytest.approx(math.sqrt(2))  # point, endpoint
-    assert d((0, 0), (1, 0), (0.3, 0.5), (0.4, 0)) == pytest.approx(0.5)  # parallel
-    assert d((0, 0), (1, 0), (0.5, 0.2), (0, 1)) == pytest.approx(0.2)  # T shape, not crossing
-    assert d((0, 0), (1, 0), (2, 0), (1, 0)) == pytest.approx(1.0)  # collinear, apart
+    assert not e.in_collision(np.zeros(3))
+    # elbow folded back: link 2 lies along link 1 (adjacent: never counts), but the gripper comes
+    # back onto link 1 (not adjacent: counts)
+    assert e.in_collision(np.array([0.0, math.pi - 0.05, 0.0]))
+    assert e.pymunk_in_collision(np.array([0.0, math.pi - 0.05, 0.0]))
+    # wrist folded back onto link 2: the palm touches link 2 (the gripper is not adjacent to link 2)
+    assert e.in_collision(np.array([0.0, 0.0, math.pi - 0.05]))
+    # a moderate elbow bend with the wrist straight is free
+    assert not e.in_collision(np.array([0.0, 1.5, 0.0]))
 
 
 @pytest.mark.parametrize("seed", [10_000, 10_001, 10_002, 3])
@@ -170,9 +197,11 @@ def test_numpy_and_pymunk_agree_on_random_configurations(seed):
     np.testing.assert_array_equal(numpy_says, pymunk_says)
 
 
-def test_numpy_and_pymunk_agree_at_the_contact_boundary():
+def test_numpy_and_pymunk_agree_near_the_contact_boundary():
     # Bisect between free and colliding random configurations to points on the contact boundary,
-    # then step 1e-9 rad to either side: both checks must give the same answer there.
+    # then step 1e-7 rad to either side: both checks must give the same answer there. (pymunk
+    # rounds its polygons by half the contact margin, so its contact surface is the exact one up
+    # to its own floating-point tolerances.)
     e = make_env("planar")
     rng = np.random.default_rng(7)
     lo, hi = e.joint_limits
@@ -188,7 +217,7 @@ def test_numpy_and_pymunk_agree_at_the_contact_boundary():
             tm = 0.5 * (t0 + t1)
             same = e.in_collision(a + tm[:, None] * (b - a)) == start
             t0, t1 = np.where(same, tm, t0), np.where(same, t1, tm)
-        step = 1e-9 / np.linalg.norm(b - a, axis=1)
+        step = 1e-7 / np.linalg.norm(b - a, axis=1)
         for t in (t0 - step, t1 + step):
             q = a + t[:, None] * (b - a)
             np.testing.assert_array_equal(e.in_collision(q), e.pymunk_in_collision(q))
@@ -218,9 +247,9 @@ def test_step_speed_limit_and_joint_limit_clipping():
     np.testing.assert_allclose(e.q_prev, [0.0, 0.0, 0.0])
     assert not info["collision"] and e.step_count == 1
     # a target beyond the joint limit is clipped at the limit
-    e.set_state(np.array([0.0, hi[1] - 0.01, 0.0]))
-    e.step(np.array([0.0, 100.0, 0.0]))
-    assert e.q[1] == hi[1]
+    e.set_state(np.array([0.0, 0.0, hi[2] - 0.01]))
+    e.step(np.array([0.0, 0.0, 100.0]))
+    assert e.q[2] == hi[2]
 
 
 def test_step_terminates_on_success_and_collision_and_truncates():
@@ -232,11 +261,11 @@ def test_step_terminates_on_success_and_collision_and_truncates():
     e.set_state(goal_q + [0.01, 0.0, 0.0])
     _, reward, terminated, truncated, info = e.step(goal_q)
     assert info["success"] and terminated and not truncated and reward == 1.0
-    # collision: walk into a wall
-    w = empty_env([[0.5, -0.4, 0.5, 0.4, 0.02]])
+    # collision: swing link 1 into a block
+    w = empty_env([[0.0, -0.2, 0.035, 0.035, 0.0]])
     w.set_state(np.array([0.5, 0.0, 0.0]))
     for _ in range(100):
-        _, _, terminated, truncated, info = w.step(np.array([-0.5, 0.0, 0.0]))
+        _, _, terminated, truncated, info = w.step(np.array([-2.0, 0.0, 0.0]))
         if terminated:
             break
     assert info["collision"] and terminated and not info["success"]
@@ -248,14 +277,13 @@ def test_step_terminates_on_success_and_collision_and_truncates():
 
 
 def test_step_checks_states_inside_the_step():
-    # A small disc just beyond the tip of the straight arm: swinging joint 0 from -0.025 to
-    # +0.025 rad passes it (collision at the middle) while both end states are clear. (Slightly
-    # off the arm's axis: pymunk's GJK reports zero-depth contacts for exactly collinear capsules.)
-    tip = float(PlanarReacher().link_lengths.sum())
-    r = PlanarReacher().link_radius
-    x = tip + r + 0.005 - 0.001
-    e = empty_env([[x, 0.001, x, 0.001, 0.005]])
-    q0, q1 = np.array([-0.025, 0.0, 0.0]), np.array([0.025, 0.0, 0.0])
+    # A small block just beyond the finger tips of the straight arm, on its axis: swinging joint 0
+    # from -0.04 to +0.04 rad passes it (collision at the middle) while both end states are clear.
+    e0 = empty_env()
+    tip = e0.link_lengths.sum() + e0.cfg.palm_size[0] + e0.cfg.finger_size[0]  # 0.80 m
+    finger_y = 0.5 * (e0.cfg.finger_gap + e0.cfg.finger_size[1])
+    e = empty_env([[tip + 0.005, finger_y, 0.002, 0.002, 0.0]])
+    q0, q1 = np.array([-0.04, 0.0, 0.0]), np.array([0.04, 0.0, 0.0])
     assert not e.in_collision(q0) and not e.in_collision(q1)
     assert e.in_collision(0.5 * (q0 + q1))
     e.set_state(q0)
@@ -274,25 +302,25 @@ def test_bad_input_raises(env):
     with pytest.raises(ValueError, match="finite"):
         env.set_state(np.array([0, np.nan, 0]))
     with pytest.raises(ValueError, match="joint limits"):
-        env.set_state(np.array([0, 3.0, 0]))
+        env.set_state(np.array([0, 3.5, 0]))
     with pytest.raises(ValueError, match="unknown environment"):
         make_env("nope")
     with pytest.raises(ValueError, match="seed"):
         env.reset(seed=-1)
+    with pytest.raises(ValueError, match="start"):
+        make_env("planar", start="folded")
 
 
 def test_make_obs_layout(env):
     env.reset(seed=10_001)
     q, q_prev = np.array([0.1, 0.2, 0.3]), np.array([0.4, 0.5, 0.6])
     obs = env.make_obs(q, q_prev)
-    assert obs.shape == (env.obs_dim,) and obs.dtype == np.float32
+    assert obs.shape == (env.obs_dim,) == (14,) and obs.dtype == np.float32
     np.testing.assert_allclose(obs[:3], q, rtol=1e-6)
     np.testing.assert_allclose(obs[3:6], q_prev, rtol=1e-6)
     np.testing.assert_allclose(obs[6:8], env.goal, rtol=1e-6)
-    n = len(env.obstacles)
-    slots = obs[8:].reshape(-1, 5)
-    np.testing.assert_allclose(slots[:n], env.obstacles, rtol=1e-6)
-    assert np.all(slots[n:] == 0)
+    np.testing.assert_allclose(obs[8:12], env.obstacles[:, :2].ravel(), rtol=1e-6)
+    np.testing.assert_allclose(obs[12:14], env.ee(q), rtol=1e-6)  # the end effector of q, not q_prev
     # reset's observation = make_obs at the start with q_prev = q
     obs0, info = env.reset(seed=10_001)
     np.testing.assert_array_equal(obs0, env.make_obs(info["q"], info["q"]))
@@ -334,27 +362,51 @@ def test_median_step_ignores_zero_motion():
 
 
 # ---- scene construction and drawing --------------------------------------------------------------
-def test_generated_obstacles_stay_out_of_link0_disc():
-    # an obstacle inside the disc link 0 sweeps would cut joint 0's range in two (unsolvable scenes)
+def test_generated_scenes_follow_the_authors_placement():
     e = make_env("planar")
-    keep_out = e.link_lengths[0] + e.link_radius + e.cfg.base_clearance
-    for seed in range(10_000, 10_020):
+    for seed in range(10_000, 10_030):
         e.reset(seed=seed)
-        assert 3 <= len(e.obstacles) <= e.cfg.n_max_obstacles
-        for x0, y0, x1, y1, rad in e.obstacles:
-            d = np.array([x1 - x0, y1 - y0])
-            dist = math.sqrt(envs._point_segment_dist_sq(0.0, 0.0, x0, y0, *d, 1 / max(d @ d, 1e-300)))
-            assert dist - rad >= keep_out - 1e-12
+        assert len(e.obstacles) == 2
+        assert 0.30 <= np.linalg.norm(e.goal) <= 0.55
+        for cx, cy, hx, hy, angle in e.obstacles:
+            assert 0.20 <= math.hypot(cx, cy) <= 0.62
+            assert hx == hy == 0.035 and angle == 0.0  # 7 cm cubes
+        blocks = np.concatenate([e.goal[None], e.obstacles[:, :2]])
+        half = np.array([0.025, 0.035, 0.035])
+        for i in range(3):
+            for j in range(i):
+                assert np.max(np.abs(blocks[i] - blocks[j]) - half[i] - half[j]) >= e.cfg.block_clearance
+
+
+def test_start_distributions():
+    e = make_env("planar")
+    starts = np.array([e.reset(seed=s)[1]["q"] for s in range(40)])
+    assert np.ptp(starts, axis=0).min() > 3.0  # 'random': spread over the joint range
+    f = make_env("planar", start="fixed")
+    for s in range(5):
+        _, info = f.reset(seed=s)
+        np.testing.assert_array_equal(info["q"], f.cfg.fixed_start)
+
+
+def test_shoulder_check_rejects_a_walled_in_start():
+    # an obstacle inside link 1's reach at angle 0 and the joint limit at +-pi split joint 0's
+    # range in two: a start at q0 = -pi/2 cannot reach a target needing q0 = +pi/2
+    e = empty_env([[0.25, 0.0, 0.035, 0.035, 0.0]])
+    e.set_scene(e.obstacles, goal=[0.0, 0.45])
+    goal_qs = e.goal_configurations()
+    assert np.all(goal_qs[:, 0] > 0)  # every way of reaching the target has the shoulder up
+    assert not e._shoulder_can_reach(np.array([-math.pi / 2, 0.0, 0.0]), goal_qs)
+    assert e._shoulder_can_reach(np.array([math.pi - 0.3, 0.0, 0.0]), goal_qs)
 
 
 def test_set_scene_validates_and_feeds_both_checks():
     e = PlanarReacher()
-    with pytest.raises(ValueError, match="n_max_obstacles"):
-        e.set_scene(np.zeros((e.cfg.n_max_obstacles + 1, 5)))
-    with pytest.raises(ValueError, match="radius"):
-        e.set_scene([[0, 0, 1, 1, -0.1]])
-    e.set_scene([[0.6, -0.1, 0.6, 0.1, 0.02]], goal=[0.0, 0.8])
-    np.testing.assert_array_equal(e.goal, [0.0, 0.8])
+    with pytest.raises(ValueError, match="n_obstacles"):
+        e.set_scene(np.ones((e.cfg.n_obstacles + 1, 5)))
+    with pytest.raises(ValueError, match="half extents"):
+        e.set_scene([[0, 0, -0.1, 0.1, 0.0]])
+    e.set_scene([[0.15, 0.0, 0.035, 0.035, 0.0]], goal=[0.0, 0.5])
+    np.testing.assert_array_equal(e.goal, [0.0, 0.5])
     assert e.in_collision(np.zeros(3)) and e.pymunk_in_collision(np.zeros(3))
     with pytest.raises(ValueError, match="before reset"):
         e.step(np.zeros(3))
@@ -371,10 +423,10 @@ def test_render_draws_scene_and_arms():
     fig, ax = plt.subplots()
     e.render(ax)
     n_scene = len(ax.patches)
-    assert n_scene == len(e.obstacles) + 1 + e.dof  # obstacles, goal disc, 3 links
+    assert n_scene == len(e.obstacles) + 2 + 6  # obstacles, target block and radius, 6 arm boxes
     e.render(ax, q=np.zeros((4, 3)), alpha=0.3, show_scene=False)
-    assert len(ax.patches) == n_scene + 4 * e.dof
-    # a link polygon spans the link length plus both radii
+    assert len(ax.patches) == n_scene + 4 * 6
+    # the last polygon is a finger: its length along x on the straight arm
     xy = ax.patches[-1].get_xy()
-    assert np.ptp(xy[:, 0]) == pytest.approx(e.link_lengths[2] + 2 * e.link_radius, abs=1e-9)
+    assert np.ptp(xy[:, 0]) == pytest.approx(e.cfg.finger_size[0], abs=1e-9)
     plt.close(fig)
