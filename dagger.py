@@ -80,10 +80,12 @@ class Config:
     episodes_per_round: int = 100  # HG-DAgger rollouts on fresh training scenarios per round
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     # --- policy and training ---
-    horizon: int = 16  # H, actions per chunk (paper: interventions shorter than H are discarded)
-    n_act: int = 8  # actions executed per chunk before the policy is asked again
-    K: int = 100  # diffusion steps
-    width: int = 256  # epsilon-network width
+    # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
+    # runs at 10 Hz by default (envs.PlanarConfig.dt): the same seconds are 20 and 10 steps.
+    horizon: int = 20  # H, actions per chunk (paper: interventions shorter than H are discarded)
+    n_act: int = 10  # actions executed per chunk before the policy is asked again
+    K: int = 100  # diffusion steps (the authors: 100, all of them at inference)
+    down_dims: tuple = (64, 128, 256)  # channels of the epsilon U-Net's levels (the authors: 128, 256, 512)
     joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
     #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
     bc_steps: int = 75_000  # BC training steps (paper: pi_0 = BC's 75k checkpoint)
@@ -91,7 +93,9 @@ class Config:
     batch_size: int = 256
     lr: float = 1e-3
     aug_fraction: float = 0.5  # share of each batch drawn from the augmented data (co-training)
-    obs_noise: float = 0.01  # small Gaussian observation noise, labels unchanged (Sec. V)
+    # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
+    obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
+    obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
     # --- calibration (Sec. IV-D) ---
     calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
     calib_samples: int = 8  # policy samples per open-loop timestep
@@ -110,6 +114,7 @@ class Config:
         self.methods = ("bc", "hg_dagger") + tuple(m for m in self.methods if m not in ("bc", "hg_dagger"))
         if self.env not in envs.ENVIRONMENTS:
             raise ValueError(f"unknown env {self.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
+        self.down_dims = tuple(int(d) for d in self.down_dims)
         for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
                     "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
                     "calib_rollouts_per_beta"):
@@ -126,25 +131,24 @@ class Config:
 
 PROFILES = {
     # CI: every stage and every output file, tiny sizes (about a minute).
-    "smoke": Config(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=20,
-                    width=128, bc_steps=300, finetune_steps=150, batch_size=64,
+    "smoke": Config(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=10,
+                    down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
     "quick": Config(name="quick", n_demos=100, rounds=2, lineages=1, episodes_per_round=40, oracle_attempts=1,
-                    width=128, batch_size=128, bc_steps=3000, finetune_steps=1500,
+                    K=20, down_dims=(16, 32, 64), batch_size=64, lr=1e-3, bc_steps=3000, finetune_steps=1500,
                     methods=("bc", "hg_dagger", "fixed_4", "fixed_16", "pooled", "per_step", "closed_loop"),
                     eval_scenarios=100, eval_repeats=1),
-    # Between quick and paper: BC at its plateau on 400 demos (31 % at 40k steps; 33 % at 50k, 32 % at
-    # 75k, measured), the fixed-sigma sweep where the paper finds the best level, and 3 lineages for
-    # the paired statistics. Measured: the shared prepare (D0, BC) 15 min, then ~30 min of one core per
-    # lineage; lineages run in parallel with --prepare, then --lineage i, then --report (README).
-    "mid": Config(name="mid", n_demos=400, rounds=1, lineages=3, episodes_per_round=100, oracle_attempts=1,
-                  width=256, batch_size=128, bc_steps=40_000, finetune_steps=15_000,
-                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled"),
+    # Between quick and paper: 3 lineages for the paired statistics, the fixed-sigma sweep where the paper
+    # finds the best level. Lineages run in parallel with --prepare, then --lineage i, then --report (README).
+    "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
+                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=40_000, finetune_steps=10_000,
+                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "per_step"),
                   eval_scenarios=100, eval_repeats=3),
-    # Table I's protocol.
-    "paper": Config(name="paper"),
+    # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
+    # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
+    "paper": Config(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
 }
 
 
@@ -443,9 +447,19 @@ def stage_demos(run):
 
 def make_policy(cfg, env):
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, width=cfg.width, joint_obs=cfg.joint_obs, image_shape=env.image_shape,
+                                K=cfg.K, down_dims=cfg.down_dims, joint_obs=cfg.joint_obs, image_shape=env.image_shape,
                                 seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
+
+
+def observation_noise(cfg, policy_cfg):
+    """Per-entry std (obs_dim,) of the training observation noise, raw units (PAPER_SETUP.md §2): the
+    joints at t and t-1 get obs_noise_joints rad, the other low-dimensional numbers obs_noise_env m, image
+    pixels none."""
+    std = np.zeros(policy_cfg.obs_dim)
+    std[:2 * policy_cfg.dof] = cfg.obs_noise_joints
+    std[2 * policy_cfg.dof:policy_cfg.low_dim] = cfg.obs_noise_env
+    return std
 
 
 def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0):
@@ -455,7 +469,7 @@ def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=N
     marks = tuple(sorted({max(1, steps * i // 4) for i in (1, 2, 3)}))
     tc = diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=cfg.lr, seed=seed,
                                warmup_steps=min(500, steps // 10), aug_fraction=aug_fraction,
-                               obs_noise=cfg.obs_noise, log_every=max(1, steps // 5),
+                               obs_noise=observation_noise(cfg, policy.cfg), log_every=max(1, steps // 5),
                                checkpoint_steps=marks, checkpoint_path=part)
     resume = next((part.format(step=m) for m in reversed(marks) if os.path.exists(part.format(step=m))), None)
     if resume:

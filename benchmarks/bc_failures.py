@@ -1,0 +1,101 @@
+"""Where and when does a policy fail on the planar evaluation scenarios? (issue 13's failure table)
+
+Rolls a saved policy out on the 100 evaluation scenarios (x repeats, the same lockstep rollout as
+dagger.evaluate) and sorts every episode into: success, collision with an obstacle, self-collision,
+or timeout (the step limit, env.max_steps). For collisions it names the arm part that touched first
+(link 1 .. 3, palm, a finger) and the step; for timeouts the end effector's final distance to the
+target. Collisions are re-judged on the sub-steps of the last step with the env's own numpy check.
+
+Usage:  python benchmarks/bc_failures.py CHECKPOINT [--repeats 3] [--seed 123]
+"""
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import dagger  # noqa: E402
+import diffusion  # noqa: E402
+import envs  # noqa: E402
+
+
+def classify(env, episode):
+    """(outcome, part, step, final distance) of one finished episode in env (reset to its seed)."""
+    T = len(episode["q"])
+    dist = float(np.linalg.norm(env.ee(episode["q"][-1]) - env.goal))
+    if episode["success"]:
+        return "success", "", T, dist
+    if T >= env.max_steps:
+        return "timeout", "", T, dist
+    # the episode ended early without success: its last step collided. Find the first colliding
+    # sub-state of that step and the part (and the kind of contact) behind it.
+    q0 = episode["q"][-1]
+    q1 = env.clip_action(q0, episode["action"][-1])
+    sweep = q0 + np.linspace(0, 1, 4 * env.cfg.n_substeps + 1)[1:, None] * (q1 - q0)
+    q = sweep[np.argmax(env.in_collision(sweep))]
+    boxes = [x[:, 0] for x in env.part_boxes(q[None])]  # (n_parts,) each
+    margin = env.contact_margin
+    for p, name in enumerate(env.PART_NAMES):
+        part = tuple(x[p] for x in boxes)
+        for obstacle in zip(*env._obstacle_boxes):
+            if envs.box_distance(part, obstacle) < margin:
+                return "collision: obstacle", name, T, dist
+    for i, j in env.SELF_PAIRS:
+        if envs.box_distance(tuple(x[i] for x in boxes), tuple(x[j] for x in boxes)) < margin:
+            return "collision: self", f"{env.PART_NAMES[i]}-{env.PART_NAMES[j]}", T, dist
+    return "collision: other", "", T, dist
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("checkpoint")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=123)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    policy = diffusion.DiffusionPolicy.load(args.checkpoint)
+    seeds = envs.eval_seeds()
+    env_list = []
+    for _ in range(args.repeats):
+        for s in seeds:
+            e = envs.make_env("planar")
+            e.reset(seed=s)
+            env_list.append(e)
+    gen = torch.Generator().manual_seed(args.seed)
+    episodes = dagger.rollout(env_list, policy, policy.cfg.n_act, gen)
+    rows = []
+    for e, ep in zip(env_list, episodes):
+        e.reset(seed=ep["seed"])
+        rows.append(classify(e, ep))
+    n = len(rows)
+    outcomes = [r[0] for r in rows]
+    print(f"{args.checkpoint}: {n} episodes ({len(seeds)} scenarios x {args.repeats})\n")
+    print("| outcome | episodes | share | median step | steps (10th-90th pct) |")
+    print("|---|---|---|---|---|")
+    for outcome in ("success", "collision: obstacle", "collision: self", "collision: other", "timeout"):
+        steps = np.array([r[2] for r in rows if r[0] == outcome])
+        if len(steps):
+            print(f"| {outcome} | {len(steps)} | {len(steps) / n:.1%} | {np.median(steps):.0f} | "
+                  f"{np.percentile(steps, 10):.0f}-{np.percentile(steps, 90):.0f} |")
+    print("\n| colliding part | episodes |\n|---|---|")
+    parts = [r[1] for r in rows if r[0].startswith("collision")]
+    for part in sorted(set(parts), key=parts.count, reverse=True):
+        print(f"| {part} | {parts.count(part)} |")
+    collided = np.array([r[2] for r in rows if r[0].startswith("collision")])
+    if len(collided):
+        print(f"\ncollisions within the first 10 s (100 steps at 10 Hz): {np.mean(collided <= 100):.0%}")
+    timeouts = np.array([r[3] for r in rows if r[0] == "timeout"])
+    if len(timeouts):
+        print(f"timeouts: final end-effector distance to the target median {np.median(timeouts):.3f} m "
+              f"(success radius {env_list[0].goal_tolerance} m)")
+    # per-scenario: how many scenarios are never / sometimes / always solved
+    per_seed = np.array(outcomes).reshape(args.repeats, len(seeds)) == "success"
+    solved = per_seed.sum(axis=0)
+    print(f"\nscenarios solved in 0 / some / all of {args.repeats} repeats: {np.sum(solved == 0)} / "
+          f"{np.sum((solved > 0) & (solved < args.repeats))} / {np.sum(solved == args.repeats)}")
+
+
+if __name__ == "__main__":
+    main()
