@@ -896,7 +896,7 @@ if __name__ == "__main__":
     episodes = straight_line_episodes(env, env.train_seeds(120))
     unit = envs.median_step(episodes)
     print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad; training a small policy")
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, width=128, n_blocks=2))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
           TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     t0 = time.time()

@@ -4,8 +4,8 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - forward process, Eq. (5), in closed form ............ q_sample
   - reverse process, Eq. (6), one step .................. p_sample
   - noise schedule beta_k, alpha_k, alphabar_k .......... make_schedule / Schedule
-  - epsilon network eps_theta(a, k | o) over chunks ..... DiffusionPolicy (Chi et al.'s diffusion policy,
-                                                          here with a residual MLP, see below)
+  - epsilon network eps_theta(a, k | o) over chunks ..... ConditionalUnet1D (Chi et al.'s diffusion policy,
+                                                          CNN variant), used by DiffusionPolicy
   - action chunks of horizon H, labels (Sec. IV-C) ...... chunk_dataset, label_mask
   - image observations (Sec. V, the UR5 task) ............ ImageEncoder, a small CNN (PolicyConfig.image_shape)
   - BC / fine-tuning / co-training (Alg. step 4) ........ train
@@ -20,20 +20,23 @@ Index convention (read this once, it is used everywhere):
   is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 it returns the
   clean chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
-Architecture (why a residual MLP): the chunks are tiny (H * dof = 48 numbers for the planar arm), the
-whole project retrains this network many times (BC, every method x every round of fine-tuning) and
-evaluates with the full K = 100 step reverse process for hundreds of parallel episodes, all on a 2-core CPU.
-A 1-D temporal U-Net (Chi et al.) spends most of its FLOPs on convolutions that a 48-number input does not
-need; a residual MLP over the flattened chunk with FiLM conditioning (Perez et al.) trains in minutes and
-samples a batch of 300 in a fraction of a second. FiLM is the sum of an observation term and a step term,
-so the observation part is computed once per sampling call and the step part once per step for the whole
-batch (a K-row table): sampling then costs two width x width matmuls per block and step.
+Architecture: the 1-D temporal convolution U-Net of diffusion policy (Chi et al. 2023, CNN-based variant),
+because it is the paper's network (the authors train LeRobot's DiffusionPolicy with down_dims
+(128, 256, 512), kernel 5, 8 groups and a 128-wide step embedding). The chunk (H, dof) is read as a
+length-H signal with dof channels; convolutions along time give the predicted noise a local structure in
+time, and the downsampling lets the deeper blocks see the whole chunk. Every residual block is
+FiLM-conditioned (Perez et al.) on [step features, observation features]. On a CPU this network is the
+expensive part of the project (training, and the full K = 100 step reverse process for every decision):
+benchmarks/bench_diffusion.py measures its cost at three widths, and PolicyConfig.down_dims picks one.
+FiLM is a linear map of Mish([step features, obs features]), so it is exactly the sum of an observation
+term and a step term: the observation term is computed once per sampling call and the step term once for
+all K steps (a K-row table); a reverse step adds the two and runs only the convolutions.
 
 Image observations: the observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its
 last C*H*W entries are an image (channel-first, flattened, pixels in [0, 1]; envs.EngineReach3D with
 image_obs=True). A small CNN (ImageEncoder) turns the image into image_features numbers that join the
-low-dimensional part in front of the observation encoder. Because the image is part of the observation
-code, the CNN runs once per sampling call, not once per diffusion step.
+low-dimensional part as observation features. Because the image is part of the observation term of
+FiLM, the CNN runs once per sampling call, not once per diffusion step.
 """
 
 import copy
@@ -60,10 +63,11 @@ class PolicyConfig:
     n_act: int = 8               # actions of a chunk executed before re-planning (used by the rollout loop)
     K: int = 100                 # diffusion steps (the diffusion-policy default)
     schedule: str = "squaredcos" # 'squaredcos' (Nichol & Dhariwal, diffusion-policy default) or 'linear'
-    width: int = 256             # hidden width of the residual MLP
-    n_blocks: int = 3            # residual FiLM blocks
-    cond_dim: int = 64           # size of the observation / step codes that produce the FiLM parameters
-    step_embed_dim: int = 64     # size of the sinusoidal diffusion-step embedding
+    down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512)); the chunk
+                                       # is halved in time between levels, so H must divide by 2**(levels - 1)
+    kernel_size: int = 5         # temporal convolution kernel (odd: 'same' padding keeps the length)
+    n_groups: int = 8            # GroupNorm groups; every down_dim must be a multiple
+    step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
     joint_obs: bool = False      # obs starts with (q_t, q_{t-1}) as in envs.py: learn chunks relative to q_t and
                                  # give the network the joint velocity q_t - q_{t-1} (see DiffusionPolicy)
     image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image (channel-first, in [0, 1]) that a small
@@ -72,10 +76,24 @@ class PolicyConfig:
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
-        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "width", "n_blocks", "cond_dim", "step_embed_dim"):
+        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
+        dims = self.down_dims
+        if (not isinstance(dims, (tuple, list)) or not dims
+                or any(not isinstance(d, (int, np.integer)) or d < 1 or d % self.n_groups for d in dims)):
+            raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
+                             f"n_groups={self.n_groups} (GroupNorm splits every width into n_groups groups), "
+                             f"got {dims!r}")
+        self.down_dims = tuple(int(d) for d in dims)                   # a list from a JSON config, numpy ints
+        if self.horizon % 2 ** (len(self.down_dims) - 1):
+            raise ValueError(f"PolicyConfig.horizon={self.horizon} must be divisible by "
+                             f"2**(len(down_dims) - 1) = {2 ** (len(self.down_dims) - 1)}: the U-Net halves the "
+                             f"chunk {len(self.down_dims) - 1} times (down_dims={self.down_dims})")
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"PolicyConfig.kernel_size must be odd (padding k // 2 keeps the length), "
+                             f"got {self.kernel_size}")
         if self.n_act > self.horizon:
             raise ValueError(f"PolicyConfig.n_act={self.n_act} must be <= horizon={self.horizon}")
         if self.schedule not in ("squaredcos", "linear"):
@@ -108,8 +126,8 @@ class PolicyConfig:
 
     @property
     def cond_input_dim(self):
-        """Length of the observation encoder's input: the low-dimensional observation, the velocity if
-        joint_obs, the CNN's image code if there is an image."""
+        """Length of the observation features that condition the U-Net: the low-dimensional observation,
+        the velocity if joint_obs, the CNN's image code if there is an image."""
         return (self.low_dim + (self.dof if self.joint_obs else 0)
                 + (self.image_features if self.image_shape else 0))
 
@@ -271,7 +289,7 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
 
 
 # ----------------------------------------------------------------------------------------------
-# The epsilon network
+# The epsilon network: Chi et al.'s 1-D temporal convolution U-Net, FiLM-conditioned on (k, o)
 
 
 def step_embedding(k, dim):
@@ -282,19 +300,38 @@ def step_embedding(k, dim):
     return torch.cat([angles.sin(), angles.cos()], dim=1)           # (N, dim)
 
 
-class FiLMBlock(nn.Module):
-    """h + W2 SiLU(FiLM(W1 LayerNorm(h))) with FiLM(y) = y * (1 + scale) + shift."""
+class Conv1dBlock(nn.Sequential):
+    """Conv1d -> GroupNorm -> Mish over (B, channels, T); padding k // 2 keeps the length T (k odd)."""
 
-    def __init__(self, width):
+    def __init__(self, in_channels, out_channels, kernel_size, n_groups):
+        super().__init__(nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
+                         nn.GroupNorm(n_groups, out_channels),
+                         nn.Mish())
+
+
+class ConditionalResidualBlock(nn.Module):
+    """Two Conv1dBlocks with FiLM between them, plus a residual path (1 x 1 conv if the width changes).
+
+    FiLM (Perez et al.), per channel: h <- scale * h + bias, with (scale, bias) = film(Mish(cond)) and
+    cond = [step features, observation features]. The block owns its linear map `film` but receives its
+    result: ConditionalUnet1D splits every block's map into a step part and an observation part and
+    computes them at different times (see there).
+    """
+
+    def __init__(self, in_channels, out_channels, cond_dim, kernel_size, n_groups):
         super().__init__()
-        self.norm = nn.LayerNorm(width)
-        self.fc1 = nn.Linear(width, width)
-        self.fc2 = nn.Linear(width, width)
+        self.conv1 = Conv1dBlock(in_channels, out_channels, kernel_size, n_groups)
+        self.film = nn.Linear(cond_dim, 2 * out_channels)            # -> (scale, bias), out_channels each
+        self.conv2 = Conv1dBlock(out_channels, out_channels, kernel_size, n_groups)
+        self.residual = (nn.Conv1d(in_channels, out_channels, 1) if in_channels != out_channels
+                         else nn.Identity())
 
-    def forward(self, h, scale, shift):
-        y = self.fc1(self.norm(h))
-        y = y * (1.0 + scale) + shift
-        return h + self.fc2(nn.functional.silu(y))
+    def forward(self, x, film):
+        """x (B, in_channels, T), film (B, 2 * out_channels) = self.film(Mish(cond)) -> (B, out_channels, T)."""
+        h = self.conv1(x)                                            # (B, out, T)
+        scale, bias = film[:, :, None].chunk(2, dim=1)               # (B, out, 1) each
+        h = scale * h + bias
+        return self.conv2(h) + self.residual(x)                      # (B, out, T)
 
 
 class ImageEncoder(nn.Module):
@@ -318,53 +355,111 @@ class ImageEncoder(nn.Module):
         return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
 
 
-class EpsNet(nn.Module):
-    """eps_theta(a_k, k | o): flattened chunk in, predicted noise out, FiLM-conditioned on (o, k)."""
+class ConditionalUnet1D(nn.Module):
+    """eps_theta(a_k, k | o): the noisy chunk (B, H, dof) in, the predicted noise (B, H, dof) out.
+
+    With down_dims (c_0, .., c_L) (L + 1 levels) and T = H:
+      encoder, level l:  two residual blocks to width c_l at length T / 2^l, keep the result as a skip,
+                         then a stride-2 Conv1d (kernel 3) halves the length (not after the deepest level);
+      middle:            two residual blocks at width c_L, length T / 2^L;
+      decoder, L steps:  concatenate the skip of the same length (the width doubles), two residual blocks
+                         to the next shallower width, ConvTranspose1d (kernel 4, stride 2) doubles the length.
+    As in Chi et al.'s network the decoder has one level fewer than the encoder: its skips come from levels
+    L, L-1, .., 1, and its last upsampling restores the length T, so the shallowest skip goes unused.
+    Output: a Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
+
+    Conditioning: every residual block's FiLM is film(Mish([step features, obs features])). Splitting the
+    weight W = [W_s | W_o] along its input gives film = (W_s Mish(step) + b) + W_o Mish(obs): step_table()
+    computes the first term for all K steps at once, obs_terms() the second once per observation, and
+    forward() takes their sum, one row of all blocks' (scale, bias) stacked (the FiLM vector, film_size).
+    """
 
     def __init__(self, cfg):
         super().__init__()
-        width, nb, chunk_dim = cfg.width, cfg.n_blocks, cfg.horizon * cfg.dof
-        self.n_blocks, self.width, self.K, self.step_embed_dim = nb, width, cfg.K, cfg.step_embed_dim
-        # The codes are narrow (cond_dim) so that the per-row FiLM projection stays cheap in training:
-        # cond_dim x (n_blocks * 2 * width) instead of width x (n_blocks * 2 * width) multiply-adds.
-        self.obs_encoder = nn.Sequential(nn.Linear(cfg.cond_input_dim, width), nn.SiLU(),
-                                         nn.Linear(width, cfg.cond_dim), nn.SiLU())
-        self.obs_film = nn.Linear(cfg.cond_dim, nb * 2 * width)
-        self.step_encoder = nn.Sequential(nn.Linear(cfg.step_embed_dim, width), nn.SiLU(),
-                                          nn.Linear(width, cfg.cond_dim), nn.SiLU())
-        self.step_film = nn.Linear(cfg.cond_dim, nb * 2 * width)
-        self.inp = nn.Linear(chunk_dim, width)
-        self.blocks = nn.ModuleList([FiLMBlock(width) for _ in range(nb)])
-        self.out_norm = nn.LayerNorm(width)
-        self.out = nn.Linear(width, chunk_dim)
+        dims, dsed = cfg.down_dims, cfg.step_embed_dim
+        self.K, self.step_embed_dim = cfg.K, dsed
+        # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
+        self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
+        cond_dim = dsed + cfg.cond_input_dim                         # [step features, obs features]
+
+        def block(in_channels, out_channels):
+            return ConditionalResidualBlock(in_channels, out_channels, cond_dim, cfg.kernel_size, cfg.n_groups)
+
+        self.down = nn.ModuleList()
+        for level, (c_in, c_out) in enumerate(zip((cfg.dof,) + dims[:-1], dims)):
+            deepest = level == len(dims) - 1
+            downsample = nn.Identity() if deepest else nn.Conv1d(c_out, c_out, 3, stride=2, padding=1)
+            self.down.append(nn.ModuleList([block(c_in, c_out), block(c_out, c_out), downsample]))
+        self.mid = nn.ModuleList([block(dims[-1], dims[-1]), block(dims[-1], dims[-1])])
+        self.up = nn.ModuleList()
+        for c_deep, c_out in zip(dims[:0:-1], dims[-2::-1]):          # (c_L, c_L-1), .., (c_1, c_0)
+            upsample = nn.ConvTranspose1d(c_out, c_out, 4, stride=2, padding=1)
+            self.up.append(nn.ModuleList([block(2 * c_deep, c_out), block(c_out, c_out), upsample]))
+        self.final = nn.Sequential(Conv1dBlock(dims[0], dims[0], cfg.kernel_size, cfg.n_groups),
+                                   nn.Conv1d(dims[0], cfg.dof, 1))
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        nn.init.zeros_(self.final[-1].weight)
+        nn.init.zeros_(self.final[-1].bias)
+        self.film_sizes = [b.film.out_features for b in self.residual_blocks()]
+        self.film_size = sum(self.film_sizes)
         self.image_shape, self.n_pixels = cfg.image_shape, cfg.image_dim
         if cfg.image_shape:  # built last: without an image the other weights are initialised as before
             self.image_encoder = ImageEncoder(cfg.image_shape, cfg.image_features)
 
+    def residual_blocks(self):
+        """All ConditionalResidualBlocks in the order forward() uses them: the layout of the FiLM vector."""
+        for first, second, _ in self.down:
+            yield from (first, second)
+        yield from self.mid
+        for first, second, _ in self.up:
+            yield from (first, second)
+
+    def film_weights(self):
+        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features),
+        b (F,)), F = film_size."""
+        weight = torch.cat([b.film.weight for b in self.residual_blocks()])   # (F, dsed + obs features)
+        bias = torch.cat([b.film.bias for b in self.residual_blocks()])       # (F,)
+        return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
+
+    def obs_features(self, obs_norm):
+        """normalize_obs's output (B, ...) -> (B, cond_input_dim). With an image, obs_norm's last C*H*W
+        entries are its pixels: the CNN replaces them by its code."""
+        if not self.n_pixels:
+            return obs_norm
+        image = obs_norm[:, -self.n_pixels:].reshape(-1, *self.image_shape)   # (B, C, H, W)
+        return torch.cat([obs_norm[:, :-self.n_pixels], self.image_encoder(image)], dim=1)
+
     def obs_terms(self, obs_norm):
-        """normalize_obs's output (B, ...) -> (B, n_blocks, 2 * width): the observation part of every block's
-        FiLM. With an image, obs_norm's last C*H*W entries are its pixels: the CNN encodes them first."""
-        if self.n_pixels:
-            code = self.image_encoder(obs_norm[:, -self.n_pixels:].reshape(-1, *self.image_shape))
-            obs_norm = torch.cat([obs_norm[:, :-self.n_pixels], code], dim=1)
-        return self.obs_film(self.obs_encoder(obs_norm)).view(-1, self.n_blocks, 2 * self.width)
+        """(B, F): the observation part W_o Mish(obs features) of every block's FiLM."""
+        _, w_obs, _ = self.film_weights()
+        return nn.functional.mish(self.obs_features(obs_norm)) @ w_obs.T      # (B, F)
+
+    def step_features(self, k):
+        """(N,) long diffusion steps -> (N, dsed) step features."""
+        return self.step_encoder(step_embedding(k, self.step_embed_dim))
 
     def step_table(self):
-        """(K, n_blocks, 2 * width): the step part of every block's FiLM, for all K steps at once."""
-        k = torch.arange(self.K, device=self.out.weight.device)
-        emb = step_embedding(k, self.step_embed_dim)                  # (K, step_embed_dim)
-        return self.step_film(self.step_encoder(emb)).view(self.K, self.n_blocks, 2 * self.width)
+        """(K, F): the step part W_s Mish(step features) + b of every block's FiLM, for all K steps at once."""
+        w_step, _, bias = self.film_weights()
+        k = torch.arange(self.K, device=bias.device)
+        return nn.functional.linear(nn.functional.mish(self.step_features(k)), w_step, bias)   # (K, F)
 
-    def forward(self, a_flat, film):
-        """a_flat (B, H * dof), film (B, n_blocks, 2 * width) -> eps (B, H * dof)."""
-        h = self.inp(a_flat)
-        for i, block in enumerate(self.blocks):
-            scale, shift = film[:, i].chunk(2, dim=-1)                # (B, width) each
-            h = block(h, scale, shift)
-        return self.out(self.out_norm(h))
+    def forward(self, a, film):
+        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs_terms + step_table[k] -> eps (B, H, dof)."""
+        x = a.transpose(1, 2)                                        # (B, dof, H): channels first
+        films = iter(film.split(self.film_sizes, dim=1))             # (B, 2 * out_channels) per block
+        skips = []
+        for first, second, downsample in self.down:                  # level l = 0 .. L, T_l = H / 2^l
+            x = second(first(x, next(films)), next(films))           # (B, c_l, T_l)
+            skips.append(x)
+            x = downsample(x)                                        # (B, c_l, T_l / 2); deepest: unchanged
+        for block in self.mid:
+            x = block(x, next(films))                                # (B, c_L, T_L)
+        for first, second, upsample in self.up:                      # level l = L .. 1
+            x = torch.cat([x, skips.pop()], dim=1)                   # (B, 2 c_l, T_l): level l's skip
+            x = second(first(x, next(films)), next(films))           # (B, c_l-1, T_l)
+            x = upsample(x)                                          # (B, c_l-1, T_l-1 = 2 T_l)
+        return self.final(x).transpose(1, 2)                         # (B, dof, H) -> (B, H, dof)
 
 
 def check_array(name, x, shape):
@@ -399,7 +494,7 @@ class DiffusionPolicy(nn.Module):
         # Weight init from cfg.seed without touching the caller's global torch RNG state.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
-            self.net = EpsNet(cfg)
+            self.net = ConditionalUnet1D(cfg)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         # Min-max normalizer (center, half range) -> [-1, 1]; part of state_dict, so saved with the weights.
         self.register_buffer("obs_center", torch.zeros(cfg.obs_dim))
@@ -460,7 +555,7 @@ class DiffusionPolicy(nn.Module):
     def normalize_obs(self, obs):
         """Raw observations (B, obs_dim) -> the network's observation input: the normalized low-dimensional
         observation, then the normalized velocity (dof) if joint_obs, then the image pixels if any (the CNN
-        reads them from the end, EpsNet.obs_terms). Without an image: (B, cfg.cond_input_dim)."""
+        reads them from the end, ConditionalUnet1D.obs_features). Without an image: (B, cfg.cond_input_dim)."""
         cfg = self.cfg
         o = (obs - self.obs_center) / self.obs_half
         if not cfg.joint_obs and not cfg.image_shape:
@@ -495,7 +590,7 @@ class DiffusionPolicy(nn.Module):
         return self.ema_net if use_ema else self.net
 
     def condition(self, obs_norm, use_ema=True):
-        """Per-call FiLM pieces: (obs terms (B, n_blocks, 2W), step table (K, n_blocks, 2W))."""
+        """Per-call FiLM pieces: (observation terms (B, F), step table (K, F)), F = the net's film_size."""
         net = self._net(use_ema)
         return net.obs_terms(obs_norm), net.step_table()
 
@@ -507,9 +602,8 @@ class DiffusionPolicy(nn.Module):
         B = a_k_norm.shape[0]
         obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
         k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
-        film = obs_part + step_part[k]                                # (B, n_blocks, 2W)
-        eps = self._net(use_ema)(a_k_norm.reshape(B, -1), film)        # (B, H * dof)
-        return eps.view(B, self.cfg.horizon, self.cfg.dof)              # (B, H, dof)
+        film = obs_part + step_part[k]                                # (B, F)
+        return self._net(use_ema)(a_k_norm, film)                      # (B, H, dof)
 
     def loss(self, obs_norm, chunk_norm, generator=None):
         """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}."""
@@ -572,7 +666,7 @@ class DiffusionPolicy(nn.Module):
 
     def save(self, path, extra=None):
         """One file: config, weights, EMA weights, normalizer (and `extra`, e.g. the training state)."""
-        payload = {"format": "diffusion-policy-v1", "config": asdict(self.cfg),
+        payload = {"format": CHECKPOINT_FORMAT, "config": asdict(self.cfg),
                    "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
         if extra is not None:
             payload["train_state"] = extra
@@ -589,12 +683,19 @@ class DiffusionPolicy(nn.Module):
         return policy
 
 
+# v1 held the earlier residual-MLP epsilon network; v2 holds the U-Net. A v1 file cannot be loaded.
+CHECKPOINT_FORMAT = "diffusion-policy-v2"
+
+
 def _read_checkpoint(path):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no policy checkpoint at {path!r}")
     payload = torch.load(path, map_location="cpu", weights_only=True)
-    if payload.get("format") != "diffusion-policy-v1":
-        raise ValueError(f"{path!r} is not a diffusion-policy-v1 checkpoint")
+    if payload.get("format") == "diffusion-policy-v1":
+        raise ValueError(f"{path!r} is a diffusion-policy-v1 checkpoint (the earlier residual-MLP network); "
+                         f"this code reads {CHECKPOINT_FORMAT} (the U-Net): retrain the policy")
+    if payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path!r} is not a {CHECKPOINT_FORMAT} checkpoint")
     return payload
 
 
@@ -784,7 +885,7 @@ def toy_two_mode_data(n, H=4, seed=0):
 
 if __name__ == "__main__":
     obs, chunks = toy_two_mode_data(4000, H=4)
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, width=128, n_blocks=2))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, down_dims=(32, 64)))
     train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=500))
     test_obs = np.zeros((200, 2), dtype=np.float32)
     samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))

@@ -229,7 +229,7 @@ if __name__ == "__main__":
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
 
     obs, chunks = toy_two_mode_data(4000, H=4)
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, width=128, n_blocks=2))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, down_dims=(32, 64)))
     train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=1000))
     n = 500
     o = np.zeros((n, 2), dtype=np.float32)

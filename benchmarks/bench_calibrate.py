@@ -66,7 +66,7 @@ def main():
     if args.policy:
         policy = DiffusionPolicy.load(args.policy)
     else:
-        policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, width=128, n_blocks=2))
+        policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))
         train(policy, *chunk_dataset(demos, policy.cfg.horizon),
               TrainConfig(steps=args.train_steps, warmup_steps=100, log_every=0))
 
@@ -97,7 +97,7 @@ def main():
     calib, w, c = timed(lambda: cal.calibrate(env, policy, interventions, unit, cfg, gen))
     rows.append(("calibrate() total", f"{len(interventions)} interventions, {n_steps} expert steps", w, c))
 
-    print(f"\ntorch threads: {torch.get_num_threads()}, policy K = {policy.cfg.K}, width {policy.cfg.width}\n")
+    print(f"\ntorch threads: {torch.get_num_threads()}, policy K = {policy.cfg.K}, U-Net down_dims {policy.cfg.down_dims}\n")
     print("| stage | work | wall s | CPU s |")
     print("|---|---|---|---|")
     for name, work, wall, cpu in rows:

@@ -1,18 +1,24 @@
-"""Speed of the diffusion policy at the default size: training steps/s, sampling, partial denoising, memory.
+"""Cost of the diffusion policy's U-Net on a CPU: training step, one decision (full reverse process), size.
 
-Issue 4 targets: BC on ~500 planar demonstrations (~50k chunk labels, obs_dim 48, dof 3, H 16) reaches its
-plateau in a few minutes of a 2-core CPU; one decision for 300 parallel episodes (the full K = 100 step
-reverse process) takes well under a second.
+The paper's network (Chi et al.'s 1-D conv U-Net; the authors' down_dims (128, 256, 512)) is the expensive
+part of this project: BC and every method's fine-tuning train it, and every decision of every evaluation
+episode runs all K = 100 reverse steps. This script measures, per U-Net width (PolicyConfig.down_dims):
+  - one training step of diffusion.train at batch 64 and 256 (loss, backward, AdamW, EMA);
+  - sampling 300 chunks (300 parallel episodes, one decision) with all K reverse steps;
+  - the number of weights (one copy; the EMA copy doubles it in memory).
+Defaults: the planar task's observation (obs_dim 14), dof 3, H = 20 (10 Hz, 2 s chunks) and H = 16.
 
-Usage:  python benchmarks/bench_diffusion.py [--threads 1 2] [--seconds 5] [--width 256 --n-blocks 3]
-        python benchmarks/bench_diffusion.py --threads 1 --dof 6 --obs-dim 127 --image-size 32
-            (the UR5 policy twice: on the obstacle list, and on 32 x 32 camera images through the CNN)
-Prints a markdown table per torch thread count. Wall-clock rates depend on what else runs on the machine;
-the CPU-seconds column (time.process_time of this process) is the cost itself.
+Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [--threads 1]
+                                            [--down-dims 32,64,128 64,128,256 128,256,512] [--full-sample]
+        python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
+            (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN)
+Times are CPU seconds of this process (time.process_time): with one torch thread that is the cost itself,
+also on a machine whose cores are shared; the last column, wall / CPU, shows how loaded the machine was.
+Every reverse step costs the same, so by default the sampling column is measured on a few reverse steps
+(reverse_process from a lower level) and scaled to K steps; --full-sample times whole policy.sample calls.
 """
 import argparse
 import os
-import resource
 import sys
 import time
 
@@ -21,77 +27,99 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train  # noqa: E402
-from partial_denoise import partial_denoise  # noqa: E402
 
 
-def timed(fn, min_seconds):
-    """Run fn until min_seconds of wall time have passed (at least twice, after one warm-up call).
-    Returns (wall seconds per call, CPU seconds per call)."""
+def cost(fn):
+    """(CPU seconds, wall seconds) of one call of fn."""
+    c0, w0 = time.process_time(), time.perf_counter()
     fn()
-    n, t0, c0 = 0, time.perf_counter(), time.process_time()
-    while n < 2 or time.perf_counter() - t0 < min_seconds:
-        fn()
-        n += 1
-    return (time.perf_counter() - t0) / n, (time.process_time() - c0) / n
+    return time.process_time() - c0, time.perf_counter() - w0
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts to measure")
-    parser.add_argument("--seconds", type=float, default=5.0, help="minimum wall time per measurement")
-    parser.add_argument("--obs-dim", type=int, default=48, help="observation length (planar env: 48)")
-    parser.add_argument("--dof", type=int, default=3)
-    parser.add_argument("--width", type=int, default=PolicyConfig.width)
-    parser.add_argument("--n-blocks", type=int, default=PolicyConfig.n_blocks)
-    parser.add_argument("--batch", type=int, default=256, help="training batch size")
-    parser.add_argument("--episodes", type=int, default=300, help="parallel episodes per decision")
-    parser.add_argument("--image-size", type=int, default=0,
-                        help="also measure a policy whose observation ends with a 3 x S x S image (CNN encoder); "
-                             "EngineReach3D's image layout replaces the 112 obstacle numbers with the image")
-    args = parser.parse_args()
-
-    policies = {"low-dim": PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, width=args.width, n_blocks=args.n_blocks)}
-    if args.image_size:
-        S = args.image_size
-        policies[f"image {S}x{S}"] = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof,
-                                                 width=args.width, n_blocks=args.n_blocks, image_shape=(3, S, S))
-    print("| policy | torch threads | measurement | wall time | CPU time | rate (wall) |")
-    print("|---|---|---|---|---|---|")
-    for name, cfg in policies.items():
-        measure(name, cfg, args)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024     # Linux: kilobytes
-    print(f"\npeak memory (ru_maxrss): {peak:.0f} MB")
-    print("Note: on a machine whose cores are busy with other jobs, torch's OpenMP threads spin-wait for each\n"
-          "other; with more than one thread run under OMP_WAIT_POLICY=PASSIVE (or use one thread).")
+def per_unit(fn, min_seconds):
+    """fn(n) does n units of work after a fixed setup. Returns (CPU, wall) seconds per unit: the difference
+    between n units and one unit over n - 1, with n grown until n units take min_seconds of CPU."""
+    fn(1)                                                        # warm-up (allocator, oneDNN kernels)
+    one = cost(lambda: fn(1))
+    n = max(2, int(min_seconds / max(one[0], 1e-4)) + 1)
+    many = cost(lambda: fn(n))
+    return tuple(max(m - o, 1e-9) / (n - 1) for m, o in zip(many, one))
 
 
-def measure(name, cfg, args):
+def measure(cfg, args):
+    """One table row: the costs of the policy built from cfg."""
     rng = np.random.default_rng(0)
-    n_labels = 50_000 if not cfg.image_shape else 10_000      # ~500 planar demonstrations; images are big
+    n_labels = 5_000
     obs = rng.uniform(-1, 1, (n_labels, cfg.obs_dim)).astype(np.float32)
     obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.image_dim))   # pixels in [0, 1]
     chunks = rng.uniform(-1, 1, (n_labels, cfg.horizon, cfg.dof)).astype(np.float32)
     policy = DiffusionPolicy(cfg)
     policy.fit_normalizer(obs, chunks)
-    n_params = sum(p.numel() for p in policy.net.parameters())
-    print(f"| {name} | | residual MLP width {cfg.width}, {cfg.n_blocks} blocks, {n_params / 1e6:.2f} M parameters, "
-          f"K = {cfg.K}, H = {cfg.horizon}, dof = {cfg.dof}, obs_dim = {cfg.obs_dim} | | | |")
-    test_obs = obs[:args.episodes]
-    expert = chunks[:args.episodes]
-    for threads in args.threads:
-        torch.set_num_threads(threads)
-        steps = 50
-        tc = TrainConfig(steps=steps, batch_size=args.batch, warmup_steps=10, log_every=0)
-        wall, cpu = timed(lambda: train(policy, obs, chunks, tc), args.seconds)
-        print(f"| {name} | {threads} | train step, batch {args.batch} | {wall / steps * 1e3:.1f} ms | "
-              f"{cpu / steps * 1e3:.1f} ms | {steps / wall:.0f} steps/s |")
-        gen = torch.Generator().manual_seed(0)
-        wall, cpu = timed(lambda: policy.sample(test_obs, generator=gen), args.seconds)
-        print(f"| {name} | {threads} | sample {args.episodes} chunks, K = {cfg.K} steps (one decision) | "
-              f"{wall * 1e3:.0f} ms | {cpu * 1e3:.0f} ms | {args.episodes / wall:.0f} chunks/s |")
-        wall, cpu = timed(lambda: partial_denoise(policy, test_obs, expert, 0.5, generator=gen), args.seconds)
-        print(f"| {name} | {threads} | partial_denoise {args.episodes} chunks, beta = 0.5 | "
-              f"{wall * 1e3:.0f} ms | {cpu * 1e3:.0f} ms | {args.episodes / wall:.0f} chunks/s |")
+    row = {"parameters": sum(p.numel() for p in policy.net.parameters())}
+    for batch in (64, 256):
+        def train_steps(n, batch=batch):
+            train(policy, obs, chunks, TrainConfig(steps=n, batch_size=batch, warmup_steps=1, log_every=0))
+        row[f"train {batch}"] = per_unit(train_steps, args.seconds)
+
+    test_obs = torch.as_tensor(obs[:args.episodes])
+    gen = torch.Generator().manual_seed(0)
+    if args.full_sample:
+        policy.sample(test_obs.numpy(), generator=gen)
+        row["sample"] = cost(lambda: policy.sample(test_obs.numpy(), generator=gen))
+    else:
+        with torch.inference_mode():
+            obs_norm = policy.normalize_obs(test_obs)
+            noise = policy.draw_noise(args.episodes, gen)             # (B, K + 1, H, dof)
+
+            def reverse_steps(n):                                      # n reverse steps: levels n - 1 .. 0
+                k_start = torch.full((args.episodes,), n - 1)
+                policy.reverse_process(noise[:, 0], k_start, obs_norm, noise[:, 1:])
+            step = per_unit(reverse_steps, args.seconds)
+            first = cost(lambda: reverse_steps(1))                    # the FiLM terms and one step
+            draw = cost(lambda: policy.draw_noise(args.episodes, gen))
+        row["sample"] = tuple(d + f + (cfg.K - 1) * s for d, f, s in zip(draw, first, step))
+    return row
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=3.0, help="CPU seconds per measurement (about)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--down-dims", nargs="+", default=["32,64,128", "64,128,256", "128,256,512"],
+                        help="U-Net widths to measure, comma-separated per U-Net")
+    parser.add_argument("--horizons", type=int, nargs="+", default=[20, 16], help="chunk lengths H")
+    parser.add_argument("--obs-dim", type=int, default=14, help="observation length (planar env: 14)")
+    parser.add_argument("--dof", type=int, default=3)
+    parser.add_argument("--episodes", type=int, default=300, help="parallel episodes per decision")
+    parser.add_argument("--full-sample", action="store_true", help="time whole policy.sample calls")
+    parser.add_argument("--image-size", type=int, default=0,
+                        help="measure policies whose observation ends with a 3 x S x S image instead")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    print(f"torch threads: {args.threads}, K = {PolicyConfig.K}, dof = {args.dof}, "
+          f"{args.episodes} chunks per decision; CPU ms (wall / CPU)")
+    print("| down_dims | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
+          f"sample {args.episodes} chunks, K = {PolicyConfig.K} | wall / CPU |")
+    print("|---|---|---|---|---|---|---|---|")
+    for horizon in args.horizons:
+        for dims in args.down_dims:
+            down_dims = tuple(int(d) for d in dims.split(","))
+            if args.image_size:
+                S = args.image_size
+                cfg = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof, horizon=horizon,
+                                   n_act=horizon // 2, down_dims=down_dims, image_shape=(3, S, S))
+                obs_name = f"image {S}x{S}"
+            else:
+                cfg = PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, horizon=horizon, n_act=horizon // 2,
+                                   down_dims=down_dims)
+                obs_name = f"{args.obs_dim} numbers"
+            row = measure(cfg, args)
+            cpu = [row[key][0] for key in ("train 64", "train 256", "sample")]
+            wall = [row[key][1] for key in ("train 64", "train 256", "sample")]
+            print(f"| {down_dims} | {horizon} | {obs_name} | {row['parameters'] / 1e6:.2f} M | "
+                  f"{cpu[0] * 1e3:.0f} ms | {cpu[1] * 1e3:.0f} ms | {cpu[2]:.1f} s | "
+                  f"{sum(wall) / sum(cpu):.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -259,7 +259,8 @@ def planar():
     episodes = cal.straight_line_episodes(env, env.train_seeds(40))[:4]
     assert len(episodes) == 4
     policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(
-        obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=10, width=32, n_blocks=1))
+        obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=10, down_dims=(8, 16), n_groups=4,
+        step_embed_dim=16))
     policy.fit_normalizer(*diffusion.chunk_dataset(episodes, 16))
     return env, episodes, policy
 

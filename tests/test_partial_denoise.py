@@ -18,8 +18,8 @@ class StubPolicy(DiffusionPolicy):
     with a known noise prediction. The normalizer is the identity, so joint units = normalized units."""
 
     def __init__(self, eps_fn, H=4, dof=2, K=100):
-        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, width=8, n_blocks=1,
-                                      cond_dim=4, step_embed_dim=4))
+        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
+                                      step_embed_dim=4))
         self.eps_fn = eps_fn
 
     def condition(self, obs_norm, use_ema=True):
@@ -54,9 +54,9 @@ def generator(seed=0):
 def toy_policy():
     """Two-mode toy task (diffusion.toy_two_mode_data), trained for a few seconds."""
     obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, K=100, width=64, n_blocks=2,
-                                          cond_dim=32))
-    train(policy, obs, chunks, TrainConfig(steps=1500, batch_size=128, lr=2e-3, warmup_steps=100, log_every=0))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, K=100, down_dims=(16, 32),
+                                          n_groups=4, step_embed_dim=32))
+    train(policy, obs, chunks, TrainConfig(steps=400, batch_size=128, lr=1e-2, warmup_steps=50, log_every=0))
     return policy
 
 
@@ -255,8 +255,8 @@ def test_plot_partial_denoising_writes_figure(tmp_path):
     env = envs.make_env("planar")
     obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
     q = info["q"]
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=20, width=32, n_blocks=1,
-                                          cond_dim=16, joint_obs=True))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=20, down_dims=(8, 16),
+                                          n_groups=4, step_embed_dim=16, joint_obs=True))
     expert = q[None, :] + np.linspace(0.02, 0.3, 16)[:, None] * np.array([[1.0, -0.5, 0.3]])   # (H, dof)
     policy.fit_normalizer(np.stack([obs, obs]), np.stack([expert, expert + 0.1]))
     # beta = 0 returns the expert chunk also through the joint_obs normalization (relative to q_t).

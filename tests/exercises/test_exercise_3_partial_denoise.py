@@ -16,8 +16,8 @@ class KnownEpsPolicy(DiffusionPolicy):
     it records the (level, input) of every network call."""
 
     def __init__(self, eps_fn, H=4, dof=2, K=100):
-        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, width=8, n_blocks=1,
-                                      cond_dim=4, step_embed_dim=4))
+        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
+                                      step_embed_dim=4))
         self.eps_fn, self.calls = eps_fn, []
 
     def condition(self, obs_norm, use_ema=True):
