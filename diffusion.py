@@ -142,7 +142,9 @@ class TrainConfig:
     ema_decay: float = 0.999         # EMA of the weights used for sampling; timescale ~1/(1-decay) = 1000 steps
     seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
-    obs_noise: float = 0.0           # std of Gaussian noise added to normalized observations (labels unchanged)
+    # Observation noise in training, raw units (the authors: 0.01 rad on the joints, 0.005 m on the environment
+    # numbers), labels unchanged: a float for every entry or one std per entry (obs_dim,). 0 = none.
+    obs_noise: object = 0.0
     log_every: int = 500             # steps between progress lines (0 = silent)
     checkpoint_steps: tuple = ()     # steps after which a checkpoint is written
     checkpoint_path: str = ""        # where; '{step}' in the path is replaced by the step number
@@ -155,8 +157,11 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {self.aug_fraction}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
-        if self.obs_noise < 0:
-            raise ValueError(f"TrainConfig.obs_noise must be >= 0, got {self.obs_noise}")
+        noise = np.asarray(self.obs_noise, dtype=np.float64)
+        if noise.ndim > 1 or not np.all(np.isfinite(noise)) or np.any(noise < 0):
+            raise ValueError(f"TrainConfig.obs_noise must be a std >= 0 or a vector of them (one per observation "
+                             f"entry), got {self.obs_noise!r}")
+        self.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
         self.checkpoint_steps = tuple(int(s) for s in self.checkpoint_steps)
         if self.checkpoint_steps and not self.checkpoint_path:
             raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
@@ -803,10 +808,14 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         policy.fit_normalizer(obs, chunks)
     dev = policy.device
     with torch.no_grad():
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-        obs_n = policy.normalize_obs(obs_t)
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)     # raw: the noise is in raw units
         chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
-        del obs_t
+    if np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim:
+        raise ValueError(f"TrainConfig.obs_noise has {len(cfg.obs_noise)} stds, the observation has "
+                         f"obs_dim={pc.obs_dim} entries: give one per entry or a single float")
+    noise_std = torch.as_tensor(np.broadcast_to(np.asarray(cfg.obs_noise, dtype=np.float32), (pc.obs_dim,)).copy(),
+                                device=dev)                            # (obs_dim,)
+    noisy = bool((noise_std > 0).any())
 
     optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                                   foreach=True)
@@ -832,8 +841,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         lr = lr_at(step, cfg)
         for group in optimizer.param_groups:
             group["lr"] = lr
-        idx = torch.as_tensor(rng.integers(0, len(obs_n), n_base), device=dev)
-        o, a = obs_n[idx], chunks_n[idx]
+        idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
+        o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
         if n_aug:
             o_aug, a_aug = sampler(n_aug, rng)
             o_aug = check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
@@ -841,11 +850,14 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
             with torch.no_grad():
                 o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
                 a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
-                o = torch.cat([o, policy.normalize_obs(o_aug)])
+                o = torch.cat([o, o_aug])
                 a = torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
-        if cfg.obs_noise > 0:
-            # Observation noise in normalized units, labels unchanged (Sec. V: common practice).
-            o = o + cfg.obs_noise * torch.randn(o.shape, generator=gen, device=dev)
+        with torch.no_grad():
+            if noisy:
+                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
+                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
+                o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
+            o = policy.normalize_obs(o)                                # (B, cond input)
         loss = policy.loss(o, a, generator=gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

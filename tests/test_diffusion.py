@@ -476,3 +476,29 @@ def test_image_option_leaves_image_free_policies_unchanged_and_checks_shapes():
         PolicyConfig(obs_dim=100, dof=2, image_shape=(1, 4, 4))
     with pytest.raises(ValueError, match="must be longer"):
         PolicyConfig(obs_dim=64, dof=2, image_shape=(1, 8, 8))
+
+
+def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
+    obs, chunks = toy_two_mode_data(64, H=4, seed=2)
+    policy = tiny_policy()
+    seen = []
+    real_loss = policy.loss
+    policy.loss = lambda o, a, generator=None: (seen.append((o.detach().clone(), a.detach().clone())),
+                                                real_loss(o, a, generator))[1]
+    # noise of std 0.5 on the second entry only (raw units), none on the first
+    train(policy, obs, chunks, TrainConfig(steps=3, batch_size=16, warmup_steps=1, log_every=0,
+                                           obs_noise=(0.0, 0.5)))
+    clean_obs = policy.normalize_obs(torch.as_tensor(obs))
+    clean_chunks = policy.normalize_actions(torch.as_tensor(chunks), torch.as_tensor(obs))
+    for o, a in seen:
+        # each row is a dataset row: its first entry and its label are exactly the clean ones ...
+        rows = [int(torch.argmin((clean_chunks - a_row).abs().sum(dim=(1, 2)))) for a_row in a]
+        assert torch.equal(a, clean_chunks[rows])
+        assert torch.allclose(o[:, 0], clean_obs[rows, 0])
+        # ... its second entry moved by noise of std 0.5 raw = 0.5 / half-range normalized
+        moved = (o[:, 1] - clean_obs[rows, 1]) * policy.obs_half[1]
+        assert 0.2 < float(moved.std()) < 1.0
+    with pytest.raises(ValueError, match="obs_noise"):
+        TrainConfig(obs_noise=-0.1)
+    with pytest.raises(ValueError, match="obs_dim"):
+        train(tiny_policy(), obs, chunks, TrainConfig(steps=1, obs_noise=(0.1, 0.1, 0.1)))
