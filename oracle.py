@@ -185,10 +185,13 @@ def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
     spent ~98 % of the oracle's checks). Each edge reports the last free sub-step before its
     first colliding one. With doubling rounds, the states checked past that sub-step are at
     most about as many as those before it (plus first_round), in log2(edge length) calls.
+    first_round = 4 planned faster than 8 or 16 on the planar scenes (measured: fewer wasted
+    states; more calls would cost more, one call costs as much as a few hundred states there).
     """
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)  # (P,) k = 1..4 -> 0, ..
+    # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
+    rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
     hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
     first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
     np.minimum.at(first_hit, edge[hit], k[hit])
@@ -199,8 +202,9 @@ def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
     """(E,) True where the whole edge q_from -> q_to is collision-free.
 
     Coarse to fine: every coarse-th state of all edges first (one batched call), then the
-    remaining states of the edges not yet found colliding (a second call). An obstacle blocks a
-    run of consecutive states, so most colliding edges are rejected by the coarse pass.
+    remaining states of the edges not yet found colliding (a second call). An obstacle usually
+    blocks a run of consecutive states, so most colliding edges are rejected by the coarse pass
+    (coarse = 2, 4 or 8 planned equally fast on the planar scenes).
     """
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
