@@ -20,13 +20,20 @@ CONTRACT.md (env.dof, env.joint_limits, env.in_collision, env.fk / env.ee, env.m
 Edge validation (why the collision checks cannot miss an obstacle). For a serial arm, a joint-space
 step dq moves any point of the arm by at most  sum_j R_j |dq_j|,  where R_j bounds the distance
 from joint j to the farthest point of the arm beyond it (the arm beyond joint j rotates about it).
-A link's centre line collides iff it comes within (link radius + obstacle radius) of an obstacle,
-so to cross an obstacle unseen it must jump a forbidden band of width >= 2 * link radius. We
-interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= sweep
-(half the link radius by default), i.e. sum_j |dq_j| / eps_j <= 1 with eps_j = sweep / R_j
-(`edge_resolution`); R_j comes from env.fk (`lever_arms`), not from planar constants. That rules
-out passing through an obstacle; to rule out grazing one between two checks as well, planning
-uses obstacles inflated by a margin >= sweep / 2 (`with_margin`).
+We interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= s (the
+check spacing, m), i.e. sum_j |dq_j| / eps_j <= 1 with eps_j = s / R_j (`edge_resolution`); R_j
+comes from env.fk (`lever_arms`), not from planar constants. (A Euclidean spacing |dq| <= eps is
+safe only for eps <= s / |R| (Cauchy-Schwarz), and then checks more states, never fewer.) Every
+state between two checks is within s / 2 of arm motion of one of them, so if every checked state
+keeps a clearance c >= s / 2 -- the env's check with obstacles inflated by c (`with_margin`) --
+every state of the edge is collision-free. Self-collisions too: in the frame of the lower of two
+links only the joints after it move the other one, with the same lever arms. Planning keeps a
+margin m and spaces its checks s = 2 (m - v) apart, so the planned path keeps a clearance >= v
+everywhere; the executed trajectory is verified with margin v at a spacing <= 2 v (OracleConfig:
+margin, verify_margin). Only near the start and the goal configurations the plain check applies
+(`with_margin` says why). Edges are checked in rounds of batched calls and stop at their first
+collision (`edge_free_fraction`, `edges_free`): most RRT-Connect edges collide early, and
+checking the rest of them was ~98 % of the planner's checks.
 """
 from __future__ import annotations
 
@@ -62,8 +69,13 @@ class OracleConfig:
     goal_dedup: float = 0.2  # rad, solutions closer than this (max-norm) count as one
     # --- RRT-Connect ---
     step_size: float = 0.3  # rad, joint-space length of one EXTEND step
-    max_iters: int = 1000  # RRT iterations per attempt (each extends toward rrt_batch samples)
-    rrt_batch: int = 8  # samples per iteration, checked in one batched call
+    # Samples per iteration, checked in one batched call. One in_collision call costs as much as
+    # a few hundred more configurations in it (planar: ~150 us + 0.5 us per configuration), so
+    # fewer, larger calls plan faster: 8 -> 32 halved the planar planning time (bench_oracle.py).
+    rrt_batch: int = 32
+    max_iters: int = 500  # RRT iterations per attempt, i.e. 16k samples at rrt_batch = 32; on
+    # failure the plan falls back to thinner margins (min_sweep_fraction), so a larger budget
+    # would only make the failing levels slower
     max_time: float = 10.0  # s per attempt: a guard against hanging, not the normal budget
     n_attempts: int = 3  # independent RRT runs; the plan with the smallest ee arc length wins
     shortcut_iters: int = 64  # random shortcut proposals (after the greedy pass)
@@ -74,15 +86,22 @@ class OracleConfig:
     speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (env's limit)
     a_max: float = 1.0  # rad/s^2 per joint
     j_max: float = 10.0  # rad/s^3 per joint
-    # m, max arm-point motion between two collision checks of an edge; None: half the env's
-    # link_radius (below the link radius, as the edge-validation argument needs; half of it keeps
-    # the margins below small next to the planar scenes' 0.15 m wall gaps)
+    # --- collision checking (see the module docstring) ---
+    # m, the unit of the margins below: arm-point motion between two checks of the executed
+    # trajectory (and of the gate's checks); None: half the env's link_radius
     sweep_tolerance: float | None = None
-    margin: float = 1.0  # planning margin, in sweeps (RRT, shortcut, corners)
+    # Planning margin (RRT, shortcut, corners), in sweeps. Planning checks are spaced
+    # 2 (margin - verify_margin) sweeps apart, so every state between two of them keeps
+    # verify_margin of clearance: 1.5 spaces them 2 sweeps apart (planar: 0.0225 m margin, 0.03 m
+    # spacing), half the checks of margin 1.0 (1 sweep apart); the authors' planner keeps 0.02 m
+    # (PAPER_SETUP.md Sec. 3). Narrow passages the margin closes are left to the fallback below.
+    margin: float = 1.5
     verify_margin: float = 0.5  # margin the executed trajectory is verified with, in sweeps;
     # >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
     relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion of start / goals
-    min_sweep_fraction: float = 0.25  # if no path is found, halve sweep and margins down to this
+    # If no path is found, halve the sweep (so all margins and spacings) down to this fraction.
+    # 1/8: the tightest planar eval scene (seed 10097) needs a margin below 0.006 m.
+    min_sweep_fraction: float = 0.125
     # --- HG-DAgger gating and intervention ---
     horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
     handback_fraction: float = 0.5  # drive at least this fraction of the plan before handing back
@@ -131,40 +150,88 @@ def interpolate_edges(q_from, q_to, resolution):
     """
     dq = q_to - q_from  # (E, dof)
     n = np.maximum(1, np.ceil(np.sum(np.abs(dq) / resolution, axis=1) - 1e-9)).astype(int)  # (E,)
-    edge = np.repeat(np.arange(len(dq)), n)  # (P,)
-    first = np.cumsum(n) - n  # index of each edge's first state
-    k = np.arange(n.sum()) - np.repeat(first, n) + 1  # (P,) 1 .. n_e
+    edge, k = substeps(n)
     return q_from[edge] + (k / n[edge])[:, None] * dq[edge], edge, k, n
 
 
-def edge_free_fraction(q_from, q_to, in_collision, resolution):
+def substeps(n):
+    """Edge index (P,) and sub-step k = 1 .. n_e (P,) of every sub-step of edges with n (E,)
+    sub-steps each, edge by edge (P = n.sum())."""
+    edge = np.repeat(np.arange(len(n)), n)  # (P,)
+    first = np.cumsum(n) - n  # index of each edge's first sub-step
+    return edge, np.arange(n.sum()) - np.repeat(first, n) + 1
+
+
+def _check_in_rounds(states, edge, rounds, in_collision, n_edges):
+    """in_collision of states (P, dof) of n_edges edges, one batched call per round (0, 1, ...).
+
+    States of an edge that already collided in an earlier round are skipped (reported free): an
+    edge needs only one collision to be rejected, and a planner's edges mostly collide early.
+    Returns hit (P,) bool.
+    """
+    hit = np.zeros(len(states), dtype=bool)
+    blocked = np.zeros(n_edges, dtype=bool)
+    for r in range(int(rounds.max(initial=-1)) + 1):
+        todo = np.flatnonzero((rounds == r) & ~blocked[edge])
+        if len(todo):
+            hit[todo] = in_collision(states[todo])
+            blocked[edge[todo[hit[todo]]]] = True
+    return hit
+
+
+def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
     """(E,) fraction of each edge q_from -> q_to that is collision-free from its start (1 = all).
 
-    One batched in_collision call for all edges: the states are interpolated and checked, and
-    each edge reports the last free sub-step before its first colliding one.
+    The states of every edge are checked in order, in rounds of doubling length (first_round,
+    then 2x, 4x, ... states of every edge still free; one batched in_collision call per round),
+    and an edge is no longer checked after its first collision: RRT-Connect's CONNECT edges run
+    across the whole space and nearly all hit an obstacle early (checking every state of them
+    spent ~98 % of the oracle's checks). Each edge reports the last free sub-step before its
+    first colliding one. With doubling rounds, the states checked past that sub-step are at
+    most about as many as those before it (plus first_round), in log2(edge length) calls.
+    first_round = 4 planned faster than 8 or 16 on the planar scenes (measured: fewer wasted
+    states; more calls would cost more, one call costs as much as a few hundred states there).
     """
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    hit = in_collision(states)  # (P,)
+    # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
+    rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
+    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
     first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
     np.minimum.at(first_hit, edge[hit], k[hit])
     return (first_hit - 1) / n
 
 
+def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
+    """(E,) True where the whole edge q_from -> q_to is collision-free.
+
+    Coarse to fine: every coarse-th state of all edges first (one batched call), then the
+    remaining states of the edges not yet found colliding (a second call). An obstacle usually
+    blocks a run of consecutive states, so most colliding edges are rejected by the coarse pass
+    (coarse = 2, 4 or 8 planned equally fast on the planar scenes).
+    """
+    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
+    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
+    rounds = (k % coarse != 0).astype(int)  # (P,) 0: the coarse pass, 1: the rest
+    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
+    return ~np.bincount(edge[hit], minlength=len(n)).astype(bool)
+
+
 def with_margin(env, margin, relax_at=None, relax_radius=0.0):
     """A stricter collision predicate for planning: True within ~margin (m) of a collision.
 
-    Shortest paths hug obstacles, and two free checks a sweep tolerance apart do not rule out a
-    graze between them (by the lever-arm bound a point moves at most sweep/2 from the nearer
-    check, so it can dip up to sweep/2 into an obstacle). Planning against obstacles inflated by
-    margin >= sweep/2 makes every interpolated state between two checks truly free. If
+    Shortest paths hug obstacles, and two free checks s apart (in arm motion) do not rule out a
+    graze between them (by the lever-arm bound a point moves at most s/2 from the nearer check,
+    so it can dip up to s/2 into an obstacle). Planning against obstacles inflated by
+    margin >= s/2 makes every interpolated state between two checks truly free. If
     env.in_collision accepts a `margin` keyword (distance inflation), it is used; otherwise the
     margin is approximated by probes: q counts as colliding if q or one of its 2 dof one-joint
     displacements of +-margin / R_j collides (each moves the arm by at most `margin`).
     Near relax_at (K, dof) (arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius_k for some
     k, in m) only the plain env check applies: a start inside the margin band (an intervention
     often begins close to an obstacle) must be able to leave it, and a goal configuration
-    squeezed between obstacles must be reachable; grazes are then possible only in these zones.
+    squeezed between obstacles must be reachable; grazes (at most s/2 deep) are then possible
+    only in these zones.
     """
     lever = lever_arms(env)
     relax_at = None if relax_at is None else np.atleast_2d(relax_at)
@@ -183,11 +250,12 @@ def with_margin(env, margin, relax_at=None, relax_radius=0.0):
         q = np.atleast_2d(q)
         if relax_at is None:
             return inflated(q)
-        motion = np.sum(np.abs(q[:, None] - relax_at[None]) * lever, axis=2)  # (B, K)
-        near = np.any(motion <= relax_radius, axis=1)  # (B,); relax_radius scalar or (K,)
-        hit = np.empty(len(q), dtype=bool)
-        hit[near] = env.in_collision(q[near]) if near.any() else []
-        hit[~near] = inflated(q[~near]) if (~near).any() else []
+        hit = inflated(q)
+        # only states that hit with the margin can differ under the plain check (a second call)
+        motion = np.sum(np.abs(q[hit, None] - relax_at[None]) * lever, axis=2)  # (hits, K)
+        near = np.flatnonzero(hit)[np.any(motion <= relax_radius, axis=1)]  # radius () or (K,)
+        if len(near):
+            hit[near] = env.in_collision(q[near])
         return hit
 
     return in_collision
@@ -200,7 +268,7 @@ def path_in_collision(path, in_collision, resolution):
         return True
     if len(path) < 2:
         return False
-    return bool(np.any(edge_free_fraction(path[:-1], path[1:], in_collision, resolution) < 1))
+    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -261,19 +329,24 @@ class _Tree:
     def __init__(self, roots):
         self.nodes = np.array(roots, dtype=np.float64)  # grows by doubling
         self.parent = np.full(len(self.nodes), -1)
+        self.sq_norm = np.sum(self.nodes ** 2, axis=1)  # |node|^2, for `nearest`
         self.n = len(self.nodes)
 
     def add(self, q, parent):
-        if self.n == len(self.nodes):
+        """Append nodes q (N, dof) with parent indices (N,)."""
+        while self.n + len(q) > len(self.nodes):
             self.nodes = np.concatenate([self.nodes, np.empty_like(self.nodes)])
             self.parent = np.concatenate([self.parent, np.full(len(self.parent), -1)])
-        self.nodes[self.n], self.parent[self.n] = q, parent
-        self.n += 1
-        return self.n - 1
+            self.sq_norm = np.concatenate([self.sq_norm, np.empty_like(self.sq_norm)])
+        new = slice(self.n, self.n + len(q))
+        self.nodes[new], self.parent[new], self.sq_norm[new] = q, parent, np.sum(q ** 2, axis=1)
+        self.n += len(q)
 
     def nearest(self, q):
         """Indices (B,) of the nodes nearest (Euclidean, joint space) to q (B, dof)."""
-        return np.argmin(((q[:, None] - self.nodes[None, :self.n]) ** 2).sum(-1), axis=1)
+        # |q - x|^2 = |x|^2 - 2 q.x + |q|^2, and |q|^2 is the same for every node x: one matrix
+        # product instead of a (B, n, dof) difference array (the search's cost in large trees)
+        return np.argmin(self.sq_norm[:self.n] - 2 * q @ self.nodes[:self.n].T, axis=1)
 
     def branch(self, i):
         """Nodes from node i back to its root, (k, dof)."""
@@ -287,26 +360,30 @@ class _Tree:
 def _grow(tree, near, targets, free, step_size):
     """Add to `tree` the free part of the edges near[i] -> targets[i] (free: fraction (E,)),
     one node every step_size along it. Returns the index of each edge's last node (E,)."""
+    q_near = tree.nodes[near]  # (E, dof)
+    dq = targets - q_near
+    n_new = np.ceil(free * np.linalg.norm(dq, axis=1) / step_size - 1e-9).astype(int)  # (E,)
+    edge, k = substeps(n_new)  # (N,) each: new node k of edge `edge`
+    index = tree.n + np.arange(len(edge))  # (N,) the indices the new nodes get
+    parent = np.where(k == 1, near[edge], index - 1)  # a chain from near[e] along each edge
+    tree.add(q_near[edge] + ((k / n_new[edge]) * free[edge])[:, None] * dq[edge], parent)
     last = np.array(near)
-    for e, (i, target) in enumerate(zip(near, targets)):
-        q_near = tree.nodes[i].copy()
-        n_new = int(math.ceil(free[e] * np.linalg.norm(target - q_near) / step_size - 1e-9))
-        for k in range(1, n_new + 1):
-            last[e] = tree.add(q_near + (k / n_new) * free[e] * (target - q_near), last[e])
+    last[n_new > 0] = tree.n - len(edge) + np.cumsum(n_new)[n_new > 0] - 1
     return last
 
 
 def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3, resolution=0.05,
-                max_iters=500, max_time=10.0, batch=8):
+                max_iters=500, max_time=10.0, batch=32):
     """A collision-free path (N, dof) from q_start to one of q_goals, or raise PlanningFailed.
 
     q_goals (M, dof) are all roots of the goal tree. `resolution` (scalar or (dof,), rad) is the
     edge-check spacing (see `edge_resolution`). Each iteration is one batched RRT-Connect step:
     tree A EXTENDs toward `batch` uniform samples (one step_size each, keeping the free part of a
     blocked step, which still makes progress into narrow passages), then tree B CONNECTs
-    greedily toward every new node (straight, as far as free); the trees swap roles. Two
-    in_collision calls per iteration. Budget: max_iters iterations (deterministic) and max_time
-    seconds (a hang guard; hitting it is the only non-deterministic outcome).
+    greedily toward every new node (straight, as far as free); the trees swap roles. Two batched
+    edge checks per iteration (each a few in_collision calls: `edge_free_fraction`). Budget:
+    max_iters iterations (deterministic) and max_time seconds (a hang guard; hitting it is the
+    only non-deterministic outcome).
     """
     q_start = np.asarray(q_start, dtype=np.float64)
     q_goals = np.atleast_2d(np.asarray(q_goals, dtype=np.float64))
@@ -323,10 +400,10 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
     if len(q_goals) == 0:
         raise PlanningFailed("every goal configuration is in collision")
     # Straight lines first (one batched check): the common easy case costs a single call.
-    free = edge_free_fraction(np.repeat(q_start[None], len(q_goals), 0), q_goals, in_collision,
-                              resolution)
-    if np.any(free == 1.0):
-        direct = np.flatnonzero(free == 1.0)
+    free = edges_free(np.repeat(q_start[None], len(q_goals), 0), q_goals, in_collision,
+                      resolution)
+    if np.any(free):
+        direct = np.flatnonzero(free)
         best = direct[np.argmin(np.linalg.norm(q_goals[direct] - q_start, axis=1))]
         return np.stack([q_start, q_goals[best]])
     trees = [_Tree([q_start]), _Tree(q_goals)]  # [start tree, goal tree]
@@ -383,10 +460,10 @@ def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
     out, i = [path[0]], 0
     while i < len(path) - 1:
         later = np.arange(i + 1, len(path))
-        free = edge_free_fraction(np.repeat(path[i][None], len(later), 0), path[later],
-                                  in_collision, resolution)
-        free[0] = 1.0  # i -> i + 1 is an edge of the given path: valid by assumption
-        i = later[np.flatnonzero(free == 1.0).max()]
+        free = edges_free(np.repeat(path[i][None], len(later), 0), path[later], in_collision,
+                          resolution)
+        free[0] = True  # i -> i + 1 is an edge of the given path: valid by assumption
+        i = later[np.flatnonzero(free).max()]
         out.append(path[i])
     path = np.array(out)
     for _ in range(iters // batch):
@@ -401,7 +478,7 @@ def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
         useful = (seg[:, 0] < seg[:, 1]) & (saving > 1e-9)
         if not useful.any():
             continue
-        free = edge_free_fraction(p[useful, 0], p[useful, 1], in_collision, resolution) == 1.0
+        free = edges_free(p[useful, 0], p[useful, 1], in_collision, resolution)
         if not free.any():
             continue
         cand = np.flatnonzero(useful)[free]
@@ -440,8 +517,8 @@ def smooth_corners(path, in_collision, resolution=0.05, fraction=0.4, n_points=8
                  + u ** 2 * p_out[:, None])  # (C', n_points, dof)
         q_from = curve[:, :-1].reshape(-1, path.shape[1])
         q_to = curve[:, 1:].reshape(-1, path.shape[1])
-        ok = edge_free_fraction(q_from, q_to, in_collision, resolution).reshape(len(todo), -1)
-        ok = np.all(ok == 1.0, axis=1)  # p_in itself lies on a checked edge of the path
+        ok = edges_free(q_from, q_to, in_collision, resolution).reshape(len(todo), -1)
+        ok = np.all(ok, axis=1)  # p_in itself lies on a checked edge of the path
         for row, c in enumerate(todo):
             if ok[row]:
                 blends[c] = curve[row]
@@ -559,8 +636,8 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
                np.flatnonzero(np.any(np.abs(acc) > a_max * (1 + 1e-9), axis=1)),
                np.flatnonzero(np.any(np.abs(jerk) > j_max * (1 + 1e-9), axis=1)) + 1]
         if in_collision is not None:
-            free = edge_free_fraction(samples[:-1], samples[1:], in_collision, resolution)
-            bad.append(np.flatnonzero(free < 1.0) + 1)
+            free = edges_free(samples[:-1], samples[1:], in_collision, resolution)
+            bad.append(np.flatnonzero(~free) + 1)
         bad = np.unique(np.concatenate(bad))
         # <<< exercise 11
         if len(bad) == 0:
@@ -662,6 +739,10 @@ class Oracle:
 
     def __init__(self, config: OracleConfig | None = None):
         self.cfg = config or OracleConfig()
+        if not self.cfg.margin > self.cfg.verify_margin >= 0.5:
+            raise ValueError(f"OracleConfig needs margin > verify_margin >= 0.5 (sweeps: see the "
+                             f"module docstring), got margin={self.cfg.margin}, "
+                             f"verify_margin={self.cfg.verify_margin}")
         self.last_plan = None  # the most recent Plan (for benchmarks and figures)
 
     def sweep(self, env):
@@ -743,7 +824,11 @@ class Oracle:
         """RRT-Connect attempts + shortcut + corners at one check density; the plan with the
         smallest ee arc length. Returns ((path, length), verify predicate, resolution)."""
         c = self.cfg
-        res = edge_resolution(env, sweep)
+        res = edge_resolution(env, sweep)  # verification of the executed trajectory
+        # Planning checks lie 2 (margin - verify_margin) sweeps of arm motion apart: every state
+        # between two of them is within half that of one, so the planned polyline keeps a
+        # clearance >= verify_margin sweeps everywhere (and passes the verification below).
+        plan_res = edge_resolution(env, 2 * (c.margin - c.verify_margin) * sweep)
         # Margins everywhere except near q0 (and its coast) and near the goal configurations.
         zones = np.concatenate([q0[None], goals])
         radii = np.concatenate([[coast], np.zeros(len(goals))]) + c.relax_sweeps * sweep
@@ -754,16 +839,16 @@ class Oracle:
             attempt_rng = np.random.default_rng(seed)
             try:
                 path = rrt_connect(start, goals, collides, env.joint_limits, attempt_rng,
-                                   step_size=c.step_size, resolution=res, max_iters=c.max_iters,
-                                   max_time=c.max_time, batch=c.rrt_batch)
+                                   step_size=c.step_size, resolution=plan_res,
+                                   max_iters=c.max_iters, max_time=c.max_time, batch=c.rrt_batch)
             except PlanningFailed as e:
                 if attempt == 0:  # a full budget found nothing: more attempts rarely would
                     raise
                 failures.append(e.reason)
                 continue
             direct = len(path) == 2  # a straight line: every attempt would return the same one
-            path = shortcut(path, collides, attempt_rng, c.shortcut_iters, res)
-            path = smooth_corners(path, collides, res, c.corner_fraction, c.corner_points)
+            path = shortcut(path, collides, attempt_rng, c.shortcut_iters, plan_res)
+            path = smooth_corners(path, collides, plan_res, c.corner_fraction, c.corner_points)
             length = self.ee_length(env, path)
             if best is None or length < best[1]:  # strict: ties keep the earlier attempt
                 best = (path, length)

@@ -17,16 +17,29 @@ joint offset and a random velocity (a policy drifting off the expert's path); Or
 plans from there. Reports its planning time, how often the handoff velocity was matched, the
 number of steps driven, and whether executing them collided.
 
+--compare REV: a before/after table instead. oracle.py as of git revision REV ("before", imported
+from `git show`) and the working tree's ("after") demonstrate the same scenes, one after the other
+per scene (so both see the same machine load): the first --n planar and --n-3d engine3d eval
+scenes. Per oracle: successes, planning time (median / 90th percentile), configurations passed to
+env.in_collision per plan (and calls), demo length, and two checks of every executed demo: the
+visited states resampled so that no arm point moves more than 1 mm between samples, under
+env.in_collision (margin 0), and the simulator's own contact check inside env.step.
+
 Usage:  python benchmarks/bench_oracle.py [--n 100] [--seeds eval|train] [--n-interventions 20]
+        python benchmarks/bench_oracle.py --compare 566a67c --n 30 --n-3d 8
 """
 import argparse
+import importlib.util
 import os
+import subprocess
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+import oracle  # noqa: E402
 from envs import make_env  # noqa: E402
 from oracle import Oracle, PlanningFailed, min_time_lower_bound  # noqa: E402
 
@@ -51,7 +64,13 @@ def main():
     parser.add_argument("--n", type=int, default=100, help="number of scenarios")
     parser.add_argument("--seeds", choices=["eval", "train"], default="eval")
     parser.add_argument("--n-interventions", type=int, default=20)
+    parser.add_argument("--compare", metavar="REV", default=None,
+                        help="before/after table: oracle.py at git revision REV vs working tree")
+    parser.add_argument("--n-3d", type=int, default=8, help="engine3d eval scenes for --compare")
     args = parser.parse_args()
+    if args.compare:
+        compare(args.compare, args.n, args.n_3d)
+        return
     env = make_env("planar")
     oracle = Oracle()
     v_max, a_max, j_max = oracle.limits(env)
@@ -145,6 +164,116 @@ def bench_interventions(env, oracle, seeds):
               f"{max(lengths)} |")
     print(f"| executions that collided | {collided} |")
     print(f"| planning failures | {len(failed)} {failed} |")
+
+
+# ----------------------------------------------------------------------------------------------
+# --compare: before/after table
+# ----------------------------------------------------------------------------------------------
+def load_oracle_at(rev):
+    """oracle.py as of git revision `rev`, imported as a module of its own (the "before")."""
+    source = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:oracle.py"], check=True,
+                            capture_output=True, text=True).stdout
+    name = f"oracle_at_{rev}"
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader=None))
+    sys.modules[name] = module  # dataclasses look their module up here
+    exec(compile(source, f"{rev}:oracle.py", "exec"), module.__dict__)
+    return module
+
+
+def count_planning_checks(env, oracle_):
+    """Counts {'configs', 'calls'} of env.in_collision while oracle_.plan runs (instance wrappers
+    around both, so scene generation in env.reset is not counted)."""
+    counts, planning = {"configs": 0, "calls": 0}, [False]
+    env_check, plan = env.in_collision, oracle_.plan
+
+    def in_collision(q, margin=0.0):
+        if planning[0]:
+            counts["configs"] += len(np.atleast_2d(q))
+            counts["calls"] += 1
+        return env_check(q, margin=margin)
+
+    def counted_plan(*args, **kwargs):
+        planning[0] = True
+        try:
+            return plan(*args, **kwargs)
+        finally:
+            planning[0] = False
+
+    env.in_collision, oracle_.plan = in_collision, counted_plan
+    return counts
+
+
+def record_step_collisions(env):
+    """Wrap env.step: returns a list that gets info['collision'] of every step."""
+    collisions, step = [], env.step
+
+    def recorded_step(action):
+        out = step(action)
+        collisions.append(out[-1]["collision"])
+        return out
+
+    env.step = recorded_step
+    return collisions
+
+
+def dense_collides(env, states, spacing=0.001):
+    """env.in_collision (margin 0) on the polyline `states` resampled so that no arm point moves
+    more than `spacing` m between samples (lever-arm bound, oracle.lever_arms)."""
+    step = np.abs(np.diff(states, axis=0)) @ oracle.lever_arms(env)  # (T - 1,) m
+    n = np.maximum(1, np.ceil(step / spacing)).astype(int)
+    dense = np.concatenate([states[:1]] + [states[t] + np.arange(1, k + 1)[:, None] / k
+                                           * (states[t + 1] - states[t]) for t, k in enumerate(n)])
+    return bool(env.in_collision(dense).any())
+
+
+def compare(rev, n_planar, n_3d):
+    before = load_oracle_at(rev)
+    oracles = {f"before ({rev})": before, "after (working tree)": oracle}
+    print(f"{'scene':>14} | " + " | ".join(f"{k}: ok, plan s, checks" for k in oracles), flush=True)
+    table = []
+    for env_name, n in (("planar", n_planar), ("engine3d", n_3d)):
+        if n == 0:
+            continue
+        env = make_env(env_name)
+        step_collisions = record_step_collisions(env)
+        rows = {k: [] for k in oracles}
+        for seed in env.eval_seeds()[:n]:
+            cells = []
+            for label, module in oracles.items():
+                expert = module.Oracle()
+                counts = count_planning_checks(env, expert)
+                del step_collisions[:]
+                try:
+                    episode = expert.demonstrate(env, seed)
+                except module.PlanningFailed:
+                    rows[label].append(dict(success=False, planned=False))
+                    cells.append("PLANNING FAILED")
+                    continue
+                visited = np.concatenate([episode["q"], episode["action"][-1:]])
+                rows[label].append(dict(
+                    success=episode["success"], planned=True,
+                    time=expert.last_plan.planning_time, steps=len(episode["q"]),
+                    configs=counts["configs"], calls=counts["calls"],
+                    dense=dense_collides(env, visited), simulator=any(step_collisions)))
+                r = rows[label][-1]
+                cells.append(f"{r['success']!s:5} {r['time']:6.2f} {r['configs']:8d}")
+            print(f"{env_name:>8} {seed:5d} | " + " | ".join(cells), flush=True)
+        for label in oracles:
+            table.append((env_name, n, label, rows[label]))
+    print(f"\n| env (scenes) | oracle | success | planning s, median / p90 | in_collision configs "
+          f"per plan, median (calls) | demo steps, median | executed demos colliding: dense "
+          f"re-check / simulator |\n|---|---|---|---|---|---|---|")
+    for env_name, n, label, rows in table:
+        ok = [r for r in rows if r["planned"]]
+        col = lambda k: np.array([r[k] for r in ok])  # noqa: E731
+        if not ok:
+            print(f"| {env_name} ({n}) | {label} | 0/{n} | - | - | - | - |")
+            continue
+        print(f"| {env_name} ({n}) | {label} | {int(col('success').sum())}/{n} | "
+              f"{np.median(col('time')):.2f} / {np.percentile(col('time'), 90):.2f} | "
+              f"{np.median(col('configs')):,.0f} ({np.median(col('calls')):.0f}) | "
+              f"{np.median(col('steps')):.0f} | {int(col('dense').sum())} / "
+              f"{int(col('simulator').sum())} |")
 
 
 if __name__ == "__main__":

@@ -84,6 +84,26 @@ def test_edge_free_fraction_finds_first_collision():
     assert 0.43 < free[0] < 0.46  # the wall starts at x = -0.1, i.e. 45 % of the way
 
 
+def test_early_exit_checks_agree_with_checking_every_state():
+    rng = np.random.default_rng(0)
+    q_from = rng.uniform(-1.5, 1.5, (300, 2))
+    q_to = -q_from + rng.normal(0, 0.3, (300, 2))  # most cross x = 0: the wall or its gap
+    states, edge, k, n = oracle.interpolate_edges(q_from, q_to, 0.01)
+    hit = wall_with_gap(states)
+    first_hit = np.full(len(n), np.inf)
+    np.minimum.at(first_hit, edge[hit], k[hit])  # reference: every state checked
+    expected = (np.minimum(first_hit, n + 1) - 1) / n
+    np.testing.assert_array_equal(edge_free_fraction(q_from, q_to, wall_with_gap, 0.01), expected)
+    np.testing.assert_array_equal(oracle.edges_free(q_from, q_to, wall_with_gap, 0.01),
+                                  expected == 1.0)
+    assert 0 < np.mean(expected == 1.0) < 1  # both kinds of edges were tested
+    # and early exit does skip states: count the configurations checked
+    checked = []
+    counting = lambda q: checked.append(len(q)) or wall_with_gap(q)  # noqa: E731
+    edge_free_fraction(q_from, q_to, counting, 0.01)
+    assert sum(checked) < 0.75 * len(states)  # the wall is mid-edge: about half is past it
+
+
 class _NoMarginEnv:
     """The planar env's geometry behind an in_collision without the `margin` keyword."""
 
@@ -336,6 +356,41 @@ def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
         if terminated:
             break
     assert oracle_.clear(env, env.q[None])[0] or info["success"]
+
+
+@pytest.mark.parametrize("name, seed_index",
+                         [("planar", 0), ("planar", 3), ("planar", 7), ("engine3d", 0)])
+def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_index):
+    """The edge-validation argument (module docstring) on real scenes: checks spaced
+    s = 2 (margin - verify_margin) apart under the planning margin leave every state of the
+    path -- RRT-Connect's, then shortcut's, then smooth_corners' -- at least verify_margin
+    clear, re-checked 100x more densely than the planner checks."""
+    env = envs.make_env(name)
+    env.reset(seed=env.eval_seeds()[seed_index])
+    expert = Oracle()
+    sweep = expert.sweep(env)
+    margin, verify = expert.cfg.margin * sweep, expert.cfg.verify_margin * sweep
+    resolution = edge_resolution(env, 2 * (margin - verify))
+    collides = oracle.with_margin(env, margin)  # no relax zones: the argument holds everywhere
+    rng = np.random.default_rng(seed_index)
+    goals = solve_ik(env, env.goal, rng, q_start=env.q, in_collision=collides)
+    assert len(goals) and not collides(env.q[None])[0]  # the scene leaves room for the test
+    clear = lambda q: env.in_collision(q, margin=0.999 * verify)  # noqa: E731
+    dense = edge_resolution(env, 0.01 * 2 * (margin - verify))
+    path = rrt_connect(env.q, goals, collides, env.joint_limits, rng, resolution=resolution)
+    assert len(path) > 2  # a real search, not the straight line
+    assert not path_in_collision(path, clear, dense)
+    path = shortcut(path, collides, rng, resolution=resolution)
+    assert not path_in_collision(path, clear, dense)
+    path = smooth_corners(path, collides, resolution)
+    assert not path_in_collision(path, clear, dense)
+
+
+def test_oracle_rejects_margins_that_break_the_edge_validation_argument():
+    with pytest.raises(ValueError, match="margin > verify_margin"):
+        Oracle(OracleConfig(margin=0.5))  # checks 0 apart
+    with pytest.raises(ValueError, match="verify_margin"):
+        Oracle(OracleConfig(verify_margin=0.25))  # grazes between verification checks
 
 
 def test_plot_demonstration_writes_png(env, demo, tmp_path):
