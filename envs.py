@@ -252,6 +252,13 @@ class PlanarReacher:
             [2, l3 + palm_len + 0.5 * finger_len, finger_side, 0.5 * finger_len, 0.5 * finger_w],
             [2, l3 + palm_len + 0.5 * finger_len, -finger_side, 0.5 * finger_len, 0.5 * finger_w],
         ])
+        # R_j (dof,): no point of the arm is farther than this from joint j (the links beyond j
+        # stretched straight, plus the farthest box corner of each part from its own joint), so a
+        # joint step dq moves any point by at most sum_j R_j |dq_j| (oracle.py's check spacing).
+        corner = np.hypot(np.abs(self.parts[:, 1]) + self.parts[:, 3], np.abs(self.parts[:, 2]) + self.parts[:, 4])
+        link = self.parts[:, 0].astype(int)
+        self.lever_arms = np.array([max(self.link_lengths[j:k].sum() + corner[p]
+                                        for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
         self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
         self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)

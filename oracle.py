@@ -121,8 +121,11 @@ def lever_arms(env, n_probe=8):
     their maximum over the zero pose and a few probe poses (a fixed probe seed, so the bound is
     deterministic). If fk returns one point per joint plus the end effector, joint j sits at point
     j and R_j = sum of the segment lengths after it; otherwise every R_j = the total chain length
-    (the maximal reach), which is always a valid, if looser, bound.
+    (the maximal reach), which is always a valid, if looser, bound. An env whose bodies reach past
+    its fk points (the planar gripper's finger corners) gives the bound itself: env.lever_arms.
     """
+    if hasattr(env, "lever_arms"):  # an env that knows its body's extent beyond the chain points
+        return np.asarray(env.lever_arms, dtype=np.float64).copy()
     lo, hi = env.joint_limits
     probe_rng = np.random.default_rng(0)  # geometry probe only, not a planning decision
     qs = np.concatenate([np.zeros((1, env.dof)), probe_rng.uniform(lo, hi, (n_probe, env.dof))])

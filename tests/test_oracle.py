@@ -65,13 +65,18 @@ def assert_limits(samples, v0, v_max=V_MAX, a_max=A_MAX, j_max=J_MAX, dt=DT, at_
 # ---- geometry --------------------------------------------------------------------------------
 def test_lever_arms_and_resolution_bound_point_motion():
     env = envs.make_env("planar")
-    np.testing.assert_allclose(lever_arms(env), np.cumsum(env.link_lengths[::-1])[::-1])
+    # the finger corners reach past the chain points: 0.10 + 0.07 + 0.08 m along link 3, 0.0525 across
+    np.testing.assert_allclose(lever_arms(env), [0.55, 0.25, 0.0] + np.hypot(0.25, 0.0525))
     res = edge_resolution(env, 0.01)
     rng = np.random.default_rng(0)
     q = rng.uniform(*env.joint_limits, size=(2000, env.dof))
     dq = rng.normal(size=(2000, env.dof))
     dq /= np.sum(np.abs(dq) / res, axis=1, keepdims=True)  # exactly one check step apart
-    moved = np.linalg.norm(env.fk(q + dq) - env.fk(q), axis=-1).max()
+
+    def body_points(q):  # every box corner of every arm part, (B, 24, 2)
+        xs, ys = envs.box_corners(*env.part_boxes(q))
+        return np.stack([np.concatenate(xs).T, np.concatenate(ys).T], axis=-1)
+    moved = np.linalg.norm(body_points(q + dq) - body_points(q), axis=-1).max()
     assert moved <= 0.01 + 1e-12  # the lever-arm bound holds for every point of the arm
     assert moved > 0.005  # and is not absurdly loose
 
@@ -292,15 +297,16 @@ def test_demonstrate_is_deterministic(env, demo):
         np.testing.assert_array_equal(again[key], demo[key])
 
 
-def test_plan_fails_cleanly_when_the_goal_is_inside_a_closed_ring(env):
+def test_plan_fails_cleanly_when_the_goal_is_walled_off(env):
+    # a block in link 1's way at angle 0 and the shoulder's +-pi limit wall the arm off from every
+    # goal configuration (they all need the shoulder up): the search must give up, not hang
     env.reset(seed=env.eval_seeds()[0])
-    goal = np.array([0.6, 0.0])
-    angles = np.linspace(0, 2 * math.pi, 9)
-    pts = goal + 0.12 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    env.set_scene(np.concatenate([pts[:-1], pts[1:], np.full((8, 1), 0.03)], axis=1), goal)
+    env.set_scene([[0.25, 0.0, 0.035, 0.035, 0.0]], goal=[0.0, 0.45])
+    q_start = np.array([-math.pi / 2, 0.0, 0.0])
+    assert not env.in_collision(q_start) and np.all(env.goal_configurations()[:, 0] > 0)
     t0 = time.perf_counter()
     with pytest.raises(PlanningFailed):
-        Oracle(OracleConfig(max_iters=50)).plan(env, env.q, None, np.random.default_rng(0))
+        Oracle(OracleConfig(max_iters=50)).plan(env, q_start, None, np.random.default_rng(0))
     assert time.perf_counter() - t0 < 30.0  # returned, did not hang
 
 
@@ -359,22 +365,32 @@ def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
 
 
 @pytest.mark.parametrize("name, seed_index",
-                         [("planar", 0), ("planar", 3), ("planar", 7), ("engine3d", 0)])
+                         [("planar", 0), ("planar", 1), ("planar", 2), ("engine3d", 0)])
 def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_index):
     """The edge-validation argument (module docstring) on real scenes: checks spaced
     s = 2 (margin - verify_margin) apart under the planning margin leave every state of the
     path -- RRT-Connect's, then shortcut's, then smooth_corners' -- at least verify_margin
     clear, re-checked 100x more densely than the planner checks."""
     env = envs.make_env(name)
-    env.reset(seed=env.eval_seeds()[seed_index])
     expert = Oracle()
     sweep = expert.sweep(env)
     margin, verify = expert.cfg.margin * sweep, expert.cfg.verify_margin * sweep
     resolution = edge_resolution(env, 2 * (margin - verify))
     collides = oracle.with_margin(env, margin)  # no relax zones: the argument holds everywhere
     rng = np.random.default_rng(seed_index)
-    goals = solve_ik(env, env.goal, rng, q_start=env.q, in_collision=collides)
-    assert len(goals) and not collides(env.q[None])[0]  # the scene leaves room for the test
+    # the seed_index-th evaluation scene whose start is clear under the margin and whose path is no
+    # straight line (random starts are often within a few mm of something)
+    candidates = []
+    for seed in env.eval_seeds():
+        env.reset(seed=seed)
+        goals = solve_ik(env, env.goal, np.random.default_rng(seed_index), q_start=env.q, in_collision=collides)
+        if len(goals) and not collides(env.q[None])[0] and oracle.edge_free_fraction(
+                np.repeat(env.q[None], len(goals), 0), goals, collides, resolution).max() < 1.0:
+            candidates.append(seed)
+            if len(candidates) > seed_index:
+                break
+    env.reset(seed=candidates[seed_index])
+    goals = solve_ik(env, env.goal, np.random.default_rng(seed_index), q_start=env.q, in_collision=collides)
     clear = lambda q: env.in_collision(q, margin=0.999 * verify)  # noqa: E731
     dense = edge_resolution(env, 0.01 * 2 * (margin - verify))
     path = rrt_connect(env.q, goals, collides, env.joint_limits, rng, resolution=resolution)
