@@ -166,8 +166,10 @@ class Run:
         if os.path.exists(path):
             with open(path) as f:
                 old = json.load(f)
-            old["methods"] = tuple(old["methods"])
-            saved["methods"] = tuple(saved["methods"])
+            for key in ("methods", "down_dims"):  # JSON keeps tuples as lists
+                if key in old:
+                    old[key] = tuple(old[key])
+                saved[key] = tuple(saved[key])
             # a field added after the run started counts as unchanged if it has its default value
             defaults = {f.name: f.default for f in fields(Config)}
             changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}

@@ -8,7 +8,7 @@ import pytest
 
 import dagger
 
-TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, width=32,
+TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
                      methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                      calib_blend_episodes=1, calib_samples=2, eval_scenarios=3, eval_repeats=1)
@@ -137,7 +137,7 @@ def test_image_obs_flag_names_the_run_and_reaches_the_env():
 
 def test_evaluate_runs_an_image_policy_on_image_observations():
     """evaluate passes env_options to every env: the policy's obs_dim only matches with the image layout."""
-    cfg = replace(dagger.PROFILES["smoke"], env="engine3d", image_obs=True, image_size=8, K=4, width=32)
+    cfg = replace(dagger.PROFILES["smoke"], env="engine3d", image_obs=True, image_size=8, K=4, down_dims=(8, 16))
     env = dagger.make_run_env(cfg)
     policy = dagger.make_policy(cfg, env)
     obs, _ = env.reset(seed=int(env.train_seeds(1)[0]))
