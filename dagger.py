@@ -136,14 +136,13 @@ PROFILES = {
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
-    "quick": Config(name="quick", n_demos=100, rounds=2, lineages=1, episodes_per_round=40, oracle_attempts=1,
-                    K=20, down_dims=(16, 32, 64), batch_size=64, lr=1e-3, bc_steps=3000, finetune_steps=1500,
-                    methods=("bc", "hg_dagger", "fixed_4", "fixed_16", "pooled", "per_step", "closed_loop"),
-                    eval_scenarios=100, eval_repeats=1),
+    "quick": Config(name="quick", n_demos=200, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
+                    K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=400,
+                    methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
     # Between quick and paper: 3 lineages for the paired statistics, the fixed-sigma sweep where the paper
     # finds the best level. Lineages run in parallel with --prepare, then --lineage i, then --report (README).
     "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
-                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=40_000, finetune_steps=10_000,
+                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000, finetune_steps=10_000,
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "per_step"),
                   eval_scenarios=100, eval_repeats=3),
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
@@ -859,8 +858,8 @@ def parse_args(argv):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
-                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min), mid (~30 min per lineage), "
-                        "paper (Table I protocol)")
+                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min of one core), mid (BC ~45 min of "
+                        "one core, then 3 lineages), paper (Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
