@@ -485,8 +485,8 @@ class DiffusionPolicy(nn.Module):
     Normalization (min-max to [-1, 1], fitted on the dataset, saved with the weights). With
     cfg.joint_obs the policy uses that the observation starts with (q_t, q_{t-1}) (envs.py's layout):
       - the chunk is normalized relative to the current joint position, (a - q_t - center) / half. A chunk
-        moves at most H * max_step (0.8 rad planar) while the joints range over 2 pi: normalized over the
-        joint range, the motion that decides the path would be a small fraction of [-1, 1] and only the
+        moves at most H * max_step (1 rad planar: 20 steps of 0.05) while the joints range over 2 pi:
+        normalized over the joint range, the motion that decides the path would be a small fraction of [-1, 1] and only the
         last few diffusion steps would resolve it;
       - the velocity q_t - q_{t-1}, min-max normalized, is appended to the network's observation input; as
         the difference of two inputs of range 2 pi it would be a tiny signal for the first layer to find.
