@@ -1,10 +1,12 @@
 """Environments of the paper's experiments (Sec. V, Fig. 5, Table I).
 
-PlanarReacher: the 2D planar 3-link reacher of Sec. V. A 3-link arm with thick links (capsules)
-must bring its end effector to a goal position in a cluttered scene whose obstacles make narrow
-passages, so that the arm's own links are often what collides and it must sometimes take a
-roundabout route to untangle itself (the paper's description). Self-collision between
-non-adjacent links (link 0 vs link 2) counts.
+PlanarReacher: the planar 3-link reacher of Sec. V, built on the authors' setup (their code, read for
+../shared/PAPER_SETUP.md §1): three box links (0.30 / 0.25 / 0.10 m) and an open gripper move in a
+vertical plane among a 5 cm target block and two 7 cm obstacle blocks placed around the shoulder.
+From its start the arm must reach the target within 6 cm without touching an obstacle or itself
+(contact within 5 mm ends the episode); starts are often folded, so the arm must sometimes
+untangle its links first (the paper's description). It runs at 10 Hz (dt = 1/30 gives the authors'
+30 Hz) with their 0.5 rad/s joint speed limit and 33 s episodes.
 
 Every environment in this file has the same interface (gymnasium conventions, no dependency):
 
@@ -39,22 +41,22 @@ clearance(q) (signed distance), pybullet_in_collision(q), render_image(q) (a sma
 from pybullet's TinyRenderer), render_scene_image(env, path). With EngineConfig(image_obs=True) the
 observation ends with that image (obs_image(obs) reads it back), for the policy's CNN encoder.
 
-Step semantics (CONTRACT.md): q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
+Step semantics: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
 ValueError. An episode ends on success (goal reached, no collision), on collision (terminated),
 or after max_steps steps (truncated).
 
-Geometry (PlanarReacher): every body is a capsule = segment (p0, p1) plus radius. Obstacles are
-stored as one array (N, 5) of (x0, y0, x1, y1, radius) -- a disc is a zero-length capsule. This one
-definition feeds both
-  * the pymunk space (the simulator): kinematic link bodies with pymunk.Segment shapes, static
-    obstacle shapes, contacts from space.shape_query -- used by step();
-  * the vectorized numpy check `in_collision` (segment-segment distances) -- used by planners,
-    relabeling and evaluation, which need millions of checks.
-The two agree (tests/test_envs.py): on 12,000 random configurations in 4 scenes, and 1e-9 rad on
-either side of contact-boundary points found by bisection (tested down to 1e-10 rad on 1,575
-boundary points: no disagreement). Known exception, of measure zero: exactly collinear capsules,
-for which pymunk's GJK reports a zero-depth contact.
+Geometry (PlanarReacher): every body is an oriented box (centre, half extents, angle). The arm's six
+boxes (three links, a palm, two fingers) are given in their links' frames by PlanarReacher.parts;
+obstacles are one array (N, 5) of (centre x, y, half x, half y, angle). This one definition feeds both
+  * the pymunk space (the simulator): kinematic link bodies carrying pymunk.Poly boxes, static
+    obstacle boxes, every polygon rounded by half the contact margin, contacts from
+    space.shape_query -- used by step();
+  * the vectorized numpy check `in_collision` (exact box distances, `box_distance`) -- used by
+    planners, relabeling and evaluation, which need millions of checks.
+The two agree (tests/test_envs.py): on 12,000 random configurations in 4 scenes, and 1e-7 rad on
+either side of contact-boundary points found by bisection. Known exception, of measure zero: a box
+centred exactly across a link, for which pymunk reports a contact of depth 0 (counted as contact).
 
 Episode files: save_episodes / load_episodes (one .npz, ragged arrays concatenated with offsets);
 median_step(episodes) gives the paper's "median step size" unit of noise levels (Sec. V).
