@@ -137,7 +137,7 @@ PROFILES = {
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
     "quick": Config(name="quick", n_demos=200, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
-                    K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=400,
+                    K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=300,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
     # Between quick and paper: 3 lineages for the paired statistics, the fixed-sigma sweep where the paper
     # finds the best level. Lineages run in parallel with --prepare, then --lineage i, then --report (README).
