@@ -47,13 +47,17 @@ def test_markers_parse_and_regions_are_disjoint():
         assert all(a[1] < b[0] for a, b in zip(spans, spans[1:]))
 
 
-def run_blanked(n, folder):
-    """Blank exercise n into folder/, run its test there; returns (holes all there, returncode, output)."""
+def blank_copy(n, folder):
+    """Blank exercise n into folder/; returns (the copy, whether every region became exactly one raise)."""
     copy = folder / f"exercise_{n}"
-    blanked = make_student_copy(n, copy)
+    make_student_copy(n, copy)
     wanted = Counter((r.path, hole(r)) for r in TABLE[n])
     found = Counter({(path, line): (copy / path).read_text().splitlines().count(line) for path, line in wanted})
-    holes = wanted == found                                # every region became exactly one raise
+    return copy, wanted == found
+
+
+def run_test(n, copy, holes):
+    """Run exercise n's test in its blanked copy; returns (holes all there, returncode, output)."""
     test_file = next(HERE.glob(f"test_exercise_{n}_*.py")).relative_to(ROOT)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}   # import the copy's modules, not ours
     env[IN_COPY] = "1"
@@ -64,12 +68,16 @@ def run_blanked(n, folder):
 
 @pytest.fixture(scope="module")
 def blanked_runs(request, tmp_path_factory):
-    """Futures of run_blanked for the exercises selected in this session, WORKERS at a time."""
+    """Futures of run_test for the exercises selected in this session, WORKERS at a time. The copies are
+    made first, in this thread: make_student_copy checks each blanked file with ast.parse, and CPython 3.11
+    can fail ("AST constructor recursion depth mismatch") when two threads build ASTs at once -- pytest's
+    assertion rewriting does, in the main thread, while other test modules are imported."""
     wanted = sorted({item.callspec.params["n"] for item in request.session.items
                      if getattr(item, "originalname", None) == "test_blanked_exercise_fails_its_test"})
     folder = tmp_path_factory.mktemp("student_copies")
+    copies = {n: blank_copy(n, folder) for n in wanted}
     with ThreadPoolExecutor(WORKERS) as pool:
-        yield {n: pool.submit(run_blanked, n, folder) for n in wanted}
+        yield {n: pool.submit(run_test, n, *copies[n]) for n in wanted}
 
 
 @pytest.mark.skipif(os.environ.get(IN_COPY) == "1", reason="inside a student copy: no recursion")
