@@ -674,6 +674,8 @@ class PlanarReacher:
             ax.set_xlim(self.base[0] - reach, self.base[0] + reach)
             ax.set_ylim(self.base[1] - reach, self.base[1] + reach)
             ax.set_aspect("equal")
+            ax.set_xlabel("x [m]")
+            ax.set_ylabel("z [m]")  # the arm's vertical plane (the URDF's x-z)
         q = self._q if q is None else q
         q = np.atleast_2d(q)
         cx, cy, c, s, hx, hy = self.part_boxes(q)  # (n_parts, B) each
