@@ -8,13 +8,18 @@ DART (Sec. II-A) picks the noise of its augmentation from two statistics of the 
 The paper measures both offline, without an expert in the loop (Sec. IV-D):
 
 1. `open_loop_sigma` - Sigma_hat_t of Eq. (1) at every other step of the recorded expert data: the
-   policy sees the recorded observation, samples action chunks, and they are compared with the
-   expert's future actions (Fig. 2a).
+   policy sees the recorded observation, samples action chunks, and the n_act actions it would
+   execute are compared with the expert's future actions (Fig. 2a).
 2. `blend_rollouts` - closed-loop rollouts in the simulator where each chunk is partial-denoised
-   toward the time-matched expert chunk at blend ratio beta (Sec. IV-B); their settling error x
-   against sigma^2_{k_sw} = 1 - alphabar_{k_sw} follows the equilibrium of Eqs. (8)-(12) (Fig. 2b).
-3. `equilibrium`, `fit_equilibrium` - Eq. (12), x = W s / (s + r (1 - s)), fitted for the policy's
-   settling error W and the gain ratio r = K*/K_theta (Fig. 4).
+   toward the expert at blend ratio beta (Sec. IV-B). The expert chunk is found by a monotone
+   cursor on the expert segment (`advance_cursor`: the nearest expert state in a window, never
+   back, at most one index per step), so a rollout that moves at another pace is still compared
+   with where it is on the path. Its settling error x is the RMS distance to the nearest expert
+   state over a fixed window of steps; a rollout is discarded if that distance ever reaches the
+   divergence threshold or it is too short (`settling_error`, Fig. 2b).
+3. `equilibrium`, `fit_equilibrium`, `bootstrap_W` - Eq. (12), x = W s / (s + r (1 - s)) against
+   s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, fitted for the policy's settling error W and the gain
+   ratio r = K*/K_theta, with a bootstrap interval for W (Fig. 4).
 4. `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) turns Eq. (2) into
    Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t (Eq. 14, Fig. 2c) and its pooled form
    Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
@@ -49,22 +54,31 @@ from partial_denoise import noise_fraction, partial_denoise
 
 @dataclass
 class CalibrationConfig:
-    stride: int = 2                      # Sigma_hat_t at every other valid step (paper Fig. 2a)
-    n_samples: int = 8                   # policy chunks sampled per step for Eq. (1)
+    """The authors' protocol (PAPER_SETUP.md Sec. 5), converted from their 30 Hz to our env's 10 Hz
+    (envs dt = 0.1 s): a count of their frames becomes a third as many of our steps."""
+    stride: int = 2                      # Sigma_hat_t at every other valid step (paper Fig. 2a; authors: every other frame)
+    n_samples: int = 4                   # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
+    n_act: int = 10                      # actions executed per decision, and compared in Eq. (1): the authors
+                                         # execute 32 frames of a chunk (~1.07 s) = 10.7 steps, our H = 20 chunks run 10
     betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each (Sec. IV-D)
     rollouts_per_beta: int = 1           # the paper rolls out each ratio once. A weak policy's rollouts at the larger
-                                         # ratios diverge and are discarded, leaving 2-4 points and a W that swings
-                                         # with the seed (6 to 27 median steps, or a capped extrapolation, for one
-                                         # pi_0 and one D_1 of the mid profile); more rollouts per ratio steady it
-    n_act: int = 8                       # actions executed per decision in closed loop (as in the DAgger loop)
+                                         # ratios diverge and are discarded, leaving few points and a W that swings
+                                         # with the seed; more rollouts per ratio steady it
     blend_segments: int = 4              # blend rollouts start from this many of the longest expert segments
                                          # (beta i from segment i mod n): long, so that they settle; several,
                                          # so that W is not one intervention's idiosyncrasy
-    diverge_threshold: float = 30.0      # a rollout whose joint deviation norm ever exceeds this many
-                                         # median steps has left the expert's route: discarded (Sec. IV-D);
-                                         # kept planar rollouts of a trained policy stay under ~20
+    settle_window: int = 16              # the nearest expert state is searched within this many steps around
+                                         # the cursor (authors: 48 frames / 3 = 16 steps)
+    settle_start: int = 13               # settling error = RMS over steps [settle_start, settle_end] of a rollout
+    settle_end: int = 40                 # (authors: frames 40-120 / 3 = steps 13-40): after the transient
+    diverge_threshold: float = 15.0      # a rollout whose nearest-state distance ever reaches this many median
+                                         # steps has left the expert's route: discarded (authors: 15 median steps;
+                                         # median steps are per step, so the number does not change with the rate)
+    min_rollout_steps: int = 20          # rollouts that recorded fewer steps are discarded (authors: 60 frames / 3)
     discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop:
                                          # in these narrow passages nearly all of them do)
+    bootstrap: int = 200                 # resamples of the kept (s, x) points for W's 95 % interval (authors: bootstrap)
+    bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
     closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
     closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
@@ -145,14 +159,19 @@ class StepCovariances:
     timestep: np.ndarray        # (M,) step t inside that episode
 
 
-def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: int = 8,
-                    generator: torch.Generator | None = None, max_batch: int = 2048) -> StepCovariances:
+def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: int = 4,
+                    generator: torch.Generator | None = None, max_batch: int = 2048,
+                    n_act: int | None = None) -> StepCovariances:
     """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
 
     At step t the policy sees the recorded observation obs[t] and samples `n_samples` chunks; with
-    d = sampled chunk - expert chunk actions[t:t+H] (both (H, dof)),
+    d = sampled chunk - expert chunk actions[t:t+H] over the first n_act (executed) steps (n_act, dof),
 
-        Sigma_hat_t = mean over samples and chunk steps of d d^T          (dof, dof)
+        Sigma_hat_t = mean over samples and executed chunk steps of d d^T     (dof, dof)
+
+    Only the executed steps count, as in the authors' protocol: the rest of a chunk is re-planned
+    before it runs, so its error never reaches the robot. n_act defaults to policy.cfg.n_act (all H
+    steps for a policy without one).
 
     This is DART's Eq. (1) with expectation over the policy's sampling noise: it is *uncentered*
     (the mean error is included, as in Eq. (1), which compares with the expert action, not with the
@@ -162,6 +181,9 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
     if stride < 1 or n_samples < 1:
         raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
     H = policy_horizon(policy)
+    n_act = int(getattr(policy.cfg, "n_act", H)) if n_act is None else int(n_act)
+    if not 1 <= n_act <= H:
+        raise ValueError(f"n_act must be in 1..H = {H}, got {n_act}")
     obs_rows, chunks, ep_idx, steps = [], [], [], []
     for e, ep in enumerate(episodes):
         starts = label_starts(ep, H)
@@ -180,9 +202,9 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
     samples = _sample_batched(policy, obs, generator, max_batch).astype(np.float64)
     M, dof = len(obs_rows), samples.shape[-1]
     samples = samples.reshape(M, n_samples, H, dof)                             # (M, n, H, dof)
-    d = samples - np.stack(chunks)[:, None]                                     # (M, n, H, dof)
-    # Eq. (1): mean over samples and chunk steps of the outer product d d^T
-    sigma = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * H)                 # (M, dof, dof)
+    d = (samples - np.stack(chunks)[:, None])[:, :, :n_act]                     # (M, n, n_act, dof): executed steps
+    # Eq. (1): mean over samples and executed chunk steps of the outer product d d^T
+    sigma = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)             # (M, dof, dof)
     return StepCovariances(sigma, np.asarray(ep_idx, dtype=np.int64), np.asarray(steps, dtype=np.int64))
     # <<< exercise 5
 
@@ -191,46 +213,98 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
 # Step 2: closed-loop rollouts guided toward the expert (blended trajectories)
 # ----------------------------------------------------------------------------------------------
 
+def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
+    """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of
+    the cursor -> (its index, the joint-space distance ||q - q*_j|| in radians).
+
+    The window holds only recorded expert states: near the segment's ends it is cut, not padded.
+    """
+    lo, hi = max(cursor - window // 2, 0), min(cursor + window // 2 + 1, len(expert_q))
+    dist = np.linalg.norm(expert_q[lo:hi] - q, axis=-1)                       # (w,)
+    j = int(np.argmin(dist))
+    return lo + j, float(dist[j])
+
+
+def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
+    """One env step of the monotone, windowed nearest-state projection onto the expert segment.
+
+    The cursor moves toward the nearest expert state in the window, but never back and at most one
+    index per step (a rollout that lags holds it, one that runs ahead moves it one index a step).
+    Returns (the new cursor, the distance from q to the nearest expert state around it).
+    """
+    j, _ = nearest_expert_state(q, expert_q, cursor, window)
+    cursor = min(max(j, cursor), cursor + 1)                                 # monotone, <= 1 index per step
+    _, distance = nearest_expert_state(q, expert_q, cursor, window)
+    return cursor, distance
+
+
+def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """`advance_cursor` along a whole recorded trajectory (n + 1, dof), the cursor starting at 0.
+
+    Returns the cursor (n + 1,) and the nearest-state distance (n + 1,) at every step; this is what
+    `_closed_loop` computes online, step by step, for rollouts.
+    """
+    cursor = np.zeros(len(trajectory), dtype=np.int64)
+    distance = np.zeros(len(trajectory))
+    distance[0] = nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
+    for i in range(1, len(trajectory)):
+        cursor[i], distance[i] = advance_cursor(trajectory[i], expert_q, int(cursor[i - 1]), window)
+    return cursor, distance
+
+
 @dataclass
 class Rollouts:
-    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ)."""
-    trajectory: np.ndarray      # (B, L + 1, dof) joint positions; entries past n_recorded repeat the last
+    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ).
+
+    Entries of the (B, L + 1) and (B, L + 1, dof) arrays past a rollout's n_recorded repeat its last one.
+    """
+    trajectory: np.ndarray      # (B, L + 1, dof) joint positions
     reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
     n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
-    n_recorded: np.ndarray      # (B,) steps executed (a rollout stops early on divergence, collision, success)
-    diverged: np.ndarray        # (B,) True if the deviation norm ever exceeded the threshold
+    n_recorded: np.ndarray      # (B,) steps executed (a rollout stops early on divergence, or on contact)
+    diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
     collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself at some step
+    discard_collisions: bool = False    # True: a contact counts as leaving the route (see _closed_loop)
+    cursor: np.ndarray | None = None    # (B, L + 1) expert index the monotone projection assigned to each step
+    nearest_error: np.ndarray | None = None   # (B, L + 1) distance to the nearest expert state in the window (rad)
+    min_steps: int = 0                  # rollouts that recorded fewer steps are discarded
 
     @property
     def deviation(self) -> np.ndarray:
+        """Deviation from the time-matched expert state (not the nearest one)."""
         return self.trajectory - self.reference                              # (B, L + 1, dof)
 
-    discard_collisions: bool = False   # True: a contact counts as leaving the route (see _closed_loop)
+    @property
+    def too_short(self) -> np.ndarray:
+        return self.n_recorded < self.min_steps                              # (B,)
 
     @property
     def discarded(self) -> np.ndarray:
-        """True for rollouts that left the expert's route (Sec. IV-D discards them)."""
-        return self.diverged | (self.collided & self.discard_collisions)
+        """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
+        return self.diverged | self.too_short | (self.collided & self.discard_collisions)
 
 
 def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                 diverge_threshold: float, stop_on_collision: bool = False) -> Rollouts:
-    """One closed-loop rollout per job (episode, segment), time-matched to that segment's expert.
+                 diverge_threshold: float, stop_on_collision: bool = False,
+                 window: int = CalibrationConfig.settle_window, min_steps: int = 0) -> Rollouts:
+    """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
-    Rollout b starts at the segment's first recorded state and runs for the segment's length. At
-    every decision (each n_act steps) chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the
-    chunks of all live rollouts in ONE call (expert = each rollout's time-matched future expert
-    chunk, padded past the segment end); each rollout executes its first n_act actions with
-    env.step. One env serves all rollouts: a rollout's state is put back with set_state, and the
-    scenario is switched with reset(seed) only when the seed changes (rollouts grouped by seed).
-    A rollout stops at the first step whose joint-deviation norm exceeds diverge_threshold
+    Rollout b starts at the segment's first recorded state and runs for the segment's length. After
+    every env step a cursor on the segment advances by `advance_cursor` (monotone, at most one index
+    per step, nearest state within `window` steps). At every decision (each n_act steps)
+    chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE
+    call (expert = the expert's chunk from the cursor on, padded past the segment end); each rollout
+    executes its first n_act actions with env.step. One env serves all rollouts: a rollout's state
+    is put back with set_state, and the scenario is switched with reset(seed) only when the seed
+    changes (rollouts grouped by seed).
+    A rollout stops at the first step whose nearest-state distance reaches diverge_threshold
     (radians) - it has left the expert's route - and, if stop_on_collision, at its first contact.
     By default a contact is only recorded: the env's state is kinematic (env.step moves the arm
     whether or not it touches), so the deviation from the expert stays well defined, and in these
     cluttered scenes the oracle's paths pass obstacles so closely that a deviation of a few median
     steps already grazes one - measured on the planar env, 12 of 13 blend rollouts of a trained
-    policy touched an obstacle, one at beta = 0.05 with a largest deviation of 3.6 median steps,
-    none diverged. Stopping (and discarding) them would keep only the luckiest rollouts.
+    policy touched an obstacle, one at beta = 0.05 with a largest deviation of 3.6 median steps.
+    Stopping (and discarding) them would keep only the luckiest rollouts.
     """
     B = len(jobs)
     lengths, refs, q0, q_prev0 = [], [], [], []
@@ -240,7 +314,7 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
         if n < 1:
             raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
         lengths.append(n)
-        refs.append(q_exp[start:start + n + 1])
+        refs.append(q_exp[start:start + n + 1])       # (n + 1, dof): the expert states the cursor moves on
         q0.append(q_exp[start])
         q_prev0.append(q_exp[max(start - 1, 0)])
     L = max(lengths)
@@ -249,6 +323,8 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
     q, q_prev = np.stack(q0), np.stack(q_prev0)                               # (B, dof) each
     n_steps = np.asarray(lengths, dtype=np.int64)
     n_recorded = np.zeros(B, dtype=np.int64)
+    cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
+    nearest_error = np.zeros((B, L + 1))                                     # (B, L + 1), 0 at the start
     diverged = np.zeros(B, dtype=bool)
     collided = np.zeros(B, dtype=bool)
     live = np.ones(B, dtype=bool)
@@ -276,8 +352,10 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
         rows = np.flatnonzero(live)
         if len(rows) == 0:
             break
+        # the expert chunk from where the cursor is on the segment (not from step start + t)
         expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
-                                        jobs[b][1][0] + t, horizon, jobs[b][1][1]) for b in rows])
+                                        jobs[b][1][0] + int(cursor[b, t]), horizon, jobs[b][1][1])
+                           for b in rows])                                   # (b, H, dof)
         chunks = chunk_fn(obs[rows], expert, rows)                           # (b, H, dof), one call
         for seed in np.unique(seeds[rows]):
             use_scenario(seed)
@@ -291,29 +369,37 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     traj[b, i:] = env.q
                     n_recorded[b] = i
                     collided[b] |= bool(info["collision"])
-                    diverged[b] = np.linalg.norm(env.q - reference[b, i]) > diverge_threshold
+                    c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
+                    cursor[b, i:], nearest_error[b, i:] = c, err
+                    diverged[b] = err >= diverge_threshold
                     if diverged[b] or (collided[b] and stop_on_collision):
                         live[b] = False
                         break
                 q[b], q_prev[b] = env.q, env.q_prev
                 obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, stop_on_collision)
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, stop_on_collision,
+                    cursor, nearest_error, min_steps)
 
 
-def settling_error(rollouts: Rollouts) -> np.ndarray:
-    """x of Eq. (12) per rollout: RMS joint-deviation norm over the second half of the rollout.
+def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
+                   settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
+    """x of Eq. (12) per rollout: RMS nearest-state distance over steps [settle_start, settle_end].
 
-    sqrt(mean_t ||q_t - q*_t||^2) over the recorded steps t in (n/2, n]: the first half is the
-    transient from the expert state toward the blend's equilibrium, the second half is the settled
-    error. Norm, not per joint: see `fit_equilibrium`.
+    sqrt(mean_t e_t^2), e_t = distance from q_t to the nearest expert state around the cursor
+    (`advance_cursor`), over the recorded steps t in the window: the steps before it are the
+    transient from the expert state toward the blend's equilibrium. A rollout that stopped before
+    settle_start (always discarded, see min_rollout_steps) gets the RMS over all its steps, for the
+    figure. Norm, not per joint: see `fit_equilibrium`.
     """
-    dev = rollouts.deviation
-    x = np.zeros(len(dev))
+    if rollouts.nearest_error is None:
+        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
+    x = np.zeros(len(rollouts.n_recorded))
     for b, n in enumerate(rollouts.n_recorded):
-        if n == 0:
-            continue
-        window = dev[b, n // 2 + 1:n + 1]                                    # (steps, dof)
-        x[b] = math.sqrt(float(np.mean(np.sum(window ** 2, axis=-1))))
+        e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
+        if len(e) == 0:
+            e = rollouts.nearest_error[b, 1:n + 1]
+        if len(e):
+            x[b] = math.sqrt(float(np.mean(e ** 2)))
     return x
 
 
@@ -322,22 +408,24 @@ class BlendRollouts:
     """Blended rollouts and the points (s, x) they give for the fit of Eq. (12)."""
     betas: np.ndarray           # (B,) blend ratios
     s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
-    x: np.ndarray               # (B,) settling error (radians, joint-deviation norm)
-    kept: np.ndarray            # (B,) False for discarded rollouts (diverged; or touched, if discard_collisions)
+    x: np.ndarray               # (B,) settling error (radians, nearest-state distance)
+    kept: np.ndarray            # (B,) False for discarded rollouts (diverged, too short; or touched, if discard_collisions)
     rollouts: Rollouts
 
 
-def blend_rollouts(env, policy, episode: dict, betas, n_act: int = 8,
-                   generator: torch.Generator | None = None, diverge_threshold: float = 0.8,
-                   segment: tuple[int, int] | None = None, discard_collisions: bool = False) -> BlendRollouts:
+def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationConfig.n_act,
+                   generator: torch.Generator | None = None, diverge_threshold: float = 0.4,
+                   segment: tuple[int, int] | None = None, discard_collisions: bool = False,
+                   cfg: CalibrationConfig | None = None) -> BlendRollouts:
     """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
 
     From the segment's first state (default: the episode's longest expert segment) every decision
-    calls partial_denoise(policy, obs, expert actions[t:t+H], beta) - one call for all betas - and
-    executes the first n_act actions. diverge_threshold is in radians (joint-deviation norm; the
-    default 0.8 is about 30 median steps of the planar oracle demos). Rollouts that exceed it are
-    marked not kept, as in the paper ("we discard the blended trajectories that diverge"); contacts
-    only when discard_collisions (see `_closed_loop` for why not by default).
+    calls partial_denoise(policy, obs, expert chunk at the cursor, beta) - one call for all betas -
+    and executes the first n_act actions. diverge_threshold is in radians (nearest-state distance;
+    the default 0.4 is about 15 median steps of the planar oracle demos). Rollouts that reach it, or
+    record fewer than cfg.min_rollout_steps steps, are marked not kept, as in the paper ("we discard
+    the blended trajectories that diverge"); contacts only when discard_collisions (see
+    `_closed_loop` for why not by default). cfg gives the window and the settling steps.
     """
     H = policy_horizon(policy)
     if segment is None:
@@ -347,12 +435,13 @@ def blend_rollouts(env, policy, episode: dict, betas, n_act: int = 8,
         segment = max(segments, key=lambda se: se[1] - se[0])
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_threshold,
-                  discard_collisions)
+                  discard_collisions, cfg)
 
 
 def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_threshold: float,
-           discard_collisions: bool = False) -> BlendRollouts:
+           discard_collisions: bool = False, cfg: CalibrationConfig | None = None) -> BlendRollouts:
     """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b]."""
+    cfg = cfg or CalibrationConfig()
     if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
         raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
 
@@ -360,9 +449,15 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
 
     roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_threshold,
-                        discard_collisions)
-    s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # sigma^2_{k_sw} per beta
-    return BlendRollouts(betas, s, settling_error(roll), ~roll.discarded, roll)
+                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps)
+    # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K) the paper step partial_denoise
+    # switches at (alphabar_0 = 1): the noise our sampler actually injects. The authors' code reads
+    # 1 - alphabar at 0-based index round(beta (K - 1)) of their K-array, their sampler's switch; in
+    # our 0-based terms that index is round(beta K) - 1 or one more, the same at beta = 1 (s = 1 -
+    # alphabar_K): the two differ by at most one diffusion step, and s must match our sampler.
+    s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
+    x = settling_error(roll, cfg.settle_start, cfg.settle_end)
+    return BlendRollouts(betas, s, x, ~roll.discarded, roll)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -478,6 +573,32 @@ def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
     return (a + b) / 2
 
 
+def bootstrap_W(s, x, n_resamples: int = CalibrationConfig.bootstrap,
+                seed: int = CalibrationConfig.bootstrap_seed) -> tuple[float, float] | None:
+    """95 % bootstrap interval of the fitted W: refit Eq. (12) on n_resamples resamples of the points
+    (s_i, x_i) drawn with replacement, and take the 2.5 and 97.5 percentiles of their W.
+
+    Deterministic for a fixed seed (numpy Generator). A resample with too few distinct s to fit is
+    skipped. None with fewer than 3 points or when no resample could be fitted.
+    """
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if len(s) < 3 or n_resamples < 1:
+        return None
+    rng = np.random.default_rng(seed)
+    Ws = []
+    for _ in range(n_resamples):
+        idx = rng.integers(0, len(s), len(s))                                # (n,) with replacement
+        try:
+            Ws.append(fit_equilibrium(s[idx], x[idx]).W)
+        except ValueError:                                                  # e.g. one distinct s drawn
+            continue
+    if not Ws:
+        return None
+    lo, hi = np.percentile(Ws, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
 # ----------------------------------------------------------------------------------------------
 # Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
 # ----------------------------------------------------------------------------------------------
@@ -541,8 +662,8 @@ def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
 # Step 5: the closed-loop variant (Table I, last row)
 # ----------------------------------------------------------------------------------------------
 
-def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
-                      generator: torch.Generator | None = None, diverge_threshold: float = 0.8,
+def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
+                      generator: torch.Generator | None = None, diverge_threshold: float = 0.4,
                       max_segments: int | None = None, discard_collisions: bool = False) -> np.ndarray | None:
     """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
 
@@ -551,7 +672,7 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
     policy.sample) runs in closed loop in the simulator for the segment's length; every executed
     step contributes the outer product of its state deviation from the time-matched expert state,
     d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
-    first diverged step (that step excluded; with discard_collisions also at its first contact), so
+    first diverged step (nearest-state distance at the threshold, as in `blend_rollouts`) (that step excluded; with discard_collisions also at its first contact), so
     a policy that takes another route only contributes its deviations while it still follows the
     expert's. diverge_threshold in radians, as in `blend_rollouts`. Scale the result with
     `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All rollouts
@@ -569,7 +690,8 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = 8,
     roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_threshold,
                         discard_collisions)
     # executed steps 1..n of each rollout, without the step that diverged or collided
-    last = roll.n_recorded - roll.discarded.astype(np.int64)
+    cut = roll.diverged | (roll.collided & roll.discard_collisions)          # (B,) last step was a bad one
+    last = roll.n_recorded - cut.astype(np.int64)
     steps = np.arange(roll.trajectory.shape[1])[None]
     used = (steps >= 1) & (steps <= last[:, None])                           # (B, L + 1)
     d = roll.deviation[used]                                                 # (n, dof)
@@ -598,17 +720,20 @@ class Calibration:
     blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
     blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
     blend_x: np.ndarray             # (B,) their settling errors (radians)
-    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged)
+    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged or too short)
     blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
     blend_start: np.ndarray         # (B,) first step of that segment
     sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
+    W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
 
     def __post_init__(self):
         if self.sigma_per_joint is None:
             self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
+        if self.W_ci is not None:
+            self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
 
     def to_dict(self) -> dict:
-        """Plain lists and numbers, for json.dump."""
+        """Plain lists and numbers, for json.dump (from_dict also reads dicts written before W_ci)."""
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
 
     @classmethod
@@ -629,7 +754,10 @@ class Calibration:
 
     def report(self) -> str:
         """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V)."""
-        lines = [f"W = {self.W / self.median_step:.2f} median steps (||W||, {self.fit_note}"
+        ci = ("" if self.W_ci is None else
+              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
+              f"{self.W_ci[1] / self.median_step:.2f}, ")
+        lines = [f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
                  + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
                  f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)}",
                  "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
@@ -653,8 +781,9 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     otherwise impossible), W is set to the open-loop error, ||W||^2 = tr(Sigma_bar) - i.e. Sigma^alpha
     = Sigma_hat unscaled - r is None, and fit_note says why. A fitted W above the divergence
     threshold (cfg.diverge_threshold median steps) is capped at it (fit_note says so and gives the
-    fitted value). If every closed-loop rollout fails on its first step, closed_loop_pooled is the
-    open-loop pooled Sigma_bar^alpha (also noted).
+    fitted value). W_ci is W's 95 % bootstrap interval (`bootstrap_W`, cfg.bootstrap resamples of
+    the kept points, capped like W; None on fallback). If every closed-loop rollout fails on its
+    first step, closed_loop_pooled is the open-loop pooled Sigma_bar^alpha (also noted).
     """
     cfg = cfg or CalibrationConfig()
     if not median_step > 0:
@@ -663,7 +792,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
 
     # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
-    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch)
+    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
 
     # Step 2 (Fig. 2b): blended rollouts, beta i from the (i mod n)-th longest segment, all batched
     segs = _segments_longest_first(episodes, H)[:max(1, cfg.blend_segments)]
@@ -672,7 +801,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     blend_beta = np.tile(np.asarray(cfg.betas, dtype=np.float64), cfg.rollouts_per_beta)
     chosen = [segs[i % len(segs)] for i in range(len(blend_beta))]
     blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold, cfg.discard_collisions)
+                   generator, threshold, cfg.discard_collisions, cfg)
     blend_s, blend_x, blend_kept = blend.s, blend.x, blend.kept
 
     # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
@@ -689,9 +818,12 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
             note = (f"fit, W capped at the divergence threshold (the fit extrapolated to "
                     f"{W / median_step:.0f} median steps)")
             W = threshold
+        # 95 % bootstrap interval of W, capped like W (beyond the threshold the data say only ">=")
+        ci = bootstrap_W(blend_s[blend_kept], blend_x[blend_kept], cfg.bootstrap, cfg.bootstrap_seed)
+        W_ci = None if ci is None else (min(ci[0], threshold), min(ci[1], threshold))
     except ValueError as err:
         W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
-        r, note = None, f"fallback: W from the open-loop error ({err})"
+        r, note, W_ci = None, f"fallback: W from the open-loop error ({err})", None
 
     # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
     sigma_alpha = calibrated_sigma(steps.sigma, W)
@@ -713,7 +845,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
                        closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=blend_s,
                        blend_x=blend_x, blend_kept=blend_kept,
                        blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
-                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64))
+                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -721,7 +853,8 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
 # ----------------------------------------------------------------------------------------------
 
 def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12) and W."""
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
+    95 % bootstrap interval (an error bar at s = 1)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -734,13 +867,18 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
                label=f"blended rollouts ({int(kept.sum())})")
     if np.any(~kept):
         ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
-                   label=f"diverged, discarded ({int((~kept).sum())})")
+                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
     if c.r is not None:
         s = np.linspace(0.0, 1.0, 201)
         ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
                 label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
     ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
                label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
+    if c.W_ci is not None:
+        lo, hi = c.W_ci[0] / unit, c.W_ci[1] / unit
+        ax.errorbar([1.0], [c.W / unit], yerr=[[max(c.W / unit - lo, 0.0)], [max(hi - c.W / unit, 0.0)]],
+                    fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
+                    label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
     ax.set_xlim(0, 1)
     ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
     ax.set_ylabel("settling error [median steps]")
@@ -778,7 +916,7 @@ def _draw_ellipses(ax, env, q: np.ndarray, sigma: np.ndarray, color, n_std: floa
 
 def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
                          betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
-                         n_act: int = 8, diverge_threshold: float = CalibrationConfig.diverge_threshold,
+                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
                          generator: torch.Generator | None = None) -> None:
     """Fig. 2, panels (a)-(d), on one planar intervention (end-effector plane, 2-sigma ellipses).
 
@@ -807,7 +945,8 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
     samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
     d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
-    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * H)          # Eq. (1), (m, dof, dof)
+    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
+    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
     blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
                            diverge_threshold * calibration.median_step, (start, end))
 

@@ -77,7 +77,12 @@ class Config:
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
-    episodes_per_round: int = 100  # HG-DAgger rollouts on fresh training scenarios per round
+    # Where HG-DAgger collects (PAPER_SETUP.md §4): 'eval', the authors' protocol -- each round rolls the
+    # lineage's current policy on the evaluation scenarios, skips those its evaluation solved every time,
+    # and records interventions on the rest, so the evaluation scenarios enter the training data; or
+    # 'train', the stricter variant -- episodes_per_round fresh training scenarios.
+    collect_on: str = "eval"
+    episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     # --- policy and training ---
     # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
@@ -92,13 +97,16 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256
     lr: float = 1e-3
-    aug_fraction: float = 0.5  # share of each batch drawn from the augmented data (co-training)
+    # The authors' co-training (PAPER_SETUP.md §2): every fine-tuning batch is D0 and, in exactly this share,
+    # intervention frames, split equally over rounds 1..k; the noised methods noise every intervention frame
+    # they draw (relabel.AugmentationSampler) and never D0.
+    intervention_fraction: float = 0.3
     # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
     # --- calibration (Sec. IV-D) ---
     calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
-    calib_samples: int = 8  # policy samples per open-loop timestep
+    calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4)
     calib_rollouts_per_beta: int = 1  # blended rollouts per blend ratio (paper: 1; see calibrate.CalibrationConfig)
     # --- evaluation (Sec. V) ---
     eval_scenarios: int = 100  # the fixed held-out scenarios
@@ -125,6 +133,10 @@ class Config:
                              f"got env={self.env!r}")
         if self.image_size < 8:
             raise ValueError(f"image_size must be >= 8 pixels, got {self.image_size}")
+        if self.collect_on not in ("eval", "train"):
+            raise ValueError(f"collect_on must be 'eval' (the paper's protocol) or 'train', got {self.collect_on!r}")
+        if not 0.0 < self.intervention_fraction < 1.0:
+            raise ValueError(f"intervention_fraction must be in (0, 1), got {self.intervention_fraction}")
         if self.eval_scenarios > 100:
             raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {self.eval_scenarios}")
 
@@ -139,12 +151,13 @@ PROFILES = {
     "quick": Config(name="quick", n_demos=200, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=300,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
-    # Between quick and paper: 3 lineages for the paired statistics, the fixed-sigma sweep where the paper
-    # finds the best level. Lineages run in parallel with --prepare, then --lineage i, then --report (README).
-    # Its BC recipe, measured (benchmarks/README.md): 62.7 % on 100 scenarios x 3 after 30k steps, 41 min of
-    # one core (the paper's pi_0: 68 %).
+    # Between quick and paper, for this 2-core machine (all of it in about 3 hours, benchmarks/README.md):
+    # 3 lineages for the paired statistics, 2 rounds, the fixed-sigma sweep where the paper finds the best
+    # level. Its BC recipe, measured: 62.7 % on 100 scenarios x 3 after 30k steps, 41 min of one core (the
+    # paper's pi_0: 68 %). Fine-tuning is 2.5k steps per cell (the authors: +100k at lr 1e-5, batch 32).
+    # Lineages run in parallel with --prepare, then --lineage i, then --report (README).
     "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
-                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000, finetune_steps=10_000,
+                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000, finetune_steps=2_500,
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "per_step"),
                   eval_scenarios=100, eval_repeats=3),
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
@@ -217,40 +230,74 @@ def _key_int(key):
 # ----------------------------------------------------------------------------------------------
 # Rollouts: many episodes in lockstep, one policy call per decision for all of them
 # ----------------------------------------------------------------------------------------------
-def rollout(envs_list, policy, n_act, generator, oracle=None, log=None):
+def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     """Run one episode in each (already reset) env until all end. Returns episode dicts.
 
-    Without an oracle: the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) --
-    before a chunk is executed the oracle's gate looks at it; if it would collide or the policy has
-    stalled, the oracle plans from the current state and velocity and drives (expert=True) at least
-    H steps and until the arm is safe, then hands back.
+    Without an oracle: the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) with the
+    authors' gate (PAPER_SETUP.md §3, oracle.Gate): before every policy step the gate looks at the
+    pending actions; on a predicted collision the oracle plans from the current state and velocity, on
+    a stall or a time trigger the episode is first rewound a few steps (the rewound policy steps are
+    dropped from the record), and the expert drives (expert=True) a random 20-67 steps, then hands
+    back; at most max_interventions per episode. `seed` seeds the gates' random draws. Each episode
+    dict also gets 'interventions' (how many the expert took over).
     """
     E = len(envs_list)
     rec = [{"obs": [], "q": [], "action": [], "expert": []} for _ in range(E)]
+    start = [(e.q.copy(), e.q_prev.copy()) for e in envs_list]  # for a rewind to step 0
     obs_now = [e.make_obs(e.q, e.q_prev) for e in envs_list]
-    queue = [[] for _ in range(E)]  # pending (action, by_expert) per episode
+    queue = [[] for _ in range(E)]  # pending (action, by_expert) per episode, executed in order
+    pending = [np.zeros((0,)) for _ in range(E)]  # the policy's whole remaining chunk (the gate's lookahead)
     done = np.zeros(E, bool)
     success = np.zeros(E, bool)
-    gates = [oracle.gate(e) for e in envs_list] if oracle is not None else None
-    n_interventions = 0
+    gates = None
+    if oracle is not None:
+        gates = [oracle.gate(e, np.random.default_rng([seed, int(e.seed)])) for e in envs_list]
+    triggers = {"collision": 0, "stall": 0, "time": 0, "unplanned": 0}
+
+    def take_over(i, reason):
+        """The expert's actions after a trigger (None if no plan was found)."""
+        env, gate, r = envs_list[i], gates[i], rec[i]
+        gate.interventions += 1  # a failed plan counts too: no re-planning at every step
+        if reason in ("stall", "time"):  # rewind, but never into the expert's own data
+            policy_tail = len(r["expert"]) - (max(np.flatnonzero(r["expert"]), default=-1) + 1)
+            n = gate.rewind_steps(policy_tail)
+            if n:
+                q, q_prev = r["q"][-n], (r["q"][-n - 1] if len(r["q"]) > n else start[i][1])  # state n steps ago
+                for key in r:
+                    del r[key][-n:]
+                env.set_state(q, q_prev, step_count=env.step_count)  # the episode clock keeps running
+                obs_now[i] = env.make_obs(env.q, env.q_prev)
+                gate.rewound(n)
+        try:
+            plan = oracle.intervention(env, rng=gate.rng)
+        except oracle_mod.PlanningFailed:
+            triggers["unplanned"] += 1
+            return None
+        triggers[reason] += 1
+        return plan
+
     while not done.all():
         need = [i for i in range(E) if not done[i] and not queue[i]]
         if need:
             chunks = policy.sample(np.stack([obs_now[i] for i in need]), generator=generator)  # (B, H, dof)
             for i, chunk in zip(need, chunks):
-                if gates is not None and gates[i].should_intervene(envs_list[i], chunk):
-                    try:
-                        plan = oracle.intervention(envs_list[i])
-                        queue[i] = [(a, True) for a in plan]
-                        n_interventions += 1
-                        continue
-                    except oracle_mod.PlanningFailed:
-                        pass  # no plan from here: the policy keeps driving
                 queue[i] = [(a, False) for a in chunk[:n_act]]
+                pending[i] = np.asarray(chunk)
         for i in range(E):
             if done[i]:
                 continue
+            if gates is not None and not queue[i][0][1]:  # the policy is about to drive: ask the gate
+                reason = gates[i].should_intervene(envs_list[i], pending[i])
+                if reason is not None:
+                    plan = take_over(i, reason)
+                    if plan is not None:
+                        queue[i], pending[i] = [(a, True) for a in plan], np.zeros((0,))
+                    elif reason != "collision":  # rewound, no plan: the policy decides afresh
+                        chunk = policy.sample(obs_now[i][None], generator=generator)[0]
+                        queue[i], pending[i] = [(a, False) for a in chunk[:n_act]], np.asarray(chunk)
             action, by_expert = queue[i].pop(0)
+            if not by_expert:
+                pending[i] = pending[i][1:]
             r = rec[i]
             r["obs"].append(obs_now[i])
             r["q"].append(envs_list[i].q)
@@ -258,16 +305,20 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None):
             r["expert"].append(by_expert)
             obs_now[i], _, terminated, truncated, info = envs_list[i].step(action)
             if gates is not None:
-                gates[i].record(envs_list[i])
+                gates[i].record(envs_list[i], by_expert)
             if terminated or truncated:
                 done[i], success[i], queue[i] = True, info["success"], []
     episodes = []
-    for e, r, ok in zip(envs_list, rec, success):
-        episodes.append({"obs": np.asarray(r["obs"], np.float32), "q": np.asarray(r["q"]),
-                         "action": np.asarray(r["action"]), "expert": np.asarray(r["expert"], bool),
-                         "seed": int(e.seed), "success": bool(ok)})
+    for i, (e, r, ok) in enumerate(zip(envs_list, rec, success)):
+        episodes.append({"obs": np.asarray(r["obs"], np.float32).reshape(len(r["obs"]), -1),
+                         "q": np.asarray(r["q"]).reshape(len(r["q"]), -1),
+                         "action": np.asarray(r["action"]).reshape(len(r["action"]), -1),
+                         "expert": np.asarray(r["expert"], bool), "seed": int(e.seed), "success": bool(ok),
+                         "interventions": gates[i].interventions if gates is not None else 0})
     if log is not None and oracle is not None:
-        log(f"  {n_interventions} interventions in {E} episodes")
+        log(f"  {sum(triggers[k] for k in ('collision', 'stall', 'time'))} interventions in {E} episodes "
+            f"(predicted collision {triggers['collision']}, stall {triggers['stall']}, time {triggers['time']}; "
+            f"{triggers['unplanned']} triggers found no plan)")
     return episodes
 
 
@@ -420,8 +471,9 @@ def make_run_env(cfg):
     return envs.make_env(cfg.env, **env_options(cfg))
 
 
-def make_oracle(cfg):
-    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle"), horizon=cfg.horizon,
+def make_oracle(cfg, *keys):
+    """The RRT expert; keys (e.g. lineage, round) give an intervention run its own planner seed."""
+    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle", *keys), horizon=cfg.horizon,
                                                      n_attempts=cfg.oracle_attempts))
 
 
@@ -498,15 +550,27 @@ def stage_bc(run, demos):
     return train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path)
 
 
-def stage_collect(run, lineage, k, policy):
-    """Step 2: D_k, HG-DAgger rollouts of the current policy on fresh training scenarios."""
+def stage_collect(run, lineage, k, policy, policy_success):
+    """Step 2: D_k, HG-DAgger rollouts of the lineage's current policy (PAPER_SETUP.md §4).
+
+    collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
+    evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
+    scenarios. Interventions shorter than H are dropped (Sec. IV-C); episodes without any are not kept.
+    """
     cfg, path = run.cfg, run.path(f"lineage_{lineage}", f"round_{k}", "D.npz")
     if os.path.exists(path):
         return envs.load_episodes(path)
-    # fresh scenarios for every (lineage, round), after D0's seed range
-    start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
-    seeds = make_run_env(cfg).train_seeds(cfg.episodes_per_round, start=start)
-    run.log(f"lineage {lineage} round {k}: HG-DAgger collection on {len(seeds)} training scenarios")
+    env = make_run_env(cfg)
+    if cfg.collect_on == "eval":
+        seeds = env.eval_seeds()[: cfg.eval_scenarios]
+        solved = np.asarray(policy_success, bool).all(axis=1)
+        run.log(f"lineage {lineage} round {k}: HG-DAgger collection on the evaluation scenarios the policy "
+                f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
+        seeds = np.asarray(seeds)[~solved]
+    else:  # fresh scenarios for every (lineage, round), after D0's seed range
+        start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
+        seeds = env.train_seeds(cfg.episodes_per_round, start=start)
+        run.log(f"lineage {lineage} round {k}: HG-DAgger collection on {len(seeds)} fresh training scenarios")
     t0 = time.time()
     env_list = []
     for s in seeds:
@@ -514,19 +578,26 @@ def stage_collect(run, lineage, k, policy):
         e.reset(seed=int(s))
         env_list.append(e)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", lineage, k))
-    episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg), log=run.log)
+    episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", lineage, k),
+                       log=run.log, seed=stage_seed(cfg, "gate", lineage, k)) if env_list else []
     for ep in episodes:
         ep["expert"] = drop_short_interventions(ep["expert"], cfg.horizon)
     kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon).any()]
     n_expert = sum(int(ep["expert"].sum()) for ep in kept)
-    run.log(f"  {len(kept)}/{len(episodes)} episodes with interventions >= H, {n_expert} expert steps, "
-            f"policy success {np.mean([ep['success'] for ep in episodes]):.2f}, {time.time() - t0:.0f} s")
+    alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
+    rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
+    run.log(f"  {len(episodes)} episodes: {alone} solved by the policy alone, {rescued} solved with the "
+            f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions "
+            f">= H, {n_expert} expert steps, {time.time() - t0:.0f} s")
+    if not kept:
+        raise RuntimeError(f"lineage {lineage} round {k}: no intervention of >= H={cfg.horizon} steps was "
+                           f"recorded in {len(episodes)} episodes; nothing to aggregate")
     envs.save_episodes(path, kept)
     return kept
 
 
 def stage_calibrate(run, lineage, k, policy, episodes, median_step):
-    """Sec. IV-D with the policy that collected D_k (before training for the round)."""
+    """Sec. IV-D with the round's HG-DAgger policy on the interventions of rounds 1..k (PAPER_SETUP.md §5)."""
     cfg, path = run.cfg, run.path(f"lineage_{lineage}", f"round_{k}", "calibration.json")
     if os.path.exists(path):
         return calibrate.Calibration.from_dict(read_json(path))
@@ -536,14 +607,15 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
                                        rollouts_per_beta=cfg.calib_rollouts_per_beta)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
     cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, median_step, ccfg, gen)
-    run.log(f"lineage {lineage} round {k}: calibration ({time.time() - t0:.0f} s)\n  "
-            + cal.report().replace("\n", "\n  "))
+    run.log(f"lineage {lineage} round {k}: calibration on {len(episodes)} intervention episodes "
+            f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
     write_json(path, cal.to_dict())
     return cal
 
 
-def noise_model(method, cal):
-    """(noise kind, sigma) for relabel.AugmentationSampler, for the data of one round."""
+def noise_model(method, cal, episodes=None):
+    """(noise kind, sigma) for relabel.AugmentationSampler. For 'per_step', `episodes` are the indices
+    (into the calibrated episode list) of the sampler's episodes, in order."""
     if method.startswith("fixed_"):
         return "isotropic", float(method.split("_")[1])  # Table I: sigma in median steps
     if method == "zero_noise":
@@ -554,15 +626,29 @@ def noise_model(method, cal):
         return "pooled", cal.closed_loop_pooled if cal.closed_loop_pooled is not None else cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
         per_episode = {}
-        for e in np.unique(cal.episode_index):
+        for j, e in enumerate(episodes if episodes is not None else np.unique(cal.episode_index)):
             rows = cal.episode_index == e
-            per_episode[int(e)] = (cal.timestep[rows], cal.sigma_alpha[rows])
+            if rows.any():
+                per_episode[j] = (cal.timestep[rows], cal.sigma_alpha[rows])
         return "per_step", per_episode
     raise ValueError(f"method {method!r} adds no noise")
 
 
+class ChunkSampler:
+    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
+
+    def __init__(self, episodes, H):
+        self.obs, self.chunks = diffusion.chunk_dataset(episodes, H)
+
+    def __call__(self, n, rng):
+        pick = rng.integers(len(self.obs), size=n)
+        return self.obs[pick], self.chunks[pick]
+
+
 class MixtureSampler:
-    """Augmented pairs from several rounds' samplers, in proportion to their intervention steps."""
+    """Rows from several rounds' samplers in fixed proportions (the authors: equal). Samplers may return
+    (obs, chunks) or (obs, chunks, mask); the mixture returns a mask (all True where a sampler gave none)
+    as soon as one of them does."""
 
     def __init__(self, samplers, weights):
         self.samplers = samplers
@@ -571,32 +657,47 @@ class MixtureSampler:
     def __call__(self, n, rng):
         counts = rng.multinomial(n, self.p)
         parts = [s(c, rng) for s, c in zip(self.samplers, counts) if c > 0]
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        obs = np.concatenate([p[0] for p in parts])
+        chunks = np.concatenate([p[1] for p in parts])
+        if not any(len(p) == 3 for p in parts):
+            return obs, chunks
+        masks = [p[2] if len(p) == 3 else np.ones(p[1].shape[:2], bool) for p in parts]
+        return obs, chunks, np.concatenate(masks)
+
+    def state_dict(self):
+        return {str(i): s.state_dict() for i, s in enumerate(self.samplers) if hasattr(s, "state_dict")}
+
+    def load_state_dict(self, state):
+        for i, s in enumerate(self.samplers):
+            if hasattr(s, "load_state_dict") and str(i) in state:
+                s.load_state_dict(state[str(i)])
 
 
-def stage_train_method(run, lineage, k, method, demos, rounds_data, calibrations, stats):
-    """Steps 3-4 and 6: fine-tune pi_0 on D0 u D1..Dk (+ the method's augmentation of D1..Dk)."""
+def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration, stats):
+    """Steps 3-4 and 6 (PAPER_SETUP.md §2): fine-tune pi_0 on D0 and, in intervention_fraction of every
+    batch, the interventions of rounds 1..k split equally over rounds -- as recorded (HG-DAgger) or every
+    drawn frame noised and relabelled with the method's noise (the noised methods); D0 is never noised."""
     cfg = run.cfg
     path = run.path(f"lineage_{lineage}", f"round_{k}", "checkpoints", f"{method}.pt")
     if os.path.exists(path):
         return diffusion.DiffusionPolicy.load(path, device=cfg.device)
-    aggregate = demos + [ep for D in rounds_data for ep in D]
-    obs, chunks = diffusion.chunk_dataset(aggregate, cfg.horizon)
-    sampler, aug = None, 0.0
-    if method != "hg_dagger":
-        samplers, weights = [], []
-        for D, cal in zip(rounds_data, calibrations):
-            kind, sigma = noise_model(method, cal)
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    samplers, offset = [], 0
+    for D in rounds_data:
+        if method == "hg_dagger":
+            samplers.append(ChunkSampler(D, cfg.horizon))
+        else:
+            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)))
             samplers.append(relabel.AugmentationSampler(
-                D, lambda: make_run_env(cfg), stats, kind, sigma,
-                relabel.RelabelConfig(horizon=cfg.horizon)))
-            weights.append(sum(int(diffusion.label_mask(ep["expert"], cfg.horizon).sum()) for ep in D))
-        sampler, aug = MixtureSampler(samplers, weights), cfg.aug_fraction
+                D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
+        offset += len(D)
+    sampler = MixtureSampler(samplers, [1.0] * len(samplers))
     run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
-            f"{len(obs)} chunks" + (f", {aug:.0%} augmented" if aug else ""))
+            f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
+            f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else ", noised and relabelled"))
     policy = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
     return train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
-                           stage_seed(cfg, "train", lineage, k, method), path, sampler, aug)
+                           stage_seed(cfg, "train", lineage, k, method), path, sampler, cfg.intervention_fraction)
 
 
 def stage_evaluate(run, path, policy, label):
@@ -614,23 +715,29 @@ def stage_evaluate(run, path, policy, label):
 
 
 def run_lineage(run, lineage, demos, stats):
-    """HG-DAgger rounds of one lineage: collect, calibrate, train every method, evaluate (Alg. 2-6)."""
+    """HG-DAgger rounds of one lineage (PAPER_SETUP.md §4): collect with the lineage's current policy,
+    fine-tune HG-DAgger, calibrate with it, fine-tune every noised method, evaluate each (Alg. 2-6)."""
     cfg = run.cfg
-    median_step = stats.median_step
     collector = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
-    rounds_data, calibrations = [], []
+    collector_success = np.asarray(read_json(run.path("eval", "bc.json"))["success"], bool)
+    rounds_data = []
     for k in range(1, cfg.rounds + 1):
-        D_k = stage_collect(run, lineage, k, collector)
-        rounds_data.append(D_k)
-        calibrations.append(stage_calibrate(run, lineage, k, collector, D_k, median_step))
-        for method in cfg.methods:
-            if method == "bc":
-                continue
-            policy = stage_train_method(run, lineage, k, method, demos, rounds_data, calibrations, stats)
+        rounds_data.append(stage_collect(run, lineage, k, collector, collector_success))
+        evals = {}
+        hg = stage_train_method(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
+        evals["hg_dagger"] = stage_evaluate(run, run.path(f"lineage_{lineage}", f"round_{k}", "eval",
+                                                          "hg_dagger.json"), hg, f"hg_dagger (lineage {lineage}, K={k})")
+        noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger")]
+        if noised:
+            episodes = [ep for D in rounds_data for ep in D]
+            calibration = stage_calibrate(run, lineage, k, hg, episodes, stats.median_step)
+        for method in noised:
+            policy = stage_train_method(run, lineage, k, method, demos, rounds_data, calibration, stats)
             stage_evaluate(run, run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json"),
                            policy, f"{method} (lineage {lineage}, K={k})")
-            if method == "hg_dagger":
-                collector = policy  # the HG-DAgger policy of round k collects D_{k+1}
+        # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
+        # instead: one more policy per round; see benchmarks/README.md)
+        collector, collector_success = hg, evals["hg_dagger"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -867,6 +974,10 @@ def parse_args(argv):
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
+    p.add_argument("--collect-on", default=None, choices=("eval", "train"),
+                   help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
+                        "the policy does not solve, so they enter the training data) or train (fresh training "
+                        "scenarios, the stricter variant)")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
     p.add_argument("--lineages", type=int, default=None, help="number of lineages")
     p.add_argument("--lineage", type=int, default=None,
@@ -892,6 +1003,8 @@ def parse_args(argv):
         over["methods"] = tuple(names)
     if args.image_obs:
         over["image_obs"] = True
+    if args.collect_on:
+        over["collect_on"] = args.collect_on
     for key in ("rounds", "lineages", "seed"):
         if getattr(args, key) is not None:
             over[key] = getattr(args, key)
@@ -903,6 +1016,7 @@ def parse_args(argv):
         over["device"] = args.device
     name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
     name += "_images" if args.image_obs else ""
+    name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     over["name"] = name
     try:
         cfg = replace(cfg, **over)

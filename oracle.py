@@ -102,11 +102,25 @@ class OracleConfig:
     # If no path is found, halve the sweep (so all margins and spacings) down to this fraction.
     # 1/8: the tightest planar eval scene (seed 10097) needs a margin below 0.006 m.
     min_sweep_fraction: float = 0.125
-    # --- HG-DAgger gating and intervention ---
+    # --- HG-DAgger gating and intervention (the authors' gate, PAPER_SETUP.md §3) ---
+    # Their numbers are frames at 30 Hz; the planar env runs at 10 Hz, so each becomes a third as many
+    # steps (the same seconds).
     horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
-    handback_fraction: float = 0.5  # drive at least this fraction of the plan before handing back
-    safe_lookahead: int = 8  # hand back only if the next steps of the plan are all clear
-    clearance: float = 4.0  # required clearance for hand-back, in sweeps (= 2 link radii)
+    gate_lookahead: int | None = 3  # steps of the pending chunk the gate checks, before every policy
+    #   step (theirs: the next 8 frames); None = the whole pending chunk
+    gate_clearance: float = 0.010  # m, a pending state this close to a collision triggers the expert.
+    #   Theirs is 0.019 m, just inside their planner's 0.02 m clearance; our planner keeps
+    #   margin * sweep = 0.011 m (planar), so the gate sits just inside that instead: a policy
+    #   that flies the expert's own route does not trigger it.
+    handback_steps: tuple = (20, 67)  # the expert drives a random number of steps in this range (both
+    #   included; theirs: 60-200 frames), or its whole plan if shorter, then hands back
+    max_interventions: int = 5  # per episode (theirs: 5 per scenario)
+    time_trigger_first: int = 200  # policy steps before the first time trigger (theirs: 600 frames)
+    time_trigger_every: tuple = (67, 100)  # then one every this many policy steps (theirs: 200-300)
+    rewind_steps: tuple = (17, 33)  # stall and time triggers first rewind this many steps (theirs:
+    #   50-100 frames) so that the expert takes over before the policy went astray
+    # Not in the authors' gate: their "in collision and stuck" trigger cannot fire here (a contact
+    # ends our episodes), so a stall of the end effector stands in for it.
     stall_window: int = 40  # steps: stalled if the ee got no closer to the goal in this window
     stall_progress: float = 0.02  # m, the improvement that counts as progress in the window
 
@@ -716,22 +730,46 @@ class Plan:
 
 
 class Gate:
-    """Per-episode HG-DAgger gate (one per env in a batched rollout). Create it right after
-    env.reset (oracle.gate(env)), call record(env) after every env step whoever drove it, and
-    should_intervene(env, chunk) whenever the policy proposes a chunk."""
+    """Per-episode HG-DAgger gate (one per env in a batched rollout), the authors' triggers
+    (PAPER_SETUP.md §3). Create it right after env.reset (oracle.gate(env, rng)), call
+    record(env, by_expert) after every env step whoever drove it, and should_intervene(env, pending)
+    before every policy step with the policy's pending actions."""
 
-    def __init__(self, oracle, env):
+    def __init__(self, oracle, env, rng=None):
         self.oracle = oracle
+        self.rng = rng if rng is not None else np.random.default_rng(oracle.cfg.seed)
         self.distances = []  # ee distance to the goal at every recorded step
-        self.record(env)
+        self.policy_steps = 0  # steps the policy drove (time triggers count these)
+        self.interventions = 0  # taken so far (at most cfg.max_interventions)
+        self.next_time_trigger = oracle.cfg.time_trigger_first
+        self.record(env, by_expert=True)
 
-    def record(self, env):
+    def record(self, env, by_expert=False):
         ee = env.ee(env.q[None])[0]
         self.distances.append(float(np.linalg.norm(ee - env.goal)))
+        self.policy_steps += 0 if by_expert else 1
 
     def should_intervene(self, env, chunk):
-        """'collision', 'stall' or None (see Oracle.should_intervene)."""
-        return self.oracle.should_intervene(env, chunk, self.distances)
+        """'collision', 'stall', 'time' or None; None once max_interventions were taken."""
+        c = self.oracle.cfg
+        if self.interventions >= c.max_interventions:
+            return None
+        reason = self.oracle.should_intervene(env, chunk, self.distances)
+        if reason is None and self.policy_steps >= self.next_time_trigger:
+            reason = "time"
+            lo, hi = c.time_trigger_every
+            self.next_time_trigger = self.policy_steps + int(self.rng.integers(lo, hi + 1))
+        return reason
+
+    def rewind_steps(self, n_recorded):
+        """Steps to rewind before a stall or time intervention (at most n_recorded)."""
+        lo, hi = self.oracle.cfg.rewind_steps
+        return min(int(self.rng.integers(lo, hi + 1)), n_recorded)
+
+    def rewound(self, n):
+        """Forget the last n recorded steps (the env was put back n steps)."""
+        if n:
+            del self.distances[-n:]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -886,16 +924,19 @@ class Oracle:
                 "expert": np.ones(T, dtype=bool), "seed": int(seed), "success": bool(success)}
 
     # ---- HG-DAgger gating --------------------------------------------------------------------
-    def gate(self, env):
+    def gate(self, env, rng=None):
         """A per-episode Gate for `env` (create it right after env.reset)."""
-        return Gate(self, env)
+        return Gate(self, env, rng)
 
     def chunk_collides(self, env, chunk):
-        """True if executing `chunk` (H, dof) from env.q would collide, checked at the edge
-        resolution along every speed-limited step (the env moves straight within a step)."""
-        states = rollout_chunk(env, chunk)
-        return path_in_collision(states, env.in_collision,
-                                 edge_resolution(env, self.sweep(env)))
+        """True if the next gate_lookahead steps of `chunk` (H, dof) from env.q come within
+        gate_clearance (m) of a collision, checked at the edge resolution along every speed-limited
+        step (the env moves straight within a step). Within gate_clearance of arm motion of the
+        current state only the plain check applies: an arm already close to an obstacle may leave."""
+        c = self.cfg
+        states = rollout_chunk(env, chunk if c.gate_lookahead is None else chunk[:c.gate_lookahead])
+        near = with_margin(env, c.gate_clearance, env.q[None], c.gate_clearance)
+        return path_in_collision(states, near, edge_resolution(env, self.sweep(env)))
 
     def should_intervene(self, env, chunk, distances):
         """'collision' if the policy's chunk would collide, 'stall' if the ee made no progress
@@ -908,39 +949,21 @@ class Oracle:
         return None
         # <<< exercise 12
 
-    def clear(self, env, states):
-        """(T,) True where a state has clearance: moving any one joint by +-clearance sweep
-        tolerances (in arm-point motion, via the lever arms) stays collision-free. A cheap
-        probe of the configuration-space neighbourhood, not a distance computation."""
-        lo, hi = env.joint_limits
-        res = edge_resolution(env, self.sweep(env))
-        offsets = np.concatenate([np.diag(res), -np.diag(res)]) * self.cfg.clearance  # (2 dof, dof)
-        probes = np.clip(states[:, None, :] + offsets, lo, hi)  # (T, 2 dof, dof)
-        hit = env.in_collision(probes.reshape(-1, env.dof)).reshape(len(states), -1)
-        return ~hit.any(axis=1) & ~env.in_collision(states)
-
-    def intervention(self, env):
+    def intervention(self, env, rng=None):
         """Absolute joint targets (L, dof) for the expert to drive from the current state.
 
         Plans from env.q with the current velocity (env.q - env.q_prev) / env.dt matched at the
-        handoff. Hand-back heuristic (emulating a human who drives "just enough to return to a safe
-        state", Sec. V): drive at least max(H, handback_fraction * plan length) steps, then keep
-        driving until the next safe_lookahead states of the plan all have clearance; the whole
-        plan if that never happens. Deterministic: the rng is seeded by (cfg.seed, q, q_prev).
-        Raises PlanningFailed when no plan is found.
+        handoff, then drives a random number of steps in cfg.handback_steps (the authors' human
+        stand-in, PAPER_SETUP.md §3), or the whole plan if it is shorter, and hands back. The
+        plan is deterministic (its rng is seeded by cfg.seed and the state); `rng` draws the
+        hand-back length (default: seeded like the plan). Raises PlanningFailed.
         """
         q, q_prev = env.q, env.q_prev
         state_key = np.frombuffer(np.concatenate([q, q_prev]).tobytes(), dtype=np.uint32)
-        rng = np.random.default_rng([self.cfg.seed, *state_key.tolist()])
-        plan = self.plan(env, q, (q - q_prev) / env.dt, rng)
-        n = len(plan.samples) - 1  # steps in the plan
-        first = min(n, max(self.cfg.horizon, int(math.ceil(self.cfg.handback_fraction * n))))
-        clear = self.clear(env, plan.samples)
-        steps = n
-        for t in range(first, n + 1):
-            if clear[t:t + self.cfg.safe_lookahead + 1].all():
-                steps = t
-                break
+        plan_rng = np.random.default_rng([self.cfg.seed, *state_key.tolist()])
+        plan = self.plan(env, q, (q - q_prev) / env.dt, plan_rng)
+        lo, hi = self.cfg.handback_steps
+        steps = int((rng if rng is not None else plan_rng).integers(lo, hi + 1))
         return plan.samples[1:steps + 1]
 
 

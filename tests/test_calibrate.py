@@ -196,15 +196,93 @@ def test_open_loop_sigma_rejects_data_without_labels():
         cal.open_loop_sigma(NoisyExpertPolicy(ep, np.eye(3), np.zeros(3)), [ep])
 
 
-def test_settling_error_uses_the_second_half():
-    ref = np.zeros((9, 2))
-    traj = np.zeros((2, 9, 2))
-    traj[0, 1:5] = 100.0                                         # a large transient in the first half ...
-    traj[0, 5:, 0] = 3.0                                         # ... then settles 3 away on joint 0
-    traj[1, :, 1] = 4.0
-    roll = cal.Rollouts(traj, np.stack([ref, ref]), np.array([8, 8]), np.array([8, 8]),
-                        np.zeros(2, bool), np.zeros(2, bool))
-    np.testing.assert_allclose(cal.settling_error(roll), [3.0, 4.0])
+class ExecutedStepsPolicy:
+    """Test double: the expert chunk, exact for the first n_act steps and far off after them."""
+
+    class cfg:
+        horizon = 4
+        n_act = 2
+
+    def __init__(self, episode):
+        self.actions = episode["action"]
+
+    def sample(self, obs, generator=None, use_ema=True):
+        t = obs[:, 0].astype(int)
+        chunks = np.stack([cal.expert_chunk(self.actions, int(i), self.cfg.horizon) for i in t])
+        chunks[:, self.cfg.n_act:] += 1.0                                    # wrong, but never executed
+        return chunks
+
+
+def test_open_loop_sigma_compares_only_the_executed_steps():
+    ep = _episode([True] * 20)
+    policy = ExecutedStepsPolicy(ep)
+    out = cal.open_loop_sigma(policy, [ep], stride=2, n_samples=4)           # n_act from policy.cfg
+    np.testing.assert_allclose(out.sigma, 0.0, atol=1e-20)
+    # all H steps would see the unexecuted error: (H - n_act) / H of 1 rad^2 per joint pair
+    full = cal.open_loop_sigma(policy, [ep], stride=2, n_samples=4, n_act=4)
+    np.testing.assert_allclose(full.sigma, 0.5, rtol=1e-12)
+    with pytest.raises(ValueError, match="n_act"):
+        cal.open_loop_sigma(policy, [ep], n_act=5)
+
+
+def _expert_path(n=60, dof=3):
+    """A smooth expert joint path (n + 1, dof) with distinct states, about 0.02 rad a step."""
+    t = np.arange(n + 1)[:, None]
+    return np.concatenate([0.02 * t, 0.3 * np.sin(0.05 * t), 0.01 * t], axis=1)[:, :dof]
+
+
+def _tracked(trajectory, expert, min_steps=20):
+    """Rollouts for one recorded trajectory, tracked as _closed_loop does it."""
+    cursor, error = cal.project_onto_expert(trajectory, expert, window=16)
+    n = len(trajectory) - 1
+    reference = expert[np.minimum(np.arange(n + 1), len(expert) - 1)]
+    return cal.Rollouts(trajectory[None], reference[None], np.array([n]), np.array([n]), np.zeros(1, bool),
+                        np.zeros(1, bool), cursor=cursor[None], nearest_error=error[None], min_steps=min_steps)
+
+
+def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one():
+    expert = _expert_path()
+    lagging = expert[np.maximum(np.arange(len(expert)) - 3, 0)]             # the same path, 3 steps behind
+    roll = _tracked(lagging, expert)
+    assert cal.settling_error(roll)[0] < 1e-12                              # on the path: no error
+    np.testing.assert_array_equal(roll.cursor[0, 3:], np.arange(len(expert) - 3))   # the cursor lags too
+    # the old rule (time-matched state) reads the pace difference as a large error
+    dev = roll.deviation[0, 13:41]
+    assert math.sqrt(np.mean(np.sum(dev ** 2, axis=-1))) > 0.05
+    # the error is measured over steps [settle_start, settle_end] only
+    off = lagging.copy()
+    off[:13, 1] += 5.0                                                      # a transient before step 13 ...
+    off[41:, 1] += 5.0                                                      # ... and a jump after step 40
+    off[13:41, 1] += 0.1                                                    # settled 0.1 rad beside the path
+    x = cal.settling_error(_tracked(off, expert))[0]
+    assert 0.03 < x <= 0.1 + 1e-12
+
+
+def test_cursor_is_monotone_and_advances_at_most_one_index_a_step():
+    rng = np.random.default_rng(0)
+    expert = _expert_path()
+    for trajectory in (expert[::2], expert[::-1], expert + rng.normal(0, 0.05, expert.shape),
+                       rng.normal(0, 1.0, expert.shape)):                   # too fast, backwards, noisy, random
+        cursor, error = cal.project_onto_expert(trajectory, expert, window=16)
+        steps = np.diff(cursor)
+        assert np.all((steps == 0) | (steps == 1))
+        assert cursor[0] == 0 and cursor.max() < len(expert)
+        # the error is the distance to the nearest expert state within 8 steps of the cursor
+        for i in (5, 17, 25):
+            lo, hi = max(cursor[i] - 8, 0), min(cursor[i] + 9, len(expert))
+            assert error[i] == pytest.approx(np.linalg.norm(expert[lo:hi] - trajectory[i], axis=1).min())
+    # a rollout twice as fast moves the cursor one index a step, and its nearest-state error stays 0
+    # while it is less than 8 steps ahead
+    cursor, error = cal.project_onto_expert(expert[::2], expert, window=16)
+    np.testing.assert_array_equal(cursor, np.arange(len(cursor)))
+    assert np.all(error[:8] < 1e-12) and error[20] > 0
+
+
+def test_rollouts_too_short_are_discarded():
+    expert = _expert_path()
+    assert not _tracked(expert[:21], expert).discarded[0]                  # 20 steps recorded: kept
+    assert _tracked(expert[:20], expert).discarded[0]                      # 19 steps: too short
+    assert _tracked(expert[:20], expert, min_steps=0).discarded[0] == False
 
 
 # ----------------------------------------------------------------------------------------------
@@ -219,7 +297,8 @@ def _calibration():
         sigma_alpha=cal.calibrated_sigma(S, W), episode_index=np.arange(6), timestep=np.arange(6) * 2,
         pooled=cal.pooled_sigma(S, W), closed_loop_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13),
         blend_s=np.linspace(0.01, 0.98, 13), blend_x=np.linspace(0.0, 0.04, 13),
-        blend_kept=np.arange(13) < 11, blend_episode=np.arange(13) % 4, blend_start=np.full(13, 5))
+        blend_kept=np.arange(13) < 11, blend_episode=np.arange(13) % 4, blend_start=np.full(13, 5),
+        W_ci=(0.04, 0.062))
 
 
 def test_calibration_json_round_trip(tmp_path):
@@ -235,7 +314,26 @@ def test_calibration_json_round_trip(tmp_path):
         else:
             assert got == value, key
     assert "median steps" in back.report()
+    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in back.report()
     np.testing.assert_allclose(back.sigma_per_joint, np.sqrt(np.diag(c.pooled)) / 0.01)
+    # a calibration written before W_ci existed still loads
+    old = json.loads(path.read_text())
+    del old["W_ci"]
+    assert cal.Calibration.from_dict(old).W_ci is None
+    assert "bootstrap" not in cal.Calibration.from_dict(old).report()
+
+
+def test_bootstrap_interval_contains_W_and_is_deterministic():
+    s, x = _blend_points(0.2, 4.0, noise=0.05, seed=3)
+    fit = cal.fit_equilibrium(s, x)
+    ci = cal.bootstrap_W(s, x, n_resamples=40, seed=0)
+    assert ci[0] < fit.W < ci[1]
+    assert ci[1] < 3 * fit.W                                                # bounded (r_bounds keep it finite)
+    assert cal.bootstrap_W(s, x, n_resamples=40, seed=0) == ci              # same seed, same interval
+    assert cal.bootstrap_W(s, x, n_resamples=40, seed=1) != ci
+    exact = cal.bootstrap_W(*_blend_points(0.2, 4.0, noise=0.0, seed=0), n_resamples=20, seed=0)
+    assert exact == (pytest.approx(0.2, rel=1e-4), pytest.approx(0.2, rel=1e-4))   # exact points: no spread
+    assert cal.bootstrap_W(s[:2], x[:2]) is None                            # < 3 points: no interval
 
 
 def test_plot_blend_fit_writes_a_figure(tmp_path):
@@ -318,7 +416,7 @@ def test_contacts_are_recorded_and_discarded_only_on_request(planar):
 def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=3)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=3, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
@@ -326,6 +424,8 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     for value in (c.W, *c.pooled.ravel(), *c.closed_loop_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
         assert math.isfinite(value)
     np.testing.assert_allclose(np.trace(c.sigma_alpha, axis1=1, axis2=2), c.W ** 2, rtol=1e-9)
+    assert (c.W_ci is None) == (c.r is None or int(c.blend_kept.sum()) < 3)   # an interval with every fit
+    assert c.W_ci is None or c.W_ci[0] <= c.W_ci[1]
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
     assert np.trace(c.closed_loop_pooled) == pytest.approx(c.W ** 2)
     # deterministic: same seed, same calibration
@@ -345,6 +445,7 @@ def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert not c.blend_kept.any()
     assert c.r is None and c.fit_note.startswith("fallback")
+    assert c.W_ci is None                                                     # no fit, no interval
     assert c.W ** 2 == pytest.approx(np.trace(c.sigma_hat.mean(axis=0)))       # ||W||^2 = tr(Sigma_bar)
     np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
     np.testing.assert_allclose(c.closed_loop_pooled, c.pooled)                # closed-loop fallback too
@@ -361,6 +462,7 @@ def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, mo
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert c.W == pytest.approx(cfg.diverge_threshold * unit)
     assert c.fit_note.startswith("fit, W capped") and "100000 median steps" in c.fit_note
+    assert c.W_ci is None or c.W_ci == (pytest.approx(c.W), pytest.approx(c.W))   # capped like W
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(5 * unit, 0.1, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
@@ -370,7 +472,7 @@ def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, mo
 def test_rollouts_per_beta_repeats_every_ratio_on_other_segments(planar):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, rollouts_per_beta=2)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, rollouts_per_beta=2, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     assert len(c.blend_beta) == 26
     np.testing.assert_array_equal(c.blend_beta[:13], c.blend_beta[13:])

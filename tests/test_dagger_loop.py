@@ -193,3 +193,52 @@ def test_evaluate_runs_groups_of_at_most_max_parallel_in_scenario_order(monkeypa
         ok = dagger.evaluate(policy, "planar", seeds, 2, 8, 0, max_parallel=max_parallel)
         assert groups == sizes and np.array_equal(ok, expected)
     assert dagger.MAX_PARALLEL_ENVS["engine3d"] == 100  # 300 pybullet clients would take ~9 GB
+
+
+class DriftPolicy:
+    """A stand-in policy: every chunk drifts slowly in one fixed joint direction (it never reaches the goal)."""
+    device = "cpu"
+
+    def __init__(self, dof, H=20, speed=0.01):
+        self.dof, self.H, self.speed = dof, H, speed
+
+    def sample(self, obs, generator=None):
+        q = np.asarray(obs)[:, :self.dof].astype(np.float64)
+        steps = np.arange(1, self.H + 1)[None, :, None] * self.speed
+        return q[:, None, :] + steps * np.array([1.0, -0.5, 0.5])[None, None, :self.dof]
+
+
+def test_hg_dagger_rollout_rewinds_hands_back_and_keeps_a_consistent_record():
+    """The authors' gate in the loop: stall/time triggers rewind (the dropped policy steps leave no gap in the
+    record: every recorded step is the env's step rule applied to the previous one), the expert drives 20-67
+    steps (or its whole plan), at most max_interventions per episode."""
+    import envs
+    import oracle as oracle_mod
+    oracle = oracle_mod.Oracle(oracle_mod.OracleConfig(horizon=20, n_attempts=1, stall_window=20))
+    env_list = []
+    for s in envs.make_env("planar").eval_seeds()[:4]:
+        e = envs.make_env("planar")
+        e.reset(seed=int(s))
+        env_list.append(e)
+    episodes = dagger.rollout(env_list, DriftPolicy(3), 10, None, oracle=oracle, seed=0)
+    probe = envs.make_env("planar")
+    lo, hi = oracle.cfg.handback_steps
+    rewound = 0
+    for ep in episodes:
+        probe.reset(seed=ep["seed"])
+        assert np.allclose(ep["q"][0], probe.q)
+        for t in range(len(ep["q"]) - 1):  # q[t+1] = step rule(q[t], action[t]): no gap at a rewind
+            nxt = np.clip(ep["q"][t] + np.clip(ep["action"][t] - ep["q"][t], -probe.max_step, probe.max_step),
+                          *probe.joint_limits)
+            assert np.allclose(ep["q"][t + 1], nxt, atol=1e-12), (ep["seed"], t)
+        assert 1 <= ep["interventions"] <= oracle.cfg.max_interventions
+        e = ep["expert"].astype(int)
+        starts, ends = np.flatnonzero(np.diff(np.r_[0, e]) == 1), np.flatnonzero(np.diff(np.r_[e, 0]) == -1) + 1
+        for a, b in zip(starts, ends):
+            assert b - a >= lo
+            assert b - a <= hi * oracle.cfg.max_interventions
+            assert b - a <= hi or b == len(e)  # back-to-back takeovers join, else within the range
+        # policy steps before the first intervention: a stall needs stall_window steps, a rewind removes some
+        first = starts[0]
+        rewound += first < oracle.cfg.stall_window + 1
+    assert rewound >= 1  # at least one takeover came after a rewind

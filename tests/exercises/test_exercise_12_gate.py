@@ -60,7 +60,7 @@ def test_stalled_compares_the_last_window_with_the_best_before():
 
 
 def test_gate_intervenes_on_a_colliding_chunk_then_on_a_stall(env):
-    oracle = Oracle(OracleConfig(stall_window=5, stall_progress=0.01))
+    oracle = Oracle(OracleConfig(stall_window=5, stall_progress=0.01, gate_lookahead=None))  # whole chunk
     hit, free = colliding_and_free_chunks(env)
     progress = [1.0, 0.9, 0.8, 0.7, 0.6, 0.5, 0.4]
     flat = [1.0, 0.9, 0.9, 0.9, 0.9, 0.9, 0.9]
