@@ -610,14 +610,23 @@ class DiffusionPolicy(nn.Module):
         film = obs_part + step_part[k]                                # (B, F)
         return self._net(use_ema)(a_k_norm, film)                      # (B, H, dof)
 
-    def loss(self, obs_norm, chunk_norm, generator=None):
-        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}."""
+    def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
+        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}.
+
+        mask: optional (B, H) bool, True = the chunk step is in the loss (all dof of a step share it);
+        the mean is then over the unmasked (row, step, dof) entries only -- the held tail of a servo
+        label (relabel.servo_return_chunk, PAPER_SETUP.md §6) is left out. None: the plain mean."""
         B = chunk_norm.shape[0]
         gdev = generator.device if generator is not None else self.device
         k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
         eps = torch.randn(chunk_norm.shape, generator=generator, device=gdev).to(self.device)
         a_k = q_sample(self.schedule, chunk_norm, k, eps)              # Eq. (5)
-        return nn.functional.mse_loss(self.predict_eps(a_k, k, obs_norm, use_ema=False), eps)
+        eps_pred = self.predict_eps(a_k, k, obs_norm, use_ema=False)   # (B, H, dof)
+        if mask is None:
+            return nn.functional.mse_loss(eps_pred, eps)
+        weight = torch.as_tensor(mask, device=self.device).to(eps.dtype)[:, :, None]  # (B, H, 1)
+        squared = (eps_pred - eps) ** 2 * weight                       # (B, H, dof), masked steps -> 0
+        return squared.sum() / (weight.sum() * eps.shape[-1]).clamp(min=1.0)
 
     # -- sampling ----------------------------------------------------------------------------------
 
@@ -789,8 +798,9 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
 
     - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
       keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)): augmented pairs made on the fly; they fill
-      round(cfg.aug_fraction * batch_size) rows of every batch (co-training, Sec. IV-A step 4).
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
+      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
+      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
     - resume_from: a checkpoint written by this function; restores weights, EMA, optimizer, step and both
       random streams, so the resumed run ends with the same numbers as an uninterrupted one. A sampler with
       state_dict() / load_state_dict() (e.g. a pool of generated pairs) is saved and restored with them.
@@ -843,22 +853,31 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
             group["lr"] = lr
         idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
         o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
+        mask = None                                                    # None: every step is in the loss
         if n_aug:
-            o_aug, a_aug = sampler(n_aug, rng)
-            o_aug = check_array("sampler obs", o_aug, (n_aug, pc.obs_dim))
-            a_aug = check_array("sampler chunks", a_aug, (n_aug, pc.horizon, pc.dof))
+            drawn = sampler(n_aug, rng)
+            if len(drawn) not in (2, 3):
+                raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask), got {len(drawn)} arrays")
+            o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
+            a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
             with torch.no_grad():
                 o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
                 a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
                 o = torch.cat([o, o_aug])
                 a = torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
+                if len(drawn) == 3:
+                    m_aug = np.asarray(drawn[2])
+                    if m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool:
+                        raise ValueError(f"sampler mask must be bool ({n_aug}, {pc.horizon}), got {m_aug.dtype} {m_aug.shape}")
+                    mask = torch.cat([torch.ones(n_base, pc.horizon, dtype=torch.bool, device=dev),
+                                      torch.as_tensor(m_aug, device=dev)])  # (B, H): base rows all True
         with torch.no_grad():
             if noisy:
                 # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
                 # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
                 o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
             o = policy.normalize_obs(o)                                # (B, cond input)
-        loss = policy.loss(o, a, generator=gen)
+        loss = policy.loss(o, a, generator=gen, mask=mask)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

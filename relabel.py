@@ -12,11 +12,13 @@ This file implements that augmentation, top to bottom:
    - 'per_step'   Σ^α_t                    -- Eq. (14) per measured timestep, from calibrate.py,
    rejecting states in collision or outside the joint limits;
 3. `monotone_projection`: the closest point of the expert trajectory, never earlier in time;
-4. `pd_return_chunk`: a critically damped PD controller, accelerations clamped to the demos,
-   rolled out toward a reference that advances along the expert trajectory from the projection
-   (see `lookahead_steps` for the paper's "a state a few timesteps further") -- the chunk of H
-   absolute joint targets rejoins the trajectory, then follows it;
-5. `AugmentationSampler`: (observation, chunk) training pairs generated on the fly for co-training
+4. the return chunk of H absolute joint targets that rejoins the trajectory, then follows it:
+   `servo_return_chunk` (default): the authors' critically damped servo at its own monotone cursor
+   (PAPER_SETUP.md §6), with a mask that drops the held tail at the segment's end from the loss;
+   `pd_return_chunk` (RelabelConfig.label='pd'): a critically damped PD with velocity feed-forward
+   toward a reference advancing from the projection (see `lookahead_steps` for the paper's
+   "a state a few timesteps further");
+5. `AugmentationSampler`: (observation, chunk, mask) training triples generated on the fly for co-training
    (diffusion.train's `sampler` hook), kept in a pool that is partly regenerated every few calls;
 6. `plot_recovery`: the paper's Fig. 1 on the planar env.
 
@@ -54,6 +56,30 @@ class RelabelConfig:
     settle_steps: float = 8.0  # the PD gains make the unclamped error settle (to 2 %) in this many
     #   steps: H/2, so the second half of every chunk follows the expert trajectory.
     max_tries: int = 10  # rejection rounds for a perturbed state before it is dropped
+    # --- the authors' relabeling (PAPER_SETUP.md §6), their 30 Hz frames converted to our 10 Hz steps.
+    #   Their median step m' (per 1/30 s frame) is 1/3 of ours m (per 0.1 s step): same joint speed.
+    label: str = "servo"  # 'servo': `servo_return_chunk` (the authors' label); 'pd': `pd_return_chunk`
+    velocity_noise: float = 0.3  # σ_v of the noised velocity, in median steps per step: theirs is
+    #   0.3 m' per frame, a speed relative to the median speed, so unit-free: stays 0.3
+    a_clamp_scale: float = 0.9  # a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m): unit-free factor
+    accel_floor: float = 0.6  # a_clamp floor in m per step²: theirs 0.2 m' per frame²
+    #   = 0.2 · (m/3) / (1/3 step)² = 0.2 · 3 = 0.6 m per step²
+    gain_floor: float = 4.0 / 3.0  # Kp = a_clamp / max(d0, gain_floor · m): theirs 4 m' = 4/3 m (a distance)
+    jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= jerk_slew · a_clamp: theirs 0.5 · a_clamp per frame,
+    #   and a step is 3 frames, so 1.5 · a_clamp per step
+    speed_cap: float = 1.68  # |v| <= max(1.68 · m, 1.05 · |v0|): theirs 1.4 · 1.2 m' per frame, a speed
+    #   relative to the median speed, so unit-free: stays 1.68
+    speed_cap_v0: float = 1.05  # ... the 1.05 · |v0| part: unit-free
+    cursor_advance: int = 3  # the servo's cursor moves at most this many trajectory indices per step:
+    #   theirs 3 m' of arc per frame = 3 m per step, and one index of our demos is about one m
+    hold_tol: float = 0.02  # a chunk step is "held" when |q_{k+1} - q_k| < hold_tol · m at the segment end;
+    #   2 % of a median step: the servo's stop at the end decays like k e^{-ωk}, and at 1e-3 it was
+    #   not reached within H = 16 steps even for a segment ending 2 steps ahead (measured)
+    min_moving_steps: int = 3  # a servo label needs >= this many unmasked steps, else the state is
+    #   redrawn: theirs 8 frames = 0.27 s = 2.7 of our steps -> 3
+    near_end_steps: int = 3  # a noised state projecting within this many steps of its segment's end
+    #   is redrawn: theirs 8 frames -> 3 steps, as above
+    max_redraws: int = 6  # ... at most this many times (theirs: 6), then it is dropped
     pool_size: int = 4096  # AugmentationSampler: pairs kept in the pool
     refresh_size: int = 512  # ... fresh pairs per refresh (they replace the oldest pairs)
     reuse: float = 4.0  # ... a refresh follows every reuse * refresh_size pairs served, so on average
@@ -73,6 +99,8 @@ class DemoStats:
     median_speed: float  # rad/step: median over moving steps of ‖q[t+1] - q[t]‖₂ (sets lookahead)
     accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD acceleration
     max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the PD velocity
+    acc_p95: float  # rad/step²: 95th percentile of ‖q[t+1] - 2 q[t] + q[t-1]‖₂, sets the servo's a_clamp
+    #   (PAPER_SETUP §6; measured per step of our demos, so already in our units)
 
 
 def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_percentile: float = 99.0) -> DemoStats:
@@ -100,7 +128,9 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
     speed = speed[speed > 0]  # standing still is not a speed
     if speed.size == 0:
         raise ValueError("the demonstrations never move; no median speed can be measured")
-    accel_max = np.percentile(np.concatenate(accels), accel_percentile, axis=0)  # (dof,)
+    accels = np.concatenate(accels)  # (sum T-2, dof)
+    accel_max = np.percentile(accels, accel_percentile, axis=0)  # (dof,)
+    acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # PCD: norm over joints, all steps
     if np.any(accel_max <= 0):
         raise ValueError(f"the demonstrations show no acceleration on joints {np.flatnonzero(accel_max <= 0).tolist()}; "
                          "the PD return could never move them (accel clamp would be 0)")
@@ -108,7 +138,7 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,)).copy()
     if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
         raise ValueError(f"max_step must be positive and finite (rad/step), got {max_step}")
-    return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step)
+    return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step, acc_p95)
 
 
 # --------------------------------------------------------------------------------------------
@@ -417,20 +447,115 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     # <<< exercise 9
 
 
+def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, median_step: float,
+                       acc_p95: float, max_step, t_end=None, limits=None, cfg: RelabelConfig | None = None):
+    """The authors' label (PAPER_SETUP.md §6): a critically damped servo that tracks the expert
+    segment at its own monotone cursor, rolled out from (q0, v0).
+
+    Every step k the cursor c_k is the monotone projection of the label's own point x_k, searched
+    from c_{k-1} at most `cursor_advance` indices ahead (it starts at t_proj), and the servo pulls
+    toward the expert's position and velocity there:
+        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end)
+        a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m),  Kp = a_clamp / max(d0, gain_floor · m),
+        Kd = 2 √Kp  (critical damping; discretized exactly, see below),  d0 = ‖q0 - trajectory[t_proj]‖,
+        m = median_step;
+    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp (a_{-1} = 0),
+    ‖v‖ <= max(speed_cap · m, speed_cap_v0 · ‖v0‖), |v| <= max_step per joint, x within `limits`.
+    (Norm clamps, as the authors'; the per-joint max_step is our env's.) Constants: RelabelConfig,
+    converted from the authors' 30 Hz frames to our steps.
+
+    The held tail: once the cursor is at the segment's last point and the arm has stopped
+    (|x_{k+1} - x_k| < hold_tol · m on every joint) for the rest of the chunk, those steps only
+    repeat the end pose; mask is False there so the training loss ignores them.
+
+    q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, t_end: int or (B,) (t_end exclusive).
+    Returns (chunk (B, H, dof) absolute joint targets x_1 .. x_H, mask (B, H) bool, True = in the
+    loss); (H, dof) and (H,) for a single q0.
+    """
+    cfg = cfg or RelabelConfig()
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    x = np.asarray(q0, dtype=np.float64)
+    single = x.ndim == 1
+    x = np.atleast_2d(x).copy()
+    B, dof = x.shape
+    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
+    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
+        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive integer, got {H!r}")
+    if not (median_step > 0 and np.isfinite(acc_p95) and acc_p95 >= 0):
+        raise ValueError(f"need median_step > 0 and acc_p95 >= 0, got {median_step!r} and {acc_p95!r}")
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
+    T = len(trajectory)
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    cursor = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)).copy()
+    m = median_step
+    norm = lambda a: np.linalg.norm(a, axis=-1, keepdims=True)  # (B, 1)
+    cap = lambda a, limit: a * np.minimum(1.0, limit / np.maximum(norm(a), 1e-300))  # ‖a‖ <= limit
+
+    a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * acc_p95, cfg.accel_floor * m)  # rad/step²
+    d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
+    omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
+    # Kd = 2 √Kp (critical damping) in continuous time. Per step (dt = 0.1 s) ω reaches ~1.1, where
+    # Euler with the continuous gains is unstable (the label chattered ±a_clamp every step; at the
+    # authors' 30 Hz ω is 3x smaller). So the double pole is placed exactly at e^{-ω}, as in
+    # `critically_damped_gains`: Kp = (1 - p)², Kd = 1 - p², which tends to (ω², 2ω) as ω -> 0.
+    p = np.exp(-omega)
+    kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
+    v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
+    v = np.minimum(np.maximum(v, -max_step), max_step)
+    a_prev = np.zeros((B, dof))
+    chunk = np.empty((B, H, dof))
+    held = np.zeros((B, H), dtype=bool)
+    for k in range(H):
+        # the servo's own monotone cursor: project x_k, never back, at most cursor_advance ahead
+        cursor = monotone_projection(x, trajectory, cursor, window=cfg.cursor_advance + 1, t_end=t_end)
+        at_end = cursor >= t_end - 1
+        ref = trajectory[cursor]  # (B, dof)
+        ref_vel = trajectory[np.minimum(cursor + 1, t_end - 1)] - ref  # (B, dof), 0 at the end
+        a = kp * (ref - x) + kd * (ref_vel - v)  # PD on position and velocity error
+        a = cap(a, a_clamp)  # accelerations of the demo envelope
+        a = a_prev + cap(a - a_prev, cfg.jerk_slew * a_clamp)  # bounded jerk (slew)
+        a_prev = a
+        v = cap(v + a, v_cap)  # speed cap
+        v = np.minimum(np.maximum(v, -max_step), max_step)  # the env's per-joint speed limit
+        x_next = x + v
+        if limits is not None:
+            x_next = np.minimum(np.maximum(x_next, limits[0]), limits[1])
+            v = x_next - x  # a joint stopped by its limit has stopped moving
+        held[:, k] = at_end & (np.abs(x_next - x).max(axis=1) < cfg.hold_tol * m)
+        x = x_next
+        chunk[:, k] = x
+    # the held tail: steps from which on every step is held; (B, H), True = in the loss
+    tail = np.flip(np.logical_and.accumulate(np.flip(held, axis=1), axis=1), axis=1)
+    mask = ~tail
+    return (chunk[0], mask[0]) if single else (chunk, mask)
+
+
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
-                      stats: DemoStats, cfg: RelabelConfig, limits=None) -> np.ndarray:
-    """The labelling pipeline of Sec. IV-E for noised states q̃ (m, dof) that came from steps t (m,):
-    monotone projection -> (optional lookahead) -> PD return chunk. `t_end` (m,) is the
-    (exclusive) end of each state's expert segment in `trajectory`. Returns (m, H, dof)."""
-    t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
+                      stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None) -> tuple[np.ndarray, np.ndarray]:
+    """The labelling pipeline of Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof)
+    that came from steps t (m,): monotone projection -> return chunk, by `cfg.label`:
+    'servo' (default, the authors', `servo_return_chunk`) or 'pd' (`pd_return_chunk`, with the
+    optional lookahead). `t_end` (m,) is the (exclusive) end of each state's expert segment in
+    `trajectory`; `t_proj` (m,) may pass projections already computed.
+    Returns (chunks (m, H, dof), mask (m, H) bool, True = in the loss; all True for 'pd')."""
+    if t_proj is None:
+        t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
+    if cfg.label == "servo":
+        return servo_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, stats.median_step, stats.acc_p95,
+                                  stats.max_step, t_end=t_end, limits=limits, cfg=cfg)
+    if cfg.label != "pd":
+        raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {cfg.label!r}")
     if cfg.lookahead == "time_matched":
         ahead = 0
     elif cfg.lookahead == "gap":
         ahead = lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
     else:
         raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {cfg.lookahead!r}")
-    return pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, ahead, stats.accel_max, stats.max_step,
-                           settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
+    chunks = pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, ahead, stats.accel_max, stats.max_step,
+                             settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
+    return chunks, np.ones(chunks.shape[:2], dtype=bool)
 
 
 # --------------------------------------------------------------------------------------------
@@ -441,8 +566,8 @@ NOISE_KINDS = ("isotropic", "pooled", "per_step")
 
 
 class AugmentationSampler:
-    """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32): noised
-    intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
+    """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool):
+    noised intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
     noise / sigma (explicit, validated):
       'isotropic': sigma is a scalar σ in median steps                       (Table I baselines)
@@ -454,9 +579,11 @@ class AugmentationSampler:
       seed is created on demand, reset once to that seed, and cached.
 
     A pair is made like this: draw (episode, t) uniformly among the intervention steps with a valid
-    label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); q̃_prev = q̃ - (q_t - q_{t-1}) so the
-    observed velocity is the expert's; obs = env.make_obs(q̃, q̃_prev) in the episode's scenario;
-    chunk = `corrective_labels` (monotone projection, PD return). With image observations
+    label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); v = (q_t - q_{t-1}) + N(0, (0.3 m)²)
+    (PAPER_SETUP §6, m = median step); obs = env.make_obs(q̃, q̃ - v) in the episode's scenario;
+    chunk, mask = `corrective_labels` (monotone projection, servo return from (q̃, v)); states that
+    project within `near_end_steps` of the segment's end or whose label is mostly a held tail are
+    redrawn. With image observations
     (env.image_shape non-empty) the noised state reuses the recorded image of state t, and only the
     joint positions change: the paper's approximation for its image policy (Sec. V).
 
@@ -477,6 +604,8 @@ class AugmentationSampler:
         H = self.cfg.horizon
         if noise not in NOISE_KINDS:
             raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+        if self.cfg.label not in ("servo", "pd"):
+            raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {self.cfg.label!r}")
         if self.cfg.lookahead not in ("time_matched", "gap"):
             raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {self.cfg.lookahead!r}")
         if self.cfg.refresh_size < 1 or self.cfg.pool_size < self.cfg.refresh_size or not self.cfg.reuse > 0:
@@ -532,7 +661,7 @@ class AugmentationSampler:
         self.step_of = self.t_glob - np.concatenate([[0], np.cumsum([len(q) for q in traj])])[self.episode_of]
         # contiguous block of rows per episode, for the "episodes first" draw
         self._ep_ids, self._ep_start, self._ep_count = np.unique(self.episode_of, return_index=True, return_counts=True)
-        self._pool_obs = self._pool_chunks = None
+        self._pool_obs = self._pool_chunks = self._pool_mask = None
         self._filled = self._write = self._served = 0  # pool fill, ring position, served since refresh
         self.n_drawn = self.n_kept = 0  # acceptance bookkeeping (collision / limit rejections)
 
@@ -543,55 +672,83 @@ class AugmentationSampler:
             self._envs[seed] = env
         return self._envs[seed]
 
-    def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """m fresh pairs (fewer if some states were rejected `max_tries` times): obs (m', obs_dim)
-        float32, chunks (m', H, dof) float32. Episodes are drawn first (probability proportional to
-        their number of labelable steps, so steps are uniform overall), then steps within them."""
+    def _observe(self, rows: np.ndarray, q_tilde: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """obs (m, obs_dim) float32 of noised states, one batched env call per scenario. The previous
+        frame is rebuilt as q̃ - v (PAPER_SETUP §6); make_obs recomputes the end effector from q̃."""
+        obs = None
+        for seed in np.unique(self.seeds[rows]):
+            sel = self.seeds[rows] == seed
+            env, r = self._env(int(seed)), rows[sel]
+            n_pix = int(np.prod(env.image_shape)) if getattr(env, "image_shape", ()) else 0
+            if n_pix:  # Sec. V: noised states reuse the original image; only the joints are noised
+                image = np.stack([self._episode_obs[e][t, -n_pix:] for e, t in zip(self.episode_of[r], self.step_of[r])])
+                part = env.make_obs(q_tilde[sel], q_tilde[sel] - v[sel], image=image)
+            else:
+                part = env.make_obs(q_tilde[sel], q_tilde[sel] - v[sel])
+            part = np.asarray(part, dtype=np.float32)
+            if obs is None:
+                obs = np.empty((len(rows), part.shape[1]), np.float32)
+            obs[sel] = part
+        return obs
+
+    def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """m fresh pairs (fewer if some states were dropped): obs (m', obs_dim) float32, chunks
+        (m', H, dof) float32, mask (m', H) bool (True = in the loss). Episodes are drawn first
+        (probability proportional to their number of labelable steps, so steps are uniform overall),
+        then steps within them. A state is dropped when it stays in collision / outside the limits
+        for `max_tries` draws; it is redrawn (up to `max_redraws` times, PAPER_SETUP §6) when it
+        projects within `near_end_steps` of its segment's end or its label has fewer than
+        `min_moving_steps` unmasked steps."""
         if not isinstance(m, (int, np.integer)) or m < 1:
             raise ValueError(f"m must be a positive integer, got {m!r}")
-        k = min(self.cfg.episodes_per_refresh, m)
+        cfg, dof = self.cfg, self.center.shape[1]
+        k = min(cfg.episodes_per_refresh, m)
         draws = rng.choice(len(self._ep_ids), size=k, p=self._ep_count / self._ep_count.sum())
         per_draw = np.full(k, m // k)
         per_draw[: m % k] += 1
-        rows = np.concatenate([self._ep_start[d] + rng.integers(self._ep_count[d], size=c) for d, c in zip(draws, per_draw)])
-        obs_parts, rows_kept, q_parts = [], [], []
-        for seed in np.unique(self.seeds[rows]):  # one batched collision check + obs per scenario
-            r = rows[self.seeds[rows] == seed]
-            env = self._env(int(seed))
-            q_tilde, kept = _draw_valid(self.center[r], self.factors[r], rng, env, self.cfg.max_tries)
-            q_tilde, r = q_tilde[kept], r[kept]
-            if r.size:
-                q_prev = q_tilde - self.velocity[r]
-                n_pix = int(np.prod(env.image_shape)) if getattr(env, "image_shape", ()) else 0
-                if n_pix:  # Sec. V: noised states reuse the original image; only the joints are noised
-                    image = np.stack([self._episode_obs[e][t, -n_pix:]
-                                      for e, t in zip(self.episode_of[r], self.step_of[r])])
-                    obs = env.make_obs(q_tilde, q_prev, image=image)
-                else:
-                    obs = env.make_obs(q_tilde, q_prev)
-                obs_parts.append(np.asarray(obs, dtype=np.float32))
-                rows_kept.append(r)
-                q_parts.append(q_tilde)
+        todo = np.concatenate([self._ep_start[d] + rng.integers(self._ep_count[d], size=c) for d, c in zip(draws, per_draw)])
+        limits = self._env(int(self.seeds[todo[0]])).joint_limits
+        out_rows, out_q, out_v, out_chunks, out_mask = [], [], [], [], []
         self.n_drawn += m
-        if not rows_kept:
-            return np.empty((0, 0), np.float32), np.empty((0, self.cfg.horizon, self.center.shape[1]), np.float32)
-        r = np.concatenate(rows_kept)
-        q_tilde = np.concatenate(q_parts)
+        for _ in range(cfg.max_redraws + 1):
+            if todo.size == 0:
+                break
+            q_tilde, kept = np.empty((len(todo), dof)), np.zeros(len(todo), dtype=bool)
+            for seed in np.unique(self.seeds[todo]):  # one batched collision check per scenario
+                sel = self.seeds[todo] == seed
+                q_tilde[sel], kept[sel] = _draw_valid(self.center[todo[sel]], self.factors[todo[sel]], rng,
+                                                      self._env(int(seed)), cfg.max_tries)
+            r, q_tilde = todo[kept], q_tilde[kept]  # states still invalid after max_tries are dropped
+            # PAPER_SETUP §6: velocity = demo tangent + N(0, (velocity_noise · median_step)²) per joint
+            v = self.velocity[r] + cfg.velocity_noise * self.stats.median_step * rng.standard_normal(q_tilde.shape)
+            t_proj = monotone_projection(q_tilde, self.trajectory, self.t_glob[r], window=cfg.projection_window,
+                                         t_end=self.end_glob[r])
+            ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
+            chunks, mask = corrective_labels(q_tilde[ok], v[ok], self.trajectory, self.t_glob[r[ok]],
+                                             self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok])
+            moving = mask.sum(axis=1) >= cfg.min_moving_steps  # enough steps left in the loss
+            ok[ok] = moving
+            out_rows.append(r[ok]), out_q.append(q_tilde[ok]), out_v.append(v[ok])
+            out_chunks.append(chunks[moving]), out_mask.append(mask[moving])
+            todo = r[~ok]  # redraw these
+        r = np.concatenate(out_rows)
         self.n_kept += r.size
-        limits = self._env(int(self.seeds[r[0]])).joint_limits
-        chunks = corrective_labels(q_tilde, self.velocity[r], self.trajectory, self.t_glob[r], self.end_glob[r],
-                                   self.stats, self.cfg, limits=limits)
-        return np.concatenate(obs_parts), chunks.astype(np.float32)
+        if r.size == 0:
+            return (np.empty((0, 0), np.float32), np.empty((0, cfg.horizon, dof), np.float32),
+                    np.empty((0, cfg.horizon), bool))
+        obs = self._observe(r, np.concatenate(out_q), np.concatenate(out_v))
+        return obs, np.concatenate(out_chunks).astype(np.float32), np.concatenate(out_mask)
 
     def _refresh(self, rng: np.random.Generator) -> int:
-        obs, chunks = self.generate(self.cfg.refresh_size, rng)
+        obs, chunks, mask = self.generate(self.cfg.refresh_size, rng)
         if self._pool_obs is None and len(obs):
             P = self.cfg.pool_size
             self._pool_obs = np.empty((P, obs.shape[1]), np.float32)
             self._pool_chunks = np.empty((P, *chunks.shape[1:]), np.float32)
+            self._pool_mask = np.empty((P, chunks.shape[1]), bool)
         if len(obs):  # ring buffer: overwrite the oldest pairs
             slots = (self._write + np.arange(len(obs))) % self.cfg.pool_size
-            self._pool_obs[slots], self._pool_chunks[slots] = obs, chunks
+            self._pool_obs[slots], self._pool_chunks[slots], self._pool_mask[slots] = obs, chunks, mask
             self._write = int((self._write + len(obs)) % self.cfg.pool_size)
             self._filled = min(self.cfg.pool_size, self._filled + len(obs))
         return len(obs)
@@ -600,17 +757,22 @@ class AugmentationSampler:
         """The pool and its counters, so a resumed training run can continue with the same pairs
         (the rng is the caller's and is restored by the caller)."""
         copy = lambda a: None if a is None else a.copy()
-        return {"pool_obs": copy(self._pool_obs), "pool_chunks": copy(self._pool_chunks), "filled": self._filled,
+        return {"pool_obs": copy(self._pool_obs), "pool_chunks": copy(self._pool_chunks),
+                "pool_mask": copy(self._pool_mask), "filled": self._filled,
                 "write": self._write, "served": self._served, "n_drawn": self.n_drawn, "n_kept": self.n_kept}
 
     def load_state_dict(self, state: dict) -> None:
-        copy = lambda a: None if a is None else np.array(a, dtype=np.float32)
-        self._pool_obs, self._pool_chunks = copy(state["pool_obs"]), copy(state["pool_chunks"])
+        copy = lambda a, dtype: None if a is None else np.array(a, dtype=dtype)
+        self._pool_obs, self._pool_chunks = copy(state["pool_obs"], np.float32), copy(state["pool_chunks"], np.float32)
+        self._pool_mask = copy(state.get("pool_mask"), bool)
+        if self._pool_mask is None and self._pool_chunks is not None:  # a pool saved before masks existed
+            self._pool_mask = np.ones(self._pool_chunks.shape[:2], dtype=bool)
         self._filled, self._write, self._served = int(state["filled"]), int(state["write"]), int(state["served"])
         self.n_drawn, self.n_kept = int(state["n_drawn"]), int(state["n_kept"])
 
-    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """n pairs from the pool (diffusion.train's sampler hook); fills the pool on the first call."""
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """n pairs from the pool (diffusion.train's sampler hook): obs (n, obs_dim), chunks (n, H, dof),
+        mask (n, H) bool (True = in the loss). Fills the pool on the first call."""
         if not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n must be an integer >= 0, got {n!r}")
         if self._filled == 0:  # first call: fill the pool (bounded number of attempts)
@@ -620,13 +782,14 @@ class AugmentationSampler:
                     break
             if self._filled == 0:
                 raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
-                                 f"{self.cfg.max_tries} tries; the noise ({self.noise}) is too large for these scenarios")
+                                 f"{self.cfg.max_tries} tries, or too near its segment's end after "
+                                 f"{self.cfg.max_redraws} redraws; the noise ({self.noise}) is too large for these scenarios")
         elif self._served >= self.cfg.reuse * self.cfg.refresh_size:
             self._refresh(rng)
             self._served = 0
         self._served += n
         pick = rng.integers(self._filled, size=n)
-        return self._pool_obs[pick], self._pool_chunks[pick]
+        return self._pool_obs[pick], self._pool_chunks[pick], self._pool_mask[pick]
 
 
 # --------------------------------------------------------------------------------------------
@@ -677,7 +840,7 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     q_tilde, t = perturb_states(episode, sigma, rng, len(steps), env, t_index=steps,
                                 median_step=stats.median_step, horizon=cfg.horizon, max_tries=cfg.max_tries)
     v = q[t] - q[np.maximum(t - 1, 0)]
-    chunks = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
+    chunks, _ = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
     recoveries = [env.ee(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each
     expert_ee = env.ee(q[seg[0]:end])
 
@@ -737,8 +900,8 @@ if __name__ == "__main__":
     sampler(128, rng)  # fills the pool
     t0 = time.perf_counter()
     for _ in range(200):
-        obs, chunks = sampler(128, rng)
-    print(f"sampler: obs {obs.shape} {obs.dtype}, chunks {chunks.shape} {chunks.dtype}; "
+        obs, chunks, mask = sampler(128, rng)
+    print(f"sampler: obs {obs.shape} {obs.dtype}, chunks {chunks.shape} {chunks.dtype}, {mask.mean():.0%} of steps in the loss; "
           f"{(time.perf_counter() - t0) / 200 * 1e3:.2f} ms per call of 128 pairs; "
           f"{sampler.n_kept / sampler.n_drawn:.1%} of noised states collision-free")
     print("wrote", plot_recovery(env, episodes[0], sigma, "fig1_recovery_demo.png", rng, stats))

@@ -502,3 +502,57 @@ def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
         TrainConfig(obs_noise=-0.1)
     with pytest.raises(ValueError, match="obs_dim"):
         train(tiny_policy(), obs, chunks, TrainConfig(steps=1, obs_noise=(0.1, 0.1, 0.1)))
+
+
+def test_masked_loss_ignores_masked_steps_and_none_is_the_plain_loss():
+    policy = tiny_policy()
+    with torch.no_grad():  # an untrained net predicts zero noise, which would ignore the chunk entirely
+        weights = torch.Generator().manual_seed(3)
+        for p in policy.net.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=weights))
+    g = lambda: torch.Generator().manual_seed(0)
+    obs = torch.randn(8, 2, generator=torch.Generator().manual_seed(1))
+    chunk = torch.randn(8, 4, 2, generator=torch.Generator().manual_seed(2))
+    # mask=None: exactly the old loss, DDPM's plain mean over every entry
+    k = torch.randint(0, policy.cfg.K, (8,), generator=g())
+    gen = g()
+    torch.randint(0, policy.cfg.K, (8,), generator=gen)
+    eps = torch.randn(chunk.shape, generator=gen)
+    old = nn.functional.mse_loss(policy.predict_eps(q_sample(policy.schedule, chunk, k, eps), k, obs, use_ema=False), eps)
+    assert policy.loss(obs, chunk, generator=g()).item() == old.item()
+    # an all-True mask gives the same number (up to rounding)
+    full = torch.ones(8, 4, dtype=torch.bool)
+    assert abs(policy.loss(obs, chunk, generator=g(), mask=full).item() - old.item()) < 1e-6
+    # masked steps do not count: with a step-local stand-in for the network (the U-Net's convolutions
+    # would carry a change of one step into its neighbours' predictions), changing the chunk on
+    # masked steps leaves the loss unchanged
+    policy.predict_eps = lambda a_k, k, obs_norm, use_ema=False: 0.3 * a_k
+    mask = full.clone()
+    mask[:, 2:] = False
+    mask[0] = True
+    changed = chunk.clone()
+    changed[1:, 2:] += 5.0
+    a = policy.loss(obs, chunk, generator=g(), mask=mask).item()
+    assert policy.loss(obs, changed, generator=g(), mask=mask).item() == a
+    assert policy.loss(obs, changed, generator=g()).item() != policy.loss(obs, chunk, generator=g()).item()
+    plain = policy.loss(obs, chunk, generator=g()).item()
+    assert a != plain
+
+
+def test_train_accepts_a_sampler_with_a_mask():
+    obs = np.random.default_rng(0).normal(size=(32, 2)).astype(np.float32)
+    chunks = np.random.default_rng(1).normal(size=(32, 4, 2)).astype(np.float32)
+    seen = []
+
+    def sampler(n, rng):
+        mask = np.ones((n, 4), bool)
+        mask[:, 3] = False
+        seen.append(n)
+        return obs[:n], chunks[:n], mask
+
+    cfg = TrainConfig(steps=3, batch_size=8, aug_fraction=0.5, log_every=0)
+    train(tiny_policy(), obs, chunks, cfg, sampler=sampler)
+    assert seen == [4, 4, 4]
+    bad = lambda n, rng: (obs[:n], chunks[:n], np.ones((n, 3), bool))
+    with pytest.raises(ValueError, match="mask"):
+        train(tiny_policy(), obs, chunks, cfg, sampler=bad)

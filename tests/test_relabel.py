@@ -389,11 +389,15 @@ def test_zero_covariance_gives_the_expert_state_and_the_expert_label(stats):
     np.testing.assert_array_equal(q, ep["q"][t])
     q2, _ = perturb_states(ep, np.zeros((DOF, DOF)), np.random.default_rng(0), 20, FakeEnv())
     np.testing.assert_array_equal(q2, q)
-    cfg = RelabelConfig()
-    chunks = corrective_labels(q, ep["q"][t] - ep["q"][t - 1], ep["q"], t, np.full(len(t), 60), stats, cfg)
-    for c, ti in zip(chunks, t):  # identical to the expert's own future (padded at the segment end)
+    v = ep["q"][t] - ep["q"][t - 1]
+    chunks, mask = corrective_labels(q, v, ep["q"], t, np.full(len(t), 60), stats, RelabelConfig(label="pd"))
+    assert mask.all()  # the PD label has no held tail
+    servo, _ = corrective_labels(q, v, ep["q"], t, np.full(len(t), 60), stats, RelabelConfig())
+    for c, s, ti in zip(chunks, servo, t):  # PD: identical to the expert's own future (padded at the end)
         fut = ep["q"][np.minimum(np.arange(ti + 1, ti + 17), 59)]
         np.testing.assert_allclose(c, fut, atol=1e-12)
+        # the servo has no feed-forward: on the path it follows the expert closely, not exactly
+        assert np.abs(s - fut).max() < 0.5 * stats.median_step
 
 
 @pytest.mark.parametrize("sigma, match", [
@@ -452,10 +456,11 @@ def make_sampler(stats, noise="isotropic", sigma=4.0, cfg=None, n_eps=5):
 
 
 def test_sampler_shapes_dtypes_and_labels(stats):
-    sampler, eps = make_sampler(stats)
-    obs, chunks = sampler(128, np.random.default_rng(0))
+    sampler, eps = make_sampler(stats, cfg=small_cfg(velocity_noise=0.0))  # the expert's own velocities
+    obs, chunks, mask = sampler(128, np.random.default_rng(0))
     assert obs.shape == (128, FakeEnv.obs_dim) and obs.dtype == np.float32
     assert chunks.shape == (128, 16, DOF) and chunks.dtype == np.float32
+    assert mask.shape == (128, 16) and mask.dtype == bool and np.all(mask.sum(1) >= 3)
     q_tilde, q_prev = obs[:, :DOF].astype(np.float64), obs[:, DOF:2 * DOF].astype(np.float64)
     # the observed velocity is one of the expert's velocities at an intervention step
     expert_vel = np.concatenate([ep["q"][10:60] - ep["q"][9:59] for ep in eps])
@@ -475,11 +480,11 @@ def test_sampler_is_deterministic_given_the_seed(stats):
         sampler, _ = make_sampler(stats)
         rng = np.random.default_rng(42)
         outs.append([sampler(64, rng) for _ in range(5)])
-    for (o1, c1), (o2, c2) in zip(*outs):
-        np.testing.assert_array_equal(o1, o2)
-        np.testing.assert_array_equal(c1, c2)
+    for first, second in zip(*outs):
+        for x1, x2 in zip(first, second):  # obs, chunks, mask
+            np.testing.assert_array_equal(x1, x2)
     sampler, _ = make_sampler(stats)
-    o3, _ = sampler(64, np.random.default_rng(43))
+    o3, _, _ = sampler(64, np.random.default_rng(43))
     assert not np.array_equal(o3, outs[0][0][0])
 
 
@@ -509,8 +514,9 @@ def test_sampler_pooled_noise_matches_covariance(stats):
     rng = np.random.default_rng(7)
     A = rng.normal(size=(DOF, DOF)) * 0.02
     cov = A @ A.T
-    sampler, eps = make_sampler(stats, noise="pooled", sigma=cov, cfg=small_cfg(pool_size=8192, refresh_size=8192))
-    obs, _ = sampler(0, rng)  # fills the pool
+    sampler, eps = make_sampler(stats, noise="pooled", sigma=cov,
+                                cfg=small_cfg(pool_size=8192, refresh_size=8192, velocity_noise=0.0))
+    sampler(0, rng)  # fills the pool
     q_tilde = sampler._pool_obs[:, :DOF].astype(np.float64)
     q_prev = sampler._pool_obs[:, DOF:2 * DOF].astype(np.float64)
     # recover q_t from the observed velocity: find the expert step with that velocity and position
@@ -528,7 +534,7 @@ def test_sampler_per_step_dict_and_list(stats):
     rng = np.random.default_rng(0)
     for per_step in ({0: covs, 1: covs, 2: covs}, [covs, covs, covs]):
         sampler = AugmentationSampler(eps, FakeEnv, stats, "per_step", per_step, small_cfg())
-        obs, chunks = sampler(32, rng)
+        obs, chunks, _ = sampler(32, rng)
         assert obs.shape == (32, FakeEnv.obs_dim) and chunks.shape == (32, 16, DOF)
         # step 31 (nearest measurement at 30) gets 4e-4 I; step 13 gets 1e-4 I
         np.testing.assert_allclose(sampler.factors[31 - 10] @ sampler.factors[31 - 10].T, np.eye(DOF) * 4e-4)
@@ -596,8 +602,9 @@ def test_planar_perturbed_states_are_free_by_the_pymunk_check(planar):
 
 def test_planar_sampler_without_noise_reproduces_the_episodes(planar):
     envs, eps, st = planar
-    sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "isotropic", 0.0, small_cfg())
-    obs, chunks = sampler(64, np.random.default_rng(0))
+    cfg = small_cfg(velocity_noise=0.0, label="pd")  # no noise at all, and the label with feed-forward
+    sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "isotropic", 0.0, cfg)
+    obs, chunks, _ = sampler(64, np.random.default_rng(0))
     for o, c in zip(obs, chunks):
         found = [(e, t) for e, ep in enumerate(eps) for t in np.flatnonzero(np.all(ep["obs"] == o, axis=1))]
         assert len(found) == 1  # the observation the episode recorded at that step, bit for bit
@@ -612,8 +619,9 @@ def test_planar_sampler_pooled_noise(planar):
     envs, eps, st = planar
     cov = np.diag([4.0, 2.0, 1.0]) ** 2 * st.median_step ** 2
     sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "pooled", cov, small_cfg())
-    obs, chunks = sampler(128, np.random.default_rng(1))
+    obs, chunks, mask = sampler(128, np.random.default_rng(1))
     env = envs.make_env("planar")
+    assert mask.shape == (128, 16) and np.all(mask.sum(1) >= 3)
     assert obs.shape == (128, env.obs_dim) and chunks.shape == (128, 16, 3)
     for seed in PLANAR_SEEDS:  # every noised state is free in its own scenario
         env.reset(seed=seed)
@@ -642,9 +650,9 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     b.load_state_dict(state)
     rng2 = np.random.default_rng()
     rng2.bit_generator.state = rng_state
-    for (o1, c1), (o2, c2) in zip(expect, [b(32, rng2) for _ in range(4)]):
-        np.testing.assert_array_equal(o1, o2)
-        np.testing.assert_array_equal(c1, c2)
+    for first, second in zip(expect, [b(32, rng2) for _ in range(4)]):
+        for x1, x2 in zip(first, second):  # obs, chunks, mask
+            np.testing.assert_array_equal(x1, x2)
 
 
 def test_lookahead_is_the_gap_at_median_speed_capped():
@@ -660,8 +668,8 @@ def test_corrective_labels_lookahead_modes(stats):
     q = traj[t] + rng.normal(size=(50, DOF)) * 3 * stats.median_step
     v = traj[t] - traj[t - 1]
     end = np.full(50, len(traj))
-    timed = corrective_labels(q, v, traj, t, end, stats, RelabelConfig())
-    gap = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(lookahead="gap"))
+    timed, _ = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(label="pd"))
+    gap, _ = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(label="pd", lookahead="gap"))
     proj = monotone_projection(q, traj, t, window=32)
     ahead = lookahead_steps(q, traj[proj], stats.median_speed, 8)
     assert ahead.min() >= 1  # every noised state is off the path, so 'gap' aims further ahead
@@ -670,7 +678,7 @@ def test_corrective_labels_lookahead_modes(stats):
     # time-matched: the chunk ends on the point the expert reaches H steps after the projection
     assert np.median(np.linalg.norm(timed[:, -1] - traj[proj + 16], axis=1)) < 0.1 * stats.median_step
     with pytest.raises(ValueError, match="lookahead"):
-        corrective_labels(q, v, traj, t, end, stats, RelabelConfig(lookahead="far"))
+        corrective_labels(q, v, traj, t, end, stats, RelabelConfig(label="pd", lookahead="far"))
     with pytest.raises(ValueError, match="lookahead"):
         make_sampler(stats, cfg=small_cfg(lookahead="far"))
 
@@ -686,7 +694,7 @@ def test_sampler_reuses_the_recorded_image_for_noised_states():
     assert episodes, "stand-in episodes too short for this test"
     demo = relabel.demo_stats(episodes, envs.median_step(episodes), env.max_step)
     sampler = AugmentationSampler(episodes, make, demo, "isotropic", 4.0, RelabelConfig(horizon=8))
-    obs, chunks = sampler.generate(40, np.random.default_rng(0))
+    obs, chunks, mask = sampler.generate(40, np.random.default_rng(0))
     assert len(obs) > 20 and obs.shape[1] == env.obs_dim
     n_pix = 3 * 8 * 8
     recorded = np.concatenate([ep["obs"][:, -n_pix:] for ep in episodes])
@@ -695,3 +703,147 @@ def test_sampler_reuses_the_recorded_image_for_noised_states():
     recorded_q = np.concatenate([ep["obs"][:, :6] for ep in episodes])
     moved = [np.abs(recorded_q - row[:6]).sum(axis=1).min() > 1e-4 for row in obs]
     assert np.mean(moved) > 0.9                                       # while the joints were noised
+
+
+# ---------------------------------------------------------------- the authors' relabeling (PAPER_SETUP §6)
+
+def line_episode(seed=0, T=60, step=(0.02, -0.01, 0.015)):
+    """A constant-velocity expert episode: its demo tangent q_t - q_{t-1} is `step` at every t."""
+    q = np.array([0.1, 0.2, -0.3]) + np.arange(T)[:, None] * np.asarray(step)
+    prev = np.concatenate([q[:1], q[:-1]])
+    expert = np.zeros(T, bool)
+    expert[5:] = True
+    env = FakeEnv()
+    env.reset(seed=seed)
+    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
+            "expert": expert, "seed": seed}
+
+
+def test_velocity_noise_has_the_configured_std_and_rebuilds_q_prev(stats):
+    step = np.array([0.02, -0.01, 0.015])
+    sampler = AugmentationSampler([line_episode()], FakeEnv, stats, "isotropic", 2.0,
+                                  small_cfg(pool_size=4096, refresh_size=4096))
+    sampler(0, np.random.default_rng(0))  # fills the pool
+    obs = sampler._pool_obs[: sampler._filled].astype(np.float64)
+    v = obs[:, :DOF] - obs[:, DOF:2 * DOF]  # q̃ - q_prev, and q_prev = q̃ - v
+    noise = v - step  # velocity = demo tangent + N(0, (0.3 median_step)²) per joint
+    assert len(noise) > 3000
+    np.testing.assert_allclose(noise.mean(0), 0, atol=0.1 * 0.3 * stats.median_step)
+    np.testing.assert_allclose(noise.std(0), 0.3 * stats.median_step, rtol=0.05)
+
+
+def test_planar_obs_of_a_noised_state_is_rebuilt_by_forward_kinematics(planar):
+    envs, eps, st = planar
+    env = envs.make_env("planar")
+    sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "isotropic", 4.0, small_cfg())
+    obs, _, _ = sampler(64, np.random.default_rng(2))
+    q_tilde = obs[:, :3].astype(np.float64)
+    np.testing.assert_allclose(obs[:, -2:], env.ee(q_tilde), atol=1e-5)  # end effector of q̃, not of q_t
+    v = q_tilde - obs[:, 3:6]
+    assert np.abs(v).max() > 0  # the previous frame q̃ - v is in the obs
+
+
+def servo_setup(stats, offset, n=64, seed=0, t0=20):
+    traj = smooth_trajectory()
+    rng = np.random.default_rng(seed)
+    t = np.full(n, t0)
+    q0 = traj[t] + rng.normal(size=(n, DOF)) * offset * stats.median_step
+    v0 = traj[t] - traj[t - 1] + rng.normal(size=(n, DOF)) * 0.3 * stats.median_step
+    return traj, q0, v0, monotone_projection(q0, traj, t, window=32)
+
+
+def servo_motion(q0, v0, chunk, max_step):
+    """Realized velocities and accelerations of a chunk from (q0, v0): (B, H, dof) each."""
+    x = np.concatenate([q0[:, None], chunk], axis=1)
+    vel = np.diff(x, axis=1)
+    prev = np.concatenate([np.clip(v0, -max_step, max_step)[:, None], vel[:, :-1]], axis=1)
+    return vel, vel - prev
+
+
+def test_servo_respects_every_clamp(stats):
+    m = stats.median_step
+    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)
+    traj, q0, v0, proj = servo_setup(stats, offset=8.0)
+    # a loose per-joint max_step, so that the norm speed cap is what binds
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0)
+    vel, acc = servo_motion(q0, v0, chunk, 1.0)
+    cap = np.maximum(1.68 * m, 1.05 * np.linalg.norm(v0, axis=1))[:, None]
+    assert np.all(np.linalg.norm(acc, axis=-1) <= a_clamp * (1 + 1e-9))
+    assert np.all(np.linalg.norm(vel, axis=-1) <= cap * (1 + 1e-9))
+    assert np.any(np.linalg.norm(vel, axis=-1) > 0.99 * cap)  # ... and the cap was reached
+    # slew: with a tight jerk_slew the accelerations change by at most jerk_slew · a_clamp per step
+    tight = RelabelConfig(jerk_slew=0.2)
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0, cfg=tight)
+    vel, acc = servo_motion(q0, v0, chunk, 1.0)
+    free = np.linalg.norm(vel, axis=-1) < 0.999 * cap  # where the speed cap did not alter the command
+    jerk = np.linalg.norm(np.diff(acc, axis=1), axis=-1)  # (B, H-1)
+    ok = free[:, 1:] & free[:, :-1]
+    assert ok.sum() > 100 and np.all(jerk[ok] <= 0.2 * a_clamp * (1 + 1e-9))
+    assert np.all(np.linalg.norm(acc[:, 0], axis=-1) <= 0.2 * a_clamp * (1 + 1e-9))  # a_{-1} = 0
+    # the env's per-joint speed limit, and joint limits
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 0.01)
+    vel, _ = servo_motion(q0, v0, chunk, 0.01)
+    assert np.abs(vel).max() <= 0.01 + 1e-12
+    lo, hi = q0.min(0) - 0.01, q0.max(0) + 0.01  # limits that the free servo would leave
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0, limits=(lo, hi))
+    assert np.all((chunk >= lo) & (chunk <= hi))
+
+
+def test_servo_returns_near_the_expert_path(stats):
+    traj, q0, v0, proj = servo_setup(stats, offset=2.0, n=200)
+    chunk, mask = relabel.servo_return_chunk(q0, v0, traj, proj, 16, stats.median_step, stats.acc_p95,
+                                             stats.max_step)
+    start = np.min(np.linalg.norm(q0[:, None] - traj[None], axis=-1), axis=1)
+    end = np.min(np.linalg.norm(chunk[:, -1, None] - traj[None], axis=-1), axis=1)  # distance to the path
+    assert np.median(end) < 0.5 * stats.median_step and np.median(end) < 0.3 * np.median(start)
+    assert mask.all()  # far from the segment's end nothing is held
+    assert np.all(proj[:, None] <= 79)
+
+
+def test_servo_masks_the_held_tail_and_sampler_redraws_short_labels(stats):
+    traj = smooth_trajectory()
+    m = stats.median_step
+    t_end = np.array([22, 25, 60])  # segments that end 2, 5, 40 steps after the state
+    q0 = traj[[20, 20, 20]]
+    v0 = traj[[20, 20, 20]] - traj[[19, 19, 19]]
+    chunk, mask = relabel.servo_return_chunk(q0, v0, traj, 20, 16, m, stats.acc_p95, stats.max_step, t_end=t_end)
+    steps = np.abs(np.diff(np.concatenate([q0[:, None], chunk], axis=1), axis=1)).max(-1)  # (3, H)
+    for i in range(2):  # the arm stops on the segment's last point; the rest is masked
+        assert not mask[i].all() and mask[i, 0]
+        first = np.argmin(mask[i])
+        assert not mask[i, first:].any()  # a tail: masked from there to the end
+        assert np.all(steps[i, first:] < 0.02 * m)
+        np.testing.assert_allclose(chunk[i, first:], np.broadcast_to(traj[t_end[i] - 1], (16 - first, DOF)), atol=0.2 * m)
+    assert mask[2].all()
+    assert mask[0].sum() < mask[1].sum()
+    # the sampler never serves a label with fewer than min_moving_steps steps in the loss, nor a state
+    # that projects within near_end_steps of its segment's end
+    sampler = AugmentationSampler([intervention_episode()], FakeEnv, stats, "isotropic", 1.0,
+                                  small_cfg(min_moving_steps=8))
+    obs, chunks, mask = sampler(256, np.random.default_rng(0))
+    assert np.all(mask.sum(1) >= 8)
+    q_tilde = obs[:, :DOF].astype(np.float64)
+    traj = intervention_episode()["q"]
+    nearest = np.argmin(np.linalg.norm(q_tilde[:, None] - traj[None, 10:], axis=-1), axis=1) + 10
+    assert nearest.max() < 80 - 3 + 2  # (the nearest point overall may sit slightly past the projection)
+
+
+def test_sampler_pool_mask_survives_state_dict(stats):
+    a, _ = make_sampler(stats)
+    a(16, np.random.default_rng(0))
+    state = a.state_dict()
+    assert state["pool_mask"].dtype == bool and state["pool_mask"].shape == (256, 16)
+    b, _ = make_sampler(stats)
+    b.load_state_dict(state)
+    np.testing.assert_array_equal(b._pool_mask, a._pool_mask)
+    del state["pool_mask"]  # a pool saved before masks existed: every step in the loss
+    b.load_state_dict(state)
+    assert b._pool_mask.all() and b._pool_mask.shape == (256, 16)
+
+
+def test_label_config_is_validated(stats):
+    with pytest.raises(ValueError, match="label"):
+        make_sampler(stats, cfg=small_cfg(label="quintic"))
+    traj, q0, v0, _ = servo_setup(stats, 1.0, n=4)
+    with pytest.raises(ValueError, match="label"):
+        corrective_labels(q0, v0, traj, np.full(4, 20), np.full(4, 80), stats, RelabelConfig(label="quintic"))
