@@ -97,6 +97,8 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256
     lr: float = 1e-3
+    finetune_lr: float | None = None  # peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
+    #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
     # The authors' co-training (PAPER_SETUP.md §2): every fine-tuning batch is D0 and, in exactly this share,
     # intervention frames, split equally over rounds 1..k; the noised methods noise every intervention frame
     # they draw (relabel.AugmentationSampler) and never D0.
@@ -198,6 +200,10 @@ class Run:
         p = os.path.join(self.root, *parts)
         os.makedirs(os.path.dirname(p), exist_ok=True)
         return p
+
+    def record_time(self, stage, seconds):
+        """Wall time of a finished stage, one file per stage (parallel lineages never write the same file)."""
+        write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
 
     def log(self, msg):
         line = f"[{time.strftime('%H:%M:%S')}] {msg}"
@@ -497,6 +503,7 @@ def stage_demos(run):
             run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
                     f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
     envs.save_episodes(path, demos)
+    run.record_time("demos", time.time() - t0)
     return demos
 
 
@@ -517,12 +524,12 @@ def observation_noise(cfg, policy_cfg):
     return std
 
 
-def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0):
+def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0, lr=None):
     """diffusion.train with checkpoints at quarters of the run; a stopped run resumes from the last."""
     cfg = run.cfg
     part = final_path.replace(".pt", "_step{step}.pt")
     marks = tuple(sorted({max(1, steps * i // 4) for i in (1, 2, 3)}))
-    tc = diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=cfg.lr, seed=seed,
+    tc = diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=lr or cfg.lr, seed=seed,
                                warmup_steps=min(500, steps // 10), aug_fraction=aug_fraction,
                                obs_noise=observation_noise(cfg, policy.cfg), log_every=max(1, steps // 5),
                                checkpoint_steps=marks, checkpoint_path=part)
@@ -546,8 +553,10 @@ def stage_bc(run, demos):
     env = make_run_env(cfg)
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
-    policy = make_policy(cfg, env)
-    return train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path)
+    policy, t0 = make_policy(cfg, env), time.time()
+    policy = train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path)
+    run.record_time("bc", time.time() - t0)  # of this process: a resumed run counts its last part only
+    return policy
 
 
 def stage_collect(run, lineage, k, policy, policy_success):
@@ -593,6 +602,7 @@ def stage_collect(run, lineage, k, policy, policy_success):
         raise RuntimeError(f"lineage {lineage} round {k}: no intervention of >= H={cfg.horizon} steps was "
                            f"recorded in {len(episodes)} episodes; nothing to aggregate")
     envs.save_episodes(path, kept)
+    run.record_time(f"collect/lineage_{lineage}/round_{k}", time.time() - t0)
     return kept
 
 
@@ -610,6 +620,7 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
     run.log(f"lineage {lineage} round {k}: calibration on {len(episodes)} intervention episodes "
             f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
     write_json(path, cal.to_dict())
+    run.record_time(f"calibrate/lineage_{lineage}/round_{k}", time.time() - t0)
     return cal
 
 
@@ -695,9 +706,12 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
     run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
             f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
             f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else ", noised and relabelled"))
-    policy = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
-    return train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
-                           stage_seed(cfg, "train", lineage, k, method), path, sampler, cfg.intervention_fraction)
+    policy, t0 = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
+    policy = train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
+                             stage_seed(cfg, "train", lineage, k, method), path, sampler, cfg.intervention_fraction,
+                             lr=cfg.finetune_lr)
+    run.record_time(f"train_{method}/lineage_{lineage}/round_{k}", time.time() - t0)
+    return policy
 
 
 def stage_evaluate(run, path, policy, label):
@@ -711,6 +725,7 @@ def stage_evaluate(run, path, policy, label):
     run.log(f"  eval {label}: success {100 * ok.mean():.1f}% "
             f"({ok.size} episodes, {time.time() - t0:.0f} s)")
     write_json(path, {"success": ok.tolist(), "seeds": list(map(int, seeds))})
+    run.record_time("evaluate/" + os.path.relpath(path, run.root)[:-len(".json")], time.time() - t0)
     return ok
 
 
@@ -809,7 +824,52 @@ def summarize(cfg, results):
                 stats["tost_vs_best_fixed"][method] = {
                     "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
                     "p": p, "margin": cfg.tost_margin}
+    # HG-DAgger against BC at every round: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
+    stats["hg_dagger_vs_bc"] = {}
+    bc_all = results.get("bc", {}).get("all")
+    for k in range(cfg.rounds):
+        hg_k = [row[k] for row in results.get("hg_dagger", {}).values() if len(row) > k]
+        if bc_all and len(hg_k) >= 2:
+            t, df, p = paired_ttest(hg_k, [bc_all[0]] * len(hg_k))
+            stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
+                                                    "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
+                                                    "n": len(hg_k)}
+    # The best fixed sigma of each round in hindsight (beside the calibrated sigma, Sec. V)
+    stats["best_fixed_per_round"] = {}
+    for k in range(cfg.rounds):
+        cells = {m: table[m][k][0] for m in cfg.methods
+                 if m.startswith("fixed_") and m in table and table[m][k] is not None}
+        if cells:
+            stats["best_fixed_per_round"][str(k + 1)] = max(cells, key=cells.get)
     return table, stats
+
+
+def calibration_summary(run):
+    """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W (median steps), per lineage."""
+    cfg, out = run.cfg, {}
+    for k in range(1, cfg.rounds + 1):
+        for lineage in range(cfg.lineages):
+            p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "calibration.json")
+            if os.path.exists(p):
+                c = read_json(p)
+                m = c["median_step"]
+                ci = c.get("W_ci")
+                out.setdefault(str(k), {})[str(lineage)] = {
+                    "sigma_per_joint": [float(v) for v in c["sigma_per_joint"]], "W": c["W"] / m,
+                    "W_ci": None if ci is None else [ci[0] / m, ci[1] / m], "fit": c["fit_note"],
+                    "kept": int(np.sum(c["blend_kept"])), "rollouts": len(c["blend_kept"])}
+    return out
+
+
+def stage_times(run):
+    """{stage kind: (count, total seconds, mean seconds)} from timings/ (demos, bc, collect, calibrate,
+    train_<method>, evaluate)."""
+    folder = os.path.join(run.root, "timings")
+    kinds = {}
+    for name in sorted(os.listdir(folder)) if os.path.isdir(folder) else []:
+        t = read_json(os.path.join(folder, name))
+        kinds.setdefault(t["stage"].split("/")[0], []).append(t["seconds"])
+    return {k: (len(v), float(np.sum(v)), float(np.mean(v))) for k, v in kinds.items()}
 
 
 def format_table(cfg, table, stats):
@@ -840,6 +900,28 @@ def format_table(cfg, table, stats):
                      f"({stats['best_fixed']}):")
         for m, s in stats["tost_vs_best_fixed"].items():
             lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, p = {s['p']:.3g}")
+    if stats.get("hg_dagger_vs_bc"):
+        lines.append("")
+        lines.append("HG-DAgger vs BC at each round (paired over lineages; one pi_0):")
+        for k, s in stats["hg_dagger_vs_bc"].items():
+            lines.append(f"- K={k}: {s['diff']:+.1f} points, above BC in {s['n_above']} of {s['n']} lineages, "
+                         f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}")
+    if stats.get("calibration"):
+        lines.append("")
+        lines.append("Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
+                     "beside the best fixed sigma of the round in hindsight:")
+        for k, per in stats["calibration"].items():
+            sig = np.mean([v["sigma_per_joint"] for v in per.values()], axis=0)
+            W = [v["W"] for v in per.values()]
+            best = stats.get("best_fixed_per_round", {}).get(k)
+            lines.append(f"- K={k}: sigma = " + ", ".join(f"{x:.2f}" for x in sig)
+                         + f" (W = {np.mean(W):.2f} median steps, {len(W)} lineages); best fixed: "
+                         + (best.replace("fixed_", "sigma = ") if best else "–"))
+    if stats.get("stage_times"):
+        lines.append("")
+        lines.append("Wall time of the stages (s; summed over lineages and rounds; processes ran in parallel):")
+        for kind, (n, total, mean) in stats["stage_times"].items():
+            lines.append(f"- {kind}: {n} x {mean:.0f} s = {total / 60:.1f} min")
     if not stats["paired_vs_hg_dagger"]:
         lines.append("")
         lines.append("(Paired tests need at least 2 finished lineages.)")
@@ -851,6 +933,8 @@ def write_report(run):
     cfg = run.cfg
     results = collect_results(run)
     table, stats = summarize(cfg, results)
+    stats["calibration"] = calibration_summary(run)
+    stats["stage_times"] = stage_times(run)
     write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats})
     with open(os.path.join(run.root, "results.csv"), "w", newline="") as f:
         w = csv.writer(f)

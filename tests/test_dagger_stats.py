@@ -105,3 +105,22 @@ def test_mean_se():
     m, se, n = dagger.mean_se([80.0, 82.0, 84.0])
     assert (m, n) == (82.0, 3)
     assert se == pytest.approx(2.0 / math.sqrt(3))
+
+
+def test_summarize_pairs_hg_dagger_with_bc_per_round_and_finds_the_best_fixed_sigma():
+    cfg = dagger.Config(name="t", rounds=2, lineages=3, methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "pooled"))
+    results = {"bc": {"all": [60.0]},
+               "hg_dagger": {"0": [62.0, 65.0], "1": [64.0, 61.0], "2": [63.0, 66.0]},
+               "fixed_2": {"0": [60.0, 70.0], "1": [61.0, 70.0], "2": [62.0, 70.0]},
+               "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
+               "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]}}
+    table, stats = dagger.summarize(cfg, results)
+    r1, r2 = stats["hg_dagger_vs_bc"]["1"], stats["hg_dagger_vs_bc"]["2"]
+    assert r1["diff"] == pytest.approx(3.0) and r1["n_above"] == 3 and r1["df"] == 2
+    t, df, p = dagger.paired_ttest([62.0, 64.0, 63.0], [60.0] * 3)  # one pi_0: the pairs share BC's number
+    assert r1["t"] == pytest.approx(t) and r1["p"] == pytest.approx(p)
+    assert r2["diff"] == pytest.approx(4.0) and r2["n_above"] == 3
+    assert stats["best_fixed_per_round"] == {"1": "fixed_4", "2": "fixed_2"}  # per round, in hindsight
+    assert stats["best_fixed"] == "fixed_2"  # averaged over rounds: 65.5 vs 63.5
+    text = dagger.format_table(cfg, table, stats)
+    assert "HG-DAgger vs BC at each round" in text and "K=1: +3.0 points, above BC in 3 of 3 lineages" in text
