@@ -483,7 +483,7 @@ def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
     policy = tiny_policy()
     seen = []
     real_loss = policy.loss
-    policy.loss = lambda o, a, generator=None: (seen.append((o.detach().clone(), a.detach().clone())),
+    policy.loss = lambda o, a, generator=None, mask=None: (seen.append((o.detach().clone(), a.detach().clone())),
                                                 real_loss(o, a, generator))[1]
     # noise of std 0.5 on the second entry only (raw units), none on the first
     train(policy, obs, chunks, TrainConfig(steps=3, batch_size=16, warmup_steps=1, log_every=0,
