@@ -171,6 +171,10 @@ PROFILES = {
 # ----------------------------------------------------------------------------------------------
 # Run folder: stages, atomic writes, log
 # ----------------------------------------------------------------------------------------------
+class ConfigMismatch(ValueError):
+    """A run folder holds a run with another config (stages could not be reused honestly)."""
+
+
 class Run:
     """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
 
@@ -190,8 +194,11 @@ class Run:
             defaults = {f.name: f.default for f in fields(Config)}
             changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}
             if changed:
-                raise ValueError(f"{root} holds a run with a different config ({sorted(changed)} differ); "
-                                 f"use --out for a new folder or delete {root}")
+                raise ConfigMismatch(
+                    f"{root} holds a run made with another config: "
+                    + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
+                    + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
+                      "to start it afresh (its finished stages are lost).")
         else:
             write_json(path, asdict(cfg))
         self._log = open(os.path.join(root, "log.txt"), "a")
@@ -786,6 +793,15 @@ def mean_se(values):
     return float(v.mean()), float(se), int(v.size)
 
 
+def degenerate(a, b):
+    """Why a paired test of a vs b has no p-value (the differences have no spread), or None."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    if d.size >= 2 and np.all(d == d[0]):
+        return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
+                "so t and p are undefined")
+    return None
+
+
 def summarize(cfg, results):
     """Per method and round: mean, SE over lineages, count; paired tests averaged over rounds."""
     table = {}
@@ -815,7 +831,8 @@ def summarize(cfg, results):
         if len(common) >= 2:
             t, df, p = paired_ttest([mine[l] for l in common], [hg[l] for l in common])
             stats["paired_vs_hg_dagger"][method] = {
-                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p}
+                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p,
+                "degenerate": degenerate([mine[l] for l in common], [hg[l] for l in common])}
         if best_fixed and method in ("pooled", "per_step", "closed_loop"):
             ref = round_avg(best_fixed)
             common = sorted(set(mine) & set(ref))
@@ -823,7 +840,8 @@ def summarize(cfg, results):
                 p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], cfg.tost_margin)
                 stats["tost_vs_best_fixed"][method] = {
                     "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
-                    "p": p, "margin": cfg.tost_margin}
+                    "p": p, "margin": cfg.tost_margin,
+                    "degenerate": degenerate([mine[l] for l in common], [ref[l] for l in common])}
     # HG-DAgger against BC at every round: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
     stats["hg_dagger_vs_bc"] = {}
     bc_all = results.get("bc", {}).get("all")
@@ -833,7 +851,7 @@ def summarize(cfg, results):
             t, df, p = paired_ttest(hg_k, [bc_all[0]] * len(hg_k))
             stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
                                                     "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
-                                                    "n": len(hg_k)}
+                                                    "n": len(hg_k), "degenerate": degenerate(hg_k, [bc_all[0]] * len(hg_k))}
     # The best fixed sigma of each round in hindsight (beside the calibrated sigma, Sec. V)
     stats["best_fixed_per_round"] = {}
     for k in range(cfg.rounds):
@@ -872,6 +890,19 @@ def stage_times(run):
     return {k: (len(v), float(np.sum(v)), float(np.mean(v))) for k, v in kinds.items()}
 
 
+def format_cell(cell):
+    """'mean ± SE (n)'; a single lineage has no measured spread: 'mean (1)'."""
+    if cell is None:
+        return "–"
+    m, se, n = cell
+    return f"{m:.1f} ({n})" if n == 1 else f"{m:.1f} ± {se:.1f} ({n})"
+
+
+def stat_words(s):
+    """t(df) = .., p = .. -- or why there is no p-value."""
+    return s["degenerate"] if s.get("degenerate") else f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}"
+
+
 def format_table(cfg, table, stats):
     """Markdown in Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages)."""
     cols = [f"K={k}" for k in range(1, cfg.rounds + 1)]
@@ -880,32 +911,32 @@ def format_table(cfg, table, stats):
         if method not in table:
             continue
         if method == "bc":
-            m, se, n = table["bc"][0]
-            lines.append(f"| {METHOD_LABELS['bc']} | {m:.1f} ± {se:.1f} ({n}), all K |" + " |" * (len(cols) - 1))
+            lines.append(f"| {METHOD_LABELS['bc']} | {format_cell(table['bc'][0])}, all K |" + " |" * (len(cols) - 1))
             continue
-        cells = [f"{c[0]:.1f} ± {c[1]:.1f} ({c[2]})" if c else "–" for c in table[method]]
+        cells = [format_cell(c) for c in table[method]]
         lines.append(f"| {METHOD_LABELS[method]} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append(f"Success rate in % on {cfg.eval_scenarios} held-out scenarios x {cfg.eval_repeats} "
-                 f"evaluations; mean ± SE over lineages (count in parentheses).")
+                 f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
+                 f"its spread is not measured). BC is one pi_0 shared by every lineage.")
     if stats["paired_vs_hg_dagger"]:
         lines.append("")
         lines.append("Paired t-test vs HG-DAgger (lineages, averaged over rounds):")
         for m, s in stats["paired_vs_hg_dagger"].items():
-            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, t({s['df']}) = {s['t']:.2f}, "
-                         f"p = {s['p']:.3g}")
+            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, {stat_words(s)}")
     if stats["tost_vs_best_fixed"]:
         lines.append("")
         lines.append(f"TOST equivalence (±{cfg.tost_margin:g} points) vs the best fixed noise in hindsight "
                      f"({stats['best_fixed']}):")
         for m, s in stats["tost_vs_best_fixed"].items():
-            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, p = {s['p']:.3g}")
+            lines.append(f"- {METHOD_LABELS[m]}: {s['diff']:+.1f} points, "
+                         + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.3g}"))
     if stats.get("hg_dagger_vs_bc"):
         lines.append("")
         lines.append("HG-DAgger vs BC at each round (paired over lineages; one pi_0):")
         for k, s in stats["hg_dagger_vs_bc"].items():
             lines.append(f"- K={k}: {s['diff']:+.1f} points, above BC in {s['n_above']} of {s['n']} lineages, "
-                         f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}")
+                         f"{stat_words(s)}")
     if stats.get("calibration"):
         lines.append("")
         lines.append("Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
@@ -947,6 +978,7 @@ def write_report(run):
     with open(os.path.join(run.root, "table.md"), "w") as f:
         f.write(text)
     plot_success_vs_round(cfg, table, run.path("figures", "success_vs_round.png"))
+    plot_table(cfg, table, run.path("figures", "table_i.png"))
     return text
 
 
@@ -975,7 +1007,7 @@ def plot_success_vs_round(cfg, table, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    fig, ax = plt.subplots(figsize=(8.5, 4))
     ks = np.arange(1, cfg.rounds + 1)
     for method in cfg.methods:
         if method not in table:
@@ -995,10 +1027,112 @@ def plot_success_vs_round(cfg, table, path):
     ax.set_ylabel("success rate [%]")
     ax.set_xticks(ks)
     ax.set_title(f"Success vs round ({cfg.env}, the data of Table I)")
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)  # outside the data
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=150)
     plt.close(fig)
+
+
+def plot_table(cfg, table, path):
+    """Table I (II for engine3d) as the paper draws it: rows = methods, columns = rounds, each cell shaded
+    by its mean success ("darker colors denote higher success") and labelled mean ± SE (n); the best
+    cell of each round is boxed and bold."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    rows = [m for m in cfg.methods if m in table]
+    R, C = len(rows), cfg.rounds
+    means = np.full((R, C), np.nan)
+    for i, m in enumerate(rows):
+        for k in range(C):
+            cell = table[m][0] if m == "bc" else table[m][k]
+            if cell is not None:
+                means[i, k] = cell[0]
+    width, height = 3.7 + 1.9 * C, 1.0 + 0.42 * R  # inches: method labels, one column per round
+    fig, ax = plt.subplots(figsize=(width, height))
+    lo, hi = np.nanmin(means) if np.isfinite(means).any() else 0, np.nanmax(means) if np.isfinite(means).any() else 1
+    shade = lambda v: plt.cm.Blues(0.15 + 0.7 * (v - lo) / max(hi - lo, 1e-9))  # noqa: E731
+    best = [int(np.nanargmax(means[:, k])) if np.isfinite(means[:, k]).any() else -1 for k in range(C)]
+    for i, m in enumerate(rows):
+        for k in range(C):
+            v = means[i, k]
+            if m == "bc" and k > 0:
+                continue  # one pi_0 for every round: one cell across the row
+            span = C if m == "bc" else 1
+            color = shade(v) if np.isfinite(v) else (1, 1, 1, 1)
+            ax.add_patch(Rectangle((k, R - 1 - i), span, 1, facecolor=color, edgecolor="white", lw=2))
+            cell = table[m][0] if m == "bc" else table[m][k]
+            text = format_cell(cell) + (", all K" if m == "bc" else "")
+            dark = np.isfinite(v) and (v - lo) / max(hi - lo, 1e-9) > 0.6
+            is_best = m != "bc" and best[k] == i
+            ax.text(k + span / 2, R - 0.5 - i, text, ha="center", va="center", fontsize=9,
+                    color="white" if dark else "black", fontweight="bold" if is_best else "normal")
+            if is_best:
+                ax.add_patch(Rectangle((k + 0.03, R - 1 - i + 0.06), 0.94, 0.88, fill=False, edgecolor="#d55e00", lw=2))
+    ax.set_xlim(0, C)
+    ax.set_ylim(0, R)
+    ax.set_xticks(np.arange(C) + 0.5, [f"K = {k}" for k in range(1, C + 1)])
+    ax.xaxis.tick_top()
+    ax.set_yticks(R - 0.5 - np.arange(R), [METHOD_LABELS[m] for m in rows])
+    ax.tick_params(length=0)
+    for side in ax.spines.values():
+        side.set_visible(False)
+    name = "Table II" if cfg.env == "engine3d" else "Table I"
+    fig.text(0.5, 1 - 0.1 / height, f"{name} analogue: success rate [%], mean ± SE (n lineages)\n"
+             f"darker = higher; boxed = the best of its round", ha="center", va="top", fontsize=9)
+    fig.subplots_adjust(left=3.5 / width, right=1 - 0.1 / width, top=1 - 0.85 / height, bottom=0.05 / height)
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+FIGURE_CAPTIONS = {
+    "table_i.png": "Table I as the paper draws it: rows are methods, columns DAgger rounds, cells shaded by "
+                   "mean success; the boxed cell is the best of its round.",
+    "success_vs_round.png": "The same numbers as lines: does each method improve with more rounds of "
+                            "interventions, and where does it sit against BC (dotted)?",
+    "fig1_recovery.png": "Fig. 1: the expert path (blue), the calibrated noise Sigma^alpha at a few states "
+                         "(ellipses), and recovery chunks from noised states back to the path (orange).",
+    "fig2_method_overview.png": "Fig. 2: (a) open-loop Sigma_hat along expert data, (b) blended rollouts, "
+                                "(c) per-step Sigma^alpha, (d) pooled Sigma_bar^alpha.",
+    "fig3_partial_denoising.png": "Fig. 3: partial denoising at one state: the larger the blend ratio beta, "
+                                  "the more the sampled chunks follow the policy instead of the expert.",
+    "fig4_blend_fit.png": "Fig. 4: settling error of the blended rollouts against sigma^2_k_sw with the "
+                          "fitted equilibrium curve; its value at 1 is W, with a bootstrap interval.",
+    "fig5_environment.png": "Fig. 5: a scenario of the environment with an oracle demonstration.",
+    "fig5_policy_view.png": "What the image policy sees: its camera input at a few steps of a demonstration.",
+}
+
+
+def write_markdown_report(run, text, stats):
+    """report.md: the run folder readable on its own -- the table, the statistics in words, every figure
+    with a one-line caption of what to see."""
+    cfg = run.cfg
+    lines = [f"# {cfg.name}: Policy-Calibrated DAgger on the {cfg.env} env", "",
+             f"Profile settings: {cfg.n_demos} demonstrations, BC {cfg.bc_steps} steps, {cfg.rounds} round(s), "
+             f"{cfg.lineages} lineage(s), fine-tuning {cfg.finetune_steps} steps per cell, interventions "
+             f"collected on the {'evaluation' if cfg.collect_on == 'eval' else 'fresh training'} scenarios"
+             + (" (the paper's protocol: the evaluation scenarios enter the training data)" if cfg.collect_on == "eval"
+                else "") + ".", "", "## Table", "", text.rstrip(), ""]
+    words = []
+    for m, s in stats.get("paired_vs_hg_dagger", {}).items():
+        words.append(f"- {METHOD_LABELS[m]} − HG-DAgger = {s['diff']:+.1f} points averaged over rounds, "
+                     + stat_words(s) + ".")
+    for m, s in stats.get("tost_vs_best_fixed", {}).items():
+        words.append(f"- {METHOD_LABELS[m]} against the best fixed noise in hindsight ({s['vs']}): "
+                     f"{s['diff']:+.1f} points; " + (s["degenerate"] if s.get("degenerate") else
+                     f"TOST at ±{s['margin']:g} points, p = {s['p']:.3g} "
+                     + ("(equivalent at 5 %)" if s["p"] < 0.05 else "(equivalence not shown)")) + ".")
+    if words:
+        lines += ["## The paired statistics in words", ""] + words + [""]
+    figures = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
+    if figures:
+        lines += ["## Figures", ""]
+        for f in figures:
+            lines += [f"**{f}** — {FIGURE_CAPTIONS[f]}", "", f"![{f}](figures/{f})", ""]
+    with open(os.path.join(run.root, "report.md"), "w") as fh:
+        fh.write("\n".join(lines))
 
 
 def make_figures(run, demos, stats):
@@ -1080,7 +1214,13 @@ def parse_args(argv):
     if args.env:
         over["env"] = args.env
     if args.methods:
-        names = [m.strip() for m in args.methods.split(",") if m.strip()]
+        names = [m.strip() for m in args.methods.split(",")]
+        if not all(names):
+            p.error(f"--methods {args.methods!r}: an empty item; give comma-separated names, e.g. "
+                    f"hg_dagger,fixed_4,pooled (valid: {', '.join(ALL_METHODS)})")
+        dup = sorted({m for m in names if names.count(m) > 1})
+        if dup:
+            p.error(f"--methods {args.methods!r}: {', '.join(dup)} listed twice; name each method once")
         bad = [m for m in names if m not in ALL_METHODS]
         if bad:
             p.error(f"--methods: unknown {bad}; valid choices: {', '.join(ALL_METHODS)}")
@@ -1101,6 +1241,8 @@ def parse_args(argv):
     name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
     name += "_images" if args.image_obs else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
+    if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
+        name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     over["name"] = name
     try:
         cfg = replace(cfg, **over)
@@ -1133,7 +1275,8 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
     demos = envs.load_episodes(run.path("data", "D0.npz"))
     text = write_report(run)
     make_figures(run, demos, demo_statistics(cfg, demos))
-    run.log(f"done in {time.time() - t0:.0f} s; table, results and figures in {run.root}\n\n{text}")
+    write_markdown_report(run, text, read_json(os.path.join(run.root, "results.json"))["stats"])
+    run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
     return run.root
 
 
@@ -1145,8 +1288,15 @@ def demo_statistics(cfg, demos):
 def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
-    return run_experiment(cfg, args.out or os.path.join("runs", cfg.name), lineage=args.lineage,
-                          prepare=args.prepare, report_only=args.report)
+    try:
+        return run_experiment(cfg, args.out or os.path.join("runs", cfg.name), lineage=args.lineage,
+                              prepare=args.prepare, report_only=args.report)
+    except KeyboardInterrupt:
+        print("\nstopped; the finished stages are saved: run the same command again to resume", file=sys.stderr)
+        sys.exit(130)
+    except ConfigMismatch as err:
+        print(f"dagger.py: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

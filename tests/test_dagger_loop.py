@@ -69,7 +69,7 @@ def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeyp
 
 
 def test_run_folder_refuses_a_different_config(full_run):
-    with pytest.raises(ValueError, match="different config"):
+    with pytest.raises(ValueError, match="made with another config"):
         dagger.Run(full_run, replace(TINY, bc_steps=31))
 
 
@@ -242,3 +242,65 @@ def test_hg_dagger_rollout_rewinds_hands_back_and_keeps_a_consistent_record():
         first = starts[0]
         rewound += first < oracle.cfg.stall_window + 1
     assert rewound >= 1  # at least one takeover came after a rewind
+
+
+@pytest.mark.parametrize("methods, message", [(",", "an empty item"), ("pooled,,fixed_4", "an empty item"),
+                                              ("pooled,pooled", "pooled listed twice"), ("nope", "unknown")])
+def test_methods_option_rejects_empty_duplicate_and_unknown_items(methods, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.parse_args(["--methods", methods])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_another_set_of_methods_gets_its_own_folder():
+    _, cfg = dagger.parse_args(["--methods", "pooled,per_step"])
+    assert cfg.name == "quick_pooled-per_step"
+    _, same = dagger.parse_args(["--methods", ",".join(dagger.PROFILES["quick"].methods)])
+    assert same.name == "quick"
+
+
+def test_a_config_mismatch_names_the_fields_and_exits_without_a_traceback(tmp_path, capsys):
+    root = str(tmp_path / "run")
+    dagger.Run(root, TINY)
+    with pytest.raises(dagger.ConfigMismatch, match=r"bc_steps = 30 there, 31 now"):
+        dagger.Run(root, replace(TINY, bc_steps=31))
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.main(["--profile", "smoke", "--out", root])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "Traceback" not in err
+    assert "--out" in err and "delete" in err and "n_demos = 4 there, 16 now" in err
+
+
+def test_degenerate_statistics_say_why_instead_of_a_p_value():
+    cfg = dagger.Config(name="t", rounds=1, lineages=3, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    results = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [60.0], "1": [61.0], "2": [62.0]},
+               "fixed_4": {"0": [60.0], "1": [61.0], "2": [62.0]}, "pooled": {"0": [60.0], "1": [61.0], "2": [62.0]}}
+    table, stats = dagger.summarize(cfg, results)
+    text = dagger.format_table(cfg, table, stats)
+    assert "no spread" in text and "p = 0 " not in text and "p = 1 " not in text
+    assert dagger.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and dagger.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
+
+
+def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path):
+    """SIGINT during a smoke run: exit status 130, no traceback, one line saying how to resume; the same
+    command then continues from the finished stages (D0 is not made again)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = str(tmp_path / "smoke")
+    cmd = [sys.executable, "dagger.py", "--profile", "smoke", "--out", out, "--prepare"]
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    log = os.path.join(out, "log.txt")
+    while time.time() < deadline and not (os.path.exists(log) and "BC:" in open(log).read()):
+        time.sleep(0.2)  # D0 is on disk once BC starts
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "run the same command again to resume" in stderr
+    assert len([line for line in stderr.splitlines() if line.strip() and "pybullet build time" not in line]) == 1
+    again = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "oracle demonstrations" not in again.stdout  # D0 was loaded, not made again
