@@ -289,7 +289,12 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
         triggers[reason] += 1
         return plan
 
+    t_log, step = time.time(), 0
     while not done.all():
+        step += 1
+        if log is not None and time.time() - t_log >= 10.0:  # a progress line at least every 10 s
+            log(f"  step {step}: {int(done.sum())}/{E} episodes finished")
+            t_log = time.time()
         need = [i for i in range(E) if not done[i] and not queue[i]]
         if need:
             chunks = policy.sample(np.stack([obs_now[i] for i in need]), generator=generator)  # (B, H, dof)
@@ -348,7 +353,8 @@ def drop_short_interventions(expert, H):
 MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}
 
 
-def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, max_parallel="env default"):
+def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, max_parallel="env default",
+             log=None):
     """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
 
     env_options: keyword arguments of envs.make_env (e.g. image_obs=True), the same as in training.
@@ -370,7 +376,7 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, ma
             e = envs.make_env(env_name, **(env_options or {}))
             e.reset(seed=s)
             env_list.append(e)
-        ok += [ep["success"] for ep in rollout(env_list, policy, n_act, gen)]
+        ok += [ep["success"] for ep in rollout(env_list, policy, n_act, gen, log=log)]
         for e in env_list:
             if hasattr(e, "close"):
                 e.close()  # free the simulator (a pybullet client) before the next group
@@ -497,6 +503,7 @@ def stage_demos(run):
         return envs.load_episodes(path)
     env, expert = make_run_env(cfg), make_oracle(cfg)
     demos, seed, t0, failures = [], 0, time.time(), 0
+    t_log = t0
     run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
     while len(demos) < cfg.n_demos:
         seed += 1
@@ -505,7 +512,8 @@ def stage_demos(run):
         except oracle_mod.PlanningFailed:
             failures += 1  # a scene the planner cannot solve in its budget is skipped
             continue
-        if len(demos) % max(1, cfg.n_demos // 10) == 0:
+        if len(demos) % max(1, cfg.n_demos // 10) == 0 or time.time() - t_log >= 10.0:
+            t_log = time.time()
             rate = len(demos) / (time.time() - t0)
             run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
                     f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
@@ -728,7 +736,8 @@ def stage_evaluate(run, path, policy, label):
         return np.asarray(read_json(path)["success"], bool)
     t0 = time.time()
     seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
-    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"), env_options(cfg))
+    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"), env_options(cfg),
+                  log=run.log)
     run.log(f"  eval {label}: success {100 * ok.mean():.1f}% "
             f"({ok.size} episodes, {time.time() - t0:.0f} s)")
     write_json(path, {"success": ok.tolist(), "seeds": list(map(int, seeds))})

@@ -146,6 +146,7 @@ class TrainConfig:
     # numbers), labels unchanged: a float for every entry or one std per entry (obs_dim,). 0 = none.
     obs_noise: object = 0.0
     log_every: int = 500             # steps between progress lines (0 = silent)
+    log_seconds: float = 10.0        # ... and a line at least this often (wall clock) unless silent
     checkpoint_steps: tuple = ()     # steps after which a checkpoint is written
     checkpoint_path: str = ""        # where; '{step}' in the path is replaced by the step number
 
@@ -885,7 +886,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
         losses.append(loss.item())
         step += 1
 
-        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps):
+        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps
+                              or time.time() - t0 >= cfg.log_seconds):
             rate = (step - last_step) / max(time.time() - t0, 1e-9)
             log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
                 f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
