@@ -861,7 +861,7 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
 
     c = calibration
     unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    fig, ax = plt.subplots(figsize=(8.2, 3.8))
     kept = c.blend_kept
     ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
                label=f"blended rollouts ({int(kept.sum())})")
@@ -883,7 +883,7 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
     ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
     ax.set_ylabel("settling error [median steps]")
     ax.set_title("Blend fit for W (paper Fig. 4)")
-    ax.legend(fontsize=8, loc="best")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
