@@ -807,7 +807,7 @@ def _ee_jacobian(env, q: np.ndarray, eps: float = 1e-5) -> np.ndarray:
 
 
 def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator, stats: DemoStats,
-                  cfg: RelabelConfig | None = None, n_recoveries: int = 12, ellipse_every: int = 3) -> str:
+                  cfg: RelabelConfig | None = None, n_recoveries: int = 6, n_ellipses: int = 6) -> str:
     """The paper's Fig. 1 on the planar env: the expert (intervention) end-effector path in blue,
     2-σ ellipses of the policy-calibrated noise pushed to the end-effector plane through the fk
     Jacobian (J Σ_t Jᵀ), and sampled recovery trajectories (end-effector paths of PD return chunks
@@ -829,14 +829,17 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     env.reset(seed=int(episode["seed"]))
 
     # noise ellipses: Σ_t in joint space -> J Σ_t Jᵀ in the end-effector plane
-    ell_t = seg[::ellipse_every]
+    ell_t = seg[np.linspace(0, len(seg) - 1, min(n_ellipses, len(seg))).round().astype(int)]  # a handful
     factors = noise_factors(sigma, ell_t, q.shape[1], median_step=stats.median_step, n_steps=len(q))
     cov_q = factors @ np.swapaxes(factors, 1, 2)  # (n, dof, dof)
     jac = _ee_jacobian(env, q[ell_t])  # (n, dim, dof)
     cov_ee = jac @ cov_q @ np.swapaxes(jac, 1, 2)  # (n, 2, 2)
     centers = env.ee(q[ell_t])
-    # recovery trajectories from noised states at evenly spread steps of the segment
-    steps = seg[np.linspace(0, len(seg) - 1, n_recoveries).round().astype(int)]  # (n,)
+    # recovery trajectories from noised states at evenly spread steps of the segment, and a fan of them
+    # from one state in the middle (the close-up)
+    mid = int(seg[len(seg) // 2])
+    steps = np.concatenate([seg[np.linspace(0, len(seg) - 1, n_recoveries).round().astype(int)],
+                            np.full(n_recoveries, mid)])  # (2 n,)
     q_tilde, t = perturb_states(episode, sigma, rng, len(steps), env, t_index=steps,
                                 median_step=stats.median_step, horizon=cfg.horizon, max_tries=cfg.max_tries)
     v = q[t] - q[np.maximum(t - 1, 0)]
@@ -858,11 +861,19 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
             ax.plot(rec[0, 0], rec[0, 1], "o", color="tab:orange", ms=3)
         ax.plot(expert_ee[:, 0], expert_ee[:, 1], color="tab:blue", lw=2.0)
         ax.set_aspect("equal")
-    # close-up: a quarter chunk either side of the middle of the segment, where the returns happen
-    mid, reach = int(np.median(seg)), max(cfg.horizon // 4, 1)
-    starts = [rec[:1] for rec, ti in zip(recoveries, t) if abs(ti - mid) <= reach]  # noised states there
-    box = np.concatenate([env.ee(q[max(mid - reach, seg[0]):min(mid + reach + 1, end)]), *starts])
-    radius = 2 * np.sqrt(np.linalg.eigvalsh(cov_ee).max())  # the largest 2σ half axis
+    # close-up: the fan of returns from the middle state and the path a chunk either side of it
+    reach = cfg.horizon
+    fan = [rec for rec, ti in zip(recoveries, t) if ti == mid]
+    mid_ell = env.ee(q[mid:mid + 1])[0]
+    jm = _ee_jacobian(env, q[mid:mid + 1])
+    fm = noise_factors(sigma, np.array([mid]), q.shape[1], median_step=stats.median_step, n_steps=len(q))
+    cov_mid = (jm @ (fm @ np.swapaxes(fm, 1, 2)) @ np.swapaxes(jm, 1, 2))[0]
+    w, vec = np.linalg.eigh(cov_mid)
+    axes[1].add_patch(Ellipse(mid_ell, 4 * np.sqrt(max(w[1], 0)), 4 * np.sqrt(max(w[0], 0)),
+                              angle=np.degrees(np.arctan2(vec[1, 1], vec[0, 1])), facecolor="tab:blue", alpha=0.2,
+                              edgecolor="tab:blue", lw=0.6))
+    box = np.concatenate([env.ee(q[max(mid - reach // 2, seg[0]):min(mid + reach + 1, end)]), *fan])
+    radius = 2 * np.sqrt(max(w.max(), 0))
     lo, hi = box.min(0) - radius, box.max(0) + radius
     half = 0.5 * max(hi - lo) * 1.1  # a square window keeps the aspect ratio equal
     axes[1].set_xlim((lo + hi)[0] / 2 - half, (lo + hi)[0] / 2 + half)
@@ -873,7 +884,7 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
                    loc="lower left", fontsize=8)
     axes[0].set_title("scene")
     axes[1].set_title("close-up")
-    fig.suptitle("Policy-calibrated noise around an intervention and PD recovery chunks (paper Fig. 1)")
+    fig.suptitle("Policy-calibrated noise around an intervention and the return labels (paper Fig. 1)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
