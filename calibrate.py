@@ -920,7 +920,7 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
                          generator: torch.Generator | None = None) -> None:
     """Fig. 2, panels (a)-(d), on one planar intervention (end-effector plane, 2-sigma ellipses).
 
-    (a) open-loop policy samples (end-effector paths of the chunks) and Sigma_hat_t (Eq. 1) at
+    (a) open-loop policy samples (end-effector paths of the chunks' executed steps) and Sigma_hat_t (Eq. 1) at
         every `stride`-th label step of the episode's longest expert segment; (b) blended rollouts
         at several beta from the segment's first state (dashed: discarded); (c) Sigma^alpha_t
         (Eq. 14) with the calibration's W; (d) the calibration's pooled Sigma_bar^alpha (Eq. 16).
@@ -950,7 +950,7 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
                            diverge_threshold * calibration.median_step, (start, end))
 
-    fig, axes = plt.subplots(1, 4, figsize=(18, 4.8))
+    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
     titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
               r"(b) blended rollouts, partial denoising at $\beta$",
               r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
@@ -963,9 +963,9 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
         ax.set_yticks([])
 
     ax = axes[0]
-    for chunks in samples:
-        for chunk in chunks:
-            ax.plot(*env.ee(chunk).T, color="tab:orange", lw=0.7, alpha=0.6)
+    for t, chunks in zip(steps, samples):
+        for chunk in chunks:  # the executed steps, from the state they were sampled at
+            ax.plot(*env.ee(np.concatenate([q_exp[t][None], chunk[:n_act]])).T, color="tab:orange", lw=0.7, alpha=0.6)
     _draw_ellipses(ax, env, q_exp[steps], sigma_hat, "tab:orange")
     ax.plot([], [], color="tab:orange", label="policy chunks")
 
@@ -983,8 +983,8 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
     axes[3].text(0.02, 0.02, f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes,
                  fontsize=8)
-    for ax in axes[:2]:
-        ax.legend(fontsize=7, loc="upper right")
+    for ax in axes[:2]:  # below the panel, outside the data
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), frameon=False)
     fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
                  f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma)")
     fig.tight_layout()

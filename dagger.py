@@ -1163,7 +1163,10 @@ def make_figures(run, demos, stats):
         return
     D1 = envs.load_episodes(os.path.join(rdir, "D.npz"))
     cal = calibrate.Calibration.from_dict(read_json(os.path.join(rdir, "calibration.json")))
-    policy = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
+    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
+    calibrated = os.path.join(rdir, "checkpoints", "hg_dagger.pt")
+    policy = diffusion.DiffusionPolicy.load(calibrated if os.path.exists(calibrated) else run.path("checkpoints", "bc.pt"),
+                                            device=cfg.device)
     gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
     # the episode with the longest intervention shows the method best
     e = int(np.argmax([ep["expert"].sum() for ep in D1]))
