@@ -304,3 +304,29 @@ def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path)
     again = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "oracle demonstrations" not in again.stdout  # D0 was loaded, not made again
+
+
+def test_every_readme_command_parses_and_none_is_refused_by_another_commands_folder():
+    """Every `python dagger.py ...` line of the README's command blocks is a valid command line, and two
+    commands that share a run folder share its config, so running them in any order never hits the
+    "made with another config" refusal (e.g. the --methods example right after the default run)."""
+    import re
+    import shlex
+    readme = open(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "README.md")).read()
+    blocks = re.findall(r"```bash\n(.*?)```", readme, flags=re.S)
+    commands = []
+    for block in blocks:
+        for line in block.splitlines():
+            if "python dagger.py" in line and "$" not in line:
+                argv = shlex.split(line.split("python dagger.py", 1)[1].split("#", 1)[0].strip().strip('"'))
+                commands.append(argv)
+    assert len(commands) >= 8
+    folders = {}
+    for argv in commands:
+        if "--help" in argv:
+            continue
+        args, cfg = dagger.parse_args(argv)
+        folder = args.out or os.path.join("runs", cfg.name)
+        seen = folders.setdefault(folder, cfg)
+        changed = [f.name for f in dagger.fields(dagger.Config) if getattr(seen, f.name) != getattr(cfg, f.name)]
+        assert not changed, f"{argv} would be refused in {folder}: {changed} differ"
