@@ -771,8 +771,9 @@ class Calibration:
 
 def calibrate(env, policy, episodes: list[dict], median_step: float,
               cfg: CalibrationConfig | None = None,
-              generator: torch.Generator | None = None) -> Calibration:
+              generator: torch.Generator | None = None, log=None) -> Calibration:
     """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
+    log: optional callable(str) told when each step is done (progress of a long calibration).
 
     episodes are the round's intervention episodes D_k (demonstrations work too). Blend rollouts
     start from the cfg.blend_segments longest expert segments, the 13 ratios (cfg.rollouts_per_beta
@@ -793,6 +794,8 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
 
     # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
     steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
+    say = log or (lambda msg: None)
+    say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
 
     # Step 2 (Fig. 2b): blended rollouts, beta i from the (i mod n)-th longest segment, all batched
     segs = _segments_longest_first(episodes, H)[:max(1, cfg.blend_segments)]
@@ -804,6 +807,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
                    generator, threshold, cfg.discard_collisions, cfg)
     blend_s, blend_x, blend_kept = blend.s, blend.x, blend.kept
 
+    say(f"{int(blend_kept.sum())} of {len(blend_kept)} blended rollouts kept; fitting W")
     # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
     try:
         fit = fit_equilibrium(blend_s[blend_kept], blend_x[blend_kept])
@@ -832,6 +836,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     # Step 5: Table I's closed-loop pooled variant, scaled the same way (Eq. 16)
     closed = None
     if cfg.closed_loop:
+        say("closed-loop rollouts for the closed-loop pooled variant")
         sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
                                          cfg.closed_loop_segments, cfg.discard_collisions)
         if sigma_bar_cl is None:                  # documented fallback: no usable closed-loop step

@@ -631,7 +631,8 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
                                        blend_segments=cfg.calib_blend_episodes,
                                        rollouts_per_beta=cfg.calib_rollouts_per_beta)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
-    cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, median_step, ccfg, gen)
+    cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, median_step, ccfg, gen,
+                              log=lambda msg: run.log("  calibration: " + msg))
     run.log(f"lineage {lineage} round {k}: calibration on {len(episodes)} intervention episodes "
             f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
     write_json(path, cal.to_dict())
