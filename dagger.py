@@ -149,7 +149,7 @@ PROFILES = {
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
-    # The default of `python dagger.py`: the whole loop on the planar env in about 10 minutes.
+    # The default of `python dagger.py`: the whole loop on the planar env in about 11 minutes of one core.
     "quick": Config(name="quick", n_demos=200, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=300,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
@@ -1198,7 +1198,7 @@ def parse_args(argv):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
-                   help="run size: smoke (CI, ~1 min), quick (default, ~10 min of one core), mid (BC ~45 min of "
+                   help="run size: smoke (CI, ~1 min), quick (default, ~11 min of one core), mid (BC ~45 min of "
                         "one core, then 3 lineages), paper (Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
