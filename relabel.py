@@ -375,6 +375,22 @@ def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max
     return np.minimum(np.ceil(gap / median_speed), max_lookahead).astype(np.int64)
 
 
+def _return_chunk_inputs(q0, v0, trajectory, H):
+    """Checked float arrays for a batched return chunk: (trajectory (T, dof), q (B, dof) copy, v (B, dof) copy,
+    single: True if q0 was one state)."""
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    q = np.asarray(q0, dtype=np.float64)
+    single = q.ndim == 1
+    q = np.atleast_2d(q).copy()
+    B, dof = q.shape
+    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
+    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
+        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive integer, got {H!r}")
+    return trajectory, q, v, single
+
+
 def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, lookahead,
                     accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None) -> np.ndarray:
     """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory.
@@ -400,16 +416,8 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     limits: optional (lo, hi) joint limits the positions are clipped to.
     Returns the absolute joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
     """
-    trajectory = np.asarray(trajectory, dtype=np.float64)
-    q = np.asarray(q0, dtype=np.float64)
-    single = q.ndim == 1
-    q = np.atleast_2d(q).copy()
+    trajectory, q, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
     B, dof = q.shape
-    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
-    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
-        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive integer, got {H!r}")
     accel_max = np.broadcast_to(np.asarray(accel_max, dtype=np.float64), (dof,))
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
     if np.any(~(accel_max > 0)) or np.any(~(max_step > 0)):
@@ -473,16 +481,8 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
     loss); (H, dof) and (H,) for a single q0.
     """
     cfg = cfg or RelabelConfig()
-    trajectory = np.asarray(trajectory, dtype=np.float64)
-    x = np.asarray(q0, dtype=np.float64)
-    single = x.ndim == 1
-    x = np.atleast_2d(x).copy()
+    trajectory, x, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
     B, dof = x.shape
-    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
-    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
-        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive integer, got {H!r}")
     if not (median_step > 0 and np.isfinite(acc_p95) and acc_p95 >= 0):
         raise ValueError(f"need median_step > 0 and acc_p95 >= 0, got {median_step!r} and {acc_p95!r}")
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
