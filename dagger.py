@@ -1031,11 +1031,14 @@ def plot_success_vs_round(cfg, table, path):
             continue
         m = np.array([c[0] for c in cells if c])
         se = np.array([c[1] for c in cells if c])
+        i = list(cfg.methods).index(method)
+        xs = np.array(xs, float) + 0.04 * (i - len(cfg.methods) / 2)  # side by side, not on top of each other
         style = "-o" if method in ("pooled", "per_step", "closed_loop") else ("-s" if method == "hg_dagger" else "--.")
         ax.errorbar(xs, m, yerr=se, fmt=style, capsize=3, label=METHOD_LABELS[method])
     ax.set_xlabel("DAgger round K")
     ax.set_ylabel("success rate [%]")
     ax.set_xticks(ks)
+    ax.set_xlim(0.6, cfg.rounds + 0.4)
     ax.set_title(f"Success vs round ({cfg.env}, the data of Table I)")
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)  # outside the data
     fig.tight_layout()
