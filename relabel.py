@@ -850,7 +850,7 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     env.set_state(q[seg[0]])  # the arm is drawn where the intervention starts
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
     for ax in axes:
-        env.render(ax)
+        env.render(ax, alpha=0.35)  # the arm faded: the path, noise and returns are the message
         for c, cv in zip(centers, cov_ee):
             w, vec = np.linalg.eigh(cv)
             angle = np.degrees(np.arctan2(vec[1, 1], vec[0, 1]))
