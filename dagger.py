@@ -47,9 +47,9 @@ import relabel
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in median steps
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
                    "pooled", "per_step", "closed_loop")
-# Not in the paper: the co-training pipeline with sigma = 0 (augmented pairs are intervention states with
-# their PD-return labels, no noise). It separates the effect of the noise from the effect of giving part of
-# every batch to augmented pairs (a noised method sees fewer real chunks in the same step budget).
+# Not in the paper: the pipeline with sigma = 0 (intervention states relabelled with the return labels, no
+# noise). It separates the effect of the noise from the effect of relabelling (a noised method never sees the
+# recorded intervention chunks, HG-DAgger sees nothing else).
 CONTROL_METHODS = ("zero_noise",)
 ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
 METHOD_LABELS = {
