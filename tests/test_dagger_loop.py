@@ -291,7 +291,10 @@ def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path)
     out = str(tmp_path / "smoke")
     cmd = [sys.executable, "dagger.py", "--profile", "smoke", "--out", out, "--prepare"]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # a background shell (nohup, CI) starts children with SIGINT ignored, and Python then installs no handler:
+    # give the child the default disposition so that it raises KeyboardInterrupt as in a terminal
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     log = os.path.join(out, "log.txt")
     while time.time() < deadline and not (os.path.exists(log) and "BC:" in open(log).read()):

@@ -59,7 +59,7 @@ class FakeEnv:
     def ee(self, q):
         return self.fk(q)[:, -1]
 
-    def render(self, ax):
+    def render(self, ax, q=None, alpha=1.0):
         pts = self.fk(self.q[None])[0]
         ax.plot(pts[:, 0], pts[:, 1], "k-o")
 
