@@ -992,8 +992,14 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), frameon=False)
     fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
                  f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma)")
+    # every panel zoomed to the intervention (the scene around it stays in Fig. 5)
+    pts = np.concatenate([expert_path, *[env.ee(blend.rollouts.trajectory[b]) for b in range(len(blend.betas))]])
+    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
+    for ax in axes:
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
     plt.close(fig)
 
 
