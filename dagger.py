@@ -252,7 +252,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     a stall or a time trigger the episode is first rewound a few steps (the rewound policy steps are
     dropped from the record), and the expert drives (expert=True) a random 20-67 steps, then hands
     back; at most max_interventions per episode. `seed` seeds the gates' random draws. Each episode
-    dict also gets 'interventions' (how many the expert took over).
+    dict also gets 'interventions' (how many times the expert drove).
     """
     E = len(envs_list)
     rec = [{"obs": [], "q": [], "action": [], "expert": []} for _ in range(E)]
@@ -332,7 +332,8 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
                          "q": np.asarray(r["q"]).reshape(len(r["q"]), -1),
                          "action": np.asarray(r["action"]).reshape(len(r["action"]), -1),
                          "expert": np.asarray(r["expert"], bool), "seed": int(e.seed), "success": bool(ok),
-                         "interventions": gates[i].interventions if gates is not None else 0})
+                         # expert takeovers that drove (a trigger without a plan is not one)
+                         "interventions": int(np.sum(np.diff(np.r_[0, np.asarray(r["expert"], int)]) == 1))})
     if log is not None and oracle is not None:
         log(f"  {sum(triggers[k] for k in ('collision', 'stall', 'time'))} interventions in {E} episodes "
             f"(predicted collision {triggers['collision']}, stall {triggers['stall']}, time {triggers['time']}; "
