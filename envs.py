@@ -321,6 +321,29 @@ class PlanarReacher:
         """End-effector positions (B, 2); (dof,) -> (2,)."""
         return self.fk(q)[..., -1, :]
 
+    def ee_jacobian(self, q, h=1e-6):
+        """d ee / d q by central differences, batched: q (B, dof) -> (B, dim, dof)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        B, dof = q.shape
+        offsets = h * np.eye(dof)                                              # (dof, dof)
+        plus = self.ee((q[:, None] + offsets).reshape(-1, dof)).reshape(B, dof, -1)
+        minus = self.ee((q[:, None] - offsets).reshape(-1, dof)).reshape(B, dof, -1)
+        return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                  # (B, dim, dof)
+
+    def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3, plane=(0, 1)):
+        """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end
+        effector to first order, Sigma_ee = J Sigma J^T, and drawn in the given plane of the workspace."""
+        from matplotlib.patches import Ellipse
+        q = np.atleast_2d(q)
+        J = self.ee_jacobian(q)[:, list(plane)]                                # (B, 2, dof)
+        cov_ee = J @ np.asarray(cov) @ J.transpose(0, 2, 1)                   # (B, 2, 2)
+        for c, S in zip(self.ee(q)[:, list(plane)], cov_ee):
+            vals, vecs = np.linalg.eigh(S)
+            vals = np.maximum(vals, 0.0)
+            angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+            ax.add_patch(Ellipse(c, 2 * n_std * math.sqrt(vals[1]), 2 * n_std * math.sqrt(vals[0]), angle=angle,
+                                 facecolor=color, edgecolor=color, alpha=alpha, lw=0.7))
+
     def goal_reached(self, q):
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
         return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
@@ -941,6 +964,8 @@ class EngineReach3D:
     _check_q = PlanarReacher._check_q
     clip_action = PlanarReacher.clip_action
     ee = PlanarReacher.ee
+    ee_jacobian = PlanarReacher.ee_jacobian
+    draw_noise_ellipses = PlanarReacher.draw_noise_ellipses
     goal_reached = PlanarReacher.goal_reached
     eval_seeds = staticmethod(eval_seeds)
     train_seeds = staticmethod(train_seeds)
