@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 import envs
-from diffusion import label_mask
+from diffusion import expert_runs, label_mask
 from partial_denoise import noise_fraction, partial_denoise
 
 
@@ -89,24 +89,10 @@ class CalibrationConfig:
 # ----------------------------------------------------------------------------------------------
 
 def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
-    """Maximal runs [start, end) of expert-driven steps that are at least `horizon` long.
-
-    Demonstrations give one segment (the whole episode); intervention episodes one per intervention
-    (CONTRACT: shorter interventions are already marked non-expert).
-    """
-    expert = np.asarray(episode["expert"], dtype=bool)
-    segments, t, T = [], 0, len(expert)
-    while t < T:
-        if not expert[t]:
-            t += 1
-            continue
-        end = t
-        while end < T and expert[end]:
-            end += 1
-        if end - t >= horizon:
-            segments.append((t, end))
-        t = end
-    return segments
+    """The expert runs [start, end) that can label chunks of `horizon` steps (diffusion.expert_runs, the
+    paper's label rule): a demonstration gives one (the whole episode), an intervention episode one per
+    intervention of at least `horizon` steps."""
+    return expert_runs(episode["expert"], horizon)
 
 
 def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
@@ -116,10 +102,9 @@ def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[in
 
 
 def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label (CONTRACT's label rule).
+    """Steps t whose chunk actions[t:t+H] is a valid expert label.
 
-    Valid iff expert[t:t+H] are all True, or the episode ends before t+H and expert[t:] are all True
-    (diffusion.label_mask, the rule the training data uses).
+    diffusion.label_mask, the rule the training data uses.
     """
     return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
 
@@ -128,7 +113,7 @@ def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = No
     """actions[t:t+H] with actions past `end` (default: the episode end) replaced by the last one.
 
     Past the end of an intervention the recorded actions are the policy's, so the time-matched
-    expert chunk repeats the last expert action instead (the CONTRACT's padding rule).
+    expert chunk repeats the last expert action instead (diffusion.chunk_dataset's padding).
     """
     end = len(actions) if end is None else end
     idx = np.minimum(np.arange(t, t + horizon), end - 1)

@@ -342,9 +342,10 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
 
 
 def drop_short_interventions(expert, H):
-    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False."""
+    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False
+    (diffusion.expert_runs, the paper's label rule)."""
     kept = np.zeros(len(expert), bool)
-    for start, end in calibrate.expert_segments({"expert": expert}, H):  # runs of >= H expert steps
+    for start, end in diffusion.expert_runs(expert, H):
         kept[start:end] = True
     return kept
 

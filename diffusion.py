@@ -718,14 +718,29 @@ def _read_checkpoint(path):
 # Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
 
 
-def label_mask(expert, H):
-    """(T,) bool: True where the chunk starting at t is a valid label, i.e. expert[t:t+H] are all True,
-    or the episode ends before t + H and expert[t:] are all True (the chunk is then padded)."""
+def expert_runs(expert, H):
+    """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
+    can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
+    (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
+    of H and is discarded, also when it ends the episode. Every other module derives its labels from here.
+    """
     expert = np.asarray(expert, dtype=bool)
-    not_expert = np.concatenate([[0], np.cumsum(~expert)])            # (T + 1,) running count
-    t = np.arange(len(expert))
-    end = np.minimum(t + H, len(expert))
-    return (not_expert[end] - not_expert[t]) == 0
+    T = len(expert)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
+    runs = [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
+    return [(s, e) for s, e in runs if e - s >= H or (s == 0 and e == T)]
+
+
+def label_mask(expert, H):
+    """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
+    t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
+    (the chunk is then padded with the last action)."""
+    expert = np.asarray(expert, dtype=bool)
+    T = len(expert)
+    mask = np.zeros(T, dtype=bool)
+    for start, end in expert_runs(expert, H):
+        mask[start:(end if end == T else end - H + 1)] = True
+    return mask
 
 
 def chunk_dataset(episodes, H):

@@ -40,6 +40,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from diffusion import expert_runs, label_mask  # the paper's label rule, one place
+
 
 @dataclass
 class RelabelConfig:
@@ -146,17 +148,14 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
 # --------------------------------------------------------------------------------------------
 
 def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-    """Steps t whose chunk is a valid label (CONTRACT): expert[t:t+H] all True, or the episode ends
-    before t+H with expert[t:] all True. Returns (t (N,), seg_end (N,)) where seg_end is the end
-    (exclusive) of the expert segment containing t -- the part of the trajectory labels may follow."""
+    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule), and seg_end (N,):
+    the end (exclusive) of the expert run containing t -- the part of the trajectory labels may follow."""
     expert = np.asarray(expert, dtype=bool)
-    T = len(expert)
-    run = np.zeros(T + 1, dtype=np.int64)  # run[t] = number of consecutive expert steps from t on
-    for t in range(T - 1, -1, -1):
-        run[t] = run[t + 1] + 1 if expert[t] else 0
-    t = np.arange(T)
-    valid = expert & ((run[:T] >= horizon) | (t + run[:T] == T))
-    return t[valid], (t + run[:T])[valid]
+    seg_end = np.zeros(len(expert), dtype=np.int64)
+    for start, end in expert_runs(expert, horizon):
+        seg_end[start:end] = end
+    t = np.flatnonzero(label_mask(expert, horizon))
+    return t, seg_end[t]
 
 
 def covariance_factor(cov: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn as nn
 
-from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, label_mask, lr_at,
+from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, expert_runs, label_mask, lr_at,
                        make_schedule, p_sample, q_sample, toy_two_mode_data, train)
 
 
@@ -340,6 +340,37 @@ def test_chunk_dataset_label_rule():
     assert np.array_equal(np.nonzero(label_mask(ep2["expert"], H))[0], [0, 1, 2, 3, 4, 5, 6])
     with pytest.raises(ValueError):
         chunk_dataset([{"obs": ep["obs"], "action": action}], H)
+
+
+def test_every_consumer_of_the_label_rule_agrees_on_random_masks():
+    """One rule (diffusion.expert_runs / label_mask); calibrate, relabel and dagger derive from it."""
+    import calibrate
+    import dagger
+    import relabel
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        T, H = int(rng.integers(1, 40)), int(rng.integers(1, 8))
+        expert = rng.random(T) < rng.choice([0.5, 0.8, 0.95])
+        if rng.random() < 0.1:
+            expert[:] = True                                   # a (possibly short) demonstration
+        runs = expert_runs(expert, H)
+        mask = label_mask(expert, H)
+        # the rule itself, step by step: t is a label iff it lies in a run that teaches (>= H steps, or the
+        # whole episode) and its chunk stays in the run or the run ends the episode
+        for t in range(T):
+            inside = [(s, e) for s, e in runs if s <= t < e]
+            assert mask[t] == bool(inside and (t + H <= inside[0][1] or inside[0][1] == T)), (expert, H, t)
+        assert calibrate.expert_segments({"expert": expert}, H) == runs
+        t, seg_end = relabel.label_steps(expert, H)
+        assert np.array_equal(t, np.flatnonzero(mask))
+        assert all(any(s <= ti < e == se for s, e in runs) for ti, se in zip(t, seg_end))
+        kept = dagger.drop_short_interventions(expert, H)
+        assert np.array_equal(np.flatnonzero(kept), [i for s, e in runs for i in range(s, e)])
+        assert np.array_equal(label_mask(kept, H), mask)       # dropping first changes no label
+    # a short run that ends the episode is discarded (it is not the whole episode) ...
+    assert not label_mask(np.array([1, 1, 1, 1, 0, 1, 1], bool), 3)[5:].any()
+    # ... and a demonstration shorter than H is kept, padded
+    assert label_mask(np.ones(2, bool), 3).all()
 
 
 # ---------------------------------------------------------------------------------------------- training

@@ -136,13 +136,17 @@ def test_demo_stats_degenerate_inputs():
         demo_stats([one_joint_still], 0.01, 0.05)
 
 
-def test_label_steps_follow_the_contract():
+def test_label_steps_follow_the_label_rule():
     expert = np.array([0, 1, 1, 1, 1, 0, 1, 1, 1, 0, 1, 1], dtype=bool)
     t, seg_end = label_steps(expert, horizon=3)
     # run of 4 at 1..4 -> t = 1, 2 (need 3 steps); run of 3 at 6..8 -> t = 6;
-    # run 10..11 reaches the episode end -> t = 10, 11 are valid (padded labels)
-    np.testing.assert_array_equal(t, [1, 2, 6, 10, 11])
-    np.testing.assert_array_equal(seg_end, [5, 5, 9, 12, 12])
+    # run 10..11 is shorter than H: discarded although it reaches the episode end (Sec. IV-C)
+    np.testing.assert_array_equal(t, [1, 2, 6])
+    np.testing.assert_array_equal(seg_end, [5, 5, 9])
+    # a run of at least H that reaches the end labels every step of it (padded chunks)
+    t, seg_end = label_steps(np.array([0, 0, 1, 1, 1, 1], dtype=bool), horizon=3)
+    np.testing.assert_array_equal(t, [2, 3, 4, 5])
+    np.testing.assert_array_equal(seg_end, [6, 6, 6, 6])
 
 
 # ---------------------------------------------------------------- monotone projection
