@@ -1,4 +1,12 @@
-"""Environments of the paper's experiments (Sec. V, Fig. 5, Table I).
+"""The two environments of the paper's experiments (Sec. V; Tables I and II; Fig. 5).
+
+Where the paper is implemented in this file:
+    Sec. V, Table I    the planar 3-link reacher ............... PlanarConfig, PlanarReacher
+    Sec. V, Table II   the UR5 reaching an engine lever ........ EngineConfig, EngineReach3D
+    Sec. V             100 fixed evaluation scenarios .......... eval_seeds (train_seeds: disjoint)
+    Sec. V, Fig. 4     the "median step" unit of noise levels .. median_step
+    Fig. 5             the two scenes .......................... PlanarReacher.render, render_scene_image
+The two envs share ArmEnv (state, the motion rule, the episode step, the end effector).
 
 PlanarReacher: the planar 3-link reacher of Sec. V, built on the authors' setup (their code, read for
 ../shared/PAPER_SETUP.md §1): three box links (0.30 / 0.25 / 0.10 m) and an open gripper move in a
@@ -20,26 +28,29 @@ Every environment in this file has the same interface (gymnasium conventions, no
     obs, reward, terminated, truncated, info = env.step(action)   # action: absolute joint target
     env.q, env.q_prev                         # current / previous joint positions (read-only)
     env.set_state(q, q_prev=None, step_count=0)
+    env.clip_action(q, action)                # step's motion rule: the next joint positions
     env.make_obs(q, q_prev, image=None)       # batched observations for the current scenario
     env.image_shape                           # () or (3, S, S): the image at the end of each obs
     env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy);
                                               # margin (m) inflates every pair's contact distance
     env.fk(q)                                 # (B, n_points, dim) joint points, base .. end effector
     env.ee(q)                                 # (B, dim) end effector
+    env.ee_jacobian(q)                        # (B, dim, dof) d ee / d q, central differences
     env.goal_reached(q)                       # (B,) bool, True = end effector within tolerance
     env.goal                                  # (dim,) goal of the current scenario
+    env.goal_configurations()                 # (M, dof) collision-free closed-form IK of the goal
     env.render(ax, q=None, alpha=1.0)         # matplotlib drawing of the scene (and arm at q)
+    env.draw_noise_ellipses(ax, q, cov, color)   # joint covariances drawn at the end effector
     env.eval_seeds(), env.train_seeds(n, start=0)
-PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; goal_configurations()
-gives collision-free closed-form IK solutions of the goal; pymunk_in_collision(q) is the
-simulator's (slow) version of in_collision; clip_action(q, action) is step's motion rule.
+PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; pymunk_in_collision(q)
+is the simulator's (slow) version of in_collision.
 
 EngineReach3D: the UR5 reaching an engine lever through a narrow, cluttered passage (Sec. V,
 Table II), with pybullet (DIRECT mode) as the simulator and the same vectorized numpy check beside
-it, in 3-D. Extras: set_scene(obstacles, goal, kinds), goal_configurations() (closed-form UR5 IK),
-clearance(q) (signed distance), pybullet_in_collision(q), render_image(q) (a small RGB camera image
-from pybullet's TinyRenderer), render_scene_image(env, path). With EngineConfig(image_obs=True) the
-observation ends with that image (obs_image(obs) reads it back), for the policy's CNN encoder.
+it, in 3-D. Extras: set_scene(obstacles, goal, kinds), clearance(q) (signed distance),
+pybullet_in_collision(q), render_image(q) (a small RGB camera image from pybullet's TinyRenderer),
+render_scene_image(env, path). With EngineConfig(image_obs=True) the observation ends with that
+image (obs_image(obs) reads it back), for the policy's CNN encoder.
 
 Step semantics: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
@@ -58,8 +69,10 @@ The two agree (tests/test_envs.py): on 12,000 random configurations in 4 scenes,
 either side of contact-boundary points found by bisection. Known exception, of measure zero: a box
 centred exactly across a link, for which pymunk reports a contact of depth 0 (counted as contact).
 
-Episode files: save_episodes / load_episodes (one .npz, ragged arrays concatenated with offsets);
-median_step(episodes) gives the paper's "median step size" unit of noise levels (Sec. V).
+Beyond the paper (after the banner): the vectorized geometry kernels (box and capsule distances),
+the UR5's DH frames and closed-form IK, episode files (save_episodes / load_episodes: one .npz,
+ragged arrays concatenated with offsets) and straight_line_episode, a stand-in expert for tests
+and demos.
 """
 import math
 from dataclasses import dataclass
@@ -68,7 +81,130 @@ import numpy as np
 import pybullet as pb
 import pymunk
 
-# Seed ranges. Evaluation scenarios never appear in training (paper Sec. V: 100 fixed scenarios).
+
+# ----------------------------------------------------------------------------------------------
+# Configuration
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class PlanarConfig:
+    # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
+    link_lengths: tuple = (0.30, 0.25, 0.10)  # m, joint to joint (shoulder, elbow, wrist link)
+    link_widths: tuple = (0.04, 0.035, 0.03)  # m, thickness of each box link
+    gripper_reach: float = 0.15  # m, gripper base (end of the wrist link) to the end-effector point
+    joint_lo: tuple = (-math.pi, -math.pi, -math.pi)  # rad, the URDF's limits on every joint
+    joint_hi: tuple = (math.pi, math.pi, math.pi)  # rad
+    # --- the task (PAPER_SETUP.md §1): success, contact, episode length, speed limit ---
+    speed_limit: float = 0.5  # rad/s per joint; max_step = speed_limit * dt rad per step
+    episode_seconds: float = 1000 / 30  # s (the authors' 1000 steps at 30 Hz); max_steps = it / dt
+    goal_tolerance: float = 0.06  # m, success: end effector within this distance of the target centre
+    contact_margin: float = 0.005  # m, bodies closer than this are in collision (the authors' 5 mm)
+    # --- the scene (PAPER_SETUP.md §1): a target block and two obstacle blocks placed polar
+    #     around the shoulder; a scene is re-drawn if blocks overlap, the start collides or the
+    #     target cannot be reached collision-free ---
+    target_size: float = 0.05  # m, the target cube (touching it is not a collision)
+    obstacle_size: float = 0.07  # m, each obstacle cube
+    n_obstacles: int = 2  # obstacle blocks per scene
+    target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
+    obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
+    # The start. 'fixed': every scenario starts at fixed_start (the authors' demonstration config);
+    # 'random': all joints uniform within their limits until the arm is collision-free (the authors'
+    # env reset and evaluation config, q_start null; often folded). Chosen by measurement
+    # (benchmarks/README.md): BC on 500 demonstrations, 30k steps (41 min of one core), reaches
+    # 62.7 % with the fixed start and 54.0 % with random starts (100 scenarios x 3 each): the fixed
+    # start puts pi_0 in the paper's range (68 %), the random one just below it; 20 of the 100 random
+    # evaluation starts lie within 2.5 cm of contact.
+    start: str = "fixed"
+    fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
+
+    # --- not in the paper ---
+    # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
+    # link's frame: a palm and two fingers. The sizes are this project's approximation of its
+    # 85 mm-aperture outline (the URDF's meshes are not read here); the end-effector point lies
+    # between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre).
+    palm_size: tuple = (0.07, 0.09)  # m, (length along the link, width across it)
+    finger_size: tuple = (0.08, 0.015)  # m, each finger; the pair spans 0.07 .. 0.15 past the base
+    finger_gap: float = 0.075  # m, clear width between the two fingers (fixed open)
+    base: tuple = (0.0, 0.0)  # m, the shoulder pivot in the (x, z) plane of the arm
+    # Timing. The authors run 30 Hz. We keep their speed limit and their seconds and run 10 Hz by
+    # default: a third of the env steps and policy calls on a CPU, the same motion (dt = 1/30 s
+    # gives the authors' rate).
+    dt: float = 0.1  # s per step
+    # States checked for contact within one step (the end state and evenly spaced ones before it).
+    # At the speed limit the farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m
+    # a step at 10 Hz, 0.02 m between checks: less than the thinnest band a part must cross to pass
+    # through something (a 1.5 cm finger and the 3.5 cm link 2: 5 cm), so nothing tunnels.
+    n_substeps: int = 4  # states per step
+    block_clearance: float = 0.02  # m, blocks closer than this to each other overlap (re-draw)
+    n_goal_angles: int = 180  # last-link orientations tried when searching goal configurations
+    # A scene is kept only if at least this many of the 2 n_goal_angles closed-form IK candidates
+    # of the target centre are collision-free (the solvability check; see goal_configurations).
+    min_goal_configurations: int = 8  # configurations
+
+
+@dataclass
+class EngineConfig:
+    # --- the UR5 of Sec. V (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and
+    #     upper arm housings, ~0.10 m forearm, ~0.09 m wrists) ---
+    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
+    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
+    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
+    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
+    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
+    joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
+    joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
+    # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
+    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
+    dt: float = 0.1  # s per step
+    goal_tolerance: float = 0.04  # m, TCP within this distance of the goal = reached
+    # The paper's policy sees images (Sec. V): True ends the observation with the camera image
+    # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
+    # it in info['image'].
+    image_obs: bool = False
+    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
+    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
+
+    # --- not in the paper ---
+    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
+    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
+    #                                   they make joint 6 matter (all else is symmetric about z6)
+    # Episode step limit, ~3x a typical expert episode: the oracle's demos over the 100 eval scenes
+    # take 89 steps (median), 138 (90th pct), 188 (max) (benchmarks/bench_engine3d.py).
+    max_steps: int = 300  # steps
+    # States checked for contact per step (the end state and evenly spaced states before it). At
+    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
+    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
+    # between checks -- less than the thinnest band a centre line must cross to pass through an
+    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
+    n_substeps: int = 4  # states per step
+    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
+    # The scene generator (see EngineReach3D._draw_scene). The paper scans a real mockup; here the
+    # scene is drawn per seed. The bay lies along -x, where the arm points at q1 = 0.
+    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
+    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
+    bay_height: float = 0.50  # m, top rails of the housing
+    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
+    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
+    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
+    # Pipes. With these defaults the oracle solves 99 of the 100 eval scenes (median 4.4 CPU s per
+    # demo) and the straight line from the start to every free goal configuration collides in 76
+    # (bench_engine3d.py). Tighter pipes (two passage pipes 0.04-0.09 m away, 1-3 clutter pipes)
+    # made planning ~1.6x slower on 8 scenes; no pipes at all ~2.3x faster.
+    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
+    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
+    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
+    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
+    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
+    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
+    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
+    #   a needle's eye that no planner (or IK from random seeds) finds reliably
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
+    n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
+    n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenarios: seed ranges (Sec. V: 100 fixed evaluation scenarios, never seen in training)
+# ----------------------------------------------------------------------------------------------
 EVAL_SEED_START = 10_000
 N_EVAL_SEEDS = 100
 TRAIN_SEED_END = EVAL_SEED_START  # training seeds are 0 .. 9_999
@@ -88,105 +224,8 @@ def train_seeds(n, start=0):
 
 
 # ----------------------------------------------------------------------------------------------
-# Configuration
+# What every arm env shares: state, the motion rule, the episode step, the end effector
 # ----------------------------------------------------------------------------------------------
-@dataclass
-class PlanarConfig:
-    # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
-    link_lengths: tuple = (0.30, 0.25, 0.10)  # m, joint to joint (shoulder, elbow, wrist link)
-    link_widths: tuple = (0.04, 0.035, 0.03)  # m, thickness of each box link
-    # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
-    # link's frame: a palm and two fingers. The sizes are this project's approximation of its
-    # 85 mm-aperture outline (the URDF's meshes are not read here); the end-effector point lies
-    # between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre).
-    palm_size: tuple = (0.07, 0.09)  # m, (length along the link, width across it)
-    finger_size: tuple = (0.08, 0.015)  # m, each finger; the pair spans 0.07 .. 0.15 past the base
-    finger_gap: float = 0.075  # m, clear width between the two fingers (fixed open)
-    gripper_reach: float = 0.15  # m, gripper base (end of the wrist link) to the end-effector point
-    base: tuple = (0.0, 0.0)  # m, the shoulder pivot in the (x, z) plane of the arm
-    joint_lo: tuple = (-math.pi, -math.pi, -math.pi)  # rad, the URDF's limits on every joint
-    joint_hi: tuple = (math.pi, math.pi, math.pi)
-    # --- timing. The authors run 30 Hz with a 0.5 rad/s joint speed limit and episodes of at most
-    #     1000 steps (33 s). We keep the speed and the seconds and run 10 Hz by default: a third of
-    #     the env steps and policy calls on a CPU, the same motion (dt = 1/30 gives the paper's rate).
-    dt: float = 0.1  # s per step
-    speed_limit: float = 0.5  # rad/s per joint; max_step = speed_limit * dt rad per step
-    episode_seconds: float = 1000 / 30  # s; max_steps = episode_seconds / dt
-    goal_tolerance: float = 0.06  # m, success: end effector within this distance of the target centre
-    contact_margin: float = 0.005  # m, bodies closer than this are in collision (the authors' 5 mm)
-    # States checked for contact within one step (the end state and evenly spaced ones before it).
-    # At the speed limit the farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m
-    # a step at 10 Hz, 0.02 m between checks: less than the thinnest band a part must cross to pass
-    # through something (a 1.5 cm finger and the 3.5 cm link 2: 5 cm), so nothing tunnels.
-    n_substeps: int = 4
-    # --- the scene (PAPER_SETUP.md §1): a target block and two obstacle blocks placed polar
-    #     around the shoulder; a scene is re-drawn if blocks overlap, the start collides or the
-    #     target cannot be reached collision-free ---
-    target_size: float = 0.05  # m, the target cube (touching it is not a collision)
-    obstacle_size: float = 0.07  # m, each obstacle cube
-    n_obstacles: int = 2
-    target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
-    obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    block_clearance: float = 0.02  # m, blocks closer than this to each other overlap (re-draw)
-    # The start. 'fixed': every scenario starts at fixed_start (the authors' demonstration config);
-    # 'random': all joints uniform within their limits until the arm is collision-free (the authors'
-    # env reset and evaluation config, q_start null; often folded). Chosen by measurement
-    # (benchmarks/README.md): BC on 500 demonstrations, 30k steps (41 min of one core), reaches
-    # 62.7 % with the fixed start and 54.0 % with random starts (100 scenarios x 3 each): the fixed
-    # start puts pi_0 in the paper's range (68 %), the random one just below it; 20 of the 100 random
-    # evaluation starts lie within 2.5 cm of contact.
-    start: str = "fixed"
-    fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
-    n_goal_angles: int = 180  # last-link orientations tried when searching goal configurations
-    # A scene is kept only if at least this many of the 2 n_goal_angles closed-form IK candidates
-    # of the target centre are collision-free (the solvability check; see goal_configurations).
-    min_goal_configurations: int = 8
-
-
-# ----------------------------------------------------------------------------------------------
-# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
-# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
-# ----------------------------------------------------------------------------------------------
-def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
-    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
-    dx, dy = px - cx, py - cy
-    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
-    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
-    return np.sqrt(lx * lx + ly * ly)
-
-
-def box_corners(cx, cy, cos, sin, hx, hy):
-    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
-    xs, ys = [], []
-    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
-        xs.append(cx + sx * hx * cos - sy * hy * sin)
-        ys.append(cy + sx * hx * sin + sy * hy * cos)
-    return xs, ys
-
-
-def box_distance(a, b):
-    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
-
-    Two facts of 2-D convex geometry make this short and exact:
-      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
-      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
-        smallest of the 8 corner-to-box distances.
-    """
-    acx, acy, ac, as_, ahx, ahy = a
-    bcx, bcy, bc, bs, bhx, bhy = b
-    dx, dy = bcx - acx, bcy - acy
-    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
-    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
-        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
-        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
-        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
-    d = np.full(overlap.shape, np.inf)
-    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
-        for x, y in zip(xs, ys):
-            d = np.minimum(d, point_box_distance(x, y, *box))
-    return np.where(overlap, 0.0, d)
-
-
 def _as_batch(q, dof, name="q"):
     """(dof,) or (B, dof) finite array -> ((B, dof) float64, was_single)."""
     q = np.asarray(q, dtype=np.float64)
@@ -198,11 +237,140 @@ def _as_batch(q, dof, name="q"):
     return q, single
 
 
+class ArmEnv:
+    """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
+
+    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps and calls
+    ArmEnv.__init__ with its joint limits, and supplies what differs: fk, in_collision,
+    simulator_in_collision (the simulator's contacts that judge a step), make_obs, reset, render.
+    """
+
+    def __init__(self, joint_lo, joint_hi):
+        self._lo = np.asarray(joint_lo, dtype=np.float64)
+        self._hi = np.asarray(joint_hi, dtype=np.float64)
+        # scenario state (set by reset)
+        self.seed = None
+        self._goal = np.zeros(self.dim)
+        self._q = np.zeros(self.dof)
+        self._q_prev = np.zeros(self.dof)
+        self.step_count = 0
+        self._has_state = False  # step() needs reset() or set_state() first
+
+    # ---- read-only state ---------------------------------------------------------------------
+    @property
+    def joint_limits(self):
+        return self._lo.copy(), self._hi.copy()
+
+    @property
+    def q(self):
+        return self._q.copy()
+
+    @property
+    def q_prev(self):
+        return self._q_prev.copy()
+
+    @property
+    def goal(self):
+        return self._goal.copy()
+
+    @staticmethod
+    def eval_seeds():
+        """The 100 evaluation seeds (module function eval_seeds)."""
+        return eval_seeds()
+
+    @staticmethod
+    def train_seeds(n, start=0):
+        """n training seeds from start (module function train_seeds)."""
+        return train_seeds(n, start)
+
+    def set_state(self, q, q_prev=None, step_count=0):
+        """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
+        q = self._check_q(q, "q")
+        q_prev = q.copy() if q_prev is None else self._check_q(q_prev, "q_prev")
+        self._q, self._q_prev = q, q_prev
+        self.step_count = int(step_count)
+        self._has_state = True
+
+    def _check_q(self, q, name):
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (self.dof,):
+            raise ValueError(f"{name} must have shape ({self.dof},), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{name} must be finite, got {q}")
+        if np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9):
+            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
+        return q.copy()
+
+    # ---- the motion rule and the episode step ------------------------------------------------
+    def clip_action(self, q, action):
+        """The next joint positions from `action` (absolute targets): speed limit, then limits."""
+        return np.clip(q + np.clip(action - q, -self.max_step, self.max_step), self._lo, self._hi)
+
+    def step(self, action):
+        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
+
+        Collision is judged by the simulator's contacts (simulator_in_collision: pymunk for the
+        planar env, pybullet for the 3-D one) at the end state and at n_substeps - 1 evenly spaced
+        states before it (see PlanarConfig.n_substeps: nothing tunnels through an obstacle).
+        reward = 1 on success else 0 (the method does not use rewards).
+        """
+        if not self._has_state:
+            raise ValueError("step called before reset (or set_state)")
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.dof,):
+            raise ValueError(f"action must have shape ({self.dof},), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite (no NaN/inf), got {action}")
+        q_next = self.clip_action(self._q, action)
+        fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
+        sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
+        collision = bool(any(self.simulator_in_collision(sweep)))
+        self._q_prev, self._q = self._q, q_next
+        self.step_count += 1
+        success = (not collision) and bool(self.goal_reached(q_next))
+        terminated = collision or success
+        truncated = (not terminated) and self.step_count >= self.max_steps
+        info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
+        return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
+
+    # ---- the end effector --------------------------------------------------------------------
+    def ee(self, q):
+        """End-effector positions (B, dim); (dof,) -> (dim,). The last point of fk."""
+        return self.fk(q)[..., -1, :]
+
+    def ee_jacobian(self, q, h=1e-6):
+        """d ee / d q by central differences, batched: q (B, dof) -> (B, dim, dof)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        B, dof = q.shape
+        offsets = h * np.eye(dof)                                              # (dof, dof)
+        plus = self.ee((q[:, None] + offsets).reshape(-1, dof)).reshape(B, dof, -1)
+        minus = self.ee((q[:, None] - offsets).reshape(-1, dof)).reshape(B, dof, -1)
+        return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                  # (B, dim, dof)
+
+    def goal_reached(self, q):
+        """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
+        return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
+
+    def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3, plane=(0, 1)):
+        """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end
+        effector to first order, Sigma_ee = J Sigma J^T, and drawn in the given plane of the workspace."""
+        from matplotlib.patches import Ellipse
+        q = np.atleast_2d(q)
+        J = self.ee_jacobian(q)[:, list(plane)]                                # (B, 2, dof)
+        cov_ee = J @ np.asarray(cov) @ J.transpose(0, 2, 1)                   # (B, 2, 2)
+        for c, S in zip(self.ee(q)[:, list(plane)], cov_ee):
+            vals, vecs = np.linalg.eigh(S)
+            vals = np.maximum(vals, 0.0)
+            angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+            ax.add_patch(Ellipse(c, 2 * n_std * math.sqrt(vals[1]), 2 * n_std * math.sqrt(vals[0]), angle=angle,
+                                 facecolor=color, edgecolor=color, alpha=alpha, lw=0.7))
+
+
 # ----------------------------------------------------------------------------------------------
-# The planar reacher
+# The planar reacher (Sec. V, Table I)
 # ----------------------------------------------------------------------------------------------
-class PlanarReacher:
-    """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Fig. 5 right).
+class PlanarReacher(ArmEnv):
+    """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Table I, Fig. 5).
 
     Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
     observation.environment_state, PAPER_SETUP.md §1):
@@ -266,45 +434,9 @@ class PlanarReacher:
         self.lever_arms = np.array([max(self.link_lengths[j:k].sum() + corner[p]
                                         for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
-        self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
-        self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
-        # scenario state (set by reset)
-        self.seed = None
+        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.obstacles = np.zeros((0, 5))  # (N, 5): centre x, y, half x, half y, angle
-        self._goal = np.zeros(self.dim)
-        self._q = np.zeros(self.dof)
-        self._q_prev = np.zeros(self.dof)
-        self.step_count = 0
-        self._has_state = False  # step() needs reset() or set_state() first
         self.set_scene(np.zeros((0, 5)))
-
-    # ---- read-only state ---------------------------------------------------------------------
-    @property
-    def joint_limits(self):
-        return self._lo.copy(), self._hi.copy()
-
-    @property
-    def q(self):
-        return self._q.copy()
-
-    @property
-    def q_prev(self):
-        return self._q_prev.copy()
-
-    @property
-    def goal(self):
-        return self._goal.copy()
-
-    # ---- seeds (shared by every env of this file) --------------------------------------------
-    @staticmethod
-    def eval_seeds():
-        """The 100 evaluation seeds (module function eval_seeds)."""
-        return eval_seeds()
-
-    @staticmethod
-    def train_seeds(n, start=0):
-        """n training seeds from start (module function train_seeds)."""
-        return train_seeds(n, start)
 
     # ---- kinematics and geometry -------------------------------------------------------------
     def fk(self, q):
@@ -316,37 +448,6 @@ class PlanarReacher:
         points[:, 1:, 0] = self.base[0] + np.cumsum(self.chain_lengths * np.cos(angles), axis=1)
         points[:, 1:, 1] = self.base[1] + np.cumsum(self.chain_lengths * np.sin(angles), axis=1)
         return points[0] if single else points
-
-    def ee(self, q):
-        """End-effector positions (B, 2); (dof,) -> (2,)."""
-        return self.fk(q)[..., -1, :]
-
-    def ee_jacobian(self, q, h=1e-6):
-        """d ee / d q by central differences, batched: q (B, dof) -> (B, dim, dof)."""
-        q = np.atleast_2d(np.asarray(q, dtype=float))
-        B, dof = q.shape
-        offsets = h * np.eye(dof)                                              # (dof, dof)
-        plus = self.ee((q[:, None] + offsets).reshape(-1, dof)).reshape(B, dof, -1)
-        minus = self.ee((q[:, None] - offsets).reshape(-1, dof)).reshape(B, dof, -1)
-        return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                  # (B, dim, dof)
-
-    def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3, plane=(0, 1)):
-        """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end
-        effector to first order, Sigma_ee = J Sigma J^T, and drawn in the given plane of the workspace."""
-        from matplotlib.patches import Ellipse
-        q = np.atleast_2d(q)
-        J = self.ee_jacobian(q)[:, list(plane)]                                # (B, 2, dof)
-        cov_ee = J @ np.asarray(cov) @ J.transpose(0, 2, 1)                   # (B, 2, 2)
-        for c, S in zip(self.ee(q)[:, list(plane)], cov_ee):
-            vals, vecs = np.linalg.eigh(S)
-            vals = np.maximum(vals, 0.0)
-            angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-            ax.add_patch(Ellipse(c, 2 * n_std * math.sqrt(vals[1]), 2 * n_std * math.sqrt(vals[0]), angle=angle,
-                                 facecolor=color, edgecolor=color, alpha=alpha, lw=0.7))
-
-    def goal_reached(self, q):
-        """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
-        return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
 
     def part_boxes(self, q):
         """The arm's boxes at q: (cx, cy, cos, sin, hx, hy), each (n_parts, B)."""
@@ -599,25 +700,7 @@ class PlanarReacher:
         self.set_state(start)
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
-    # ---- state, observations, stepping -------------------------------------------------------
-    def set_state(self, q, q_prev=None, step_count=0):
-        """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
-        q = self._check_q(q, "q")
-        q_prev = q.copy() if q_prev is None else self._check_q(q_prev, "q_prev")
-        self._q, self._q_prev = q, q_prev
-        self.step_count = int(step_count)
-        self._has_state = True
-
-    def _check_q(self, q, name):
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (self.dof,):
-            raise ValueError(f"{name} must have shape ({self.dof},), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            raise ValueError(f"{name} must be finite, got {q}")
-        if np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9):
-            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
-        return q.copy()
-
+    # ---- observations and the simulator's check used by step ---------------------------
     image_shape = ()  # no image observations in the planar env (EngineReach3D has the option)
 
     def make_obs(self, q, q_prev, image=None):
@@ -638,40 +721,9 @@ class PlanarReacher:
         obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
-    def clip_action(self, q, action):
-        """The next joint positions from `action` (absolute targets): speed limit, then limits."""
-        return np.clip(q + np.clip(action - q, -self.max_step, self.max_step), self._lo, self._hi)
-
     def simulator_in_collision(self, q):
         """The simulator's contact check used by step: pymunk."""
         return self.pymunk_in_collision(q)
-
-    def step(self, action):
-        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
-
-        Collision is judged by the simulator's contacts (simulator_in_collision: pymunk here) at the
-        end state and at n_substeps - 1 evenly spaced states before it (see PlanarConfig.n_substeps:
-        nothing tunnels through an obstacle). reward = 1 on success else 0 (the method does not use
-        rewards).
-        """
-        if not self._has_state:
-            raise ValueError("step called before reset (or set_state)")
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.dof,):
-            raise ValueError(f"action must have shape ({self.dof},), got {action.shape}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite (no NaN/inf), got {action}")
-        q_next = self.clip_action(self._q, action)
-        fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
-        sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
-        collision = bool(any(self.simulator_in_collision(sweep)))
-        self._q_prev, self._q = self._q, q_next
-        self.step_count += 1
-        success = (not collision) and bool(self.goal_reached(q_next))
-        terminated = collision or success
-        truncated = (not terminated) and self.step_count >= self.max_steps
-        info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
-        return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
 
     # ---- drawing -----------------------------------------------------------------------------
     def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
@@ -710,8 +762,9 @@ class PlanarReacher:
             ax.plot(joints[:, 0], joints[:, 1], "o", color="k", markersize=2, alpha=alpha)
         return ax
 
+
 # ----------------------------------------------------------------------------------------------
-# UR5 engine-lever reaching (paper Sec. V, Table II, Fig. 5 left)
+# UR5 engine-lever reaching (Sec. V, Table II)
 # ----------------------------------------------------------------------------------------------
 # UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
 # ("DH parameters for calculations of kinematics and dynamics", universal-robots.com, UR5 row).
@@ -740,182 +793,8 @@ ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs for
                              + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
 
 
-@dataclass
-class EngineConfig:
-    # --- robot (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and upper arm
-    #     housings, ~0.10 m forearm, ~0.09 m wrists; the tool is this project's own) ---
-    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
-    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6
-    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
-    #                                   they make joint 6 matter (all else is symmetric about z6)
-    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
-    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
-    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
-    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
-    joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
-    joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)
-    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
-    dt: float = 0.1  # s per step
-    # Episode step limit, ~3x a typical expert episode: the oracle's demos over the 100 eval scenes
-    # take 89 steps (median), 138 (90th pct), 188 (max) (benchmarks/bench_engine3d.py).
-    max_steps: int = 300
-    goal_tolerance: float = 0.04  # m, TCP within this distance of the goal = reached (as planar)
-    # States checked for contact per step (the end state and evenly spaced states before it). At
-    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
-    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
-    # between checks -- less than the thinnest band a centre line must cross to pass through an
-    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
-    n_substeps: int = 4
-    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
-    # --- scene generator (see EngineReach3D._draw_scene); the bay lies along -x, where the arm
-    #     points at q1 = 0 ---
-    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
-    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
-    bay_height: float = 0.50  # m, top rails of the housing
-    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
-    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
-    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
-    # Pipes. With these defaults the oracle solves 99 of the 100 eval scenes (median 4.4 CPU s per
-    # demo) and the straight line from the start to every free goal configuration collides in 76
-    # (bench_engine3d.py). Tighter pipes (two passage pipes 0.04-0.09 m away, 1-3 clutter pipes)
-    # made planning ~1.6x slower on 8 scenes; no pipes at all ~2.3x faster.
-    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
-    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
-    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
-    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
-    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
-    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
-    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
-    #   a needle's eye that no planner (or IK from random seeds) finds reliably
-    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
-    n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
-    n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
-    image_obs: bool = False  # True: the observation ends with the camera image instead of the obstacle list
-    #   (layout in EngineReach3D's docstring), and reset/step also put it in info['image']
-    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
-    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
-
-
-def segment_distance_3d(a0, a1, b0, b1):
-    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
-
-    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the
-    closest points of the infinite lines, clamped to the segments, re-projected once. A zero-length
-    segment (a sphere) goes through the same formulas with its squared length floored at 1e-18.
-    Coordinates come as separate x, y, z arrays (first axis) because every operation below then
-    runs on contiguous memory: 4-5x faster than reducing a trailing axis of size 3.
-    """
-    (ax, ay, az), (bx, by, bz) = a0, b0
-    ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
-    vx, vy, vz = b1[0] - bx, b1[1] - by, b1[2] - bz
-    wx, wy, wz = ax - bx, ay - by, az - bz
-    uu = np.maximum(ux * ux + uy * uy + uz * uz, 1e-18)
-    vv = np.maximum(vx * vx + vy * vy + vz * vz, 1e-18)
-    uv = ux * vx + uy * vy + uz * vz
-    uw = ux * wx + uy * wy + uz * wz
-    vw = vx * wx + vy * wy + vz * wz
-    denom = uu * vv - uv * uv  # >= 0; ~0 for parallel segments, where any s works: take s = 0
-    s = np.minimum(np.maximum((uv * vw - uw * vv) / np.maximum(denom, 1e-300), 0.0), 1.0)
-    s = np.where(denom > 1e-12 * uu * vv, s, 0.0)
-    t = (uv * s + vw) / vv  # closest point of b's line to a(s)
-    # t outside [0, 1]: clamp it and recompute s as the closest point of a to that end of b
-    s = np.where(t < 0, np.minimum(np.maximum(-uw / uu, 0.0), 1.0),
-                 np.where(t > 1, np.minimum(np.maximum((uv - uw) / uu, 0.0), 1.0), s))
-    t = np.minimum(np.maximum(t, 0.0), 1.0)
-    dx, dy, dz = wx + s * ux - t * vx, wy + s * uy - t * vy, wz + s * uz - t * vz
-    return np.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-def dh_transform(theta, d, a, alpha):
-    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha), batched: (...) -> (..., 4, 4)."""
-    theta = np.asarray(theta, dtype=np.float64)
-    d, a, alpha = (np.broadcast_to(np.asarray(x, dtype=np.float64), theta.shape) for x in (d, a, alpha))
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-    T = np.zeros(theta.shape + (4, 4))
-    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2], T[..., 0, 3] = ct, -st * ca, st * sa, a * ct
-    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2], T[..., 1, 3] = st, ct * ca, -ct * sa, a * st
-    T[..., 2, 1], T[..., 2, 2], T[..., 2, 3] = sa, ca, d
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def ur5_frames(q):
-    """World frames of the UR5 DH chain: (B, 7, 4, 4) = base, frames 1..6 (frame 6 = flange)."""
-    T = dh_transform(q, UR5_D, UR5_A, UR5_ALPHA)  # (B, 6, 4, 4): frame i in frame i-1
-    frames = np.empty((len(T), 7, 4, 4))
-    frames[:, 0] = np.eye(4)
-    for i in range(6):
-        frames[:, i + 1] = frames[:, i] @ T[:, i]
-    return frames
-
-
-def ur5_ik(flange):
-    """Closed-form inverse kinematics: flange poses (P, 4, 4) -> joint solutions (P, 8, 6).
-
-    The 8 branches are shoulder left/right x wrist up/down x elbow up/down; NaN rows where a branch
-    does not exist (pose out of reach). Angles wrapped to [-pi, pi). The geometry of the UR5's DH
-    chain (the derivation of Hawkins, "Analytic inverse kinematics for the Universal Robots
-    UR-5/UR-10 arms", 2013, redone for the frames of ur5_frames):
-      * the wrist-3 centre p5 = p6 - d6 z6 lies at distance d4 from the plane of the shoulder and
-        elbow, which contains the base axis: p5 . z1 = d4, with z1 = (sin q1, -cos q1, 0)
-        => q1 = atan2(p5y, p5x) + pi/2 +- acos(d4 / |p5xy|);
-      * z1 seen from the flange is (sin q5 cos q6, -sin q5 sin q6, cos q5) => q5 = +-acos, then q6;
-      * frame 4 = flange T6^-1 T5^-1, seen from frame 1, is a planar 2-link problem in q2, q3
-        (lengths a2, a3), and q2 + q3 + q4 is the angle of its x axis.
-    """
-    P = len(flange)
-    d1, d4, d5, d6 = UR5_D[0], UR5_D[3], UR5_D[4], UR5_D[5]
-    a2, a3 = UR5_A[1], UR5_A[2]
-    R, p5 = flange[:, :3, :3], flange[:, :3, 3] - d6 * flange[:, :3, 2]  # (P, 3, 3), (P, 3)
-    rho = np.hypot(p5[:, 0], p5[:, 1])
-    shoulder = np.arccos(np.clip(d4 / np.maximum(rho, 1e-12), -1.0, 1.0))
-    out = np.full((P, 2, 2, 2, 6), np.nan)  # (P, shoulder, wrist, elbow, 6)
-    for i, s1 in enumerate((1.0, -1.0)):
-        q1 = np.arctan2(p5[:, 1], p5[:, 0]) + math.pi / 2 + s1 * shoulder  # (P,)
-        z1 = np.stack([np.sin(q1), -np.cos(q1), np.zeros(P)], axis=1)
-        v = np.einsum("pji,pj->pi", R, z1)  # z1 in flange coordinates
-        for j, s5 in enumerate((1.0, -1.0)):
-            q5 = s5 * np.arccos(np.clip(v[:, 2], -1.0, 1.0))
-            sin5 = np.sin(q5)
-            singular = np.abs(sin5) < 1e-9  # wrist singularity: q6 is free, take 0
-            sin5 = np.where(singular, 1.0, sin5)
-            q6 = np.where(singular, 0.0, np.arctan2(-v[:, 1] / sin5, v[:, 0] / sin5))
-            frame4 = (np.linalg.inv(dh_transform(q1, d1, 0.0, math.pi / 2)) @ flange
-                      @ np.linalg.inv(dh_transform(q6, d6, 0.0, 0.0))
-                      @ np.linalg.inv(dh_transform(q5, d5, 0.0, -math.pi / 2)))  # (P, 4, 4) in frame 1
-            x, y = frame4[:, 0, 3], frame4[:, 1, 3]
-            cos3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2 * a2 * a3)
-            for k, s3 in enumerate((1.0, -1.0)):
-                q3 = s3 * np.arccos(np.clip(cos3, -1.0, 1.0))
-                q2 = np.arctan2(y, x) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
-                q4 = np.arctan2(frame4[:, 1, 0], frame4[:, 0, 0]) - q2 - q3
-                q = np.stack([q1, q2, q3, q4, q5, q6], axis=1)
-                q = (q + math.pi) % (2 * math.pi) - math.pi
-                q[(rho < d4) | (np.abs(cos3) > 1.0)] = np.nan
-                out[:, i, j, k] = q
-    return out.reshape(P, 8, 6)
-
-
-def fibonacci_sphere(n):
-    """n unit vectors (n, 3) spread evenly over the sphere (golden-angle spiral)."""
-    z = 1.0 - 2.0 * (np.arange(n) + 0.5) / n
-    angle = np.arange(n) * math.pi * (3.0 - math.sqrt(5.0))
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(angle), r * np.sin(angle), z], axis=1)
-
-
-def _quaternion_z_to(direction):
-    """Quaternions (x, y, z, w) (N, 4) turning the z axis onto unit vectors direction (N, 3)."""
-    x, y, z = direction[:, 0], direction[:, 1], direction[:, 2]
-    # half-angle form: q = (z_hat x d, 1 + z_hat . d), normalised; z_hat x d = (-y, x, 0)
-    quat = np.stack([-y, x, np.zeros_like(z), 1.0 + z], axis=1)
-    flipped = 1.0 + z < 1e-9  # d = -z: any half turn about a horizontal axis
-    quat[flipped] = (1.0, 0.0, 0.0, 0.0)
-    return quat / np.linalg.norm(quat, axis=1, keepdims=True)
-
-
-class EngineReach3D:
-    """UR5 reaching an engine lever through a cluttered, narrow passage (paper Sec. V, Table II).
+class EngineReach3D(ArmEnv):
+    """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
     The paper renders its mockup with Gaussian splats; this project has no scan, so the scene is
     pybullet's own geometry: a housing (frame of beams), an engine block, a T-handle lever and
@@ -953,23 +832,6 @@ class EngineReach3D:
 
     dim = 3  # workspace dimension
 
-    # Interface plumbing identical to PlanarReacher's, written once there (same file):
-    # read-only state, set_state / input checks, the step's speed limit, end effector, goal test;
-    # and the module's seed ranges (eval 10_000..10_099, train 0..9_999).
-    joint_limits = PlanarReacher.joint_limits
-    q = PlanarReacher.q
-    q_prev = PlanarReacher.q_prev
-    goal = PlanarReacher.goal
-    set_state = PlanarReacher.set_state
-    _check_q = PlanarReacher._check_q
-    clip_action = PlanarReacher.clip_action
-    ee = PlanarReacher.ee
-    ee_jacobian = PlanarReacher.ee_jacobian
-    draw_noise_ellipses = PlanarReacher.draw_noise_ellipses
-    goal_reached = PlanarReacher.goal_reached
-    eval_seeds = staticmethod(eval_seeds)
-    train_seeds = staticmethod(train_seeds)
-
     def __init__(self, config: EngineConfig | None = None):
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
@@ -988,23 +850,15 @@ class EngineReach3D:
         self.image_shape = (3, int(cfg.image_size), int(cfg.image_size)) if cfg.image_obs else ()
         self.obs_dim = 2 * self.dof + self.dim + (int(np.prod(self.image_shape)) if cfg.image_obs
                                                   else 7 * cfg.n_max_obstacles)
-        self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
-        self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
-        # scenario state (set by reset)
-        self.seed = None
+        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
         self.obstacle_kinds = []  # 'frame' | 'engine' | 'lever' | 'pipe', for drawing
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
-        self._goal = np.zeros(self.dim)
-        self._q = np.zeros(self.dof)
-        self._q_prev = np.zeros(self.dof)
-        self.step_count = 0
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
         self.link_lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)  # (8,) rigid: same at every q
         i, j = ENGINE_SELF_PAIRS.T
         self._self_contact = self.link_radii[i] + self.link_radii[j]  # (P,) radii sums
-        self._has_state = False  # step() needs reset() or set_state() first
         self.set_scene(np.zeros((0, 7)))
 
     # ---- kinematics and geometry -------------------------------------------------------------
@@ -1492,9 +1346,9 @@ class EngineReach3D:
         return np.round(np.moveaxis(pixels, -3, -1) * 255).astype(np.uint8)
 
     def step(self, action):
-        """PlanarReacher.step (same semantics), judged by pybullet contacts at n_substeps states of
-        the step (see EngineConfig.n_substeps); with cfg.image_obs, info['image'] is the camera image."""
-        obs, reward, terminated, truncated, info = PlanarReacher.step(self, action)
+        """ArmEnv.step, judged by pybullet contacts at n_substeps states of the step (see
+        EngineConfig.n_substeps); with cfg.image_obs, info['image'] is the camera image."""
+        obs, reward, terminated, truncated, info = super().step(action)
         if self.cfg.image_obs:
             info["image"] = self.obs_image(obs)
         return obs, reward, terminated, truncated, info
@@ -1572,15 +1426,9 @@ class EngineReach3D:
             pass
 
 
-def render_scene_image(env, path, q=None, width=640, height=480):
-    """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
-    from matplotlib.image import imsave
-
-    image = env.camera_image(q, width, height)
-    imsave(path, image)
-    return image
-
-
+# ----------------------------------------------------------------------------------------------
+# Environments by name
+# ----------------------------------------------------------------------------------------------
 ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig),  # name -> (env class, its config)
                 "engine3d": (EngineReach3D, EngineConfig)}
 
@@ -1594,7 +1442,206 @@ def make_env(name="planar", **config):
 
 
 # ----------------------------------------------------------------------------------------------
-# Episode files and the noise unit
+# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
+# ----------------------------------------------------------------------------------------------
+def median_step(episodes):
+    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
+
+    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
+    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
+    """
+    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    steps = steps[steps > 0]
+    if len(steps) == 0:
+        raise ValueError("median_step: the episodes contain no joint motion")
+    return float(np.median(steps))
+
+
+# ----------------------------------------------------------------------------------------------
+# Figures (Fig. 5): the scenes
+# ----------------------------------------------------------------------------------------------
+def render_scene_image(env, path, q=None, width=640, height=480):
+    """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
+    from matplotlib.image import imsave
+
+    image = env.camera_image(q, width, height)
+    imsave(path, image)
+    return image
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The vectorized numpy geometry behind in_collision (the simulators' contact checks, fast enough
+# for the millions of checks of planning and relabeling), the UR5's kinematics helpers, episode
+# files and a stand-in expert for tests and demos.
+
+# ----------------------------------------------------------------------------------------------
+# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
+# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
+# ----------------------------------------------------------------------------------------------
+def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
+    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
+    dx, dy = px - cx, py - cy
+    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
+    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
+    return np.sqrt(lx * lx + ly * ly)
+
+
+def box_corners(cx, cy, cos, sin, hx, hy):
+    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
+    xs, ys = [], []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        xs.append(cx + sx * hx * cos - sy * hy * sin)
+        ys.append(cy + sx * hx * sin + sy * hy * cos)
+    return xs, ys
+
+
+def box_distance(a, b):
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
+
+    Two facts of 2-D convex geometry make this short and exact:
+      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
+      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
+        smallest of the 8 corner-to-box distances.
+    """
+    acx, acy, ac, as_, ahx, ahy = a
+    bcx, bcy, bc, bs, bhx, bhy = b
+    dx, dy = bcx - acx, bcy - acy
+    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
+    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
+        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
+        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
+        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
+    d = np.full(overlap.shape, np.inf)
+    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
+        for x, y in zip(xs, ys):
+            d = np.minimum(d, point_box_distance(x, y, *box))
+    return np.where(overlap, 0.0, d)
+
+
+# ----------------------------------------------------------------------------------------------
+# Capsule geometry and UR5 kinematics (EngineReach3D)
+# ----------------------------------------------------------------------------------------------
+def segment_distance_3d(a0, a1, b0, b1):
+    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
+
+    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the
+    closest points of the infinite lines, clamped to the segments, re-projected once. A zero-length
+    segment (a sphere) goes through the same formulas with its squared length floored at 1e-18.
+    Coordinates come as separate x, y, z arrays (first axis) because every operation below then
+    runs on contiguous memory: 4-5x faster than reducing a trailing axis of size 3.
+    """
+    (ax, ay, az), (bx, by, bz) = a0, b0
+    ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
+    vx, vy, vz = b1[0] - bx, b1[1] - by, b1[2] - bz
+    wx, wy, wz = ax - bx, ay - by, az - bz
+    uu = np.maximum(ux * ux + uy * uy + uz * uz, 1e-18)
+    vv = np.maximum(vx * vx + vy * vy + vz * vz, 1e-18)
+    uv = ux * vx + uy * vy + uz * vz
+    uw = ux * wx + uy * wy + uz * wz
+    vw = vx * wx + vy * wy + vz * wz
+    denom = uu * vv - uv * uv  # >= 0; ~0 for parallel segments, where any s works: take s = 0
+    s = np.minimum(np.maximum((uv * vw - uw * vv) / np.maximum(denom, 1e-300), 0.0), 1.0)
+    s = np.where(denom > 1e-12 * uu * vv, s, 0.0)
+    t = (uv * s + vw) / vv  # closest point of b's line to a(s)
+    # t outside [0, 1]: clamp it and recompute s as the closest point of a to that end of b
+    s = np.where(t < 0, np.minimum(np.maximum(-uw / uu, 0.0), 1.0),
+                 np.where(t > 1, np.minimum(np.maximum((uv - uw) / uu, 0.0), 1.0), s))
+    t = np.minimum(np.maximum(t, 0.0), 1.0)
+    dx, dy, dz = wx + s * ux - t * vx, wy + s * uy - t * vy, wz + s * uz - t * vz
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+def dh_transform(theta, d, a, alpha):
+    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha), batched: (...) -> (..., 4, 4)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    d, a, alpha = (np.broadcast_to(np.asarray(x, dtype=np.float64), theta.shape) for x in (d, a, alpha))
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    T = np.zeros(theta.shape + (4, 4))
+    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2], T[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2], T[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    T[..., 2, 1], T[..., 2, 2], T[..., 2, 3] = sa, ca, d
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def ur5_frames(q):
+    """World frames of the UR5 DH chain: (B, 7, 4, 4) = base, frames 1..6 (frame 6 = flange)."""
+    T = dh_transform(q, UR5_D, UR5_A, UR5_ALPHA)  # (B, 6, 4, 4): frame i in frame i-1
+    frames = np.empty((len(T), 7, 4, 4))
+    frames[:, 0] = np.eye(4)
+    for i in range(6):
+        frames[:, i + 1] = frames[:, i] @ T[:, i]
+    return frames
+
+
+def ur5_ik(flange):
+    """Closed-form inverse kinematics: flange poses (P, 4, 4) -> joint solutions (P, 8, 6).
+
+    The 8 branches are shoulder left/right x wrist up/down x elbow up/down; NaN rows where a branch
+    does not exist (pose out of reach). Angles wrapped to [-pi, pi). The geometry of the UR5's DH
+    chain (the derivation of Hawkins, "Analytic inverse kinematics for the Universal Robots
+    UR-5/UR-10 arms", 2013, redone for the frames of ur5_frames):
+      * the wrist-3 centre p5 = p6 - d6 z6 lies at distance d4 from the plane of the shoulder and
+        elbow, which contains the base axis: p5 . z1 = d4, with z1 = (sin q1, -cos q1, 0)
+        => q1 = atan2(p5y, p5x) + pi/2 +- acos(d4 / |p5xy|);
+      * z1 seen from the flange is (sin q5 cos q6, -sin q5 sin q6, cos q5) => q5 = +-acos, then q6;
+      * frame 4 = flange T6^-1 T5^-1, seen from frame 1, is a planar 2-link problem in q2, q3
+        (lengths a2, a3), and q2 + q3 + q4 is the angle of its x axis.
+    """
+    P = len(flange)
+    d1, d4, d5, d6 = UR5_D[0], UR5_D[3], UR5_D[4], UR5_D[5]
+    a2, a3 = UR5_A[1], UR5_A[2]
+    R, p5 = flange[:, :3, :3], flange[:, :3, 3] - d6 * flange[:, :3, 2]  # (P, 3, 3), (P, 3)
+    rho = np.hypot(p5[:, 0], p5[:, 1])
+    shoulder = np.arccos(np.clip(d4 / np.maximum(rho, 1e-12), -1.0, 1.0))
+    out = np.full((P, 2, 2, 2, 6), np.nan)  # (P, shoulder, wrist, elbow, 6)
+    for i, s1 in enumerate((1.0, -1.0)):
+        q1 = np.arctan2(p5[:, 1], p5[:, 0]) + math.pi / 2 + s1 * shoulder  # (P,)
+        z1 = np.stack([np.sin(q1), -np.cos(q1), np.zeros(P)], axis=1)
+        v = np.einsum("pji,pj->pi", R, z1)  # z1 in flange coordinates
+        for j, s5 in enumerate((1.0, -1.0)):
+            q5 = s5 * np.arccos(np.clip(v[:, 2], -1.0, 1.0))
+            sin5 = np.sin(q5)
+            singular = np.abs(sin5) < 1e-9  # wrist singularity: q6 is free, take 0
+            sin5 = np.where(singular, 1.0, sin5)
+            q6 = np.where(singular, 0.0, np.arctan2(-v[:, 1] / sin5, v[:, 0] / sin5))
+            frame4 = (np.linalg.inv(dh_transform(q1, d1, 0.0, math.pi / 2)) @ flange
+                      @ np.linalg.inv(dh_transform(q6, d6, 0.0, 0.0))
+                      @ np.linalg.inv(dh_transform(q5, d5, 0.0, -math.pi / 2)))  # (P, 4, 4) in frame 1
+            x, y = frame4[:, 0, 3], frame4[:, 1, 3]
+            cos3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2 * a2 * a3)
+            for k, s3 in enumerate((1.0, -1.0)):
+                q3 = s3 * np.arccos(np.clip(cos3, -1.0, 1.0))
+                q2 = np.arctan2(y, x) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+                q4 = np.arctan2(frame4[:, 1, 0], frame4[:, 0, 0]) - q2 - q3
+                q = np.stack([q1, q2, q3, q4, q5, q6], axis=1)
+                q = (q + math.pi) % (2 * math.pi) - math.pi
+                q[(rho < d4) | (np.abs(cos3) > 1.0)] = np.nan
+                out[:, i, j, k] = q
+    return out.reshape(P, 8, 6)
+
+
+def fibonacci_sphere(n):
+    """n unit vectors (n, 3) spread evenly over the sphere (golden-angle spiral)."""
+    z = 1.0 - 2.0 * (np.arange(n) + 0.5) / n
+    angle = np.arange(n) * math.pi * (3.0 - math.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(angle), r * np.sin(angle), z], axis=1)
+
+
+def _quaternion_z_to(direction):
+    """Quaternions (x, y, z, w) (N, 4) turning the z axis onto unit vectors direction (N, 3)."""
+    x, y, z = direction[:, 0], direction[:, 1], direction[:, 2]
+    # half-angle form: q = (z_hat x d, 1 + z_hat . d), normalised; z_hat x d = (-y, x, 0)
+    quat = np.stack([-y, x, np.zeros_like(z), 1.0 + z], axis=1)
+    flipped = 1.0 + z < 1e-9  # d = -z: any half turn about a horizontal axis
+    quat[flipped] = (1.0, 0.0, 0.0, 0.0)
+    return quat / np.linalg.norm(quat, axis=1, keepdims=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Episode files and a stand-in expert
 # ----------------------------------------------------------------------------------------------
 def save_episodes(path, episodes):
     """Write a list of episode dicts to one .npz: per-step arrays concatenated, plus offsets.
@@ -1667,20 +1714,6 @@ def straight_line_episode(env, seed, peak=0.04, expert_from=5):
     prev = np.concatenate([q[:1], q[:-1]])
     return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
             "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
-
-
-def median_step(episodes):
-    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
-
-    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
-    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
-    """
-    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
-    steps = np.concatenate(steps) if steps else np.zeros(0)
-    steps = steps[steps > 0]
-    if len(steps) == 0:
-        raise ValueError("median_step: the episodes contain no joint motion")
-    return float(np.median(steps))
 
 
 if __name__ == "__main__":

@@ -1,39 +1,33 @@
-"""The RRT oracle expert (paper Sec. V Experiments; gating of Sec. IV-A Method Design).
+"""The RRT oracle expert (paper Sec. V; the expert gating of Sec. IV-A).
 
 The paper replaces the human of HG-DAgger by a deterministic planner that uses privileged simulator
-information. This file builds it from scratch, for any serial arm behind the env interface of
-CONTRACT.md (env.dof, env.joint_limits, env.in_collision, env.fk / env.ee, env.max_step, env.dt):
+information (Sec. IV-A: the oracle decides "based on heuristics like whether the policy's predicted
+action chunk will drive the robot into collision or if the policy has not yet reached the goal").
+Sec. V: it "plans a path from the current state to the goal, but we execute only a fraction of the
+plan", picks "the optimal path under a deterministic criterion (for example, minimum end effector
+arc length)", smooths it with "random shortcutting, trajectory optimization, corner smoothing, and
+speed, acceleration, and jerk limits enforced by TOPP-RA", and matches "the policy's induced pose
+and velocity at the handoff". This file builds it from scratch, for any serial arm behind the env
+interface of envs.py (env.dof, env.joint_limits, env.in_collision, env.fk / env.ee, env.ee_jacobian,
+env.max_step, env.dt), in the paper's order:
 
-  solve_ik            goal configurations: damped least squares from many seeds (numeric Jacobian)
+  solve_ik            goal configurations: damped least squares from many seeds
   rrt_connect         bidirectional RRT-Connect in joint space, batched edge checks, several goals
   shortcut            random shortcutting (after one greedy batched pass)
   smooth_corners      quadratic-Bezier corner rounding, sharp corner kept where rounding collides
-  time_parameterize   speed / acceleration / jerk limits at every sample, WITHOUT TOPP-RA (the
-                      paper uses TOPP-RA; here: a double moving-average (FIR) filter of a
-                      full-speed traversal, verified and locally slowed down where needed)
-  Oracle              demonstrate (full expert episodes for D0) and the HG-DAgger gate (IV-A:
-                      "whether the policy's predicted action chunk will drive the robot into
-                      collision or if the policy has not yet reached the goal") + intervention,
-                      which matches the policy's pose and velocity at the handoff (Sec. V) and
-                      drives only a fraction of the plan before handing back.
+                      (no separate trajectory-optimization step)
+  time_parameterize   speed / acceleration / jerk limits at every sample, WITHOUT TOPP-RA (here: a
+                      double moving-average (FIR) filter of a full-speed traversal, verified and
+                      locally slowed down where needed)
+  Gate, Oracle        demonstrate (full expert episodes for D0); the HG-DAgger gate (predicted
+                      collision, stall, and the authors' time triggers) and intervention, which
+                      matches the policy's pose and velocity at the handoff and drives only a
+                      fraction of the plan before handing back
+  plot_demonstration  Fig. 5: a scene with an expert demonstration
 
-Edge validation (why the collision checks cannot miss an obstacle). For a serial arm, a joint-space
-step dq moves any point of the arm by at most  sum_j R_j |dq_j|,  where R_j bounds the distance
-from joint j to the farthest point of the arm beyond it (the arm beyond joint j rotates about it).
-We interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= s (the
-check spacing, m), i.e. sum_j |dq_j| / eps_j <= 1 with eps_j = s / R_j (`edge_resolution`); R_j
-comes from env.fk (`lever_arms`), not from planar constants. (A Euclidean spacing |dq| <= eps is
-safe only for eps <= s / |R| (Cauchy-Schwarz), and then checks more states, never fewer.) Every
-state between two checks is within s / 2 of arm motion of one of them, so if every checked state
-keeps a clearance c >= s / 2 -- the env's check with obstacles inflated by c (`with_margin`) --
-every state of the edge is collision-free. Self-collisions too: in the frame of the lower of two
-links only the joints after it move the other one, with the same lever arms. Planning keeps a
-margin m and spaces its checks s = 2 (m - v) apart, so the planned path keeps a clearance >= v
-everywhere; the executed trajectory is verified with margin v at a spacing <= 2 v (OracleConfig:
-margin, verify_margin). Only near the start and the goal configurations the plain check applies
-(`with_margin` says why). Edges are checked in rounds of batched calls and stop at their first
-collision (`edge_free_fraction`, `edges_free`): most RRT-Connect edges collide early, and
-checking the rest of them was ~98 % of the planner's checks.
+Beyond the paper (after the banner): the edge checks every step above relies on (lever arms, edge
+interpolation, batched checks with a clearance margin; why they cannot miss an obstacle is
+explained there) and min_time_lower_bound, a yardstick for the time parameterization.
 """
 from __future__ import annotations
 
@@ -55,252 +49,80 @@ class PlanningFailed(RuntimeError):
 
 @dataclass
 class OracleConfig:
-    seed: int = 0  # base seed of the planner's randomness (mixed with scenario seed / state)
-    # --- inverse kinematics ---
-    n_ik_seeds: int = 512  # DLS starting points (start + uniform random); free goal configs can
-    # be rare in clutter (~2% of converged seeds in some planar scenes), and seeds are batched
-    ik_iters: int = 40  # DLS iterations (most seeds converge in 10-20)
-    ik_damping: float = 0.05  # lambda of DLS: keeps steps bounded near singularities
-    ik_tolerance: float = 1e-3  # m, an IK solution's end effector must be this close to the goal
-    # distinct goal configurations handed to the planner (nearest first). The authors rank 32 IK
-    # candidates (PAPER_SETUP.md §3); measured on the 100 planar evaluation scenes, 8 left the
-    # planner without a reachable goal in 3 of 40 scenes, 32 solved 99 of 100.
-    max_goals: int = 32
-    goal_dedup: float = 0.2  # rad, solutions closer than this (max-norm) count as one
-    # --- RRT-Connect ---
-    step_size: float = 0.3  # rad, joint-space length of one EXTEND step
-    # Samples per iteration, checked in one batched call. One in_collision call costs as much as
-    # a few hundred more configurations in it (planar: ~150 us + 0.5 us per configuration), so
-    # fewer, larger calls plan faster: 8 -> 32 halved the planar planning time (bench_oracle.py).
-    rrt_batch: int = 32
-    max_iters: int = 500  # RRT iterations per attempt, i.e. 16k samples at rrt_batch = 32; on
-    # failure the plan falls back to thinner margins (min_sweep_fraction), so a larger budget
-    # would only make the failing levels slower
-    max_time: float = 10.0  # s per attempt: a guard against hanging, not the normal budget
-    n_attempts: int = 3  # independent RRT runs; the plan with the smallest ee arc length wins
-    shortcut_iters: int = 64  # random shortcut proposals (after the greedy pass)
-    corner_fraction: float = 0.4  # corner blend starts this fraction of the shorter edge away
-    corner_points: int = 8  # points sampled on each corner's Bezier blend
-    # --- limits of the expert's motion (derived from env.max_step and env.dt in `limits`) ---
-    # The authors' planner limits (PAPER_SETUP.md §3): 0.5 rad/s, 1 rad/s^2, 10 rad/s^3 per joint.
-    speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (env's limit)
+    # --- the authors' planner and gate (PAPER_SETUP.md §3). Their counts are frames at 30 Hz; our
+    #     envs run at 10 Hz, so each becomes a third as many steps (the same seconds) ---
+    # Distinct goal configurations handed to the planner (nearest first). The authors rank 32 IK
+    # candidates; measured on the 100 planar evaluation scenes, 8 left the planner without a
+    # reachable goal in 3 of 40 scenes, 32 solved 99 of 100.
+    max_goals: int = 32  # configurations
+    # Limits of the expert's motion, the authors' 0.5 rad/s, 1 rad/s^2, 10 rad/s^3 per joint (the
+    # speed limit is the env's: v_max = speed_fraction * env.max_step / env.dt, see Oracle.limits).
+    speed_fraction: float = 1.0  # fraction of the env's speed limit
     a_max: float = 1.0  # rad/s^2 per joint
     j_max: float = 10.0  # rad/s^3 per joint
-    # --- collision checking (see the module docstring) ---
-    # m, the unit of the margins below: arm-point motion between two checks of the executed
-    # trajectory (and of the gate's checks); None: half the env's link_radius
-    sweep_tolerance: float | None = None
-    # Planning margin (RRT, shortcut, corners), in sweeps. Planning checks are spaced
-    # 2 (margin - verify_margin) sweeps apart, so every state between two of them keeps
-    # verify_margin of clearance: 1.5 spaces them 2 sweeps apart (planar: 0.0225 m margin, 0.03 m
-    # spacing), half the checks of margin 1.0 (1 sweep apart); the authors' planner keeps 0.02 m
-    # (PAPER_SETUP.md Sec. 3). Narrow passages the margin closes are left to the fallback below.
-    margin: float = 1.5
-    verify_margin: float = 0.5  # margin the executed trajectory is verified with, in sweeps;
-    # >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
-    relax_sweeps: float = 4.0  # no margin within this many sweeps of arm motion of start / goals
-    # If no path is found, halve the sweep (so all margins and spacings) down to this fraction.
-    # 1/8: the tightest planar eval scene (seed 10097) needs a margin below 0.006 m.
-    min_sweep_fraction: float = 0.125
-    # --- HG-DAgger gating and intervention (the authors' gate, PAPER_SETUP.md §3) ---
-    # Their numbers are frames at 30 Hz; the planar env runs at 10 Hz, so each becomes a third as many
-    # steps (the same seconds).
-    horizon: int = 16  # H: an intervention drives at least H steps (shorter ones are discarded)
-    gate_lookahead: int | None = 3  # steps of the pending chunk the gate checks, before every policy
-    #   step (theirs: the next 8 frames); None = the whole pending chunk
+    gate_lookahead: int | None = 3  # steps at 10 Hz of the pending chunk the gate checks, before every
+    #   policy step (theirs: the next 8 frames); None = the whole pending chunk
     gate_clearance: float = 0.010  # m, a pending state this close to a collision triggers the expert.
     #   Theirs is 0.019 m, just inside their planner's 0.02 m clearance; our planner keeps
     #   margin * sweep = 0.011 m (planar), so the gate sits just inside that instead: a policy
     #   that flies the expert's own route does not trigger it.
-    handback_steps: tuple = (20, 67)  # the expert drives a random number of steps in this range (both
+    handback_steps: tuple = (20, 67)  # steps at 10 Hz the expert drives, drawn in this range (both
     #   included; theirs: 60-200 frames), or its whole plan if shorter, then hands back
-    max_interventions: int = 5  # per episode (theirs: 5 per scenario)
-    time_trigger_first: int = 200  # policy steps before the first time trigger (theirs: 600 frames)
-    time_trigger_every: tuple = (67, 100)  # then one every this many policy steps (theirs: 200-300)
-    rewind_steps: tuple = (17, 33)  # stall and time triggers first rewind this many steps (theirs:
-    #   50-100 frames) so that the expert takes over before the policy went astray
-    # Not in the authors' gate: their "in collision and stuck" trigger cannot fire here (a contact
-    # ends our episodes), so a stall of the end effector stands in for it.
-    stall_window: int = 40  # steps: stalled if the ee got no closer to the goal in this window
+    max_interventions: int = 5  # interventions per episode (theirs: 5 per scenario)
+    time_trigger_first: int = 200  # policy steps at 10 Hz before the first time trigger (theirs: 600 frames)
+    time_trigger_every: tuple = (67, 100)  # policy steps at 10 Hz between time triggers (theirs: 200-300)
+    rewind_steps: tuple = (17, 33)  # steps at 10 Hz that stall and time triggers first rewind (theirs:
+    #   50-100 frames), so that the expert takes over before the policy went astray
+
+    # --- not in the paper ---
+    seed: int = 0  # base seed of the planner's randomness (mixed with scenario seed / state)
+    # Inverse kinematics
+    n_ik_seeds: int = 512  # DLS starting points (start + uniform random); free goal configs can
+    #   be rare in clutter (~2% of converged seeds in some planar scenes), and seeds are batched
+    ik_iters: int = 40  # DLS iterations (most seeds converge in 10-20)
+    ik_damping: float = 0.05  # m/rad, lambda of DLS: keeps steps bounded near singularities
+    ik_tolerance: float = 1e-3  # m, an IK solution's end effector must be this close to the goal
+    goal_dedup: float = 0.2  # rad, solutions closer than this (max-norm) count as one
+    # RRT-Connect
+    step_size: float = 0.3  # rad, joint-space length of one EXTEND step
+    # Samples per iteration, checked in one batched call. One in_collision call costs as much as
+    # a few hundred more configurations in it (planar: ~150 us + 0.5 us per configuration), so
+    # fewer, larger calls plan faster: 8 -> 32 halved the planar planning time (bench_oracle.py).
+    rrt_batch: int = 32  # samples
+    max_iters: int = 500  # RRT iterations per attempt, i.e. 16k samples at rrt_batch = 32; on
+    #   failure the plan falls back to thinner margins (min_sweep_fraction), so a larger budget
+    #   would only make the failing levels slower
+    max_time: float = 10.0  # s per attempt: a guard against hanging, not the normal budget
+    n_attempts: int = 3  # independent RRT runs; the plan with the smallest ee arc length wins
+    shortcut_iters: int = 64  # random shortcut proposals (after the greedy pass)
+    corner_fraction: float = 0.4  # fraction of the shorter edge where a corner's blend starts
+    corner_points: int = 8  # points sampled on each corner's Bezier blend
+    # Collision checking (see the edge checks behind the banner). The margins are in sweeps: a
+    # sweep is sweep_tolerance m, the arm-point motion between two checks of the executed
+    # trajectory (and of the gate's checks); None: half the env's link_radius (planar 0.0075 m).
+    sweep_tolerance: float | None = None  # m
+    # Planning margin (RRT, shortcut, corners). Planning checks are spaced 2 (margin -
+    # verify_margin) sweeps apart, so every state between two of them keeps verify_margin of
+    # clearance: 1.5 spaces them 2 sweeps apart (planar: 0.011 m margin, 0.015 m spacing), half
+    # the checks of margin 1.0 (1 sweep apart); the authors' planner keeps 0.02 m (PAPER_SETUP.md
+    # §3). Narrow passages the margin closes are left to the fallback below.
+    margin: float = 1.5  # sweeps
+    verify_margin: float = 0.5  # sweeps, margin the executed trajectory is verified with;
+    #   >= 0.5 rules out grazes between checks (with_margin); < margin leaves room for corner cuts
+    relax_sweeps: float = 4.0  # sweeps: no margin within this much arm motion of start / goals
+    # If no path is found, halve the sweep (so all margins and spacings) down to this fraction.
+    # 1/8: the tightest planar eval scene (seed 10097) needs a margin below 0.006 m.
+    min_sweep_fraction: float = 0.125  # fraction of the sweep
+    horizon: int = 16  # steps: H, the policy's action chunk (dagger drops interventions shorter than H)
+    # The authors' "in collision and stuck" trigger cannot fire here (a contact ends our episodes),
+    # so a stall of the end effector stands in for it.
+    stall_window: int = 40  # steps at 10 Hz: stalled if the ee got no closer to the goal in this window
     stall_progress: float = 0.02  # m, the improvement that counts as progress in the window
-
-
-# ----------------------------------------------------------------------------------------------
-# Geometry helpers: lever arms, edge interpolation, batched edge checks
-# ----------------------------------------------------------------------------------------------
-def lever_arms(env, n_probe=8):
-    """R_j (dof,): bound on the distance from joint j to any point of the arm beyond it.
-
-    Segment lengths between consecutive fk points are constant for a rigid serial chain; we take
-    their maximum over the zero pose and a few probe poses (a fixed probe seed, so the bound is
-    deterministic). If fk returns one point per joint plus the end effector, joint j sits at point
-    j and R_j = sum of the segment lengths after it; otherwise every R_j = the total chain length
-    (the maximal reach), which is always a valid, if looser, bound. An env whose bodies reach past
-    its fk points (the planar gripper's finger corners) gives the bound itself: env.lever_arms.
-    """
-    if hasattr(env, "lever_arms"):  # an env that knows its body's extent beyond the chain points
-        return np.asarray(env.lever_arms, dtype=np.float64).copy()
-    lo, hi = env.joint_limits
-    probe_rng = np.random.default_rng(0)  # geometry probe only, not a planning decision
-    qs = np.concatenate([np.zeros((1, env.dof)), probe_rng.uniform(lo, hi, (n_probe, env.dof))])
-    points = env.fk(qs)  # (B, n_points, dim)
-    seg = np.linalg.norm(np.diff(points, axis=1), axis=-1).max(axis=0)  # (n_points - 1,)
-    if len(seg) == env.dof:
-        return np.cumsum(seg[::-1])[::-1].copy()  # R_j = sum_{i >= j} seg_i
-    return np.full(env.dof, seg.sum())
-
-
-def edge_resolution(env, sweep_tolerance):
-    """eps_j (dof,) in rad: an edge is checked at states with sum_j |dq_j| / eps_j <= 1 apart,
-    so that no point of the arm moves more than sweep_tolerance (m) between two checks."""
-    if not sweep_tolerance > 0:
-        raise ValueError(f"sweep_tolerance must be > 0 (m), got {sweep_tolerance}")
-    return sweep_tolerance / lever_arms(env)
-
-
-def interpolate_edges(q_from, q_to, resolution):
-    """States along straight edges, spaced so that sum_j |dq_j| / resolution_j <= 1.
-
-    q_from, q_to: (E, dof). Returns states (P, dof), their edge index (P,), their sub-step k (P,)
-    and each edge's sub-step count n (E,): the states at fractions k / n, k = 1 .. n, of each
-    edge (the start of an edge is assumed checked already).
-    """
-    dq = q_to - q_from  # (E, dof)
-    n = np.maximum(1, np.ceil(np.sum(np.abs(dq) / resolution, axis=1) - 1e-9)).astype(int)  # (E,)
-    edge, k = substeps(n)
-    return q_from[edge] + (k / n[edge])[:, None] * dq[edge], edge, k, n
-
-
-def substeps(n):
-    """Edge index (P,) and sub-step k = 1 .. n_e (P,) of every sub-step of edges with n (E,)
-    sub-steps each, edge by edge (P = n.sum())."""
-    edge = np.repeat(np.arange(len(n)), n)  # (P,)
-    first = np.cumsum(n) - n  # index of each edge's first sub-step
-    return edge, np.arange(n.sum()) - np.repeat(first, n) + 1
-
-
-def _check_in_rounds(states, edge, rounds, in_collision, n_edges):
-    """in_collision of states (P, dof) of n_edges edges, one batched call per round (0, 1, ...).
-
-    States of an edge that already collided in an earlier round are skipped (reported free): an
-    edge needs only one collision to be rejected, and a planner's edges mostly collide early.
-    Returns hit (P,) bool.
-    """
-    hit = np.zeros(len(states), dtype=bool)
-    blocked = np.zeros(n_edges, dtype=bool)
-    for r in range(int(rounds.max(initial=-1)) + 1):
-        todo = np.flatnonzero((rounds == r) & ~blocked[edge])
-        if len(todo):
-            hit[todo] = in_collision(states[todo])
-            blocked[edge[todo[hit[todo]]]] = True
-    return hit
-
-
-def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
-    """(E,) fraction of each edge q_from -> q_to that is collision-free from its start (1 = all).
-
-    The states of every edge are checked in order, in rounds of doubling length (first_round,
-    then 2x, 4x, ... states of every edge still free; one batched in_collision call per round),
-    and an edge is no longer checked after its first collision: RRT-Connect's CONNECT edges run
-    across the whole space and nearly all hit an obstacle early (checking every state of them
-    spent ~98 % of the oracle's checks). Each edge reports the last free sub-step before its
-    first colliding one. With doubling rounds, the states checked past that sub-step are at
-    most about as many as those before it (plus first_round), in log2(edge length) calls.
-    first_round = 4 planned faster than 8 or 16 on the planar scenes (measured: fewer wasted
-    states; more calls would cost more, one call costs as much as a few hundred states there).
-    """
-    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
-    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
-    rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
-    first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
-    np.minimum.at(first_hit, edge[hit], k[hit])
-    return (first_hit - 1) / n
-
-
-def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
-    """(E,) True where the whole edge q_from -> q_to is collision-free.
-
-    Coarse to fine: every coarse-th state of all edges first (one batched call), then the
-    remaining states of the edges not yet found colliding (a second call). An obstacle usually
-    blocks a run of consecutive states, so most colliding edges are rejected by the coarse pass
-    (coarse = 2, 4 or 8 planned equally fast on the planar scenes).
-    """
-    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
-    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    rounds = (k % coarse != 0).astype(int)  # (P,) 0: the coarse pass, 1: the rest
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
-    return ~np.bincount(edge[hit], minlength=len(n)).astype(bool)
-
-
-def with_margin(env, margin, relax_at=None, relax_radius=0.0):
-    """A stricter collision predicate for planning: True within ~margin (m) of a collision.
-
-    Shortest paths hug obstacles, and two free checks s apart (in arm motion) do not rule out a
-    graze between them (by the lever-arm bound a point moves at most s/2 from the nearer check,
-    so it can dip up to s/2 into an obstacle). Planning against obstacles inflated by
-    margin >= s/2 makes every interpolated state between two checks truly free. If
-    env.in_collision accepts a `margin` keyword (distance inflation), it is used; otherwise the
-    margin is approximated by probes: q counts as colliding if q or one of its 2 dof one-joint
-    displacements of +-margin / R_j collides (each moves the arm by at most `margin`).
-    Near relax_at (K, dof) (arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius_k for some
-    k, in m) only the plain env check applies: a start inside the margin band (an intervention
-    often begins close to an obstacle) must be able to leave it, and a goal configuration
-    squeezed between obstacles must be reachable; grazes (at most s/2 deep) are then possible
-    only in these zones.
-    """
-    lever = lever_arms(env)
-    relax_at = None if relax_at is None else np.atleast_2d(relax_at)
-    try:
-        env.in_collision(np.zeros((1, env.dof)), margin=margin)
-        inflated = lambda q: env.in_collision(q, margin=margin)  # noqa: E731
-    except TypeError:
-        step = margin / lever  # (dof,) rad
-        offsets = np.concatenate([np.zeros((1, env.dof)), np.diag(step), -np.diag(step)])
-
-        def inflated(q):  # (B, dof) -> (B,)
-            probes = (q[:, None, :] + offsets).reshape(-1, env.dof)  # (B * (2 dof + 1), dof)
-            return env.in_collision(probes).reshape(len(q), -1).any(axis=1)
-
-    def in_collision(q):
-        q = np.atleast_2d(q)
-        if relax_at is None:
-            return inflated(q)
-        hit = inflated(q)
-        # only states that hit with the margin can differ under the plain check (a second call)
-        motion = np.sum(np.abs(q[hit, None] - relax_at[None]) * lever, axis=2)  # (hits, K)
-        near = np.flatnonzero(hit)[np.any(motion <= relax_radius, axis=1)]  # radius () or (K,)
-        if len(near):
-            hit[near] = env.in_collision(q[near])
-        return hit
-
-    return in_collision
-
-
-def path_in_collision(path, in_collision, resolution):
-    """True if any edge of the polyline path (N, dof) or its first state collides."""
-    path = np.atleast_2d(path)
-    if in_collision(path[:1])[0]:
-        return True
-    if len(path) < 2:
-        return False
-    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
 
 
 # ----------------------------------------------------------------------------------------------
 # Inverse kinematics (goal configurations)
 # ----------------------------------------------------------------------------------------------
-def numeric_jacobian(ee, q, h=1e-6):
-    """Central-difference Jacobian of the end effector, batched: q (S, dof) -> (S, dim, dof)."""
-    S, dof = q.shape
-    offsets = np.eye(dof) * h  # (dof, dof)
-    q_plus = (q[:, None, :] + offsets).reshape(-1, dof)  # (S * dof, dof)
-    q_minus = (q[:, None, :] - offsets).reshape(-1, dof)
-    d = (ee(q_plus) - ee(q_minus)).reshape(S, dof, -1) / (2 * h)  # (S, dof, dim)
-    return d.transpose(0, 2, 1)
-
-
 def solve_ik(env, goal, rng, q_start=None, n_seeds=512, iters=40, damping=0.05, tolerance=1e-3,
              max_goals=8, dedup=0.2, in_collision=None):
     """Collision-free goal configurations (M, dof), M <= max_goals, nearest to q_start first.
@@ -319,7 +141,7 @@ def solve_ik(env, goal, rng, q_start=None, n_seeds=512, iters=40, damping=0.05, 
         q[0] = q_start
     for _ in range(iters):
         err = goal - env.ee(q)  # (S, dim)
-        J = numeric_jacobian(env.ee, q)  # (S, dim, dof)
+        J = env.ee_jacobian(q)  # (S, dim, dof), central differences
         JJt = J @ J.transpose(0, 2, 1) + damping ** 2 * np.eye(J.shape[1])  # (S, dim, dim)
         dq = (J.transpose(0, 2, 1) @ np.linalg.solve(JJt, err[..., None]))[..., 0]  # (S, dof)
         q = np.clip(q + dq, lo, hi)
@@ -674,29 +496,14 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
                          f"or collide after slowing down to {slow.min():.3g} of full speed")
 
 
-def min_time_lower_bound(path, v_max, a_max):
-    """Lower bound (s) on any rest-to-rest traversal of `path`: the slowest joint's bang-bang time.
-
-    Joint j must travel at least its total variation D_j along the path with |v| <= v_max_j and
-    |a| <= a_max_j, which takes at least the trapezoid time D/v + v/a (or 2 sqrt(D/a) if the joint
-    never reaches v_max). Jerk limits and path shape only add to it.
-    """
-    path = np.atleast_2d(np.asarray(path, dtype=np.float64))
-    dof = path.shape[1]
-    v_max, a_max = _per_joint(v_max, dof, "v_max"), _per_joint(a_max, dof, "a_max")
-    travel = np.sum(np.abs(np.diff(path, axis=0)), axis=0)  # (dof,)
-    cruise = travel >= v_max ** 2 / a_max
-    t = np.where(cruise, travel / v_max + v_max / a_max, 2 * np.sqrt(travel / a_max))
-    return float(t.max())
-
-
 # ----------------------------------------------------------------------------------------------
 # HG-DAgger gate helpers (env-generic)
 # ----------------------------------------------------------------------------------------------
 def rollout_chunk(env, chunk, q=None):
     """States (H + 1, dof) the env would visit executing `chunk` (H, dof) of absolute targets.
 
-    CONTRACT step rule: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
+    The env's motion rule (envs.ArmEnv.clip_action):
+    q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
     """
     # >>> exercise 12: the HG-DAgger gate: predicted collision or stall (Sec. IV-A)
     lo, hi = env.joint_limits
@@ -899,10 +706,12 @@ class Oracle:
 
     # ---- D0: full demonstrations ----------------------------------------------------------
     def demonstrate(self, env, seed):
-        """An expert episode (CONTRACT format) for scenario `seed`; raises PlanningFailed.
+        """An expert episode for scenario `seed`; raises PlanningFailed.
 
         The plan's samples are the absolute joint targets, executed with env.step until the env
-        terminates (goal reached or collision) or truncates. 'success' comes from the env.
+        terminates (goal reached or collision) or truncates. The episode dict holds 'obs' (T,
+        obs_dim), 'q', 'action' (T, dof), 'expert' (T,) all True, 'seed', and 'success' (from the
+        env): the format of envs.save_episodes.
         """
         obs, _ = env.reset(seed=seed)
         rng = np.random.default_rng([self.cfg.seed, int(seed)])
@@ -999,6 +808,208 @@ def plot_demonstration(env, episode, path, n_arms=8):
     ax.legend(loc="lower left", fontsize=8)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The edge checks that every planning step above relies on, and a yardstick for the time
+# parameterization.
+#
+# Why the edge checks cannot miss an obstacle. For a serial arm, a joint-space step dq moves any
+# point of the arm by at most  sum_j R_j |dq_j|,  where R_j bounds the distance from joint j to the
+# farthest point of the arm beyond it (the arm beyond joint j rotates about it).
+# We interpolate every edge so that consecutive checked states satisfy sum_j R_j |dq_j| <= s (the
+# check spacing, m), i.e. sum_j |dq_j| / eps_j <= 1 with eps_j = s / R_j (`edge_resolution`); R_j
+# comes from env.fk (`lever_arms`), not from planar constants. (A Euclidean spacing |dq| <= eps is
+# safe only for eps <= s / |R| (Cauchy-Schwarz), and then checks more states, never fewer.) Every
+# state between two checks is within s / 2 of arm motion of one of them, so if every checked state
+# keeps a clearance c >= s / 2 -- the env's check with obstacles inflated by c (`with_margin`) --
+# every state of the edge is collision-free. Self-collisions too: in the frame of the lower of two
+# links only the joints after it move the other one, with the same lever arms. Planning keeps a
+# margin m and spaces its checks s = 2 (m - v) apart, so the planned path keeps a clearance >= v
+# everywhere; the executed trajectory is verified with margin v at a spacing <= 2 v (OracleConfig:
+# margin, verify_margin). Only near the start and the goal configurations the plain check applies
+# (`with_margin` says why). Edges are checked in rounds of batched calls and stop at their first
+# collision (`edge_free_fraction`, `edges_free`): most RRT-Connect edges collide early, and
+# checking the rest of them was ~98 % of the planner's checks.
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry helpers: lever arms, edge interpolation, batched edge checks
+# ----------------------------------------------------------------------------------------------
+def lever_arms(env, n_probe=8):
+    """R_j (dof,): bound on the distance from joint j to any point of the arm beyond it.
+
+    Segment lengths between consecutive fk points are constant for a rigid serial chain; we take
+    their maximum over the zero pose and a few probe poses (a fixed probe seed, so the bound is
+    deterministic). If fk returns one point per joint plus the end effector, joint j sits at point
+    j and R_j = sum of the segment lengths after it; otherwise every R_j = the total chain length
+    (the maximal reach), which is always a valid, if looser, bound. An env whose bodies reach past
+    its fk points (the planar gripper's finger corners) gives the bound itself: env.lever_arms.
+    """
+    if hasattr(env, "lever_arms"):  # an env that knows its body's extent beyond the chain points
+        return np.asarray(env.lever_arms, dtype=np.float64).copy()
+    lo, hi = env.joint_limits
+    probe_rng = np.random.default_rng(0)  # geometry probe only, not a planning decision
+    qs = np.concatenate([np.zeros((1, env.dof)), probe_rng.uniform(lo, hi, (n_probe, env.dof))])
+    points = env.fk(qs)  # (B, n_points, dim)
+    seg = np.linalg.norm(np.diff(points, axis=1), axis=-1).max(axis=0)  # (n_points - 1,)
+    if len(seg) == env.dof:
+        return np.cumsum(seg[::-1])[::-1].copy()  # R_j = sum_{i >= j} seg_i
+    return np.full(env.dof, seg.sum())
+
+
+def edge_resolution(env, sweep_tolerance):
+    """eps_j (dof,) in rad: an edge is checked at states with sum_j |dq_j| / eps_j <= 1 apart,
+    so that no point of the arm moves more than sweep_tolerance (m) between two checks."""
+    if not sweep_tolerance > 0:
+        raise ValueError(f"sweep_tolerance must be > 0 (m), got {sweep_tolerance}")
+    return sweep_tolerance / lever_arms(env)
+
+
+def interpolate_edges(q_from, q_to, resolution):
+    """States along straight edges, spaced so that sum_j |dq_j| / resolution_j <= 1.
+
+    q_from, q_to: (E, dof). Returns states (P, dof), their edge index (P,), their sub-step k (P,)
+    and each edge's sub-step count n (E,): the states at fractions k / n, k = 1 .. n, of each
+    edge (the start of an edge is assumed checked already).
+    """
+    dq = q_to - q_from  # (E, dof)
+    n = np.maximum(1, np.ceil(np.sum(np.abs(dq) / resolution, axis=1) - 1e-9)).astype(int)  # (E,)
+    edge, k = substeps(n)
+    return q_from[edge] + (k / n[edge])[:, None] * dq[edge], edge, k, n
+
+
+def substeps(n):
+    """Edge index (P,) and sub-step k = 1 .. n_e (P,) of every sub-step of edges with n (E,)
+    sub-steps each, edge by edge (P = n.sum())."""
+    edge = np.repeat(np.arange(len(n)), n)  # (P,)
+    first = np.cumsum(n) - n  # index of each edge's first sub-step
+    return edge, np.arange(n.sum()) - np.repeat(first, n) + 1
+
+
+def _check_in_rounds(states, edge, rounds, in_collision, n_edges):
+    """in_collision of states (P, dof) of n_edges edges, one batched call per round (0, 1, ...).
+
+    States of an edge that already collided in an earlier round are skipped (reported free): an
+    edge needs only one collision to be rejected, and a planner's edges mostly collide early.
+    Returns hit (P,) bool.
+    """
+    hit = np.zeros(len(states), dtype=bool)
+    blocked = np.zeros(n_edges, dtype=bool)
+    for r in range(int(rounds.max(initial=-1)) + 1):
+        todo = np.flatnonzero((rounds == r) & ~blocked[edge])
+        if len(todo):
+            hit[todo] = in_collision(states[todo])
+            blocked[edge[todo[hit[todo]]]] = True
+    return hit
+
+
+def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
+    """(E,) fraction of each edge q_from -> q_to that is collision-free from its start (1 = all).
+
+    The states of every edge are checked in order, in rounds of doubling length (first_round,
+    then 2x, 4x, ... states of every edge still free; one batched in_collision call per round),
+    and an edge is no longer checked after its first collision: RRT-Connect's CONNECT edges run
+    across the whole space and nearly all hit an obstacle early (checking every state of them
+    spent ~98 % of the oracle's checks). Each edge reports the last free sub-step before its
+    first colliding one. With doubling rounds, the states checked past that sub-step are at
+    most about as many as those before it (plus first_round), in log2(edge length) calls.
+    first_round = 4 planned faster than 8 or 16 on the planar scenes (measured: fewer wasted
+    states; more calls would cost more, one call costs as much as a few hundred states there).
+    """
+    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
+    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
+    # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
+    rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
+    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
+    first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
+    np.minimum.at(first_hit, edge[hit], k[hit])
+    return (first_hit - 1) / n
+
+
+def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
+    """(E,) True where the whole edge q_from -> q_to is collision-free.
+
+    Coarse to fine: every coarse-th state of all edges first (one batched call), then the
+    remaining states of the edges not yet found colliding (a second call). An obstacle usually
+    blocks a run of consecutive states, so most colliding edges are rejected by the coarse pass
+    (coarse = 2, 4 or 8 planned equally fast on the planar scenes).
+    """
+    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
+    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
+    rounds = (k % coarse != 0).astype(int)  # (P,) 0: the coarse pass, 1: the rest
+    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
+    return ~np.bincount(edge[hit], minlength=len(n)).astype(bool)
+
+
+def with_margin(env, margin, relax_at=None, relax_radius=0.0):
+    """A stricter collision predicate for planning: True within ~margin (m) of a collision.
+
+    Shortest paths hug obstacles, and two free checks s apart (in arm motion) do not rule out a
+    graze between them (by the lever-arm bound a point moves at most s/2 from the nearer check,
+    so it can dip up to s/2 into an obstacle). Planning against obstacles inflated by
+    margin >= s/2 makes every interpolated state between two checks truly free. If
+    env.in_collision accepts a `margin` keyword (distance inflation), it is used; otherwise the
+    margin is approximated by probes: q counts as colliding if q or one of its 2 dof one-joint
+    displacements of +-margin / R_j collides (each moves the arm by at most `margin`).
+    Near relax_at (K, dof) (arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius_k for some
+    k, in m) only the plain env check applies: a start inside the margin band (an intervention
+    often begins close to an obstacle) must be able to leave it, and a goal configuration
+    squeezed between obstacles must be reachable; grazes (at most s/2 deep) are then possible
+    only in these zones.
+    """
+    lever = lever_arms(env)
+    relax_at = None if relax_at is None else np.atleast_2d(relax_at)
+    try:
+        env.in_collision(np.zeros((1, env.dof)), margin=margin)
+        inflated = lambda q: env.in_collision(q, margin=margin)  # noqa: E731
+    except TypeError:
+        step = margin / lever  # (dof,) rad
+        offsets = np.concatenate([np.zeros((1, env.dof)), np.diag(step), -np.diag(step)])
+
+        def inflated(q):  # (B, dof) -> (B,)
+            probes = (q[:, None, :] + offsets).reshape(-1, env.dof)  # (B * (2 dof + 1), dof)
+            return env.in_collision(probes).reshape(len(q), -1).any(axis=1)
+
+    def in_collision(q):
+        q = np.atleast_2d(q)
+        if relax_at is None:
+            return inflated(q)
+        hit = inflated(q)
+        # only states that hit with the margin can differ under the plain check (a second call)
+        motion = np.sum(np.abs(q[hit, None] - relax_at[None]) * lever, axis=2)  # (hits, K)
+        near = np.flatnonzero(hit)[np.any(motion <= relax_radius, axis=1)]  # radius () or (K,)
+        if len(near):
+            hit[near] = env.in_collision(q[near])
+        return hit
+
+    return in_collision
+
+
+def path_in_collision(path, in_collision, resolution):
+    """True if any edge of the polyline path (N, dof) or its first state collides."""
+    path = np.atleast_2d(path)
+    if in_collision(path[:1])[0]:
+        return True
+    if len(path) < 2:
+        return False
+    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
+
+
+def min_time_lower_bound(path, v_max, a_max):
+    """Lower bound (s) on any rest-to-rest traversal of `path`: the slowest joint's bang-bang time.
+
+    Joint j must travel at least its total variation D_j along the path with |v| <= v_max_j and
+    |a| <= a_max_j, which takes at least the trapezoid time D/v + v/a (or 2 sqrt(D/a) if the joint
+    never reaches v_max). Jerk limits and path shape only add to it.
+    """
+    path = np.atleast_2d(np.asarray(path, dtype=np.float64))
+    dof = path.shape[1]
+    v_max, a_max = _per_joint(v_max, dof, "v_max"), _per_joint(a_max, dof, "a_max")
+    travel = np.sum(np.abs(np.diff(path, axis=0)), axis=0)  # (dof,)
+    cruise = travel >= v_max ** 2 / a_max
+    t = np.where(cruise, travel / v_max + v_max / a_max, 2 * np.sqrt(travel / a_max))
+    return float(t.max())
 
 
 if __name__ == "__main__":

@@ -430,3 +430,14 @@ def test_render_draws_scene_and_arms():
     xy = ax.patches[-1].get_xy()
     assert np.ptp(xy[:, 0]) == pytest.approx(e.cfg.finger_size[0], abs=1e-9)
     plt.close(fig)
+
+
+def test_both_envs_share_the_arm_env_machinery():
+    """State, the motion rule, the episode step and the end effector are written once, in ArmEnv."""
+    from envs import ArmEnv, EngineReach3D
+    for cls in (PlanarReacher, EngineReach3D):
+        assert issubclass(cls, ArmEnv)
+        for name in ("joint_limits", "q", "q_prev", "goal", "set_state", "clip_action", "ee",
+                     "ee_jacobian", "goal_reached", "draw_noise_ellipses"):
+            assert getattr(cls, name) is getattr(ArmEnv, name), (cls.__name__, name)
+    assert PlanarReacher.step is ArmEnv.step  # EngineReach3D.step adds the camera image to info
