@@ -3,8 +3,9 @@
 Paper map (paper.tex):
   Sec. IV-A, steps 1-6 ............ main / run_lineage: D0 from the oracle, BC pi_0, HG-DAgger rounds,
                                      calibration, augmentation, co-training, fine-tuning from pi_0
-  Sec. IV-A step 2, Sec. V ......... collect_interventions: expert-gated (HG-DAgger) data collection
-                                     with the RRT oracle; interventions shorter than H are discarded
+  Sec. IV-A step 2, Sec. V ......... stage_collect / rollout: expert-gated (HG-DAgger) data collection
+                                     with the RRT oracle (oracle.Gate); interventions shorter than H are
+                                     discarded (drop_short_interventions, Sec. IV-C)
   Sec. IV-D ........................ calibrate.calibrate, called once per round with the current policy
   Sec. IV-E ........................ relabel.AugmentationSampler, the on-the-fly augmented data D^_k
   Sec. V, Tables I and II .......... evaluate (100 scenarios x 3 evaluations, batched), paired_ttest,
@@ -12,7 +13,7 @@ Paper map (paper.tex):
 
 Usage:
   python dagger.py                          # the 'quick' profile: the whole loop on the planar env
-  python dagger.py --profile smoke          # a minute; what CI runs
+  python dagger.py --profile smoke          # about a minute; what CI runs
   python dagger.py --profile paper          # Table I's protocol (long; resumable; shardable)
   python dagger.py --profile paper --lineage 2     # one lineage alone (e.g. a Slurm array task)
   python dagger.py --profile paper --report        # merge finished lineages into table and figures
@@ -175,17 +176,25 @@ class ConfigMismatch(ValueError):
     """A run folder holds a run with another config (stages could not be reused honestly)."""
 
 
+class RunFolderError(ValueError):
+    """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
+
+
 class Run:
     """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
 
     def __init__(self, root, cfg: Config):
         self.root, self.cfg = root, cfg
-        os.makedirs(root, exist_ok=True)
+        try:
+            os.makedirs(root, exist_ok=True)
+            open(os.path.join(root, "log.txt"), "a").close()
+        except OSError as err:
+            raise RunFolderError(f"cannot use {root!r} as the run folder: {err.strerror or err}. Give --out a "
+                                 "folder you can create and write (default runs/<profile>).") from None
         path = os.path.join(root, "config.json")
         saved = asdict(cfg)
         if os.path.exists(path):
-            with open(path) as f:
-                old = json.load(f)
+            old = read_json(path)
             for key in ("methods", "down_dims"):  # JSON keeps tuples as lists
                 if key in old:
                     old[key] = tuple(old[key])
@@ -226,9 +235,33 @@ def write_json(path, data):
     os.replace(tmp, path)  # a stage is finished only when its file is complete
 
 
-def read_json(path):
+def load_stage_file(path, loader, *args, **kwargs):
+    """loader(path) for a finished stage's file; a damaged file (truncated, not what it should be) is an error
+    that names it and says how to re-make it, never a raw EOFError or a silently reused stage."""
+    try:
+        return loader(path, *args, **kwargs)
+    except (FileNotFoundError, KeyboardInterrupt):
+        raise
+    except Exception as err:
+        raise RunFolderError(f"{path} is damaged ({type(err).__name__}: {err}). Delete it and run the same "
+                             "command again: that stage is made again, the other finished stages are kept.") from None
+
+
+def _read_json(path):
     with open(path) as f:
         return json.load(f)
+
+
+def read_json(path):
+    return load_stage_file(path, _read_json)
+
+
+def load_episodes(path):
+    return load_stage_file(path, envs.load_episodes)
+
+
+def load_policy(path, device):
+    return load_stage_file(path, diffusion.DiffusionPolicy.load, device=device)
 
 
 def stage_seed(cfg, *keys):
@@ -502,7 +535,7 @@ def stage_demos(run):
     """Step 1's data: D0, oracle demonstrations on training scenarios (skipping unplannable ones)."""
     cfg, path = run.cfg, run.path("data", "D0.npz")
     if os.path.exists(path):
-        return envs.load_episodes(path)
+        return load_episodes(path)
     env, expert = make_run_env(cfg), make_oracle(cfg)
     demos, seed, t0, failures = [], 0, time.time(), 0
     t_log = t0
@@ -552,6 +585,7 @@ def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=N
                                checkpoint_steps=marks, checkpoint_path=part)
     resume = next((part.format(step=m) for m in reversed(marks) if os.path.exists(part.format(step=m))), None)
     if resume:
+        load_stage_file(resume, torch.load, map_location="cpu", weights_only=True)  # a damaged one is named
         run.log(f"  resuming from {os.path.relpath(resume, run.root)}")
     diffusion.train(policy, obs, chunks, tc, sampler=sampler, resume_from=resume,
                     log=lambda m: run.log("  " + m))
@@ -566,7 +600,7 @@ def stage_bc(run, demos):
     """Step 1: pi_0 = BC on D0."""
     cfg, path = run.cfg, run.path("checkpoints", "bc.pt")
     if os.path.exists(path):
-        return diffusion.DiffusionPolicy.load(path, device=cfg.device)
+        return load_policy(path, device=cfg.device)
     env = make_run_env(cfg)
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
@@ -585,7 +619,7 @@ def stage_collect(run, lineage, k, policy, policy_success):
     """
     cfg, path = run.cfg, run.path(f"lineage_{lineage}", f"round_{k}", "D.npz")
     if os.path.exists(path):
-        return envs.load_episodes(path)
+        return load_episodes(path)
     env = make_run_env(cfg)
     if cfg.collect_on == "eval":
         seeds = env.eval_seeds()[: cfg.eval_scenarios]
@@ -709,7 +743,7 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
     cfg = run.cfg
     path = run.path(f"lineage_{lineage}", f"round_{k}", "checkpoints", f"{method}.pt")
     if os.path.exists(path):
-        return diffusion.DiffusionPolicy.load(path, device=cfg.device)
+        return load_policy(path, device=cfg.device)
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     samplers, offset = [], 0
     for D in rounds_data:
@@ -724,7 +758,7 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
     run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
             f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
             f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else ", noised and relabelled"))
-    policy, t0 = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
+    policy, t0 = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
     policy = train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
                              stage_seed(cfg, "train", lineage, k, method), path, sampler, cfg.intervention_fraction,
                              lr=cfg.finetune_lr)
@@ -752,7 +786,7 @@ def run_lineage(run, lineage, demos, stats):
     """HG-DAgger rounds of one lineage (PAPER_SETUP.md §4): collect with the lineage's current policy,
     fine-tune HG-DAgger, calibrate with it, fine-tune every noised method, evaluate each (Alg. 2-6)."""
     cfg = run.cfg
-    collector = diffusion.DiffusionPolicy.load(run.path("checkpoints", "bc.pt"), device=cfg.device)
+    collector = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device)
     collector_success = np.asarray(read_json(run.path("eval", "bc.json"))["success"], bool)
     rounds_data = []
     for k in range(1, cfg.rounds + 1):
@@ -1167,11 +1201,11 @@ def make_figures(run, demos, stats):
     if not os.path.exists(os.path.join(rdir, "calibration.json")):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")
         return
-    D1 = envs.load_episodes(os.path.join(rdir, "D.npz"))
+    D1 = load_episodes(os.path.join(rdir, "D.npz"))
     cal = calibrate.Calibration.from_dict(read_json(os.path.join(rdir, "calibration.json")))
     # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
     calibrated = os.path.join(rdir, "checkpoints", "hg_dagger.pt")
-    policy = diffusion.DiffusionPolicy.load(calibrated if os.path.exists(calibrated) else run.path("checkpoints", "bc.pt"),
+    policy = load_policy(calibrated if os.path.exists(calibrated) else run.path("checkpoints", "bc.pt"),
                                             device=cfg.device)
     gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
     # the episode with the longest intervention shows the method best
@@ -1290,7 +1324,7 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
             stats = demo_statistics(cfg, demos)
             for l in ([lineage] if lineage is not None else range(cfg.lineages)):
                 run_lineage(run, l, demos, stats)
-    demos = envs.load_episodes(run.path("data", "D0.npz"))
+    demos = load_episodes(run.path("data", "D0.npz"))
     text = write_report(run)
     make_figures(run, demos, demo_statistics(cfg, demos))
     write_markdown_report(run, text, read_json(os.path.join(run.root, "results.json"))["stats"])
@@ -1312,7 +1346,7 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("\nstopped; the finished stages are saved: run the same command again to resume", file=sys.stderr)
         sys.exit(130)
-    except ConfigMismatch as err:
+    except (ConfigMismatch, RunFolderError) as err:
         print(f"dagger.py: {err}", file=sys.stderr)
         sys.exit(2)
 

@@ -333,3 +333,72 @@ def test_every_readme_command_parses_and_none_is_refused_by_another_commands_fol
         seen = folders.setdefault(folder, cfg)
         changed = [f.name for f in dagger.fields(dagger.Config) if getattr(seen, f.name) != getattr(cfg, f.name)]
         assert not changed, f"{argv} would be refused in {folder}: {changed} differ"
+
+
+@pytest.mark.parametrize("stage_file", ["data/D0.npz", "checkpoints/bc.pt", "eval/bc.json",
+                                        "lineage_0/round_1/calibration.json", "lineage_0/round_1/D.npz"])
+def test_a_damaged_stage_file_is_named_and_never_reused(full_run, tmp_path, stage_file, capsys):
+    """A truncated stage file: a clear error naming it and the way forward (delete it, run again), exit 2."""
+    import shutil
+    root = str(tmp_path / "copy")
+    shutil.copytree(full_run, root)
+    path = os.path.join(root, stage_file)
+    data = open(path, "rb").read()
+    with open(path, "wb") as f:
+        f.write(data[: len(data) // 2])
+    with pytest.raises(dagger.RunFolderError, match="damaged") as err:
+        dagger.run_experiment(TINY, root)
+    assert path in str(err.value) and "Delete it and run the same command again" in str(err.value)
+    os.remove(path)  # the way forward works: the stage is made again
+    dagger.run_experiment(TINY, root)
+    assert json.load(open(os.path.join(root, "results.json")))["success"] == \
+        json.load(open(os.path.join(full_run, "results.json")))["success"]
+
+
+def test_an_out_folder_that_cannot_be_made_is_a_clear_error(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.main(["--profile", "smoke", "--out", str(blocker / "run")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "cannot use" in err and str(blocker / "run") in err and "--out" in err and "Traceback" not in err
+
+
+def readme_commands():
+    """Every `python dagger.py ...` command of the README, in order: the command blocks and the inline ones
+    (a line that uses a shell variable, e.g. the Slurm example, is not a command a reader types)."""
+    import re
+    import shlex
+    readme = open(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "README.md")).read()
+    commands = []
+    for block in re.findall(r"```bash\n(.*?)```|`(python dagger\.py[^`]*)`", readme, flags=re.S):
+        for line in (block[0] or block[1]).splitlines():
+            if "python dagger.py" in line and "$" not in line:
+                tail = line.split("python dagger.py", 1)[1].split("#", 1)[0].strip().strip('"').rstrip("&").strip()
+                commands.append(shlex.split(tail))
+    return commands
+
+
+def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeypatch, capsys):
+    """Each README command, as written but with its profile swapped for a shrunken smoke profile, runs to
+    the end in the order the README gives them, in one working folder: none is refused by a folder another
+    command made (e.g. --methods right after the default run), --help prints the options."""
+    smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
+                    episodes_per_round=2, n_demos=2, bc_steps=10, finetune_steps=6, image_size=16)
+    monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
+    monkeypatch.chdir(tmp_path)
+    commands = readme_commands()
+    assert len(commands) >= 10 and [] in commands and any("--report" in c for c in commands)
+    for argv in commands:
+        if "--profile" in argv:
+            i = argv.index("--profile")
+            argv = argv[:i] + argv[i + 2:]
+        if "--help" in argv:
+            with pytest.raises(SystemExit) as done:
+                dagger.main(argv)
+            assert done.value.code == 0 and "--methods" in capsys.readouterr().out
+            continue
+        root = dagger.main(argv + ["--profile", "smoke"])
+        if "--prepare" not in argv:
+            assert os.path.isfile(os.path.join(root, "report.md")), argv
