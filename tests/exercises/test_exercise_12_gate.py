@@ -45,7 +45,7 @@ def test_rollout_chunk_applies_the_contract_step_rule(env):
     assert states.shape == (4, env.dof) and np.array_equal(states[0], env.q)
     q = env.q.copy()
     for k, action in enumerate(chunk):
-        q = np.clip(q + np.clip(action - q, -env.max_step, env.max_step), lo, hi)   # CONTRACT step rule
+        q = np.clip(q + np.clip(action - q, -env.max_step, env.max_step), lo, hi)   # the env's motion rule
         assert np.allclose(states[k + 1], q, atol=1e-15)
     other = env.q + 0.1
     assert np.array_equal(rollout_chunk(env, chunk, q=other)[0], other)
