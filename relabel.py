@@ -1,37 +1,30 @@
-"""Corrective labels around expert interventions (paper Sec. IV-E, "Generating Corrective Labels").
+"""Corrective labels around expert interventions: paper Sec. IV-E ("Generating Corrective Labels"),
+the augmented data D̂_k of Sec. IV-A steps 3-4. Top to bottom:
+  demo_stats           Sec. IV-E: "the demonstration dataset's velocity and acceleration statistics";
+                       the median step m (Sec. V) is the unit of every noise level
+  perturb_states       Sec. IV-A step 3: q̃ ~ N(q_t, Σ) around the intervention states, Σ (`noise_factors`)
+                       'isotropic' (σ m)² I (Table I's fixed-noise rows), 'pooled' Σ̄^α (Eqs. (15)-(16)) or
+                       'per_step' Σ^α_t (Eq. (14)), both measured by calibrate.py
+  monotone_projection  Sec. IV-E: "a monotone closest-point projection"                     (exercise 8)
+  pd_return_chunk      Sec. IV-E: "a critically-damped PD controller, with accelerations clamped" (exercise 9)
+  servo_return_chunk   the label the training loop uses by default: the authors' servo (their code,
+                       PAPER_SETUP.md §6), a critically damped return at its own monotone cursor
+  corrective_labels    projection -> return chunk for a batch of noised states
+  AugmentationSampler  Sec. IV-A steps 3-4: (observation, chunk, mask) triples made on the fly for
+                       co-training (diffusion.train's `sampler` hook)
+  plot_recovery        Fig. 1
+Beyond the banner: the measured-worse 'gap' lookahead, Fig. 1's window and legend, the sampler's draws,
+redraws, pool and resume state, `covariance_factor` (robust to a singular Σ̂), input checks.
 
-Policy-Calibrated DAgger noises the states of the expert intervention data D_k and labels each
-noised state with an action chunk that returns to the expert trajectory (Sec. IV-A, steps 3-4).
-This file implements that augmentation, top to bottom:
+Units: per control step: joints in rad, velocities rad/step, accelerations rad/step² (the env's
+`max_step` is directly the velocity clamp, no dt appears); noise levels and most RelabelConfig knobs in
+median steps m (the median per-step joint displacement of the demos). The small Gaussian observation
+noise of Sec. V (last paragraph) is not here: it is diffusion.TrainConfig.obs_noise, for every batch.
 
-1. demonstration statistics: the median step (the unit of every noise level), the median speed and
-   the acceleration clamp "seen in the demonstrations" (Sec. IV-E);
-2. `perturb_states`: joint states drawn from N(q_t, Σ) around intervention states, with Σ one of
-   - 'isotropic'  (σ · median_step)² I   -- the fixed-noise baselines of Table I,
-   - 'pooled'     Σ̄^α                     -- Eqs. (15)-(16), computed in calibrate.py,
-   - 'per_step'   Σ^α_t                    -- Eq. (14) per measured timestep, from calibrate.py,
-   rejecting states in collision or outside the joint limits;
-3. `monotone_projection`: the closest point of the expert trajectory, never earlier in time;
-4. the return chunk of H absolute joint targets that rejoins the trajectory, then follows it:
-   `servo_return_chunk` (default): the authors' critically damped servo at its own monotone cursor
-   (PAPER_SETUP.md §6), with a mask that drops the held tail at the segment's end from the loss;
-   `pd_return_chunk` (RelabelConfig.label='pd'): a critically damped PD with velocity feed-forward
-   toward a reference advancing from the projection (see `lookahead_steps` for the paper's
-   "a state a few timesteps further");
-5. `AugmentationSampler`: (observation, chunk, mask) training triples generated on the fly for co-training
-   (diffusion.train's `sampler` hook), kept in a pool that is partly regenerated every few calls;
-6. `plot_recovery`: the paper's Fig. 1 on the planar env.
-
-Units: everything is per control step. Velocities are rad/step, accelerations rad/step², so the
-env's `max_step` is directly the velocity clamp and no dt appears anywhere.
-
-The small Gaussian observation noise that leaves labels unchanged (Sec. V, last paragraph) is NOT
-here: it applies to every training batch of every method (augmented or not), so it lives in one
-place, the training loop: `diffusion.TrainConfig.obs_noise`.
-
-The env is used only through the duck-typed interface of CONTRACT.md, passed in as an argument:
-`in_collision`, `make_obs`, `joint_limits`, `max_step`, `reset(seed=...)`, and for the figure
-`ee` and `render`. This module imports numpy only (matplotlib lazily, inside `plot_recovery`).
+The env is passed in and used only through the env interface of envs.py: env.dof, env.joint_limits,
+env.max_step, env.in_collision, env.make_obs, env.reset(seed=...), env.set_state, and for the figure
+env.ee, env.ee_jacobian, env.draw_noise_ellipses, env.render. Which steps teach is the label rule in
+diffusion.label_mask. Imports: numpy and that rule (matplotlib inside `plot_recovery`).
 """
 from __future__ import annotations
 
@@ -45,78 +38,58 @@ from diffusion import expert_runs, label_mask  # the paper's label rule, one pla
 
 @dataclass
 class RelabelConfig:
-    horizon: int = 16  # H: length of a label chunk (CONTRACT default, same as the policy's)
-    projection_window: int = 32  # the projection looks at most this many steps ahead of t; bounded
-    #   so that a trajectory that later passes near the same configuration (untangling manoeuvres)
-    #   cannot pull the projection far into the future. At the demos' typical speed 2H steps of path
-    #   are far longer than the largest noise of Table I (16 median steps per joint).
-    lookahead: str = "time_matched"  # where the PD aims at chunk step k (see `lookahead_steps`):
-    #   'time_matched': trajectory[t_proj + k], the lag-free form of the paper's "state a few
-    #   timesteps further"; 'gap': L = ceil(gap / median speed) steps further still, the literal
-    #   reading -- measured worse on oracle demos (benchmarks/bench_relabel.py, label quality)
-    max_lookahead: int = 8  # cap on L for lookahead='gap' (H/2)
-    settle_steps: float = 8.0  # the PD gains make the unclamped error settle (to 2 %) in this many
-    #   steps: H/2, so the second half of every chunk follows the expert trajectory.
-    max_tries: int = 10  # rejection rounds for a perturbed state before it is dropped
-    # --- the authors' relabeling (PAPER_SETUP.md §6), their 30 Hz frames converted to our 10 Hz steps.
-    #   Their median step m' (per 1/30 s frame) is 1/3 of ours m (per 0.1 s step): same joint speed.
-    label: str = "servo"  # 'servo': `servo_return_chunk` (the authors' label); 'pd': `pd_return_chunk`
-    velocity_noise: float = 0.3  # σ_v of the noised velocity, in median steps per step: theirs is
-    #   0.3 m' per frame, a speed relative to the median speed, so unit-free: stays 0.3
-    a_clamp_scale: float = 0.9  # a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m): unit-free factor
-    accel_floor: float = 0.6  # a_clamp floor in m per step²: theirs 0.2 m' per frame²
-    #   = 0.2 · (m/3) / (1/3 step)² = 0.2 · 3 = 0.6 m per step²
-    gain_floor: float = 4.0 / 3.0  # Kp = a_clamp / max(d0, gain_floor · m): theirs 4 m' = 4/3 m (a distance)
-    jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= jerk_slew · a_clamp: theirs 0.5 · a_clamp per frame,
-    #   and a step is 3 frames, so 1.5 · a_clamp per step
-    speed_cap: float = 1.68  # |v| <= max(1.68 · m, 1.05 · |v0|): theirs 1.4 · 1.2 m' per frame, a speed
-    #   relative to the median speed, so unit-free: stays 1.68
-    speed_cap_v0: float = 1.05  # ... the 1.05 · |v0| part: unit-free
-    cursor_advance: int = 3  # the servo's cursor moves at most this many trajectory indices per step:
-    #   theirs 3 m' of arc per frame = 3 m per step, and one index of our demos is about one m
-    hold_tol: float = 0.02  # a chunk step is "held" when |q_{k+1} - q_k| < hold_tol · m at the segment end;
-    #   2 % of a median step: the servo's stop at the end decays like k e^{-ωk}, and at 1e-3 it was
-    #   not reached within H = 16 steps even for a segment ending 2 steps ahead (measured)
-    min_moving_steps: int = 3  # a servo label needs >= this many unmasked steps, else the state is
-    #   redrawn: theirs 8 frames = 0.27 s = 2.7 of our steps -> 3
-    near_end_steps: int = 3  # a noised state projecting within this many steps of its segment's end
-    #   is redrawn: theirs 8 frames -> 3 steps, as above
-    max_redraws: int = 6  # ... at most this many times (theirs: 6), then it is dropped
-    pool_size: int = 4096  # AugmentationSampler: pairs kept in the pool
-    refresh_size: int = 512  # ... fresh pairs per refresh (they replace the oldest pairs)
-    reuse: float = 4.0  # ... a refresh follows every reuse * refresh_size pairs served, so on average
-    #   a pair is served `reuse` times: the price of keeping a call near 1 ms (bench_relabel.py)
-    episodes_per_refresh: int = 16  # ... drawn from this many (episode) draws, so the env calls
-    #   (collision check, observation) are batched per scenario instead of per pair
+    # the paper (Sec. IV-E)
+    horizon: int = 16  # steps: H, the length of a label chunk (the policy's action chunk)
+    settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (H/2), label='pd'
+    # not in the paper: the authors' label (their code, PAPER_SETUP.md §6), their 30 Hz frames converted to
+    #   our 10 Hz steps; m = median step (their m' per frame is m/3: the same joint speed)
+    label: str = "servo"  # 'servo': `servo_return_chunk` (the authors'); 'pd': `pd_return_chunk` (the text's)
+    velocity_noise: float = 0.3  # median steps/step: std of the noise on a noised state's velocity (theirs
+    #   0.3 m'/frame = 0.3 m/step)
+    a_clamp_scale: float = 0.9  # unit-free: a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
+    accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame² = 0.2 · (m/3) / (1/3 step)²
+    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m' = 4/3 m
+    jerk_slew: float = 1.5  # unit-free: |a_k - a_{k-1}| <= 1.5 a_clamp per step (theirs 0.5 per frame, 3 frames)
+    speed_cap: float = 1.68  # median steps/step: |v| <= max(1.68 m, speed_cap_v0 · |v0|) (theirs 1.4 · 1.2 m'/frame
+    #   = 1.68 m/step)
+    speed_cap_v0: float = 1.05  # unit-free: the 1.05 · |v0| part
+    cursor_advance: int = 3  # steps (trajectory indices) per step: theirs 3 m' of arc per frame = 3 m per step
+    hold_tol: float = 0.02  # median steps/step: slower chunk steps at the segment end are "held" (out of
+    #   the loss); at 1e-3 the servo's k e^{-ωk} stop was not reached within H (measured)
+    min_moving_steps: int = 3  # steps: fewer unmasked steps and the state is redrawn (theirs 8 frames = 2.7 steps)
+    near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
+    max_redraws: int = 6  # redraws (theirs 6), then the state is dropped
+    # not in the paper: ours
+    projection_window: int = 32  # steps: how far past t the projection looks, so a path that later passes
+    #   near the same configuration cannot pull it far ahead (2H steps of path >> Table I's 16 median steps)
+    lookahead: str = "time_matched"  # label='pd' target: trajectory[t_proj + k]; 'gap' (beyond the banner) is worse
+    max_lookahead: int = 8  # steps: cap on the 'gap' lookahead (H/2)
+    max_tries: int = 10  # draws: rejection rounds for a noised state in collision / off limits, then dropped
+    pool_size: int = 4096  # pairs: AugmentationSampler's pool
+    refresh_size: int = 512  # pairs: made per refresh, replacing the oldest
+    reuse: float = 4.0  # unit-free: times a pair is served on average, for ~1 ms a call (bench_relabel.py)
+    episodes_per_refresh: int = 16  # episodes: a refresh draws from this many, so env calls are batched
 
 
-# --------------------------------------------------------------------------------------------
-# 1. Demonstration statistics (Sec. IV-E: "with respect to the demonstration dataset's velocity
-#    and acceleration statistics")
-# --------------------------------------------------------------------------------------------
+# ---- 1. Demonstration statistics (Sec. IV-E: "the demonstration dataset's velocity and acceleration statistics")
 
 @dataclass(frozen=True)
 class DemoStats:
-    median_step: float  # rad/step: envs.median_step(base demos); 1 unit of every noise level σ
-    median_speed: float  # rad/step: median over moving steps of ‖q[t+1] - q[t]‖₂ (sets lookahead)
-    accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD acceleration
-    max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the PD velocity
+    median_step: float  # rad: m, the median per-step joint displacement (envs.median_step); noise unit
+    median_speed: float  # rad/step: median over moving steps of ‖q[t+1] - q[t]‖₂ ('gap' lookahead only)
+    accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD's acceleration
+    max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the velocity
     acc_p95: float  # rad/step²: 95th percentile of ‖q[t+1] - 2 q[t] + q[t-1]‖₂, sets the servo's a_clamp
-    #   (PAPER_SETUP §6; measured per step of our demos, so already in our units)
 
 
 def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_percentile: float = 99.0) -> DemoStats:
     """Statistics of the base demonstrations D0 that shape the corrective labels.
 
-    `median_step` must be `envs.median_step(episodes)` (this module does not import envs); `max_step`
-    is the env's per-step joint speed limit (scalar or (dof,)). The acceleration clamp is the
-    `accel_percentile` of |q[t+1] - 2 q[t] + q[t-1]| per joint: a high percentile rather than the
-    max, so that one odd step of one demo does not set the clamp for every label.
+    `median_step` is `envs.median_step(episodes)`; `max_step` the env's per-step joint speed limit
+    (scalar or (dof,)). The acceleration clamp is the `accel_percentile` of |q[t+1] - 2 q[t] + q[t-1]|
+    per joint: a high percentile rather than the max, so one odd step does not set every label's clamp.
     """
-    if not np.isfinite(median_step) or median_step <= 0:
-        raise ValueError(f"median_step must be a finite positive number (rad/step), got {median_step!r}")
-    if not 0 < accel_percentile <= 100:
-        raise ValueError(f"accel_percentile must be in (0, 100], got {accel_percentile!r}")
+    _check_demo_inputs(median_step, accel_percentile)
     steps, accels = [], []
     for ep in episodes:
         q = np.asarray(ep["q"], dtype=np.float64)  # (T, dof)
@@ -132,20 +105,12 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
         raise ValueError("the demonstrations never move; no median speed can be measured")
     accels = np.concatenate(accels)  # (sum T-2, dof)
     accel_max = np.percentile(accels, accel_percentile, axis=0)  # (dof,)
-    acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # PCD: norm over joints, all steps
-    if np.any(accel_max <= 0):
-        raise ValueError(f"the demonstrations show no acceleration on joints {np.flatnonzero(accel_max <= 0).tolist()}; "
-                         "the PD return could never move them (accel clamp would be 0)")
-    dof = accel_max.shape[0]
-    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,)).copy()
-    if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
-        raise ValueError(f"max_step must be positive and finite (rad/step), got {max_step}")
+    acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # the authors': norm over joints
+    max_step = _check_clamps(accel_max, max_step)  # (dof,) rad/step
     return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step, acc_p95)
 
 
-# --------------------------------------------------------------------------------------------
-# 2. Noised states around the intervention data
-# --------------------------------------------------------------------------------------------
+# ---- 2. Noised states around the intervention data (Sec. IV-A step 3; Σ^α from calibrate.py)
 
 def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
     """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule), and seg_end (N,):
@@ -158,82 +123,43 @@ def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarra
     return t, seg_end[t]
 
 
-def covariance_factor(cov: np.ndarray) -> np.ndarray:
-    """L with L Lᵀ = Σ for a batch of covariances (..., dof, dof).
-
-    An eigendecomposition rather than a Cholesky: Σ̂ from a handful of policy samples is often
-    (near-)singular -- a flat ellipse -- where Cholesky fails. Eigenvalues that are negative only by
-    round-off are set to 0; clearly negative ones mean the matrix is not a covariance (ValueError).
-    """
-    cov = np.asarray(cov, dtype=np.float64)
-    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
-        raise ValueError(f"a covariance must be (..., dof, dof), got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise ValueError("covariance contains NaN or inf; valid covariances are finite")
-    scale = float(np.abs(cov).max(initial=0.0))  # relative tolerances: covariances are ~1e-4 rad²
-    if np.abs(cov - np.swapaxes(cov, -1, -2)).max(initial=0.0) > 1e-8 * scale:
-        raise ValueError("covariance is not symmetric; valid covariances satisfy Σ = Σᵀ")
-    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    tol = 1e-9 * np.maximum(np.abs(w).max(axis=-1, keepdims=True), 1e-300)
-    if np.any(w < -tol):
-        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue {w.min():.3g}); "
-                         "valid covariances have eigenvalues >= 0")
-    return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]  # (..., dof, dof): columns scaled
-
-
 def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None = None, n_steps: int | None = None) -> np.ndarray:
-    """Noise factors L_t (len(steps), dof, dof) for the timesteps `steps` of one episode.
+    """Noise factors L_t (len(steps), dof, dof), L Lᵀ = Σ_t (`covariance_factor`), for the timesteps
+    `steps` of one episode.
 
     The three noise models, told apart by the form of `sigma`:
-      - isotropic: a scalar σ >= 0 in median steps -> Σ = (σ · median_step)² I  (needs median_step)
-      - pooled:    an array (dof, dof)             -> Σ̄ at every step
-      - per_step:  a pair (timesteps (M,), covs (M, dof, dof)) -> Σ_t from the nearest measured
+      - isotropic: a scalar σ >= 0 in median steps -> Σ = (σ · median_step)² I  (needs median_step, rad)
+      - pooled:    an array (dof, dof), rad²       -> Σ̄^α at every step                (Eqs. (15)-(16))
+      - per_step:  a pair (timesteps (M,), covs (M, dof, dof)) -> Σ^α_t of the nearest measured
                    timestep (calibrate.py measures every other step); or an array (n_steps, dof, dof)
-                   aligned with the episode's steps.
+                   aligned with the episode's steps                                     (Eq. (14))
     """
     steps = np.asarray(steps, dtype=np.int64)
     if isinstance(sigma, tuple):  # per_step with explicit timesteps
-        if len(sigma) != 2:
-            raise ValueError("per-step sigma must be a pair (timesteps (M,), covs (M, dof, dof))")
-        measured_t = np.asarray(sigma[0], dtype=np.int64)
-        covs = np.asarray(sigma[1], dtype=np.float64)
-        if covs.ndim != 3 or covs.shape[1:] != (dof, dof) or measured_t.shape != (len(covs),) or len(covs) == 0:
-            raise ValueError(f"per-step sigma must be timesteps (M,) with covs (M, {dof}, {dof}), M >= 1; "
-                             f"got timesteps {measured_t.shape} and covs {covs.shape}")
+        measured_t, covs = _per_step_pair(sigma, dof)  # (M,), (M, dof, dof)
         order = np.argsort(measured_t, kind="stable")
-        measured_t, covs = measured_t[order], covs[order]
-        # nearest measured timestep (ties -> the earlier one)
+        measured_t, covs = measured_t[order], covs[order]  # nearest measured timestep, ties -> the earlier
         right = np.clip(np.searchsorted(measured_t, steps), 0, len(measured_t) - 1)
         left = np.clip(right - 1, 0, len(measured_t) - 1)
         nearest = np.where(np.abs(measured_t[left] - steps) <= np.abs(measured_t[right] - steps), left, right)
         return covariance_factor(covs)[nearest]
     s = np.asarray(sigma, dtype=np.float64)
-    if s.ndim == 0:  # isotropic baseline
-        if not np.isfinite(s) or s < 0:
-            raise ValueError(f"isotropic sigma must be a finite number >= 0 (in median steps), got {sigma!r}")
-        if median_step is None or not np.isfinite(median_step) or median_step <= 0:
-            raise ValueError(f"isotropic sigma needs a finite positive median_step, got {median_step!r}")
+    if s.ndim == 0:  # isotropic baseline: L = σ m I
+        _check_isotropic(sigma, s, median_step)
         return np.broadcast_to(float(s) * median_step * np.eye(dof), (len(steps), dof, dof))
     if s.shape == (dof, dof):  # pooled
         return np.broadcast_to(covariance_factor(s), (len(steps), dof, dof))
     if s.ndim == 3 and s.shape[1:] == (dof, dof):  # per_step, aligned with the episode
-        if n_steps is not None and len(s) != n_steps:
-            raise ValueError(f"per-step sigma of shape {s.shape} is not aligned with the episode's {n_steps} steps; "
-                             "pass (timesteps, covs) to say which steps the covariances belong to")
+        _check_aligned(s, n_steps)
         return covariance_factor(s)[steps]
     raise ValueError(f"sigma must be a scalar (isotropic), ({dof}, {dof}) (pooled), ({n_steps}, {dof}, {dof}) or "
                      f"(timesteps, covs) (per-step); got shape {s.shape}")
 
 
-def _in_limits(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return np.all((q >= lo) & (q <= hi), axis=-1)
-
-
 def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generator, env, max_tries: int) -> tuple[np.ndarray, np.ndarray]:
-    """q̃ = q_t + L z, z ~ N(0, I) (so q̃ ~ N(q_t, L Lᵀ)) for each row; rows in collision or outside
-    the joint limits are redrawn up to `max_tries` rounds. Returns (q̃ (m, dof), kept (m,) bool).
-    Rejecting (rather than clipping to the limits) keeps the accepted states Gaussian-shaped
-    instead of piling probability mass onto the limit."""
+    """q̃ = q_t + L z, z ~ N(0, I), so q̃ ~ N(q_t, L Lᵀ), per row; rows in collision or off the joint
+    limits are redrawn up to `max_tries` rounds (rejecting, not clipping, keeps the states Gaussian-
+    shaped instead of piling mass onto the limit). Returns (q̃ (m, dof), kept (m,) bool)."""
     lo, hi = (np.asarray(b, dtype=np.float64) for b in env.joint_limits)
     q = center.copy()
     kept = np.zeros(len(center), dtype=bool)
@@ -243,7 +169,7 @@ def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generato
             break
         z = rng.standard_normal((todo.size, center.shape[1]))
         cand = center[todo] + np.einsum("mij,mj->mi", factors[todo], z)  # (m, dof)
-        ok = _in_limits(cand, lo, hi)
+        ok = np.all((cand >= lo) & (cand <= hi), axis=-1)  # inside the joint limits
         if ok.any():
             ok[ok] = ~np.asarray(env.in_collision(cand[ok]), dtype=bool)
         q[todo[ok]] = cand[ok]
@@ -252,51 +178,33 @@ def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generato
     return q, kept
 
 
-def _check_episode(episode: dict) -> tuple[np.ndarray, np.ndarray]:
-    for key in ("q", "expert", "seed"):
-        if key not in episode:
-            raise ValueError(f"episode is missing '{key}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
-    q = np.asarray(episode["q"], dtype=np.float64)
-    expert = np.asarray(episode["expert"], dtype=bool)
-    if q.ndim != 2 or len(q) == 0:
-        raise ValueError(f"episode['q'] must be (T, dof) with T >= 1, got shape {q.shape}")
-    if expert.shape != (len(q),):
-        raise ValueError(f"episode['expert'] must be ({len(q)},) like q, got shape {expert.shape}")
-    return q, expert
-
-
 def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, t_index=None,
                    median_step: float | None = None, horizon: int = 16, max_tries: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode`.
 
     sigma: see `noise_factors` (isotropic scalar in median steps / pooled (dof, dof) / per-step).
-    t_index: None -> t uniform over the steps with a valid label (see `label_steps`); an int -> all
-      n around that step; an array (n,) -> one state around each given step.
-    env: is reset to the episode's scenario (`env.reset(seed=episode['seed'])`) for collision checks.
+    t_index: None -> t uniform over the steps with a valid label (`label_steps`); an int -> all n
+      around that step; an array (n,) -> one state around each given step.
+    env: reset to the episode's scenario (`env.reset(seed=episode['seed'])`) for collision checks.
     Returns (q̃ (m, dof), t (m,)) with m <= n: states still in collision or outside the joint limits
-    after `max_tries` redraws are dropped, so m is the number kept.
+    after `max_tries` draws are dropped.
     """
     q, expert = _check_episode(episode)
-    if not isinstance(n, (int, np.integer)) or n < 0:
-        raise ValueError(f"n must be an integer >= 0, got {n!r}")
+    _check_count(n)
     if t_index is None:
         valid_t, _ = label_steps(expert, horizon)
         if valid_t.size == 0:
             raise ValueError(f"episode has no intervention step with a valid label (expert runs >= H={horizon})")
         t = rng.choice(valid_t, size=n)
     else:
-        t = np.broadcast_to(np.asarray(t_index, dtype=np.int64), (n,)).copy()
-        if t.size and (t.min() < 0 or t.max() >= len(q)):
-            raise ValueError(f"t_index must be in [0, {len(q)}), got range [{t.min()}, {t.max()}]")
+        t = _check_t_index(np.broadcast_to(np.asarray(t_index, dtype=np.int64), (n,)).copy(), len(q))
     factors = noise_factors(sigma, t, q.shape[1], median_step=median_step, n_steps=len(q))
     env.reset(seed=int(episode["seed"]))
     q_tilde, kept = _draw_valid(q[t], np.asarray(factors), rng, env, max_tries)
     return q_tilde[kept], t[kept]
 
 
-# --------------------------------------------------------------------------------------------
-# 3. Monotone closest-point projection
-# --------------------------------------------------------------------------------------------
+# ---- 3. Monotone closest-point projection (Sec. IV-E)
 
 def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: int | None = None, t_end=None):
     """Index of the trajectory point closest to q among t_start <= t < min(t_start + window, t_end).
@@ -305,22 +213,10 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
     associated with step t or later even when an earlier point of the path is closer -- the label
     never tells the robot to go back in time. Ties go to the earliest index.
     q: (B, dof) or (dof,); trajectory (T, dof); t_start, t_end: int or (B,) (t_end exclusive,
-    default T); window: None = no bound. Returns (B,) int64 (or an int for a single q).
+    default T); window: steps, None = no bound. Returns (B,) int64 (or an int for a single q).
     """
-    trajectory = np.asarray(trajectory, dtype=np.float64)
-    q = np.asarray(q, dtype=np.float64)
-    single = q.ndim == 1
-    q = np.atleast_2d(q)
-    if trajectory.ndim != 2 or len(trajectory) == 0 or q.shape[1] != trajectory.shape[1]:
-        raise ValueError(f"trajectory must be (T>=1, dof) matching q (B, dof); got {trajectory.shape} and {q.shape}")
-    B, T = len(q), len(trajectory)
-    t_start = np.broadcast_to(np.asarray(t_start, dtype=np.int64), (B,))
-    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
-    if B and (np.any(t_end > T) or np.any(t_start < 0) or np.any(t_start >= t_end)):
-        raise ValueError(f"need 0 <= t_start < t_end <= T={T}; got t_start in [{t_start.min()}, {t_start.max()}], "
-                         f"t_end in [{t_end.min()}, {t_end.max()}]")
-    if window is not None and window < 1:
-        raise ValueError(f"window must be >= 1 or None, got {window}")
+    # checked arrays: q (B, dof), trajectory (T, dof), t_start (B,), t_end (B,); single: q was (dof,)
+    q, trajectory, t_start, t_end, single = _projection_inputs(q, trajectory, t_start, window, t_end)
     # >>> exercise 8: the monotone closest-point projection (Sec. IV-E)
     width = int((t_end - t_start).max(initial=1))
     if window is not None:
@@ -334,9 +230,7 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
     # <<< exercise 8
 
 
-# --------------------------------------------------------------------------------------------
-# 4. Critically damped PD return chunk
-# --------------------------------------------------------------------------------------------
+# ---- 4. The return chunk: the critically damped PD of Sec. IV-E, and the authors' servo (the default)
 
 def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
     """(Kp, Kd) per step for a critically damped PD on the discrete double integrator
@@ -357,75 +251,29 @@ def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
     # <<< exercise 9
 
 
-def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max_lookahead: int) -> np.ndarray:
-    """The literal reading of Sec. IV-E's target, "a state a few timesteps further in the expert
-    trajectory (computed with the median velocity in the dataset)": L = the steps the demos take at
-    their median speed to cover the gap ‖q0 - q_proj‖, capped at max_lookahead (0 on the path).
-
-    Why it is not the default (RelabelConfig.lookahead): a plain PD chasing a point that advances
-    along the path settles Kd/Kp steps *behind* it, and a lookahead of a few steps is what puts
-    such a PD back on the time-matched point. `pd_return_chunk` has velocity feed-forward and no
-    lag, so its equivalent is lookahead 0 (reference trajectory[t_proj + k]). With L > 0 on top, the
-    arm must gain L steps on an expert that already moves at the speed limit, which it cannot: on
-    oracle demos at σ = 4 the chunk ends were 1.32 median steps from the path against 0.10
-    time-matched (medians; benchmarks/bench_relabel.py).
-    """
-    gap = np.linalg.norm(np.asarray(q0) - np.asarray(q_proj), axis=-1)
-    return np.minimum(np.ceil(gap / median_speed), max_lookahead).astype(np.int64)
-
-
-def _return_chunk_inputs(q0, v0, trajectory, H):
-    """Checked float arrays for a batched return chunk: (trajectory (T, dof), q (B, dof) copy, v (B, dof) copy,
-    single: True if q0 was one state)."""
-    trajectory = np.asarray(trajectory, dtype=np.float64)
-    q = np.asarray(q0, dtype=np.float64)
-    single = q.ndim == 1
-    q = np.atleast_2d(q).copy()
-    B, dof = q.shape
-    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
-    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
-        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive integer, got {H!r}")
-    return trajectory, q, v, single
-
-
 def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, lookahead,
                     accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None) -> np.ndarray:
     """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory.
 
-    The reference at rollout step k is r_k = trajectory[t_proj + lookahead + k] (held at the last
-    point of the segment, index t_end - 1): it starts `lookahead` steps ahead of the projection and
-    advances one index per step, so the chunk REJOINS the trajectory, then follows it. With
-    e_k = q_k - r_k the tracking error and u_k = r_k - r_{k-1} the reference velocity, the control
-    is PD on the error plus the reference's own acceleration as feed-forward,
+    The reference at step k is r_k = trajectory[t_proj + lookahead + k], held at the segment's last
+    point (index t_end - 1): the chunk REJOINS the trajectory, then follows it. With e_k = q_k - r_k
+    and u_k = r_k - r_{k-1}, the control is PD plus the reference's acceleration as feed-forward,
         a_k = -Kp e_k - Kd (v_k - u_k) + (u_{k+1} - u_k),
-    which makes e obey the critically damped map of `critically_damped_gains` exactly (it settles
-    in ~settle_steps, default H/2) as long as the clamps are inactive:
-        |a| <= accel_max (per joint, from the demos), |v| <= max_step (the env's speed limit).
-    The PD is written in cascade form, a = Kd (w* - (v - u)) with closing speed w* = -(Kp/Kd) e
-    (identical in the linear region), so that w* can be capped at √(2 accel_max |e|): the speed
-    from which the clamped deceleration can still stop at the path. Without the cap a saturated PD
-    winds up speed and overshoots the path (in tests/test_relabel.py by 25 % of the initial error,
-    with the cap by 8 %).
-    Units are per step (rad/step, rad/step²). Because |q_{k+1} - q_k| <= max_step, the env executes
-    every target of the chunk exactly.
+    so e obeys the map of `critically_damped_gains` exactly (settling in ~settle_steps, default H/2)
+    while |a| <= accel_max (per joint, the demos') and |v| <= max_step (the env's) are inactive. In
+    cascade form, a = Kd (w* - (v - u)) with closing speed w* = -(Kp/Kd) e, capped at √(2 accel_max |e|)
+    so the clamped deceleration can still stop at the path (without the cap a saturated PD overshot by
+    25 % of the initial error, with it 8 %: tests/test_relabel.py). The paper's target "a state a few
+    timesteps further" is lookahead 0 here: the feed-forward removes the lag a lookahead makes up for.
 
-    q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, lookahead, t_end: int or (B,);
-    limits: optional (lo, hi) joint limits the positions are clipped to.
+    q0, v0: (B, dof) or (dof,) rad, rad/step; trajectory (T, dof); t_proj, lookahead, t_end: int or
+    (B,) steps; accel_max rad/step², max_step rad/step; limits: optional (lo, hi) joint limits.
     Returns the absolute joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
     """
     trajectory, q, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
     B, dof = q.shape
-    accel_max = np.broadcast_to(np.asarray(accel_max, dtype=np.float64), (dof,))
-    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
-    if np.any(~(accel_max > 0)) or np.any(~(max_step > 0)):
-        raise ValueError(f"accel_max and max_step must be > 0 per joint, got {accel_max} and {max_step}")
-    T = len(trajectory)
-    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
-    start = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)) + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,))
-    if B and (np.any(start < 0) or np.any(t_end > T) or np.any(t_end < 1)):
-        raise ValueError(f"need t_proj + lookahead >= 0 and 1 <= t_end <= T={T}")
+    # checked: accel_max, max_step (dof,); start = t_proj + lookahead (B,); t_end (B,), default T
+    accel_max, max_step, start, t_end = _pd_inputs(accel_max, max_step, t_proj, lookahead, t_end, B, dof, len(trajectory))
     # >>> exercise 9: the critically damped PD return chunk, accelerations clamped (Sec. IV-E)
     kp, kd = critically_damped_gains(H / 2 if settle_steps is None else settle_steps)
     # reference r_{-1} .. r_H, held at the segment's last point
@@ -456,24 +304,18 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
 
 def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, median_step: float,
                        acc_p95: float, max_step, t_end=None, limits=None, cfg: RelabelConfig | None = None):
-    """The authors' label (PAPER_SETUP.md §6): a critically damped servo that tracks the expert
-    segment at its own monotone cursor, rolled out from (q0, v0).
+    """The label the training loop uses by default. It follows the authors' code (PAPER_SETUP.md §6),
+    not the paper's text: a critically damped servo tracking the expert segment at its own cursor.
 
-    Every step k the cursor c_k is the monotone projection of the label's own point x_k, searched
-    from c_{k-1} at most `cursor_advance` indices ahead (it starts at t_proj), and the servo pulls
-    toward the expert's position and velocity there:
-        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end)
+    Every step k the cursor c_k is the monotone projection of the label's own point x_k, at most
+    `cursor_advance` indices past c_{k-1} (c starts at t_proj), and with m = median_step:
+        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end),
         a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m),  Kp = a_clamp / max(d0, gain_floor · m),
-        Kd = 2 √Kp  (critical damping; discretized exactly, see below),  d0 = ‖q0 - trajectory[t_proj]‖,
-        m = median_step;
-    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp (a_{-1} = 0),
-    ‖v‖ <= max(speed_cap · m, speed_cap_v0 · ‖v0‖), |v| <= max_step per joint, x within `limits`.
-    (Norm clamps, as the authors'; the per-joint max_step is our env's.) Constants: RelabelConfig,
-    converted from the authors' 30 Hz frames to our steps.
-
-    The held tail: once the cursor is at the segment's last point and the arm has stopped
-    (|x_{k+1} - x_k| < hold_tol · m on every joint) for the rest of the chunk, those steps only
-    repeat the end pose; mask is False there so the training loss ignores them.
+        Kd = 2 √Kp (critical damping),  d0 = ‖q0 - trajectory[t_proj]‖;
+    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m,
+    speed_cap_v0 · ‖v0‖) (the authors' norm clamps), |v| <= max_step per joint, x within `limits`.
+    Held tail: once the cursor is at the segment's end and the arm has stopped (every joint moves
+    < hold_tol · m) for the rest of the chunk, those steps repeat the end pose: mask False, out of the loss.
 
     q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, t_end: int or (B,) (t_end exclusive).
     Returns (chunk (B, H, dof) absolute joint targets x_1 .. x_H, mask (B, H) bool, True = in the
@@ -482,8 +324,7 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
     cfg = cfg or RelabelConfig()
     trajectory, x, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
     B, dof = x.shape
-    if not (median_step > 0 and np.isfinite(acc_p95) and acc_p95 >= 0):
-        raise ValueError(f"need median_step > 0 and acc_p95 >= 0, got {median_step!r} and {acc_p95!r}")
+    _check_servo_stats(median_step, acc_p95)
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
     T = len(trajectory)
     t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
@@ -491,14 +332,11 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
     m = median_step
     norm = lambda a: np.linalg.norm(a, axis=-1, keepdims=True)  # (B, 1)
     cap = lambda a, limit: a * np.minimum(1.0, limit / np.maximum(norm(a), 1e-300))  # ‖a‖ <= limit
-
     a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * acc_p95, cfg.accel_floor * m)  # rad/step²
     d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
     omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
-    # Kd = 2 √Kp (critical damping) in continuous time. Per step (dt = 0.1 s) ω reaches ~1.1, where
-    # Euler with the continuous gains is unstable (the label chattered ±a_clamp every step; at the
-    # authors' 30 Hz ω is 3x smaller). So the double pole is placed exactly at e^{-ω}, as in
-    # `critically_damped_gains`: Kp = (1 - p)², Kd = 1 - p², which tends to (ω², 2ω) as ω -> 0.
+    # Kd = 2 √Kp is unstable under Euler at our ω ~ 1.1 per step (the label chattered; at the authors'
+    # 30 Hz ω is 3x smaller): the double pole is placed at e^{-ω} as in `critically_damped_gains`.
     p = np.exp(-omega)
     kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
     v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
@@ -533,11 +371,10 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
 
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
                       stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None) -> tuple[np.ndarray, np.ndarray]:
-    """The labelling pipeline of Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof)
-    that came from steps t (m,): monotone projection -> return chunk, by `cfg.label`:
-    'servo' (default, the authors', `servo_return_chunk`) or 'pd' (`pd_return_chunk`, with the
-    optional lookahead). `t_end` (m,) is the (exclusive) end of each state's expert segment in
-    `trajectory`; `t_proj` (m,) may pass projections already computed.
+    """The labelling of Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) that came
+    from steps t (m,): monotone projection -> return chunk, by `cfg.label`: 'servo' (default, the
+    authors', `servo_return_chunk`) or 'pd' (`pd_return_chunk`). `t_end` (m,) is the (exclusive) end
+    of each state's expert segment in `trajectory`; `t_proj` (m,) may pass projections already computed.
     Returns (chunks (m, H, dof), mask (m, H) bool, True = in the loss; all True for 'pd')."""
     if t_proj is None:
         t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
@@ -546,20 +383,13 @@ def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray
                                   stats.max_step, t_end=t_end, limits=limits, cfg=cfg)
     if cfg.label != "pd":
         raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {cfg.label!r}")
-    if cfg.lookahead == "time_matched":
-        ahead = 0
-    elif cfg.lookahead == "gap":
-        ahead = lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
-    else:
-        raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {cfg.lookahead!r}")
+    ahead = _pd_lookahead(q_tilde, trajectory, t_proj, stats, cfg)  # 0 (time-matched) unless lookahead='gap'
     chunks = pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, ahead, stats.accel_max, stats.max_step,
                              settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
     return chunks, np.ones(chunks.shape[:2], dtype=bool)
 
 
-# --------------------------------------------------------------------------------------------
-# 5. On-the-fly augmentation for co-training (Sec. IV-A steps 3-4)
-# --------------------------------------------------------------------------------------------
+# ---- 5. On-the-fly augmentation for co-training (Sec. IV-A steps 3-4)
 
 NOISE_KINDS = ("isotropic", "pooled", "per_step")
 
@@ -568,51 +398,28 @@ class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool):
     noised intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
-    noise / sigma (explicit, validated):
-      'isotropic': sigma is a scalar σ in median steps                       (Table I baselines)
-      'pooled':    sigma is Σ̄^α, (dof, dof)                                  (Eqs. 15-16)
-      'per_step':  sigma[e] for episode index e is a pair (timesteps (M,), covs (M, dof, dof)) --
-                   a list aligned with `episodes` or a dict {episode index: pair}; steps without a
-                   measurement use the nearest measured step of the same episode       (Eq. 14)
-    make_env: a no-argument factory (e.g. `lambda: envs.make_env('planar')`); one env per scenario
-      seed is created on demand, reset once to that seed, and cached.
+    noise / sigma: 'isotropic' a scalar σ in median steps (Table I baselines); 'pooled' Σ̄^α (dof, dof)
+      rad² (Eqs. (15)-(16)); 'per_step' (Eq. (14)) sigma[e] for episode index e is a pair (timesteps
+      (M,), covs (M, dof, dof)), in a list aligned with `episodes` or a dict {episode index: pair}.
+    make_env: a no-argument factory (e.g. `lambda: envs.make_env('planar')`); one env per scenario seed.
 
-    A pair is made like this: draw (episode, t) uniformly among the intervention steps with a valid
-    label; q̃ ~ N(q_t, Σ_t) (collision-free, within limits); v = (q_t - q_{t-1}) + N(0, (0.3 m)²)
-    (PAPER_SETUP §6, m = median step); obs = env.make_obs(q̃, q̃ - v) in the episode's scenario;
-    chunk, mask = `corrective_labels` (monotone projection, servo return from (q̃, v)); states that
-    project within `near_end_steps` of the segment's end or whose label is mostly a held tail are
-    redrawn. With image observations
-    (env.image_shape non-empty) the noised state reuses the recorded image of state t, and only the
-    joint positions change: the paper's approximation for its image policy (Sec. V).
-
-    Cost: env calls cost per call, not per state, so pairs are generated in batches grouped by
-    scenario and kept in a pool of `cfg.pool_size` pairs. Each call returns n pairs drawn uniformly
-    from the pool; after every `cfg.reuse * cfg.refresh_size` pairs served, the `cfg.refresh_size`
-    oldest pairs are replaced by fresh ones (from `cfg.episodes_per_refresh` episode draws). So a
-    pair is served `reuse` (= 4) times on average, and with n = 128 a refresh comes every 16 calls
-    (32 fresh pairs per call). Counting pairs rather than calls keeps the cost per served pair the
-    same when several samplers share a batch (one per DAgger round). All randomness comes from the
-    rng passed to each call, so the same seed and call sequence give the same pairs; `state_dict`
-    saves the pool for a resumed training run.
+    A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free,
+    within limits); v = (q_t - q_{t-1}) + N(0, (velocity_noise · m)²); obs = env.make_obs(q̃, q̃ - v) in the
+    episode's scenario (PAPER_SETUP.md §6); chunk, mask = `corrective_labels`. With image observations the
+    noised state reuses the recorded image of state t, only the joints change (the paper's Sec. V).
+    Pairs are made in batches per scenario into a pool (env calls cost per call, not per state); each
+    call draws n from it, and every `reuse * refresh_size` pairs served the oldest `refresh_size` are
+    replaced. All randomness comes from each call's rng: the same seed and calls give the same pairs.
     """
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
                  noise: str, sigma, cfg: RelabelConfig | None = None):
         self.cfg = cfg or RelabelConfig()
         H = self.cfg.horizon
-        if noise not in NOISE_KINDS:
-            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
-        if self.cfg.label not in ("servo", "pd"):
-            raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {self.cfg.label!r}")
-        if self.cfg.lookahead not in ("time_matched", "gap"):
-            raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {self.cfg.lookahead!r}")
-        if self.cfg.refresh_size < 1 or self.cfg.pool_size < self.cfg.refresh_size or not self.cfg.reuse > 0:
-            raise ValueError("need 1 <= refresh_size <= pool_size and reuse > 0, got refresh_size="
-                             f"{self.cfg.refresh_size}, pool_size={self.cfg.pool_size}, reuse={self.cfg.reuse}")
+        _check_sampler_config(noise, self.cfg)
         self.noise, self.stats, self._make_env, self._envs = noise, stats, make_env, {}
-        # One flat table of every labelable intervention step; the expert segments of all episodes
-        # are concatenated into one trajectory array so projection and PD run once for a whole batch.
+        # One flat table of every labelable intervention step; the episodes are concatenated into one
+        # trajectory array so projection and labels run once for a whole batch.
         traj, center, vel, t_glob, end_glob, factors, seeds, ep_of, offset = [], [], [], [], [], [], [], [], 0
         self._episode_obs = [ep["obs"] for ep in episodes]  # recorded images are reused (references, no copy)
         for e, ep in enumerate(episodes):
@@ -623,21 +430,7 @@ class AugmentationSampler:
                 traj.append(q)
                 continue
             dof = q.shape[1]
-            if noise == "isotropic" and np.ndim(sigma) != 0:
-                raise ValueError(f"noise='isotropic' needs a scalar sigma (median steps), got shape {np.shape(sigma)}")
-            if noise == "pooled" and np.shape(sigma) != (dof, dof):
-                raise ValueError(f"noise='pooled' needs sigma of shape ({dof}, {dof}), got {np.shape(sigma)}")
-            if noise == "per_step":
-                try:
-                    per_ep = sigma[e]
-                except (KeyError, IndexError, TypeError):
-                    raise ValueError(f"noise='per_step': no covariances for episode {e}; pass a list aligned with "
-                                     "episodes or a dict {episode index: (timesteps, covs)}") from None
-                if not isinstance(per_ep, tuple):
-                    raise ValueError(f"noise='per_step': sigma[{e}] must be a pair (timesteps, covs)")
-                factors.append(noise_factors(per_ep, t, dof))
-            else:
-                factors.append(noise_factors(sigma, t, dof, median_step=stats.median_step))
+            factors.append(noise_factors(_episode_sigma(noise, sigma, e, dof), t, dof, median_step=stats.median_step))
             prev = q[np.maximum(t - 1, 0)]  # at t = 0 the arm starts at rest (q_prev = q)
             traj.append(q)
             center.append(q[t])
@@ -664,16 +457,61 @@ class AugmentationSampler:
         self._filled = self._write = self._served = 0  # pool fill, ring position, served since refresh
         self.n_drawn = self.n_kept = 0  # acceptance bookkeeping (collision / limit rejections)
 
-    def _env(self, seed: int):
-        if seed not in self._envs:
-            env = self._make_env()
-            env.reset(seed=seed)
-            self._envs[seed] = env
-        return self._envs[seed]
+    def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """m fresh pairs (fewer if states were dropped): obs (m', obs_dim) float32, chunks (m', H, dof)
+        float32, mask (m', H) bool (True = in the loss). Rows are labelled by `_label_rows`, and those it
+        rejects are redrawn up to `max_redraws` times (PAPER_SETUP.md §6; `_label_with_redraws`)."""
+        if not isinstance(m, (int, np.integer)) or m < 1:
+            raise ValueError(f"m must be a positive integer, got {m!r}")
+        rows = _draw_rows(self, m, rng)  # (m,) rows of the table, uniform over the labelable steps
+        self.n_drawn += m
+        r, q_tilde, v, chunks, mask = _label_with_redraws(self, rows, rng)
+        self.n_kept += r.size
+        if r.size == 0:
+            dof = self.center.shape[1]
+            return (np.empty((0, 0), np.float32), np.empty((0, self.cfg.horizon, dof), np.float32),
+                    np.empty((0, self.cfg.horizon), bool))
+        return self._observe(r, q_tilde, v), chunks.astype(np.float32), mask
+
+    def _label_rows(self, rows: np.ndarray, rng: np.random.Generator, limits):
+        """One pass of the pipeline over table rows (m,). Returns (r, q̃, v, chunks, mask) of the pairs
+        made, and the rows to redraw: those projecting within `near_end_steps` of their segment's end, or
+        whose label has fewer than `min_moving_steps` unmasked steps. Rows whose state stays in collision
+        / off limits for `max_tries` draws are dropped."""
+        cfg, dof = self.cfg, self.center.shape[1]
+        q_tilde, kept = np.empty((len(rows), dof)), np.zeros(len(rows), dtype=bool)
+        for seed in np.unique(self.seeds[rows]):  # q̃ ~ N(q_t, Σ_t): one batched collision check per scenario
+            sel = self.seeds[rows] == seed
+            q_tilde[sel], kept[sel] = _draw_valid(self.center[rows[sel]], self.factors[rows[sel]], rng,
+                                                  self._env(int(seed)), cfg.max_tries)
+        r, q_tilde = rows[kept], q_tilde[kept]  # states still invalid after max_tries are dropped
+        # PAPER_SETUP.md §6: velocity = demo tangent + N(0, (velocity_noise · median_step)²) per joint
+        v = self.velocity[r] + cfg.velocity_noise * self.stats.median_step * rng.standard_normal(q_tilde.shape)
+        t_proj = monotone_projection(q_tilde, self.trajectory, self.t_glob[r], window=cfg.projection_window,
+                                     t_end=self.end_glob[r])
+        ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
+        chunks, mask = corrective_labels(q_tilde[ok], v[ok], self.trajectory, self.t_glob[r[ok]],
+                                         self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok])
+        moving = mask.sum(axis=1) >= cfg.min_moving_steps  # enough steps left in the loss
+        ok[ok] = moving
+        return (r[ok], q_tilde[ok], v[ok], chunks[moving], mask[moving]), r[~ok]
+
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """n pairs from the pool (diffusion.train's sampler hook): obs (n, obs_dim), chunks (n, H, dof),
+        mask (n, H) bool (True = in the loss). Fills the pool on the first call."""
+        _check_count(n)
+        if self._filled == 0:  # first call
+            _fill_pool(self, rng)
+        elif self._served >= self.cfg.reuse * self.cfg.refresh_size:
+            _refresh_pool(self, rng)
+            self._served = 0
+        self._served += n
+        pick = rng.integers(self._filled, size=n)
+        return self._pool_obs[pick], self._pool_chunks[pick], self._pool_mask[pick]
 
     def _observe(self, rows: np.ndarray, q_tilde: np.ndarray, v: np.ndarray) -> np.ndarray:
         """obs (m, obs_dim) float32 of noised states, one batched env call per scenario. The previous
-        frame is rebuilt as q̃ - v (PAPER_SETUP §6); make_obs recomputes the end effector from q̃."""
+        frame is rebuilt as q̃ - v (PAPER_SETUP.md §6); make_obs recomputes the end effector from q̃."""
         obs = None
         for seed in np.unique(self.seeds[rows]):
             sel = self.seeds[rows] == seed
@@ -690,133 +528,34 @@ class AugmentationSampler:
             obs[sel] = part
         return obs
 
-    def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """m fresh pairs (fewer if some states were dropped): obs (m', obs_dim) float32, chunks
-        (m', H, dof) float32, mask (m', H) bool (True = in the loss). Episodes are drawn first
-        (probability proportional to their number of labelable steps, so steps are uniform overall),
-        then steps within them. A state is dropped when it stays in collision / outside the limits
-        for `max_tries` draws; it is redrawn (up to `max_redraws` times, PAPER_SETUP §6) when it
-        projects within `near_end_steps` of its segment's end or its label has fewer than
-        `min_moving_steps` unmasked steps."""
-        if not isinstance(m, (int, np.integer)) or m < 1:
-            raise ValueError(f"m must be a positive integer, got {m!r}")
-        cfg, dof = self.cfg, self.center.shape[1]
-        k = min(cfg.episodes_per_refresh, m)
-        draws = rng.choice(len(self._ep_ids), size=k, p=self._ep_count / self._ep_count.sum())
-        per_draw = np.full(k, m // k)
-        per_draw[: m % k] += 1
-        todo = np.concatenate([self._ep_start[d] + rng.integers(self._ep_count[d], size=c) for d, c in zip(draws, per_draw)])
-        limits = self._env(int(self.seeds[todo[0]])).joint_limits
-        out_rows, out_q, out_v, out_chunks, out_mask = [], [], [], [], []
-        self.n_drawn += m
-        for _ in range(cfg.max_redraws + 1):
-            if todo.size == 0:
-                break
-            q_tilde, kept = np.empty((len(todo), dof)), np.zeros(len(todo), dtype=bool)
-            for seed in np.unique(self.seeds[todo]):  # one batched collision check per scenario
-                sel = self.seeds[todo] == seed
-                q_tilde[sel], kept[sel] = _draw_valid(self.center[todo[sel]], self.factors[todo[sel]], rng,
-                                                      self._env(int(seed)), cfg.max_tries)
-            r, q_tilde = todo[kept], q_tilde[kept]  # states still invalid after max_tries are dropped
-            # PAPER_SETUP §6: velocity = demo tangent + N(0, (velocity_noise · median_step)²) per joint
-            v = self.velocity[r] + cfg.velocity_noise * self.stats.median_step * rng.standard_normal(q_tilde.shape)
-            t_proj = monotone_projection(q_tilde, self.trajectory, self.t_glob[r], window=cfg.projection_window,
-                                         t_end=self.end_glob[r])
-            ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
-            chunks, mask = corrective_labels(q_tilde[ok], v[ok], self.trajectory, self.t_glob[r[ok]],
-                                             self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok])
-            moving = mask.sum(axis=1) >= cfg.min_moving_steps  # enough steps left in the loss
-            ok[ok] = moving
-            out_rows.append(r[ok]), out_q.append(q_tilde[ok]), out_v.append(v[ok])
-            out_chunks.append(chunks[moving]), out_mask.append(mask[moving])
-            todo = r[~ok]  # redraw these
-        r = np.concatenate(out_rows)
-        self.n_kept += r.size
-        if r.size == 0:
-            return (np.empty((0, 0), np.float32), np.empty((0, cfg.horizon, dof), np.float32),
-                    np.empty((0, cfg.horizon), bool))
-        obs = self._observe(r, np.concatenate(out_q), np.concatenate(out_v))
-        return obs, np.concatenate(out_chunks).astype(np.float32), np.concatenate(out_mask)
-
-    def _refresh(self, rng: np.random.Generator) -> int:
-        obs, chunks, mask = self.generate(self.cfg.refresh_size, rng)
-        if self._pool_obs is None and len(obs):
-            P = self.cfg.pool_size
-            self._pool_obs = np.empty((P, obs.shape[1]), np.float32)
-            self._pool_chunks = np.empty((P, *chunks.shape[1:]), np.float32)
-            self._pool_mask = np.empty((P, chunks.shape[1]), bool)
-        if len(obs):  # ring buffer: overwrite the oldest pairs
-            slots = (self._write + np.arange(len(obs))) % self.cfg.pool_size
-            self._pool_obs[slots], self._pool_chunks[slots], self._pool_mask[slots] = obs, chunks, mask
-            self._write = int((self._write + len(obs)) % self.cfg.pool_size)
-            self._filled = min(self.cfg.pool_size, self._filled + len(obs))
-        return len(obs)
+    def _env(self, seed: int):  # one env per scenario seed, reset once
+        if seed not in self._envs:
+            env = self._make_env()
+            env.reset(seed=seed)
+            self._envs[seed] = env
+        return self._envs[seed]
 
     def state_dict(self) -> dict:
-        """The pool and its counters, so a resumed training run can continue with the same pairs
-        (the rng is the caller's and is restored by the caller)."""
-        copy = lambda a: None if a is None else a.copy()
-        return {"pool_obs": copy(self._pool_obs), "pool_chunks": copy(self._pool_chunks),
-                "pool_mask": copy(self._pool_mask), "filled": self._filled,
-                "write": self._write, "served": self._served, "n_drawn": self.n_drawn, "n_kept": self.n_kept}
+        """The pool and its counters, for a resumed training run (the caller restores its rng)."""
+        return _sampler_state(self)  # beyond the banner, as the loader
 
     def load_state_dict(self, state: dict) -> None:
-        copy = lambda a, dtype: None if a is None else np.array(a, dtype=dtype)
-        self._pool_obs, self._pool_chunks = copy(state["pool_obs"], np.float32), copy(state["pool_chunks"], np.float32)
-        self._pool_mask = copy(state.get("pool_mask"), bool)
-        if self._pool_mask is None and self._pool_chunks is not None:  # a pool saved before masks existed
-            self._pool_mask = np.ones(self._pool_chunks.shape[:2], dtype=bool)
-        self._filled, self._write, self._served = int(state["filled"]), int(state["write"]), int(state["served"])
-        self.n_drawn, self.n_kept = int(state["n_drawn"]), int(state["n_kept"])
-
-    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """n pairs from the pool (diffusion.train's sampler hook): obs (n, obs_dim), chunks (n, H, dof),
-        mask (n, H) bool (True = in the loss). Fills the pool on the first call."""
-        if not isinstance(n, (int, np.integer)) or n < 0:
-            raise ValueError(f"n must be an integer >= 0, got {n!r}")
-        if self._filled == 0:  # first call: fill the pool (bounded number of attempts)
-            for _ in range(4 * self.cfg.pool_size // self.cfg.refresh_size):
-                self._refresh(rng)
-                if self._filled >= self.cfg.pool_size:
-                    break
-            if self._filled == 0:
-                raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
-                                 f"{self.cfg.max_tries} tries, or too near its segment's end after "
-                                 f"{self.cfg.max_redraws} redraws; the noise ({self.noise}) is too large for these scenarios")
-        elif self._served >= self.cfg.reuse * self.cfg.refresh_size:
-            self._refresh(rng)
-            self._served = 0
-        self._served += n
-        pick = rng.integers(self._filled, size=n)
-        return self._pool_obs[pick], self._pool_chunks[pick], self._pool_mask[pick]
+        _load_sampler_state(self, state)
 
 
-# --------------------------------------------------------------------------------------------
-# 6. Fig. 1: expert trajectory, policy-calibrated noise ellipses, sampled recovery trajectories
-# --------------------------------------------------------------------------------------------
-
-def _ee_jacobian(env, q: np.ndarray, eps: float = 1e-5) -> np.ndarray:
-    """Central-difference Jacobian of the end effector, (B, dim, dof), through the batched env.ee."""
-    B, dof = q.shape
-    offsets = eps * np.eye(dof)
-    plus = env.ee((q[:, None, :] + offsets[None]).reshape(-1, dof))  # (B*dof, dim)
-    minus = env.ee((q[:, None, :] - offsets[None]).reshape(-1, dof))
-    jac = (plus - minus).reshape(B, dof, -1) / (2 * eps)  # (B, dof, dim)
-    return np.swapaxes(jac, 1, 2)
-
+# ---- 6. Fig. 1: expert trajectory, policy-calibrated noise ellipses, sampled recovery trajectories
 
 def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator, stats: DemoStats,
                   cfg: RelabelConfig | None = None, n_recoveries: int = 6, n_ellipses: int = 6) -> str:
-    """The paper's Fig. 1 on the planar env: the expert (intervention) end-effector path in blue,
-    2-σ ellipses of the policy-calibrated noise pushed to the end-effector plane through the fk
-    Jacobian (J Σ_t Jᵀ), and sampled recovery trajectories (end-effector paths of PD return chunks
-    from noised states) in orange. Left: the whole scene; right: a close-up of the noised stretch.
-    sigma as in `noise_factors`. Saves a PNG to `path` and returns it."""
+    """The paper's Fig. 1: the expert (intervention) end-effector path in blue, 2σ ellipses of the
+    policy-calibrated noise pushed through the end-effector Jacobian (J Σ_t Jᵀ), and sampled recovery
+    trajectories (end-effector paths of return chunks from noised states) in orange; left the scene,
+    right a close-up of a fan of returns from one state. A 3-D env (env.dim == 3) is drawn in its top
+    view (x, y in m) with the goal as a marker; the arm only on a planar env (`render(ax)` draws in the
+    plane). sigma as in `noise_factors`. Saves a PNG to `path` and returns it."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Ellipse, Patch
 
     cfg = cfg or RelabelConfig()
     q, expert = _check_episode(episode)
@@ -826,14 +565,15 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     seg = valid_t[seg_end == seg_end[0]]  # labelable steps of the first intervention segment
     end = int(seg_end[0])
     env.reset(seed=int(episode["seed"]))
+    top_view = getattr(env, "dim", 2) == 3
+    xy = lambda qs: env.ee(qs)[:, :2]  # (B, 2) end effector in the drawn plane (x, y)
 
-    # noise ellipses: Σ_t in joint space -> J Σ_t Jᵀ in the end-effector plane
+    def cov_at(ts):  # (n, dof, dof): the joint covariances Σ_t at steps ts
+        f = noise_factors(sigma, ts, q.shape[1], median_step=stats.median_step, n_steps=len(q))
+        return f @ np.swapaxes(f, 1, 2)
+
+
     ell_t = seg[np.linspace(0, len(seg) - 1, min(n_ellipses, len(seg))).round().astype(int)]  # a handful
-    factors = noise_factors(sigma, ell_t, q.shape[1], median_step=stats.median_step, n_steps=len(q))
-    cov_q = factors @ np.swapaxes(factors, 1, 2)  # (n, dof, dof)
-    jac = _ee_jacobian(env, q[ell_t])  # (n, dim, dof)
-    cov_ee = jac @ cov_q @ np.swapaxes(jac, 1, 2)  # (n, 2, 2)
-    centers = env.ee(q[ell_t])
     # recovery trajectories from noised states at evenly spread steps of the segment, and a fan of them
     # from one state in the middle (the close-up)
     mid = int(seg[len(seg) // 2])
@@ -843,51 +583,356 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
                                 median_step=stats.median_step, horizon=cfg.horizon, max_tries=cfg.max_tries)
     v = q[t] - q[np.maximum(t - 1, 0)]
     chunks, _ = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
-    recoveries = [env.ee(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each
-    expert_ee = env.ee(q[seg[0]:end])
+    recoveries = [xy(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each
 
     env.set_state(q[seg[0]])  # the arm is drawn where the intervention starts
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
     for ax in axes:
-        env.render(ax, alpha=0.35)  # the arm faded: the path, noise and returns are the message
-        for c, cv in zip(centers, cov_ee):
-            w, vec = np.linalg.eigh(cv)
-            angle = np.degrees(np.arctan2(vec[1, 1], vec[0, 1]))
-            ax.add_patch(Ellipse(c, 4 * np.sqrt(max(w[1], 0)), 4 * np.sqrt(max(w[0], 0)), angle=angle,
-                                 facecolor="tab:blue", alpha=0.2, edgecolor="tab:blue", lw=0.6))
+        if top_view:  # the goal and the arm's base as markers
+            ax.plot(*env.goal[:2], "*", color="tab:green", ms=14, zorder=3)
+            ax.plot(*env.fk(q[:1])[0, 0, :2], "s", color="k", ms=6)
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+        else:
+            env.render(ax, alpha=0.35)  # the arm faded: the path, noise and returns are the message
+        env.draw_noise_ellipses(ax, q[ell_t], cov_at(ell_t), "tab:blue", alpha=0.2)
         for rec in recoveries:
             ax.plot(rec[:, 0], rec[:, 1], color="tab:orange", lw=1.3)
             ax.plot(rec[0, 0], rec[0, 1], "o", color="tab:orange", ms=3)
-        ax.plot(expert_ee[:, 0], expert_ee[:, 1], color="tab:blue", lw=2.0)
+        ax.plot(*xy(q[seg[0]:end]).T, color="tab:blue", lw=2.0)
         ax.set_aspect("equal")
-    # close-up: the fan of returns from the middle state and the path a chunk either side of it
-    reach = cfg.horizon
+    # close-up: the fan of returns from the middle state, its ellipse, the path a chunk either side of it
+    env.draw_noise_ellipses(axes[1], q[mid:mid + 1], cov_at(np.array([mid])), "tab:blue", alpha=0.2)
     fan = [rec for rec, ti in zip(recoveries, t) if ti == mid]
-    mid_ell = env.ee(q[mid:mid + 1])[0]
-    jm = _ee_jacobian(env, q[mid:mid + 1])
-    fm = noise_factors(sigma, np.array([mid]), q.shape[1], median_step=stats.median_step, n_steps=len(q))
-    cov_mid = (jm @ (fm @ np.swapaxes(fm, 1, 2)) @ np.swapaxes(jm, 1, 2))[0]
-    w, vec = np.linalg.eigh(cov_mid)
-    axes[1].add_patch(Ellipse(mid_ell, 4 * np.sqrt(max(w[1], 0)), 4 * np.sqrt(max(w[0], 0)),
-                              angle=np.degrees(np.arctan2(vec[1, 1], vec[0, 1])), facecolor="tab:blue", alpha=0.2,
-                              edgecolor="tab:blue", lw=0.6))
-    box = np.concatenate([env.ee(q[max(mid - reach // 2, seg[0]):min(mid + reach + 1, end)]), *fan])
-    radius = 2 * np.sqrt(max(w.max(), 0))
-    lo, hi = box.min(0) - radius, box.max(0) + radius
-    half = 0.5 * max(hi - lo) * 1.1  # a square window keeps the aspect ratio equal
-    axes[1].set_xlim((lo + hi)[0] / 2 - half, (lo + hi)[0] / 2 + half)
-    axes[1].set_ylim((lo + hi)[1] / 2 - half, (lo + hi)[1] / 2 + half)
-    axes[0].legend(handles=[Line2D([], [], color="tab:blue", lw=2, label="expert intervention (end effector)"),
-                            Patch(facecolor="tab:blue", alpha=0.2, label="policy-calibrated noise (2σ)"),
-                            Line2D([], [], color="tab:orange", label="sampled recovery trajectories")],
-                   loc="lower left", fontsize=8)
-    axes[0].set_title("scene")
-    axes[1].set_title("close-up")
+    near = xy(q[max(mid - cfg.horizon // 2, seg[0]):min(mid + cfg.horizon + 1, end)])
+    jac = env.ee_jacobian(q[mid:mid + 1])[0, :2]  # (2, dof)
+    radius = 2 * np.sqrt(max(np.linalg.eigvalsh(jac @ cov_at(np.array([mid]))[0] @ jac.T).max(), 0))  # 2σ, m
+    _square_window(axes[1], np.concatenate([near, *fan]), radius)
+    if top_view:  # the scene: the path, the goal and the base (render sets the planar env's window)
+        _square_window(axes[0], np.concatenate([xy(q[seg[0]:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]]), 0.05)
+    _fig1_legend(fig, top_view)
+    axes[0].set_title("scene (top view)" if top_view else "scene")
+    axes[1].set_title("close-up (top view)" if top_view else "close-up")
     fig.suptitle("Policy-calibrated noise around an intervention and the return labels (paper Fig. 1)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+
+# ---- the literal lookahead of Sec. IV-E, measured worse than the time-matched target -------------
+
+def lookahead_steps(q0: np.ndarray, q_proj: np.ndarray, median_speed: float, max_lookahead: int) -> np.ndarray:
+    """The literal reading of Sec. IV-E's target, "a state a few timesteps further in the expert
+    trajectory (computed with the median velocity in the dataset)": L = the steps the demos take at
+    their median speed (rad/step) to cover the gap ‖q0 - q_proj‖ (rad), capped at max_lookahead
+    steps (0 on the path).
+
+    Why it is not the default (RelabelConfig.lookahead): a plain PD chasing a point that advances
+    along the path settles Kd/Kp steps *behind* it, and a lookahead of a few steps is what puts
+    such a PD back on the time-matched point. `pd_return_chunk` has velocity feed-forward and no
+    lag, so its equivalent is lookahead 0 (reference trajectory[t_proj + k]). With L > 0 on top, the
+    arm must gain L steps on an expert that already moves at the speed limit, which it cannot: on
+    oracle demos at σ = 4 the chunk ends were 1.32 median steps from the path against 0.10
+    time-matched (medians; benchmarks/bench_relabel.py).
+    """
+    gap = np.linalg.norm(np.asarray(q0) - np.asarray(q_proj), axis=-1)
+    return np.minimum(np.ceil(gap / median_speed), max_lookahead).astype(np.int64)
+
+
+def _pd_lookahead(q_tilde, trajectory, t_proj, stats: DemoStats, cfg: RelabelConfig):
+    """The 'pd' label's lookahead in steps: 0 for 'time_matched', `lookahead_steps` for 'gap'."""
+    if cfg.lookahead == "time_matched":
+        return 0
+    if cfg.lookahead == "gap":
+        return lookahead_steps(q_tilde, trajectory[t_proj], stats.median_speed, cfg.max_lookahead)
+    raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {cfg.lookahead!r}")
+
+
+# ---- Fig. 1's close-up window and legend --------------------------------------------------------
+
+def _square_window(ax, points: np.ndarray, margin: float) -> None:
+    """Square limits (so the equal aspect ratio fills the panel) around points (N, 2) plus a margin, m."""
+    lo, hi = points.min(0) - margin, points.max(0) + margin
+    half = 0.5 * max(hi - lo) * 1.1
+    ax.set_xlim((lo + hi)[0] / 2 - half, (lo + hi)[0] / 2 + half)
+    ax.set_ylim((lo + hi)[1] / 2 - half, (lo + hi)[1] / 2 + half)
+
+
+def _fig1_legend(fig, goal_marker: bool) -> None:
+    """Fig. 1's legend, below the panels (outside the data)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    handles = [Line2D([], [], color="tab:blue", lw=2, label="expert intervention (end effector)"),
+               Patch(facecolor="tab:blue", alpha=0.2, label="policy-calibrated noise (2σ)"),
+               Line2D([], [], color="tab:orange", label="sampled recovery trajectories")]
+    if goal_marker:
+        handles += [Line2D([], [], marker="*", color="tab:green", ls="", ms=10, label="goal"),
+                    Line2D([], [], marker="s", color="k", ls="", ms=6, label="arm base")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+
+
+# ---- the sampler's machinery: episodes-first draws, redraws, the pool (a ring buffer), resume --------
+
+def _draw_rows(sampler: AugmentationSampler, m: int, rng: np.random.Generator) -> np.ndarray:
+    """m rows of the sampler's table, uniform over the labelable steps, drawn episodes first: k episodes
+    with probability proportional to their labelable steps, then steps within them, so that a batch
+    touches at most k = episodes_per_refresh scenarios (env calls are batched per scenario)."""
+    k = min(sampler.cfg.episodes_per_refresh, m)
+    draws = rng.choice(len(sampler._ep_ids), size=k, p=sampler._ep_count / sampler._ep_count.sum())
+    per_draw = np.full(k, m // k)
+    per_draw[: m % k] += 1
+    return np.concatenate([sampler._ep_start[d] + rng.integers(sampler._ep_count[d], size=c)
+                           for d, c in zip(draws, per_draw)])
+
+
+def _label_with_redraws(sampler: AugmentationSampler, rows: np.ndarray, rng: np.random.Generator):
+    """`_label_rows`, then again on the rows it asks to redraw, at most `max_redraws` times; the pairs
+    of all passes concatenated: (r (m',), q̃ (m', dof), v (m', dof), chunks (m', H, dof), mask (m', H))."""
+    limits = sampler._env(int(sampler.seeds[rows[0]])).joint_limits
+    parts = []
+    for _ in range(sampler.cfg.max_redraws + 1):
+        if rows.size == 0:
+            break
+        part, rows = sampler._label_rows(rows, rng, limits)
+        parts.append(part)
+    return tuple(np.concatenate(x) for x in zip(*parts))
+
+
+def _fill_pool(sampler: AugmentationSampler, rng: np.random.Generator) -> None:
+    """The first call's fill of the pool (a bounded number of refreshes)."""
+    cfg = sampler.cfg
+    for _ in range(4 * cfg.pool_size // cfg.refresh_size):
+        _refresh_pool(sampler, rng)
+        if sampler._filled >= cfg.pool_size:
+            break
+    if sampler._filled == 0:
+        raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
+                         f"{cfg.max_tries} tries, or too near its segment's end after "
+                         f"{cfg.max_redraws} redraws; the noise ({sampler.noise}) is too large for these scenarios")
+
+
+def _refresh_pool(sampler: AugmentationSampler, rng: np.random.Generator) -> int:
+    """Replace the `refresh_size` oldest pairs of the pool by fresh ones; returns how many were made."""
+    obs, chunks, mask = sampler.generate(sampler.cfg.refresh_size, rng)
+    if sampler._pool_obs is None and len(obs):
+        P = sampler.cfg.pool_size
+        sampler._pool_obs = np.empty((P, obs.shape[1]), np.float32)
+        sampler._pool_chunks = np.empty((P, *chunks.shape[1:]), np.float32)
+        sampler._pool_mask = np.empty((P, chunks.shape[1]), bool)
+    if len(obs):  # ring buffer: overwrite the oldest pairs
+        slots = (sampler._write + np.arange(len(obs))) % sampler.cfg.pool_size
+        sampler._pool_obs[slots], sampler._pool_chunks[slots], sampler._pool_mask[slots] = obs, chunks, mask
+        sampler._write = int((sampler._write + len(obs)) % sampler.cfg.pool_size)
+        sampler._filled = min(sampler.cfg.pool_size, sampler._filled + len(obs))
+    return len(obs)
+
+
+def _sampler_state(sampler: AugmentationSampler) -> dict:
+    copy = lambda a: None if a is None else a.copy()
+    return {"pool_obs": copy(sampler._pool_obs), "pool_chunks": copy(sampler._pool_chunks),
+            "pool_mask": copy(sampler._pool_mask), "filled": sampler._filled,
+            "write": sampler._write, "served": sampler._served, "n_drawn": sampler.n_drawn, "n_kept": sampler.n_kept}
+
+
+def _load_sampler_state(sampler: AugmentationSampler, state: dict) -> None:
+    copy = lambda a, dtype: None if a is None else np.array(a, dtype=dtype)
+    sampler._pool_obs, sampler._pool_chunks = copy(state["pool_obs"], np.float32), copy(state["pool_chunks"], np.float32)
+    sampler._pool_mask = copy(state.get("pool_mask"), bool)
+    if sampler._pool_mask is None and sampler._pool_chunks is not None:  # a pool saved before masks existed
+        sampler._pool_mask = np.ones(sampler._pool_chunks.shape[:2], dtype=bool)
+    sampler._filled, sampler._write, sampler._served = int(state["filled"]), int(state["write"]), int(state["served"])
+    sampler.n_drawn, sampler.n_kept = int(state["n_drawn"]), int(state["n_kept"])
+
+
+# ---- the noise factor L (L Lᵀ = Σ) of a covariance, robust to singular Σ̂ ------------------------
+
+def covariance_factor(cov: np.ndarray) -> np.ndarray:
+    """L with L Lᵀ = Σ for a batch of covariances (..., dof, dof).
+
+    An eigendecomposition rather than a Cholesky: Σ̂ from a handful of policy samples is often
+    (near-)singular -- a flat ellipse -- where Cholesky fails. Eigenvalues negative only by round-off
+    are set to 0; clearly negative ones mean the matrix is not a covariance (ValueError).
+    """
+    cov = _check_covariance(cov)  # (..., dof, dof) float64, finite and symmetric
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    tol = 1e-9 * np.maximum(np.abs(w).max(axis=-1, keepdims=True), 1e-300)
+    if np.any(w < -tol):
+        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue {w.min():.3g}); "
+                         "valid covariances have eigenvalues >= 0")
+    return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]  # (..., dof, dof): columns scaled
+
+
+# ---- input checks ---------------------------------------------------------------------------------
+
+def _check_episode(episode: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(q (T, dof) float64, expert (T,) bool) of an episode, checked."""
+    for key in ("q", "expert", "seed"):
+        if key not in episode:
+            raise ValueError(f"episode is missing '{key}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
+    q = np.asarray(episode["q"], dtype=np.float64)
+    expert = np.asarray(episode["expert"], dtype=bool)
+    if q.ndim != 2 or len(q) == 0:
+        raise ValueError(f"episode['q'] must be (T, dof) with T >= 1, got shape {q.shape}")
+    if expert.shape != (len(q),):
+        raise ValueError(f"episode['expert'] must be ({len(q)},) like q, got shape {expert.shape}")
+    return q, expert
+
+
+def _check_clamps(accel_max: np.ndarray, max_step) -> np.ndarray:
+    """demo_stats' clamps, checked > 0: the demos' accelerations (dof,) rad/step² and the env's speed
+    limit (scalar or (dof,) rad/step), returned as a (dof,) array."""
+    if np.any(accel_max <= 0):
+        raise ValueError(f"the demonstrations show no acceleration on joints {np.flatnonzero(accel_max <= 0).tolist()}; "
+                         "the PD return could never move them (accel clamp would be 0)")
+    dof = accel_max.shape[0]
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,)).copy()
+    if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
+        raise ValueError(f"max_step must be positive and finite (rad/step), got {max_step}")
+    return max_step
+
+
+def _check_covariance(cov) -> np.ndarray:
+    """cov as float64 (..., dof, dof), checked square, finite and symmetric (relative tolerance)."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
+        raise ValueError(f"a covariance must be (..., dof, dof), got shape {cov.shape}")
+    if not np.all(np.isfinite(cov)):
+        raise ValueError("covariance contains NaN or inf; valid covariances are finite")
+    scale = float(np.abs(cov).max(initial=0.0))  # relative tolerances: covariances are ~1e-4 rad²
+    if np.abs(cov - np.swapaxes(cov, -1, -2)).max(initial=0.0) > 1e-8 * scale:
+        raise ValueError("covariance is not symmetric; valid covariances satisfy Σ = Σᵀ")
+    return cov
+
+
+def _per_step_pair(sigma: tuple, dof: int) -> tuple[np.ndarray, np.ndarray]:
+    """A per-step sigma (timesteps (M,), covs (M, dof, dof)) as int64 / float64 arrays, checked."""
+    if len(sigma) != 2:
+        raise ValueError("per-step sigma must be a pair (timesteps (M,), covs (M, dof, dof))")
+    measured_t = np.asarray(sigma[0], dtype=np.int64)
+    covs = np.asarray(sigma[1], dtype=np.float64)
+    if covs.ndim != 3 or covs.shape[1:] != (dof, dof) or measured_t.shape != (len(covs),) or len(covs) == 0:
+        raise ValueError(f"per-step sigma must be timesteps (M,) with covs (M, {dof}, {dof}), M >= 1; "
+                         f"got timesteps {measured_t.shape} and covs {covs.shape}")
+    return measured_t, covs
+
+
+def _check_isotropic(sigma, s: np.ndarray, median_step) -> None:
+    if not np.isfinite(s) or s < 0:
+        raise ValueError(f"isotropic sigma must be a finite number >= 0 (in median steps), got {sigma!r}")
+    if median_step is None or not np.isfinite(median_step) or median_step <= 0:
+        raise ValueError(f"isotropic sigma needs a finite positive median_step (rad), got {median_step!r}")
+
+
+def _check_demo_inputs(median_step: float, accel_percentile: float) -> None:
+    if not np.isfinite(median_step) or median_step <= 0:
+        raise ValueError(f"median_step must be a finite positive number (rad), got {median_step!r}")
+    if not 0 < accel_percentile <= 100:
+        raise ValueError(f"accel_percentile must be in (0, 100], got {accel_percentile!r}")
+
+
+def _check_count(n) -> None:
+    if not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"n must be an integer >= 0, got {n!r}")
+
+
+def _check_t_index(t: np.ndarray, T: int) -> np.ndarray:
+    if t.size and (t.min() < 0 or t.max() >= T):
+        raise ValueError(f"t_index must be in [0, {T}), got range [{t.min()}, {t.max()}]")
+    return t
+
+
+def _check_aligned(s: np.ndarray, n_steps: int | None) -> None:
+    if n_steps is not None and len(s) != n_steps:
+        raise ValueError(f"per-step sigma of shape {s.shape} is not aligned with the episode's {n_steps} steps; "
+                         "pass (timesteps, covs) to say which steps the covariances belong to")
+
+
+def _projection_inputs(q, trajectory, t_start, window, t_end):
+    """monotone_projection's inputs as checked arrays: (q (B, dof), trajectory (T, dof), t_start (B,),
+    t_end (B,) default T, single: True if q was one state)."""
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    single = q.ndim == 1
+    q = np.atleast_2d(q)
+    if trajectory.ndim != 2 or len(trajectory) == 0 or q.shape[1] != trajectory.shape[1]:
+        raise ValueError(f"trajectory must be (T>=1, dof) matching q (B, dof); got {trajectory.shape} and {q.shape}")
+    B, T = len(q), len(trajectory)
+    t_start = np.broadcast_to(np.asarray(t_start, dtype=np.int64), (B,))
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    if B and (np.any(t_end > T) or np.any(t_start < 0) or np.any(t_start >= t_end)):
+        raise ValueError(f"need 0 <= t_start < t_end <= T={T}; got t_start in [{t_start.min()}, {t_start.max()}], "
+                         f"t_end in [{t_end.min()}, {t_end.max()}]")
+    if window is not None and window < 1:
+        raise ValueError(f"window must be >= 1 or None, got {window}")
+    return q, trajectory, t_start, t_end, single
+
+
+def _pd_inputs(accel_max, max_step, t_proj, lookahead, t_end, B: int, dof: int, T: int):
+    """pd_return_chunk's clamps and indices, checked: (accel_max (dof,) rad/step², max_step (dof,) rad/step,
+    start = t_proj + lookahead (B,), t_end (B,) default T)."""
+    accel_max = np.broadcast_to(np.asarray(accel_max, dtype=np.float64), (dof,))
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
+    if np.any(~(accel_max > 0)) or np.any(~(max_step > 0)):
+        raise ValueError(f"accel_max and max_step must be > 0 per joint, got {accel_max} and {max_step}")
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    start = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)) + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,))
+    if B and (np.any(start < 0) or np.any(t_end > T) or np.any(t_end < 1)):
+        raise ValueError(f"need t_proj + lookahead >= 0 and 1 <= t_end <= T={T}")
+    return accel_max, max_step, start, t_end
+
+
+def _check_servo_stats(median_step: float, acc_p95: float) -> None:
+    if not (median_step > 0 and np.isfinite(acc_p95) and acc_p95 >= 0):
+        raise ValueError(f"need median_step > 0 and acc_p95 >= 0, got {median_step!r} and {acc_p95!r}")
+
+
+def _return_chunk_inputs(q0, v0, trajectory, H):
+    """Checked float arrays for a batched return chunk: (trajectory (T, dof), q (B, dof) copy, v (B, dof) copy,
+    single: True if q0 was one state)."""
+    trajectory = np.asarray(trajectory, dtype=np.float64)
+    q = np.asarray(q0, dtype=np.float64)
+    single = q.ndim == 1
+    q = np.atleast_2d(q).copy()
+    B, dof = q.shape
+    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
+    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
+        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive integer, got {H!r}")
+    return trajectory, q, v, single
+
+
+def _check_sampler_config(noise: str, cfg: RelabelConfig) -> None:
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+    if cfg.label not in ("servo", "pd"):
+        raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {cfg.label!r}")
+    if cfg.lookahead not in ("time_matched", "gap"):
+        raise ValueError(f"RelabelConfig.lookahead must be 'time_matched' or 'gap', got {cfg.lookahead!r}")
+    if cfg.refresh_size < 1 or cfg.pool_size < cfg.refresh_size or not cfg.reuse > 0:
+        raise ValueError("need 1 <= refresh_size <= pool_size and reuse > 0, got refresh_size="
+                         f"{cfg.refresh_size}, pool_size={cfg.pool_size}, reuse={cfg.reuse}")
+
+
+def _episode_sigma(noise: str, sigma, e: int, dof: int):
+    """The sigma of episode e for AugmentationSampler, checked against the noise kind."""
+    if noise == "isotropic" and np.ndim(sigma) != 0:
+        raise ValueError(f"noise='isotropic' needs a scalar sigma (median steps), got shape {np.shape(sigma)}")
+    if noise == "pooled" and np.shape(sigma) != (dof, dof):
+        raise ValueError(f"noise='pooled' needs sigma of shape ({dof}, {dof}), got {np.shape(sigma)}")
+    if noise != "per_step":
+        return sigma
+    try:
+        per_ep = sigma[e]
+    except (KeyError, IndexError, TypeError):
+        raise ValueError(f"noise='per_step': no covariances for episode {e}; pass a list aligned with "
+                         "episodes or a dict {episode index: (timesteps, covs)}") from None
+    if not isinstance(per_ep, tuple):
+        raise ValueError(f"noise='per_step': sigma[{e}] must be a pair (timesteps, covs)")
+    return per_ep
 
 
 if __name__ == "__main__":

@@ -1,13 +1,14 @@
 """Tests for relabel.py (paper Sec. IV-E): PD return chunks, monotone projection, noised states,
 the three noise models, the augmentation sampler and Fig. 1.
 
-Most tests use FakeEnv, a small test double of the CONTRACT env interface (joint-space ball
+Most tests use FakeEnv, a small test double of the env interface of envs.py (joint-space ball
 obstacles, planar 3-link forward kinematics), so they run in milliseconds and the collision region
-is known exactly. The tests at the end run against the real envs.PlanarReacher when it exists.
+is known exactly. The tests at the end run against the real envs.PlanarReacher and EngineReach3D.
 """
 import numpy as np
 import pytest
 
+import envs
 import relabel
 from relabel import (AugmentationSampler, RelabelConfig, corrective_labels, covariance_factor,
                      critically_damped_gains, demo_stats, label_steps, lookahead_steps,
@@ -17,10 +18,13 @@ DOF = 3
 
 
 class FakeEnv:
-    """Test double of the CONTRACT env: 3 joints, limits ±π, speed limit 0.05 rad/step. The
+    """Test double of the env interface: 3 joints, limits ±π, speed limit 0.05 rad/step. The
     obstacle is a ball in joint space (radius `radius`) whose centre depends on the scenario seed,
-    so collision checks are exact and cheap. Links of length 1 for fk/ee."""
-    dof, obs_dim, max_step, max_steps, dt = DOF, 2 * DOF + 2, 0.05, 200, 0.1
+    so collision checks are exact and cheap. Links of length 1 for fk/ee; the Jacobian and the noise
+    ellipses are the real envs' (the same maths on this fk)."""
+    dof, obs_dim, max_step, max_steps, dt, dim = DOF, 2 * DOF + 2, 0.05, 200, 0.1, 2
+    ee_jacobian = envs.PlanarReacher.ee_jacobian
+    draw_noise_ellipses = envs.PlanarReacher.draw_noise_ellipses
 
     def __init__(self, radius=0.1, center_fn=None):
         self.radius = radius
@@ -584,7 +588,6 @@ PLANAR_SEEDS = (4, 13, 30)  # scenarios where that straight path is >= 60 steps 
 
 @pytest.fixture(scope="module")
 def planar():
-    import envs
     env = envs.make_env("planar")
     eps = [envs.straight_line_episode(env, s) for s in PLANAR_SEEDS]
     st = demo_stats(eps, envs.median_step(eps), env.max_step)
@@ -643,6 +646,19 @@ def test_planar_fig1(planar, tmp_path):
     assert (tmp_path / "fig1.png").stat().st_size > 20_000
 
 
+def test_fig1_on_the_3d_env_writes_a_png(tmp_path):
+    """Fig. 1 on EngineReach3D: drawn in the top view (x, y) with env.draw_noise_ellipses in the plane
+    (0, 1); EngineReach3D.render would show a camera image, so no arm is drawn."""
+    env = envs.make_env("engine3d")
+    eps = [envs.straight_line_episode(env, s) for s in (3, 5)]  # 55 and 32 expert steps
+    st = demo_stats(eps, envs.median_step(eps), env.max_step)
+    path = tmp_path / "fig1_3d.png"
+    out = relabel.plot_recovery(env, eps[0], np.diag([3.0, 2.0, 2.0, 1.5, 1.5, 1.5]) ** 2 * st.median_step ** 2,
+                                str(path), np.random.default_rng(0), st)
+    assert out == str(path) and path.stat().st_size > 20_000
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_sampler_state_dict_resumes_the_same_stream(stats):
     a, _ = make_sampler(stats)
     rng = np.random.default_rng(9)
@@ -690,7 +706,6 @@ def test_corrective_labels_lookahead_modes(stats):
 def test_sampler_reuses_the_recorded_image_for_noised_states():
     """Sec. V: with image observations a noised state keeps the original state's image; only the joint
     positions (and the labels) change. The image part of every pair is a recorded one, not a new render."""
-    import envs
     make = lambda: envs.make_env("engine3d", image_obs=True, image_size=8)
     env = make()
     episodes = [envs.straight_line_episode(env, seed, expert_from=2) for seed in (3, 4)]
