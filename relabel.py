@@ -302,73 +302,6 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     # <<< exercise 9
 
 
-def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, median_step: float,
-                       acc_p95: float, max_step, t_end=None, limits=None, cfg: RelabelConfig | None = None):
-    """The label the training loop uses by default. It follows the authors' code (PAPER_SETUP.md §6),
-    not the paper's text: a critically damped servo tracking the expert segment at its own cursor.
-
-    Every step k the cursor c_k is the monotone projection of the label's own point x_k, at most
-    `cursor_advance` indices past c_{k-1} (c starts at t_proj), and with m = median_step:
-        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end),
-        a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m),  Kp = a_clamp / max(d0, gain_floor · m),
-        Kd = 2 √Kp (critical damping),  d0 = ‖q0 - trajectory[t_proj]‖;
-    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m,
-    speed_cap_v0 · ‖v0‖) (the authors' norm clamps), |v| <= max_step per joint, x within `limits`.
-    Held tail: once the cursor is at the segment's end and the arm has stopped (every joint moves
-    < hold_tol · m) for the rest of the chunk, those steps repeat the end pose: mask False, out of the loss.
-
-    q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, t_end: int or (B,) (t_end exclusive).
-    Returns (chunk (B, H, dof) absolute joint targets x_1 .. x_H, mask (B, H) bool, True = in the
-    loss); (H, dof) and (H,) for a single q0.
-    """
-    cfg = cfg or RelabelConfig()
-    trajectory, x, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
-    B, dof = x.shape
-    _check_servo_stats(median_step, acc_p95)
-    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
-    T = len(trajectory)
-    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
-    cursor = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)).copy()
-    m = median_step
-    norm = lambda a: np.linalg.norm(a, axis=-1, keepdims=True)  # (B, 1)
-    cap = lambda a, limit: a * np.minimum(1.0, limit / np.maximum(norm(a), 1e-300))  # ‖a‖ <= limit
-    a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * acc_p95, cfg.accel_floor * m)  # rad/step²
-    d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
-    omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
-    # Kd = 2 √Kp is unstable under Euler at our ω ~ 1.1 per step (the label chattered; at the authors'
-    # 30 Hz ω is 3x smaller): the double pole is placed at e^{-ω} as in `critically_damped_gains`.
-    p = np.exp(-omega)
-    kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
-    v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
-    v = np.minimum(np.maximum(v, -max_step), max_step)
-    a_prev = np.zeros((B, dof))
-    chunk = np.empty((B, H, dof))
-    held = np.zeros((B, H), dtype=bool)
-    for k in range(H):
-        # the servo's own monotone cursor: project x_k, never back, at most cursor_advance ahead
-        cursor = monotone_projection(x, trajectory, cursor, window=cfg.cursor_advance + 1, t_end=t_end)
-        at_end = cursor >= t_end - 1
-        ref = trajectory[cursor]  # (B, dof)
-        ref_vel = trajectory[np.minimum(cursor + 1, t_end - 1)] - ref  # (B, dof), 0 at the end
-        a = kp * (ref - x) + kd * (ref_vel - v)  # PD on position and velocity error
-        a = cap(a, a_clamp)  # accelerations of the demo envelope
-        a = a_prev + cap(a - a_prev, cfg.jerk_slew * a_clamp)  # bounded jerk (slew)
-        a_prev = a
-        v = cap(v + a, v_cap)  # speed cap
-        v = np.minimum(np.maximum(v, -max_step), max_step)  # the env's per-joint speed limit
-        x_next = x + v
-        if limits is not None:
-            x_next = np.minimum(np.maximum(x_next, limits[0]), limits[1])
-            v = x_next - x  # a joint stopped by its limit has stopped moving
-        held[:, k] = at_end & (np.abs(x_next - x).max(axis=1) < cfg.hold_tol * m)
-        x = x_next
-        chunk[:, k] = x
-    # the held tail: steps from which on every step is held; (B, H), True = in the loss
-    tail = np.flip(np.logical_and.accumulate(np.flip(held, axis=1), axis=1), axis=1)
-    mask = ~tail
-    return (chunk[0], mask[0]) if single else (chunk, mask)
-
-
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
                       stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None) -> tuple[np.ndarray, np.ndarray]:
     """The labelling of Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) that came
@@ -621,6 +554,76 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
 
 
 # ==== Beyond the paper (safe to skip) ====================================================
+
+# ---- the authors' clamped servo: the label the loop uses by default ------------------------------
+# From their code (PAPER_SETUP.md §6), not the paper's text. The paper's PD return is pd_return_chunk above (exercise 9); RelabelConfig(label='pd') uses it.
+
+def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, median_step: float,
+                       acc_p95: float, max_step, t_end=None, limits=None, cfg: RelabelConfig | None = None):
+    """The label the training loop uses by default. It follows the authors' code (PAPER_SETUP.md §6),
+    not the paper's text: a critically damped servo tracking the expert segment at its own cursor.
+
+    Every step k the cursor c_k is the monotone projection of the label's own point x_k, at most
+    `cursor_advance` indices past c_{k-1} (c starts at t_proj), and with m = median_step:
+        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end),
+        a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m),  Kp = a_clamp / max(d0, gain_floor · m),
+        Kd = 2 √Kp (critical damping),  d0 = ‖q0 - trajectory[t_proj]‖;
+    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m,
+    speed_cap_v0 · ‖v0‖) (the authors' norm clamps), |v| <= max_step per joint, x within `limits`.
+    Held tail: once the cursor is at the segment's end and the arm has stopped (every joint moves
+    < hold_tol · m) for the rest of the chunk, those steps repeat the end pose: mask False, out of the loss.
+
+    q0, v0: (B, dof) or (dof,); trajectory (T, dof); t_proj, t_end: int or (B,) (t_end exclusive).
+    Returns (chunk (B, H, dof) absolute joint targets x_1 .. x_H, mask (B, H) bool, True = in the
+    loss); (H, dof) and (H,) for a single q0.
+    """
+    cfg = cfg or RelabelConfig()
+    trajectory, x, v, single = _return_chunk_inputs(q0, v0, trajectory, H)
+    B, dof = x.shape
+    _check_servo_stats(median_step, acc_p95)
+    max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
+    T = len(trajectory)
+    t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
+    cursor = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)).copy()
+    m = median_step
+    norm = lambda a: np.linalg.norm(a, axis=-1, keepdims=True)  # (B, 1)
+    cap = lambda a, limit: a * np.minimum(1.0, limit / np.maximum(norm(a), 1e-300))  # ‖a‖ <= limit
+    a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * acc_p95, cfg.accel_floor * m)  # rad/step²
+    d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
+    omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
+    # Kd = 2 √Kp is unstable under Euler at our ω ~ 1.1 per step (the label chattered; at the authors'
+    # 30 Hz ω is 3x smaller): the double pole is placed at e^{-ω} as in `critically_damped_gains`.
+    p = np.exp(-omega)
+    kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
+    v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
+    v = np.minimum(np.maximum(v, -max_step), max_step)
+    a_prev = np.zeros((B, dof))
+    chunk = np.empty((B, H, dof))
+    held = np.zeros((B, H), dtype=bool)
+    for k in range(H):
+        # the servo's own monotone cursor: project x_k, never back, at most cursor_advance ahead
+        cursor = monotone_projection(x, trajectory, cursor, window=cfg.cursor_advance + 1, t_end=t_end)
+        at_end = cursor >= t_end - 1
+        ref = trajectory[cursor]  # (B, dof)
+        ref_vel = trajectory[np.minimum(cursor + 1, t_end - 1)] - ref  # (B, dof), 0 at the end
+        a = kp * (ref - x) + kd * (ref_vel - v)  # PD on position and velocity error
+        a = cap(a, a_clamp)  # accelerations of the demo envelope
+        a = a_prev + cap(a - a_prev, cfg.jerk_slew * a_clamp)  # bounded jerk (slew)
+        a_prev = a
+        v = cap(v + a, v_cap)  # speed cap
+        v = np.minimum(np.maximum(v, -max_step), max_step)  # the env's per-joint speed limit
+        x_next = x + v
+        if limits is not None:
+            x_next = np.minimum(np.maximum(x_next, limits[0]), limits[1])
+            v = x_next - x  # a joint stopped by its limit has stopped moving
+        held[:, k] = at_end & (np.abs(x_next - x).max(axis=1) < cfg.hold_tol * m)
+        x = x_next
+        chunk[:, k] = x
+    # the held tail: steps from which on every step is held; (B, H), True = in the loss
+    tail = np.flip(np.logical_and.accumulate(np.flip(held, axis=1), axis=1), axis=1)
+    mask = ~tail
+    return (chunk[0], mask[0]) if single else (chunk, mask)
+
 
 # ---- the literal lookahead of Sec. IV-E, measured worse than the time-matched target -------------
 
