@@ -556,7 +556,8 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
 # ==== Beyond the paper (safe to skip) ====================================================
 
 # ---- the authors' clamped servo: the label the loop uses by default ------------------------------
-# From their code (PAPER_SETUP.md §6), not the paper's text. The paper's PD return is pd_return_chunk above (exercise 9); RelabelConfig(label='pd') uses it.
+# From their code (PAPER_SETUP.md §6), not the paper's text. The paper's PD return is pd_return_chunk
+# above (exercise 9); RelabelConfig(label='pd') uses it.
 
 def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, median_step: float,
                        acc_p95: float, max_step, t_end=None, limits=None, cfg: RelabelConfig | None = None):
