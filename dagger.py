@@ -66,15 +66,9 @@ METHOD_LABELS = {
 
 @dataclass
 class Config:
-    name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
+    # --- the paper's experiment (Sec. V; the authors' values in PAPER_SETUP.md) ---
     env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II)
-    image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
-    #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
-    image_size: int = 32  # pixels of the square camera image (with image_obs)
-    seed: int = 0  # master seed; every stage derives its own seed from it
-    device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
-    methods: tuple = TABLE_I_METHODS  # methods compared (BC and HG-DAgger always run: others pair with them)
-    # --- data ---
+    methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
@@ -83,23 +77,16 @@ class Config:
     # and records interventions on the rest, so the evaluation scenarios enter the training data; or
     # 'train', the stricter variant -- episodes_per_round fresh training scenarios.
     collect_on: str = "eval"
-    episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
-    oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
-    # --- policy and training ---
     # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
     # runs at 10 Hz by default (envs.PlanarConfig.dt): the same seconds are 20 and 10 steps.
-    horizon: int = 20  # H, actions per chunk (paper: interventions shorter than H are discarded)
-    n_act: int = 10  # actions executed per chunk before the policy is asked again
+    horizon: int = 20  # steps: H, actions per chunk (interventions shorter than H are discarded, Sec. IV-C)
+    n_act: int = 10  # steps: actions executed per chunk before the policy is asked again
     K: int = 100  # diffusion steps (the authors: 100, all of them at inference)
     down_dims: tuple = (64, 128, 256)  # channels of the epsilon U-Net's levels (the authors: 128, 256, 512)
-    joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
-    #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
     bc_steps: int = 75_000  # BC training steps (paper: pi_0 = BC's 75k checkpoint)
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
-    batch_size: int = 256
-    lr: float = 1e-3
-    finetune_lr: float | None = None  # peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
-    #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
+    batch_size: int = 256  # (state, chunk) pairs per training step
+    lr: float = 1e-3  # peak learning rate
     # The authors' co-training (PAPER_SETUP.md §2): every fine-tuning batch is D0 and, in exactly this share,
     # intervention frames, split equally over rounds 1..k; the noised methods noise every intervention frame
     # they draw (relabel.AugmentationSampler) and never D0.
@@ -107,14 +94,25 @@ class Config:
     # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
-    # --- calibration (Sec. IV-D) ---
-    calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
-    calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4)
+    calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4; Sec. IV-D)
     calib_rollouts_per_beta: int = 1  # blended rollouts per blend ratio (paper: 1; see calibrate.CalibrationConfig)
-    # --- evaluation (Sec. V) ---
-    eval_scenarios: int = 100  # the fixed held-out scenarios
+    eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
     tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
+    # --- not in the paper ---
+    name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
+    image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
+    #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
+    image_size: int = 32  # pixels of the square camera image (with image_obs)
+    seed: int = 0  # master seed; every stage derives its own seed from it
+    device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
+    episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
+    oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
+    joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
+    #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
+    finetune_lr: float | None = None  # peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
+    #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
+    calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
 
     def __post_init__(self):
         self.methods = tuple(self.methods)
