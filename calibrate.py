@@ -1,38 +1,30 @@
-"""Policy calibration: how much noise does the policy itself make? (paper Sec. II-A and IV-D)
+"""Policy calibration: how much noise does the policy itself make? (paper Sec. III-A and IV-D)
 
-DART (Sec. II-A) picks the noise of its augmentation from two statistics of the policy:
+DART (Sec. III-A) picks the noise of its augmentation from two statistics of the policy:
 
     Eq. (1)  Sigma_hat = 1/T E sum_t (pi_theta(s_t) - pi*(s_t)) (pi_theta(s_t) - pi*(s_t))^T
     Eq. (2)  Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat
 
-The paper measures both offline, without an expert in the loop (Sec. IV-D):
+The paper measures both offline, without an expert in the loop (Sec. IV-D). In this file, in order:
 
-1. `open_loop_sigma` - Sigma_hat_t of Eq. (1) at every other step of the recorded expert data: the
-   policy sees the recorded observation, samples action chunks, and the n_act actions it would
-   execute are compared with the expert's future actions (Fig. 2a).
-2. `blend_rollouts` - closed-loop rollouts in the simulator where each chunk is partial-denoised
-   toward the expert at blend ratio beta (Sec. IV-B). The expert chunk is found by a monotone
-   cursor on the expert segment (`advance_cursor`: the nearest expert state in a window, never
-   back, at most one index per step), so a rollout that moves at another pace is still compared
-   with where it is on the path. Its settling error x is the RMS distance to the nearest expert
-   state over a fixed window of steps; a rollout is discarded if that distance ever reaches the
-   divergence threshold or it is too short (`settling_error`, Fig. 2b).
-3. `equilibrium`, `fit_equilibrium`, `bootstrap_W` - Eq. (12), x = W s / (s + r (1 - s)) against
-   s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, fitted for the policy's settling error W and the gain
-   ratio r = K*/K_theta, with a bootstrap interval for W (Fig. 4).
-4. `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) turns Eq. (2) into
-   Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t (Eq. 14, Fig. 2c) and its pooled form
-   Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
-5. `closed_loop_sigma` - Table I's "closed-loop pooled" variant (our reading; see its docstring).
-6. `calibrate` - all of the above for one DAgger round, returned as a JSON-serializable
-   `Calibration`; `sigma_in_median_steps` reports it in the paper's units (3.9-5.1 median steps
-   per joint on the planar env, Sec. V).
+1. `open_loop_sigma` - Sigma_hat_t of Eq. (1) at every other step of the expert data, open loop (Fig. 2a).
+2. `blend_rollouts` - closed-loop rollouts partial-denoised toward the expert (Sec. IV-B) at 13 blend
+   ratios beta; `settling_error` - how far each settles from the expert's path (Fig. 2b).
+3. `equilibrium`, `fit_equilibrium` - Eqs. (8)-(12), x = W s / (s + r (1 - s)) at s = sigma^2_{k_sw},
+   fitted for the policy's settling error W and the gain ratio r = K*/K_theta (Fig. 4).
+4. `dart_alpha`, `dart_sigma`, `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) in
+   Eq. (2) gives Sigma^alpha_t (Eq. 14, Fig. 2c) and the pooled Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
+5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`.
+6. Figures: `plot_method_overview` (Fig. 2) and `plot_blend_fit` (Fig. 4).
 
-Figures: `plot_method_overview` (Fig. 2 panels a-d) and `plot_blend_fit` (Fig. 4).
+Beyond the paper (after the banner): the fit's robust refinement, W's bootstrap interval and cap,
+the batched closed-loop simulator behind the rollouts (with the authors' monotone time matching),
+and Table I's "closed-loop pooled" variant (`closed_loop_sigma`).
 
-Units: joint deviations, W and every covariance are in radians (rad^2), so `relabel.py` can draw
-states from them directly; reports and figures divide by the median per-step joint displacement
-of the base demonstrations (`envs.median_step`), the paper's "median step size".
+Units: joint deviations, W and covariances in radians (rad^2), so relabel.py draws states from them
+directly; step counts in env steps (0.1 s). `diverge_threshold`, reports and figures are in median
+steps, the median per-step joint displacement of the base demos (`envs.median_step`, the paper's
+"median step size"); functions that take the threshold in radians call it `diverge_rad`.
 """
 
 from __future__ import annotations
@@ -54,58 +46,44 @@ from partial_denoise import noise_fraction, partial_denoise
 
 @dataclass
 class CalibrationConfig:
-    """The authors' protocol (PAPER_SETUP.md Sec. 5), converted from their 30 Hz to our env's 10 Hz
-    (envs dt = 0.1 s): a count of their frames becomes a third as many of our steps."""
-    stride: int = 2                      # Sigma_hat_t at every other valid step (paper Fig. 2a; authors: every other frame)
+    """Sec. IV-D as the authors ran it (PAPER_SETUP.md Sec. 5), converted from their 30 Hz to our
+    env's 10 Hz (envs dt = 0.1 s): a count of their frames becomes a third as many of our steps."""
+    stride: int = 2                      # steps: Sigma_hat_t at every other valid step (Fig. 2a)
     n_samples: int = 4                   # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
-    n_act: int = 10                      # actions executed per decision, and compared in Eq. (1): the authors
-                                         # execute 32 frames of a chunk (~1.07 s) = 10.7 steps, our H = 20 chunks run 10
-    betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each (Sec. IV-D)
-    rollouts_per_beta: int = 1           # the paper rolls out each ratio once. A weak policy's rollouts at the larger
-                                         # ratios diverge and are discarded, leaving few points and a W that swings
-                                         # with the seed; more rollouts per ratio steady it
-    blend_segments: int = 4              # blend rollouts start from this many of the longest expert segments
-                                         # (beta i from segment i mod n): long, so that they settle; several,
-                                         # so that W is not one intervention's idiosyncrasy
-    settle_window: int = 16              # the nearest expert state is searched within this many steps around
-                                         # the cursor (authors: 48 frames / 3 = 16 steps)
-    settle_start: int = 13               # settling error = RMS over steps [settle_start, settle_end] of a rollout
-    settle_end: int = 40                 # (authors: frames 40-120 / 3 = steps 13-40): after the transient
-    diverge_threshold: float = 15.0      # a rollout whose nearest-state distance ever reaches this many median
-                                         # steps has left the expert's route: discarded (authors: 15 median steps;
-                                         # median steps are per step, so the number does not change with the rate)
-    min_rollout_steps: int = 20          # rollouts that recorded fewer steps are discarded (authors: 60 frames / 3)
-    discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop:
-                                         # in these narrow passages nearly all of them do)
-    bootstrap: int = 200                 # resamples of the kept (s, x) points for W's 95 % interval (authors: bootstrap)
-    bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
+    n_act: int = 10                      # steps executed per decision, and compared in Eq. (1) (authors: 32 frames)
+    betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each
+    settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
+    settle_start: int = 13               # steps: settling error = RMS over steps [settle_start, settle_end] of
+    settle_end: int = 40                 # a rollout, after the transient (authors: frames 40-120)
+    diverge_threshold: float = 15.0      # median steps: a rollout whose nearest-state distance reaches this has
+                                         # diverged and is discarded (authors: 15; per step, so rate-independent)
+    min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
     closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
+    # not in the paper
+    rollouts_per_beta: int = 1           # rollouts per ratio (paper: 1); more keep a weak policy's W steady
+    blend_segments: int = 4              # blend rollouts start from the n longest expert segments (long: they
+                                         # settle; several: W is not one intervention's idiosyncrasy)
+    discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop)
+    bootstrap: int = 200                 # resamples of the kept (s, x) for W's 95 % interval (authors' code)
+    bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
     closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
 
 
 # ----------------------------------------------------------------------------------------------
-# Helpers: intervention segments, label starts, expert chunks
+# Helpers: expert segments, label starts, expert chunks
 # ----------------------------------------------------------------------------------------------
 
 def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
-    """The expert runs [start, end) that can label chunks of `horizon` steps (diffusion.expert_runs, the
-    paper's label rule): a demonstration gives one (the whole episode), an intervention episode one per
-    intervention of at least `horizon` steps."""
+    """The expert runs [start, end) that can label chunks of `horizon` steps (the label rule in
+    diffusion.expert_runs): a demonstration gives one (the whole episode), an intervention episode
+    one per intervention of at least `horizon` steps."""
     return expert_runs(episode["expert"], horizon)
 
 
-def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
-    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
-    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
-    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
-
-
 def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label.
-
-    diffusion.label_mask, the rule the training data uses.
-    """
+    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask, the rule
+    the training data uses)."""
     return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
 
 
@@ -125,13 +103,6 @@ def policy_horizon(policy) -> int:
     return int(policy.cfg.horizon)
 
 
-def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
-    """policy.sample over rows of obs in slices of at most max_batch rows."""
-    parts = [policy.sample(obs[i:i + max_batch], generator=generator)
-             for i in range(0, len(obs), max_batch)]
-    return np.concatenate(parts, axis=0)                                    # (B, H, dof)
-
-
 # ----------------------------------------------------------------------------------------------
 # Step 1: open-loop Sigma_hat_t along the expert data (Eq. 1)
 # ----------------------------------------------------------------------------------------------
@@ -149,19 +120,12 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
                     n_act: int | None = None) -> StepCovariances:
     """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
 
-    At step t the policy sees the recorded observation obs[t] and samples `n_samples` chunks; with
-    d = sampled chunk - expert chunk actions[t:t+H] over the first n_act (executed) steps (n_act, dof),
-
-        Sigma_hat_t = mean over samples and executed chunk steps of d d^T     (dof, dof)
-
-    Only the executed steps count, as in the authors' protocol: the rest of a chunk is re-planned
-    before it runs, so its error never reaches the robot. n_act defaults to policy.cfg.n_act (all H
-    steps for a policy without one).
-
-    This is DART's Eq. (1) with expectation over the policy's sampling noise: it is *uncentered*
-    (the mean error is included, as in Eq. (1), which compares with the expert action, not with the
-    policy's mean). Like the paper, states come from the clean expert data instead of from noised
-    expert rollouts, so no simulator is needed. All steps go through few batched policy.sample calls.
+    At step t the policy samples `n_samples` chunks from the recorded observation obs[t]; with d =
+    sampled chunk - expert chunk actions[t:t+H] over the first n_act steps, Sigma_hat_t = the mean
+    of d d^T over samples and steps (dof, dof). Only the executed steps count (authors' protocol: the
+    rest of a chunk is re-planned before it runs); n_act defaults to policy.cfg.n_act (else H).
+    Uncentered, as Eq. (1) compares with the expert, not with the policy's mean. As in the paper the
+    states are the clean expert data's, not noised rollouts', so no simulator is needed.
     """
     if stride < 1 or n_samples < 1:
         raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
@@ -195,8 +159,583 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
 
 
 # ----------------------------------------------------------------------------------------------
-# Step 2: closed-loop rollouts guided toward the expert (blended trajectories)
+# Step 2: closed-loop rollouts blended toward the expert by partial denoising, their settling error
 # ----------------------------------------------------------------------------------------------
+
+@dataclass
+class BlendRollouts:
+    """Blended rollouts and the points (s, x) they give for the fit of Eq. (12)."""
+    betas: np.ndarray           # (B,) blend ratios
+    s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
+    x: np.ndarray               # (B,) settling error (radians, nearest-state distance)
+    kept: np.ndarray            # (B,) False for discarded rollouts (diverged, too short; or touched, if discard_collisions)
+    rollouts: Rollouts
+
+
+def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationConfig.n_act,
+                   generator: torch.Generator | None = None, diverge_rad: float = 0.4,
+                   segment: tuple[int, int] | None = None, discard_collisions: bool = False,
+                   cfg: CalibrationConfig | None = None) -> BlendRollouts:
+    """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
+
+    From the segment's first state (default: the episode's longest expert segment) every decision
+    calls partial_denoise(policy, obs, expert chunk at the cursor, beta) and executes the first
+    n_act actions. Rollouts whose nearest-state distance reaches diverge_rad (radians: the
+    divergence threshold times the median step; 0.4 is about 15 median steps of the planar oracle
+    demos) or that record fewer than cfg.min_rollout_steps steps are not kept ("we discard the
+    blended trajectories that diverge"); contacts only with discard_collisions (see `_closed_loop`).
+    """
+    H = policy_horizon(policy)
+    if segment is None:
+        segments = expert_segments(episode, H)
+        if not segments:
+            raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {H} steps")
+        segment = max(segments, key=lambda se: se[1] - se[0])
+    betas = np.asarray(betas, dtype=np.float64).reshape(-1)
+    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_rad,
+                  discard_collisions, cfg)
+
+
+def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_rad: float,
+           discard_collisions: bool = False, cfg: CalibrationConfig | None = None) -> BlendRollouts:
+    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians)."""
+    cfg = cfg or CalibrationConfig()
+    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
+        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
+
+    def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
+        return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
+
+    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_rad,
+                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps)
+    # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
+    # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
+    s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
+    x = settling_error(roll, cfg.settle_start, cfg.settle_end)
+    return BlendRollouts(betas, s, x, ~roll.discarded, roll)
+
+
+def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
+                   settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
+    """x of Eq. (12) per rollout: sqrt(mean_t e_t^2) over the recorded steps t in [settle_start,
+    settle_end] (the steps before are the transient toward the blend's equilibrium), e_t = distance
+    (rad) from q_t to the nearest expert state around the rollout's cursor (`advance_cursor`). A
+    rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps, for
+    the figure. Norm, not per joint: see `fit_equilibrium`.
+    """
+    if rollouts.nearest_error is None:
+        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
+    x = np.zeros(len(rollouts.n_recorded))
+    for b, n in enumerate(rollouts.n_recorded):
+        e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
+        if len(e) == 0:
+            e = rollouts.nearest_error[b, 1:n + 1]
+        if len(e):
+            x[b] = math.sqrt(float(np.mean(e ** 2)))
+    return x
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 3: the equilibrium of expert and policy (Eqs. 8-12) and its fit for W
+# ----------------------------------------------------------------------------------------------
+
+def equilibrium(s, W, r):
+    """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* at noise fraction s (Eq. 8).
+
+    With u* = K* (-x) (Eq. 9), u_theta = K_theta (W - x) (Eq. 10) and u = 0 (Eq. 11):
+    x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
+    """
+    s = np.asarray(s, dtype=np.float64)
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if not r > 0:
+        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    # Eq. (12): x = W s / (s + r (1 - s))
+    return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
+    # <<< exercise 6
+
+
+@dataclass
+class EquilibriumFit:
+    W: float                    # settling error of the unguided policy (same units as x)
+    r: float                    # gain ratio K*/K_theta
+    n_points: int               # points used
+    rms_residual: float         # RMS of x - equilibrium(s, W, r) over the points used
+
+
+def _best_W(s, x, w, r):
+    """For each r in r (G,), the weighted least-squares W (closed form) and its weighted SSE."""
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    g = s[None] / (s[None] + r[:, None] * (1.0 - s[None]))                   # (G, n)
+    W = np.sum(w * g * x, axis=1) / np.maximum(np.sum(w * g * g, axis=1), 1e-300)
+    sse = np.sum(w * (x[None] - W[:, None] * g) ** 2, axis=1)
+    return W, sse
+    # <<< exercise 6
+
+
+def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
+                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
+    """Least squares for W and r > 0 in Eq. (12) from points (s_i, x_i).
+
+    For a fixed r the model is linear in W, so W has a closed form (`_best_W`); r is searched on a
+    log grid over r_bounds, and `refine_fit_robust` refines the grid's best (beyond the paper:
+    golden section in log r, Huber weights against outliers; huber_k, n_iter).
+    We fit the *norm* of the joint deviation: with isotropic gains (Eqs. 9-10) every joint follows
+    x_j = W_j g(s) with the same g, so ||x|| = ||W|| g(s) is Eq. (12) again, and Eq. (14) needs only
+    ||W||^2 (signed per-joint deviations would also partly cancel). W is x extrapolated to s = 1,
+    past the largest measured s: r_bounds keep it finite (see `cap_W`).
+    Needs at least 3 finite points with at least 2 distinct s > 0 (otherwise ValueError). If every
+    x is 0 the policy tracks the expert exactly: W = 0 and r is unidentifiable; r = 1 is returned.
+    """
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if s.shape != x.shape:
+        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
+    ok = np.isfinite(s) & np.isfinite(x)
+    s, x = s[ok], x[ok]
+    if np.any((s < 0) | (s > 1)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
+        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
+                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
+    if not np.any(x != 0):
+        return EquilibriumFit(0.0, 1.0, len(s), 0.0)
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    log_r_grid = np.linspace(math.log(r_bounds[0]), math.log(r_bounds[1]), n_grid)   # (G,)
+    W_grid, sse = _best_W(s, x, np.ones_like(x), np.exp(log_r_grid))   # closed-form W at every r, (G,) each
+    i = int(np.argmin(sse))                        # the grid's best fit: W_grid[i], r = exp(log_r_grid[i])
+    W, r = refine_fit_robust(s, x, log_r_grid, i, huber_k, n_iter)    # refined around it (beyond the paper)
+    res = x - W * s / (s + r * (1 - s))                               # residuals of Eq. (12)
+    return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
+    # <<< exercise 6
+
+
+# ----------------------------------------------------------------------------------------------
+# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
+# ----------------------------------------------------------------------------------------------
+
+def dart_alpha(W, T: int) -> float:
+    """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    return T * float(np.sum(np.square(W)))
+    # <<< exercise 7
+
+
+def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
+    """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
+    return alpha / (T * tr) * sigma_hat
+    # <<< exercise 7
+
+
+def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
+    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
+
+    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector.
+    Guard: a step with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no
+    direction to keep; it gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
+    """
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
+        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    w2 = float(np.sum(np.square(W)))
+    d = sigma_hat.shape[-1]
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
+    zero = tr <= 1e-300
+    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
+    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
+    return np.where(zero, w2 / d * np.eye(d), scaled)
+    # <<< exercise 7
+
+
+def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
+    """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
+    sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
+    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
+        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
+    return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
+    # <<< exercise 7
+
+
+# ----------------------------------------------------------------------------------------------
+# One calibration per DAgger round
+# ----------------------------------------------------------------------------------------------
+
+def calibrate(env, policy, episodes: list[dict], median_step: float,
+              cfg: CalibrationConfig | None = None,
+              generator: torch.Generator | None = None, log=None) -> Calibration:
+    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
+
+    episodes: the round's intervention episodes D_k (demonstrations work too); median_step in
+    radians; log: an optional callable(str) told when each step is done. If the fit is impossible
+    (e.g. fewer than 3 blend rollouts kept), W falls back to the open-loop error, ||W||^2 =
+    tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says why; never NaN.
+    """
+    cfg = cfg or CalibrationConfig()
+    if not median_step > 0:
+        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
+    H = policy_horizon(policy)
+    threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
+    say = log or (lambda msg: None)
+
+    # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
+    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
+    say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
+
+    # Step 2 (Fig. 2b): blended rollouts, ratio i from the (i mod n)-th longest segment, all batched
+    blend_beta, chosen = blend_schedule(episodes, H, cfg)
+    blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
+                   generator, threshold, cfg.discard_collisions, cfg)
+    s, x, kept = blend.s, blend.x, blend.kept
+    say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; fitting W")
+
+    # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
+    try:
+        fit = fit_equilibrium(s[kept], x[kept])
+        r = fit.r
+        W, note = cap_W(fit.W, threshold, median_step)                      # beyond the paper
+        W_ci = W_interval(s[kept], x[kept], threshold, cfg)                 # beyond the paper
+    except ValueError as err:
+        W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
+        r, note, W_ci = None, f"fallback: W from the open-loop error ({err})", None
+
+    # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
+    sigma_alpha = calibrated_sigma(steps.sigma, W)
+    pooled = pooled_sigma(steps.sigma, W)
+
+    # Table I's closed-loop pooled variant, scaled the same way (beyond Sec. IV-D: closed_loop_pooled)
+    closed, closed_note = closed_loop_pooled(env, policy, episodes, W, pooled, cfg, generator, threshold, say)
+    note += closed_note
+    return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
+                       sigma_hat=steps.sigma, sigma_alpha=sigma_alpha,
+                       episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
+                       closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=s, blend_x=x, blend_kept=kept,
+                       blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
+                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci)
+
+
+@dataclass
+class Calibration:
+    """Everything one round's calibration measured (radians; see `report` for median-step units)."""
+    W: float                        # ||W||: settling error of the unguided policy (Eq. 12), radians
+    r: float | None                 # fitted gain ratio K*/K_theta; None when the fit fell back
+    fit_note: str                   # "fit" or "fallback: <why>" (see `calibrate`)
+    median_step: float              # median per-step joint displacement of the base demos (radians)
+    sigma_hat: np.ndarray           # (M, dof, dof) open-loop Sigma_hat_t (Eq. 1)
+    sigma_alpha: np.ndarray         # (M, dof, dof) per-step Sigma^alpha_t (Eq. 14)
+    episode_index: np.ndarray       # (M,) episode of each step
+    timestep: np.ndarray            # (M,) step inside that episode
+    pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
+    closed_loop_pooled: np.ndarray | None   # (dof, dof) Table I's closed-loop pooled Sigma_bar^alpha
+    blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
+    blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
+    blend_x: np.ndarray             # (B,) their settling errors (radians)
+    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged or too short)
+    blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
+    blend_start: np.ndarray         # (B,) first step of that segment
+    sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
+    W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
+
+    def __post_init__(self):
+        if self.sigma_per_joint is None:
+            self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
+        if self.W_ci is not None:
+            self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
+
+    def to_dict(self) -> dict:
+        """Plain lists and numbers, for json.dump (from_dict also reads dicts written before W_ci)."""
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Calibration":
+        """The inverse of to_dict (calibration.json)."""
+        return cls(**_calibration_fields(data))
+
+    def report(self) -> str:
+        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V)."""
+        ci = ("" if self.W_ci is None else
+              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
+              f"{self.W_ci[1] / self.median_step:.2f}, ")
+        lines = [f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
+                 + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
+                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)}",
+                 "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
+                 + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
+        if self.closed_loop_pooled is not None:
+            cl = sigma_in_median_steps(self.closed_loop_pooled, self.median_step)
+            lines.append("closed-loop pooled per-joint sigma [median steps]: "
+                         + ", ".join(f"{v:.2f}" for v in cl))
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------------
+
+def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
+                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
+                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
+                         generator: torch.Generator | None = None) -> None:
+    """Fig. 2 (a)-(d) on the episode's longest expert segment: (a) open-loop samples (the executed
+    steps) and Sigma_hat_t (Eq. 1) at every `stride`-th label step; (b) blended rollouts at several
+    beta (dashed: discarded; diverge_threshold in median steps); (c) Sigma^alpha_t (Eq. 14) with the
+    calibration's W; (d) its pooled Sigma_bar^alpha (Eq. 16). Covariances are drawn at the end
+    effector as 2-sigma ellipses of J Sigma J^T (env.draw_noise_ellipses): a planar env in its plane
+    over its scene (env.render), a 3-D env (EngineReach3D) in the top view (x, y), its goal a marker.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env.reset(seed=int(episode["seed"]))
+    if env.dim not in (2, 3):
+        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
+    planar = env.dim == 2
+    H = policy_horizon(policy)
+    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
+    q_exp = np.asarray(episode["q"], dtype=np.float64)
+    actions = np.asarray(episode["action"], dtype=np.float64)
+    starts = label_starts(episode, H)
+    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
+
+    def ee_xy(q):                                    # (..., 2): the planar env's plane, or a 3-D env's top view
+        return env.ee(q)[..., :2]
+
+    expert_path = ee_xy(q_exp[start:end])
+
+    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
+    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
+    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
+    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
+    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
+    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
+                           diverge_threshold * calibration.median_step, (start, end))
+
+    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
+    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
+              r"(b) blended rollouts, partial denoising at $\beta$",
+              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
+              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
+    for ax, title in zip(axes, titles):
+        if planar:
+            env.render(ax, q=q_exp[start], alpha=0.5)
+        else:                                                    # no 2-D drawing of a 3-D arm: the goal only
+            ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
+        ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
+        ax.set_title(title, fontsize=10)
+        if planar:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.set_aspect("equal")
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+
+    ax = axes[0]
+    for t, chunks in zip(steps, samples):
+        for chunk in chunks:  # the executed steps, from the state they were sampled at
+            path_ee = ee_xy(np.concatenate([q_exp[t][None], chunk[:n_act]]))
+            ax.plot(*path_ee.T, color="tab:orange", lw=0.7, alpha=0.6)
+    env.draw_noise_ellipses(ax, q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
+    ax.plot([], [], color="tab:orange", label="policy chunks")
+
+    ax = axes[1]
+    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
+    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
+        path_ee = ee_xy(blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
+        ax.plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
+                label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
+                      + ("" if blend.kept[b] else " (discarded)"))
+
+    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
+                            alpha=0.35)
+    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
+                            "tab:purple", alpha=0.35)
+    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
+    where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
+    axes[3].text(s=f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes, fontsize=8, **where)
+    for ax in axes[:2]:  # below the panel, outside the data
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07 if planar else -0.12), frameon=False)
+    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
+                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma"
+                 + ("" if planar else "; top view") + ")")
+    # every panel zoomed to the intervention (the scene around it stays in Fig. 5), and the 3-D goal
+    pts = np.concatenate([expert_path, *[ee_xy(blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
+                          np.empty((0, 2)) if planar else env.goal[None, :2]])
+    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
+    for ax in axes:
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
+    plt.close(fig)
+
+
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
+    95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = calibration
+    unit = c.median_step if median_step is None else median_step
+    fig, ax = plt.subplots(figsize=(8.2, 3.8))
+    kept = c.blend_kept
+    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
+               label=f"blended rollouts ({int(kept.sum())})")
+    if np.any(~kept):
+        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
+                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
+    if c.r is not None:
+        s = np.linspace(0.0, 1.0, 201)
+        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
+                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
+    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
+               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
+    if c.W_ci is not None:
+        lo, hi = c.W_ci[0] / unit, c.W_ci[1] / unit
+        ax.errorbar([1.0], [c.W / unit], yerr=[[max(c.W / unit - lo, 0.0)], [max(hi - c.W / unit, 0.0)]],
+                    fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
+                    label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
+    ax.set_ylabel("settling error [median steps]")
+    ax.set_title("Blend fit for W (paper Fig. 4)")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The fit's robust refinement, W's cap and interval; how the blend rollouts are dealt; the batched
+# closed-loop simulator behind every rollout; Table I's closed-loop pooled variant; plumbing.
+
+# ---- the fit: robust refinement, cap, bootstrap interval ------------------------------------
+
+def refine_fit_robust(s, x, log_r_grid: np.ndarray, i: int, huber_k: float = 1.345,
+                      n_iter: int = 30) -> tuple[float, float]:
+    """fit_equilibrium's refinement of its grid search -> (W, r).
+
+    Golden-section search in log r between the grid neighbours of the best grid point i (W in closed
+    form at each r, `_best_W`), then iteratively reweighted least squares with Huber weights
+    (threshold huber_k times the MAD scale of the residuals): outliers, e.g. a rollout that nearly
+    diverged, are down-weighted, the grid searched again with the new weights, for at most n_iter
+    rounds (n_iter = 1: plain least squares).
+    """
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    n_grid = len(log_r_grid)
+    w = np.ones_like(x)                                                     # (n,) Huber weights
+    for it in range(n_iter):
+        if it > 0:                                                          # the grid again, reweighted
+            _, sse = _best_W(s, x, w, np.exp(log_r_grid))
+            i = int(np.argmin(sse))
+        a, b = log_r_grid[max(i - 1, 0)], log_r_grid[min(i + 1, n_grid - 1)]
+        log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)
+        W = float(_best_W(s, x, w, np.exp([log_r]))[0][0])
+        res = x - W * s / (s + math.exp(log_r) * (1 - s))
+        scale = 1.4826 * float(np.median(np.abs(res)))                      # MAD scale (normal-consistent)
+        if scale <= 1e-12 * max(1.0, float(np.max(np.abs(x)))):
+            break                                                           # exact fit: nothing to reweight
+        w_new = np.minimum(1.0, huber_k * scale / np.maximum(np.abs(res), 1e-300))
+        if np.max(np.abs(w_new - w)) < 1e-6:
+            break
+        w = w_new
+    return W, math.exp(log_r)
+    # <<< exercise 6
+
+
+def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
+    """Minimizer of a unimodal f on [a, b] by golden-section search."""
+    phi = (math.sqrt(5) - 1) / 2
+    c, d = b - phi * (b - a), a + phi * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(n_iter):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - phi * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + phi * (b - a)
+            fd = f(d)
+    return (a + b) / 2
+
+
+def cap_W(W: float, threshold: float, median_step: float) -> tuple[float, str]:
+    """(W, fit note): a fitted W above the divergence threshold (radians) is capped at it.
+
+    W is Eq. (12)'s x extrapolated to s = 1. When the kept rollouts all sit at small s (a weak
+    policy's rollouts at larger beta diverge and are discarded), the extrapolation is unsupported
+    and can run to thousands of median steps (measured: 135,000 and 179,000 for two of five seeds of
+    the mid run's pi_0, against 22 and 27 for two others). A settling error beyond the divergence
+    threshold is what the discarding rule calls divergence, so the data say only "W >= threshold".
+    """
+    if W > threshold:
+        return threshold, (f"fit, W capped at the divergence threshold (the fit extrapolated to "
+                           f"{W / median_step:.0f} median steps)")
+    return W, "fit"
+
+
+def W_interval(s, x, threshold: float, cfg: CalibrationConfig) -> tuple[float, float] | None:
+    """W's 95 % bootstrap interval (`bootstrap_W`, cfg.bootstrap resamples), capped like W at the
+    divergence threshold (radians): beyond it the data say only ">=". None if it cannot be fitted."""
+    ci = bootstrap_W(s, x, cfg.bootstrap, cfg.bootstrap_seed)
+    return None if ci is None else (min(ci[0], threshold), min(ci[1], threshold))
+
+
+def bootstrap_W(s, x, n_resamples: int = CalibrationConfig.bootstrap,
+                seed: int = CalibrationConfig.bootstrap_seed) -> tuple[float, float] | None:
+    """95 % bootstrap interval of the fitted W: refit Eq. (12) on n_resamples resamples of the points
+    (s_i, x_i) drawn with replacement, and take the 2.5 and 97.5 percentiles of their W.
+
+    Deterministic for a fixed seed (numpy Generator). A resample with too few distinct s to fit is
+    skipped. None with fewer than 3 points or when no resample could be fitted.
+    """
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if len(s) < 3 or n_resamples < 1:
+        return None
+    rng = np.random.default_rng(seed)
+    Ws = []
+    for _ in range(n_resamples):
+        idx = rng.integers(0, len(s), len(s))                                # (n,) with replacement
+        try:
+            Ws.append(fit_equilibrium(s[idx], x[idx]).W)
+        except ValueError:                                                  # e.g. one distinct s drawn
+            continue
+    if not Ws:
+        return None
+    lo, hi = np.percentile(Ws, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+# ---- which segments the blend rollouts start from ---------------------------------------------
+
+def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
+    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
+    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
+    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
+
+
+def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
+    """The blend ratios (B,) = cfg.betas, cfg.rollouts_per_beta times, and for ratio i the (i mod n)-th
+    of the n = cfg.blend_segments longest expert segments, as (episode index, segment)."""
+    segs = _segments_longest_first(episodes, horizon)[:max(1, cfg.blend_segments)]
+    if not isinstance(cfg.rollouts_per_beta, (int, np.integer)) or cfg.rollouts_per_beta < 1:
+        raise ValueError(f"CalibrationConfig.rollouts_per_beta must be an int >= 1, got {cfg.rollouts_per_beta!r}")
+    blend_beta = np.tile(np.asarray(cfg.betas, dtype=np.float64), cfg.rollouts_per_beta)
+    return blend_beta, [segs[i % len(segs)] for i in range(len(blend_beta))]
+
+
+# ---- the batched closed-loop simulator behind blend_rollouts and closed_loop_sigma -----------------
 
 def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
     """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of
@@ -213,27 +752,15 @@ def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, windo
 def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
     """One env step of the monotone, windowed nearest-state projection onto the expert segment.
 
-    The cursor moves toward the nearest expert state in the window, but never back and at most one
-    index per step (a rollout that lags holds it, one that runs ahead moves it one index a step).
+    The paper compares each rollout with the "time-matched" expert; as in the authors' code, the
+    match is a cursor that moves toward the nearest expert state in the window, but never back and
+    at most one index per step (a rollout that lags holds it, one that runs ahead moves it one index
+    a step), so a rollout that moves at another pace is still compared with where it is on the path.
     Returns (the new cursor, the distance from q to the nearest expert state around it).
     """
     j, _ = nearest_expert_state(q, expert_q, cursor, window)
     cursor = min(max(j, cursor), cursor + 1)                                 # monotone, <= 1 index per step
     _, distance = nearest_expert_state(q, expert_q, cursor, window)
-    return cursor, distance
-
-
-def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """`advance_cursor` along a whole recorded trajectory (n + 1, dof), the cursor starting at 0.
-
-    Returns the cursor (n + 1,) and the nearest-state distance (n + 1,) at every step; this is what
-    `_closed_loop` computes online, step by step, for rollouts.
-    """
-    cursor = np.zeros(len(trajectory), dtype=np.int64)
-    distance = np.zeros(len(trajectory))
-    distance[0] = nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
-    for i in range(1, len(trajectory)):
-        cursor[i], distance[i] = advance_cursor(trajectory[i], expert_q, int(cursor[i - 1]), window)
     return cursor, distance
 
 
@@ -270,7 +797,7 @@ class Rollouts:
 
 
 def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                 diverge_threshold: float, stop_on_collision: bool = False,
+                 diverge_rad: float, stop_on_collision: bool = False,
                  window: int = CalibrationConfig.settle_window, min_steps: int = 0) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
@@ -282,7 +809,7 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
     executes its first n_act actions with env.step. One env serves all rollouts: a rollout's state
     is put back with set_state, and the scenario is switched with reset(seed) only when the seed
     changes (rollouts grouped by seed).
-    A rollout stops at the first step whose nearest-state distance reaches diverge_threshold
+    A rollout stops at the first step whose nearest-state distance reaches diverge_rad
     (radians) - it has left the expert's route - and, if stop_on_collision, at its first contact.
     By default a contact is only recorded: the env's state is kinematic (env.step moves the arm
     whether or not it touches), so the deviation from the expert stays well defined, and in these
@@ -356,7 +883,7 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     collided[b] |= bool(info["collision"])
                     c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
                     cursor[b, i:], nearest_error[b, i:] = c, err
-                    diverged[b] = err >= diverge_threshold
+                    diverged[b] = err >= diverge_rad
                     if diverged[b] or (collided[b] and stop_on_collision):
                         live[b] = False
                         break
@@ -366,289 +893,25 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     cursor, nearest_error, min_steps)
 
 
-def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
-                   settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
-    """x of Eq. (12) per rollout: RMS nearest-state distance over steps [settle_start, settle_end].
+def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """`advance_cursor` along a whole recorded trajectory (n + 1, dof), the cursor starting at 0.
 
-    sqrt(mean_t e_t^2), e_t = distance from q_t to the nearest expert state around the cursor
-    (`advance_cursor`), over the recorded steps t in the window: the steps before it are the
-    transient from the expert state toward the blend's equilibrium. A rollout that stopped before
-    settle_start (always discarded, see min_rollout_steps) gets the RMS over all its steps, for the
-    figure. Norm, not per joint: see `fit_equilibrium`.
+    Returns the cursor (n + 1,) and the nearest-state distance (n + 1,) at every step; this is what
+    `_closed_loop` computes online, step by step, for rollouts.
     """
-    if rollouts.nearest_error is None:
-        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
-    x = np.zeros(len(rollouts.n_recorded))
-    for b, n in enumerate(rollouts.n_recorded):
-        e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
-        if len(e) == 0:
-            e = rollouts.nearest_error[b, 1:n + 1]
-        if len(e):
-            x[b] = math.sqrt(float(np.mean(e ** 2)))
-    return x
+    cursor = np.zeros(len(trajectory), dtype=np.int64)
+    distance = np.zeros(len(trajectory))
+    distance[0] = nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
+    for i in range(1, len(trajectory)):
+        cursor[i], distance[i] = advance_cursor(trajectory[i], expert_q, int(cursor[i - 1]), window)
+    return cursor, distance
 
 
-@dataclass
-class BlendRollouts:
-    """Blended rollouts and the points (s, x) they give for the fit of Eq. (12)."""
-    betas: np.ndarray           # (B,) blend ratios
-    s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
-    x: np.ndarray               # (B,) settling error (radians, nearest-state distance)
-    kept: np.ndarray            # (B,) False for discarded rollouts (diverged, too short; or touched, if discard_collisions)
-    rollouts: Rollouts
 
-
-def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationConfig.n_act,
-                   generator: torch.Generator | None = None, diverge_threshold: float = 0.4,
-                   segment: tuple[int, int] | None = None, discard_collisions: bool = False,
-                   cfg: CalibrationConfig | None = None) -> BlendRollouts:
-    """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
-
-    From the segment's first state (default: the episode's longest expert segment) every decision
-    calls partial_denoise(policy, obs, expert chunk at the cursor, beta) - one call for all betas -
-    and executes the first n_act actions. diverge_threshold is in radians (nearest-state distance;
-    the default 0.4 is about 15 median steps of the planar oracle demos). Rollouts that reach it, or
-    record fewer than cfg.min_rollout_steps steps, are marked not kept, as in the paper ("we discard
-    the blended trajectories that diverge"); contacts only when discard_collisions (see
-    `_closed_loop` for why not by default). cfg gives the window and the settling steps.
-    """
-    H = policy_horizon(policy)
-    if segment is None:
-        segments = expert_segments(episode, H)
-        if not segments:
-            raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {H} steps")
-        segment = max(segments, key=lambda se: se[1] - se[0])
-    betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_threshold,
-                  discard_collisions, cfg)
-
-
-def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_threshold: float,
-           discard_collisions: bool = False, cfg: CalibrationConfig | None = None) -> BlendRollouts:
-    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b]."""
-    cfg = cfg or CalibrationConfig()
-    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
-        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
-
-    def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
-        return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
-
-    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_threshold,
-                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps)
-    # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K) the paper step partial_denoise
-    # switches at (alphabar_0 = 1): the noise our sampler actually injects. The authors' code reads
-    # 1 - alphabar at 0-based index round(beta (K - 1)) of their K-array, their sampler's switch; in
-    # our 0-based terms that index is round(beta K) - 1 or one more, the same at beta = 1 (s = 1 -
-    # alphabar_K): the two differ by at most one diffusion step, and s must match our sampler.
-    s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
-    x = settling_error(roll, cfg.settle_start, cfg.settle_end)
-    return BlendRollouts(betas, s, x, ~roll.discarded, roll)
-
-
-# ----------------------------------------------------------------------------------------------
-# Step 3: the equilibrium of expert and policy (Eqs. 8-12) and its robust fit
-# ----------------------------------------------------------------------------------------------
-
-def equilibrium(s, W, r):
-    """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* at noise fraction s.
-
-    With u* = K* (-x) (Eq. 9), u_theta = K_theta (W - x) (Eq. 10) and u = 0 (Eq. 11):
-    x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
-    """
-    s = np.asarray(s, dtype=np.float64)
-    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if not r > 0:
-        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
-    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
-    # Eq. (12): x = W s / (s + r (1 - s))
-    return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
-    # <<< exercise 6
-
-
-@dataclass
-class EquilibriumFit:
-    W: float                    # settling error of the unguided policy (same units as x)
-    r: float                    # gain ratio K*/K_theta
-    n_points: int               # points used
-    rms_residual: float         # RMS of x - equilibrium(s, W, r) over the points used
-
-
-def _best_W(s, x, w, r):
-    """For each r in r (G,), the weighted least-squares W (closed form) and its weighted SSE."""
-    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
-    g = s[None] / (s[None] + r[:, None] * (1.0 - s[None]))                   # (G, n)
-    W = np.sum(w * g * x, axis=1) / np.maximum(np.sum(w * g * g, axis=1), 1e-300)
-    sse = np.sum(w * (x[None] - W[:, None] * g) ** 2, axis=1)
-    return W, sse
-    # <<< exercise 6
-
-
-def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
-                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
-    """Robust least squares for W and r > 0 in Eq. (12) from points (s_i, x_i).
-
-    We fit the *norm* of the joint deviation, not each joint: with isotropic gains (Eqs. 9-10) every
-    joint follows x_j = W_j g(s) with the same g, so ||x|| = ||W|| g(s) is Eq. (12) again, and
-    Eq. (14) needs only ||W||^2. Signed per-joint deviations would also partly cancel when the
-    policy drifts to different sides along a trajectory.
-
-    For a fixed r the model is linear in W, so W has a closed form; r is searched on a log grid
-    over r_bounds and refined by golden section in log r. Outliers (e.g. a rollout that nearly
-    diverged) are down-weighted by iteratively reweighted least squares with Huber weights
-    (threshold huber_k times the MAD scale of the residuals).
-
-    W is x extrapolated to s = 1, beyond the largest measured s (0.98 for the default betas): it can
-    exceed the largest x by a factor up to 1 + r (1 - s_max) / s_max, which r_bounds keeps finite.
-
-    Needs at least 3 finite points with at least 2 distinct s > 0 (otherwise ValueError). If every
-    x is 0 the policy tracks the expert exactly: W = 0 and r is unidentifiable; r = 1 is returned.
-    """
-    s = np.asarray(s, dtype=np.float64).reshape(-1)
-    x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if s.shape != x.shape:
-        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
-    ok = np.isfinite(s) & np.isfinite(x)
-    s, x = s[ok], x[ok]
-    if np.any((s < 0) | (s > 1)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
-        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
-                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
-    if not np.any(x != 0):
-        return EquilibriumFit(0.0, 1.0, len(s), 0.0)
-    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
-    lo, hi = math.log(r_bounds[0]), math.log(r_bounds[1])
-    grid = np.linspace(lo, hi, n_grid)
-    w = np.ones_like(x)
-    for _ in range(n_iter):
-        _, sse = _best_W(s, x, w, np.exp(grid))
-        i = int(np.argmin(sse))
-        a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
-        log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)
-        W = float(_best_W(s, x, w, np.exp([log_r]))[0][0])
-        res = x - W * s / (s + math.exp(log_r) * (1 - s))
-        scale = 1.4826 * float(np.median(np.abs(res)))                      # MAD scale (normal-consistent)
-        if scale <= 1e-12 * max(1.0, float(np.max(np.abs(x)))):
-            break                                                           # exact fit: nothing to reweight
-        w_new = np.minimum(1.0, huber_k * scale / np.maximum(np.abs(res), 1e-300))
-        if np.max(np.abs(w_new - w)) < 1e-6:
-            break
-        w = w_new
-    r = math.exp(log_r)
-    res = x - W * s / (s + r * (1 - s))
-    return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
-    # <<< exercise 6
-
-
-def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
-    """Minimizer of a unimodal f on [a, b] by golden-section search."""
-    phi = (math.sqrt(5) - 1) / 2
-    c, d = b - phi * (b - a), a + phi * (b - a)
-    fc, fd = f(c), f(d)
-    for _ in range(n_iter):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - phi * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + phi * (b - a)
-            fd = f(d)
-    return (a + b) / 2
-
-
-def bootstrap_W(s, x, n_resamples: int = CalibrationConfig.bootstrap,
-                seed: int = CalibrationConfig.bootstrap_seed) -> tuple[float, float] | None:
-    """95 % bootstrap interval of the fitted W: refit Eq. (12) on n_resamples resamples of the points
-    (s_i, x_i) drawn with replacement, and take the 2.5 and 97.5 percentiles of their W.
-
-    Deterministic for a fixed seed (numpy Generator). A resample with too few distinct s to fit is
-    skipped. None with fewer than 3 points or when no resample could be fitted.
-    """
-    s = np.asarray(s, dtype=np.float64).reshape(-1)
-    x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if len(s) < 3 or n_resamples < 1:
-        return None
-    rng = np.random.default_rng(seed)
-    Ws = []
-    for _ in range(n_resamples):
-        idx = rng.integers(0, len(s), len(s))                                # (n,) with replacement
-        try:
-            Ws.append(fit_equilibrium(s[idx], x[idx]).W)
-        except ValueError:                                                  # e.g. one distinct s drawn
-            continue
-    if not Ws:
-        return None
-    lo, hi = np.percentile(Ws, [2.5, 97.5])
-    return float(lo), float(hi)
-
-
-# ----------------------------------------------------------------------------------------------
-# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
-# ----------------------------------------------------------------------------------------------
-
-def dart_alpha(W, T: int) -> float:
-    """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    return T * float(np.sum(np.square(W)))
-    # <<< exercise 7
-
-
-def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
-    """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
-    return alpha / (T * tr) * sigma_hat
-    # <<< exercise 7
-
-
-def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
-    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
-
-    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector.
-    Guard: a step with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no
-    direction to keep; it gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
-    """
-    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
-        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    w2 = float(np.sum(np.square(W)))
-    d = sigma_hat.shape[-1]
-    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
-    zero = tr <= 1e-300
-    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
-    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
-    return np.where(zero, w2 / d * np.eye(d), scaled)
-    # <<< exercise 7
-
-
-def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
-    """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
-    sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
-    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
-        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
-    return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
-    # <<< exercise 7
-
-
-def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
-    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
-    if not median_step > 0:
-        raise ValueError(f"median_step must be > 0, got {median_step}")
-    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
-
-
-# ----------------------------------------------------------------------------------------------
-# Step 5: the closed-loop variant (Table I, last row)
-# ----------------------------------------------------------------------------------------------
+# ---- Table I's closed-loop pooled variant ----------------------------------------------------
 
 def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
-                      generator: torch.Generator | None = None, diverge_threshold: float = 0.4,
+                      generator: torch.Generator | None = None, diverge_rad: float = 0.4,
                       max_segments: int | None = None, discard_collisions: bool = False) -> np.ndarray | None:
     """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
 
@@ -657,12 +920,12 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = Calibratio
     policy.sample) runs in closed loop in the simulator for the segment's length; every executed
     step contributes the outer product of its state deviation from the time-matched expert state,
     d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
-    first diverged step (nearest-state distance at the threshold, as in `blend_rollouts`) (that step excluded; with discard_collisions also at its first contact), so
-    a policy that takes another route only contributes its deviations while it still follows the
-    expert's. diverge_threshold in radians, as in `blend_rollouts`. Scale the result with
-    `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All rollouts
-    run batched (one policy.sample call per decision). Returns None if no rollout executed a
-    usable step.
+    first diverged step (nearest-state distance at diverge_rad, radians, as in `blend_rollouts`;
+    that step excluded; with discard_collisions also at its first contact), so a policy that takes
+    another route only contributes its deviations while it still follows the expert's. Scale the
+    result with `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All
+    rollouts run batched (one policy.sample call per decision). Returns None if no rollout executed
+    a usable step.
     """
     H = policy_horizon(policy)
     segs = _segments_longest_first(episodes, H)[:max_segments or None]
@@ -672,7 +935,7 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = Calibratio
     def chunk_fn(obs, expert, rows):                 # unguided: the expert chunk is ignored
         return policy.sample(obs, generator=generator)
 
-    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_threshold,
+    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_rad,
                         discard_collisions)
     # executed steps 1..n of each rollout, without the step that diverged or collided
     cut = roll.diverged | (roll.collided & roll.discard_collisions)          # (B,) last step was a bad one
@@ -685,350 +948,69 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = Calibratio
     return np.einsum("ti,tj->ij", d, d) / len(d)                              # Eq. (15), pooled
 
 
-# ----------------------------------------------------------------------------------------------
-# One calibration per DAgger round
-# ----------------------------------------------------------------------------------------------
 
-@dataclass
-class Calibration:
-    """Everything one round's calibration measured (radians; see `report` for median-step units)."""
-    W: float                        # ||W||: settling error of the unguided policy (Eq. 12), radians
-    r: float | None                 # fitted gain ratio K*/K_theta; None when the fit fell back
-    fit_note: str                   # "fit" or "fallback: <why>" (see `calibrate`)
-    median_step: float              # median per-step joint displacement of the base demos (radians)
-    sigma_hat: np.ndarray           # (M, dof, dof) open-loop Sigma_hat_t (Eq. 1)
-    sigma_alpha: np.ndarray         # (M, dof, dof) per-step Sigma^alpha_t (Eq. 14)
-    episode_index: np.ndarray       # (M,) episode of each step
-    timestep: np.ndarray            # (M,) step inside that episode
-    pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
-    closed_loop_pooled: np.ndarray | None   # (dof, dof) Table I's closed-loop pooled Sigma_bar^alpha
-    blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
-    blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
-    blend_x: np.ndarray             # (B,) their settling errors (radians)
-    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged or too short)
-    blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
-    blend_start: np.ndarray         # (B,) first step of that segment
-    sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
-    W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
-
-    def __post_init__(self):
-        if self.sigma_per_joint is None:
-            self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
-        if self.W_ci is not None:
-            self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
-
-    def to_dict(self) -> dict:
-        """Plain lists and numbers, for json.dump (from_dict also reads dicts written before W_ci)."""
-        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "Calibration":
-        arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
-                  "blend_beta", "sigma_per_joint"}
-        ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
-        kwargs = {}
-        for k, v in data.items():
-            if k in arrays and v is not None:
-                v = np.asarray(v, dtype=np.float64)
-            elif k in ints:
-                v = np.asarray(v, dtype=np.int64)
-            elif k == "blend_kept":
-                v = np.asarray(v, dtype=bool)
-            kwargs[k] = v
-        return cls(**kwargs)
-
-    def report(self) -> str:
-        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V)."""
-        ci = ("" if self.W_ci is None else
-              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
-              f"{self.W_ci[1] / self.median_step:.2f}, ")
-        lines = [f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
-                 + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
-                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)}",
-                 "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
-                 + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
-        if self.closed_loop_pooled is not None:
-            cl = sigma_in_median_steps(self.closed_loop_pooled, self.median_step)
-            lines.append("closed-loop pooled per-joint sigma [median steps]: "
-                         + ", ".join(f"{v:.2f}" for v in cl))
-        return "\n".join(lines)
+def closed_loop_pooled(env, policy, episodes: list[dict], W: float, pooled: np.ndarray, cfg: CalibrationConfig,
+                       generator, threshold: float, say) -> tuple[np.ndarray | None, str]:
+    """calibrate's Table I variant: (closed-loop pooled Sigma_bar^alpha scaled by Eq. (16), or None
+    without cfg.closed_loop; a note for fit_note). threshold in radians. If every closed-loop rollout
+    fails on its first step, the open-loop pooled Sigma_bar^alpha stands in (and the note says so)."""
+    if not cfg.closed_loop:
+        return None, ""
+    say("closed-loop rollouts for the closed-loop pooled variant")
+    sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
+                                     cfg.closed_loop_segments, cfg.discard_collisions)
+    if sigma_bar_cl is None:                      # documented fallback: no usable closed-loop step
+        return pooled.copy(), "; closed loop: every rollout failed at once, open-loop pooled used"
+    return calibrated_sigma(sigma_bar_cl, W), ""
 
 
-def calibrate(env, policy, episodes: list[dict], median_step: float,
-              cfg: CalibrationConfig | None = None,
-              generator: torch.Generator | None = None, log=None) -> Calibration:
-    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
-    log: optional callable(str) told when each step is done (progress of a long calibration).
+# ---- plumbing: units for reports, JSON, memory -----------------------------------------------
 
-    episodes are the round's intervention episodes D_k (demonstrations work too). Blend rollouts
-    start from the cfg.blend_segments longest expert segments, the 13 ratios (cfg.rollouts_per_beta
-    times each) dealt round-robin.
-    Fallbacks (documented, never NaN): if fewer than 3 blend rollouts are kept (or the fit is
-    otherwise impossible), W is set to the open-loop error, ||W||^2 = tr(Sigma_bar) - i.e. Sigma^alpha
-    = Sigma_hat unscaled - r is None, and fit_note says why. A fitted W above the divergence
-    threshold (cfg.diverge_threshold median steps) is capped at it (fit_note says so and gives the
-    fitted value). W_ci is W's 95 % bootstrap interval (`bootstrap_W`, cfg.bootstrap resamples of
-    the kept points, capped like W; None on fallback). If every closed-loop rollout fails on its
-    first step, closed_loop_pooled is the open-loop pooled Sigma_bar^alpha (also noted).
-    """
-    cfg = cfg or CalibrationConfig()
+def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
+    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
     if not median_step > 0:
-        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
-    H = policy_horizon(policy)
-    threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
-
-    # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
-    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
-    say = log or (lambda msg: None)
-    say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
-
-    # Step 2 (Fig. 2b): blended rollouts, beta i from the (i mod n)-th longest segment, all batched
-    segs = _segments_longest_first(episodes, H)[:max(1, cfg.blend_segments)]
-    if not isinstance(cfg.rollouts_per_beta, (int, np.integer)) or cfg.rollouts_per_beta < 1:
-        raise ValueError(f"CalibrationConfig.rollouts_per_beta must be an int >= 1, got {cfg.rollouts_per_beta!r}")
-    blend_beta = np.tile(np.asarray(cfg.betas, dtype=np.float64), cfg.rollouts_per_beta)
-    chosen = [segs[i % len(segs)] for i in range(len(blend_beta))]
-    blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold, cfg.discard_collisions, cfg)
-    blend_s, blend_x, blend_kept = blend.s, blend.x, blend.kept
-
-    say(f"{int(blend_kept.sum())} of {len(blend_kept)} blended rollouts kept; fitting W")
-    # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
-    try:
-        fit = fit_equilibrium(blend_s[blend_kept], blend_x[blend_kept])
-        W, r, note = fit.W, fit.r, "fit"
-        if W > threshold:
-            # W is Eq. (12)'s x extrapolated to s = 1. When the kept rollouts all sit at small s (a weak
-            # policy's rollouts at larger beta diverge and are discarded), the extrapolation is
-            # unsupported and can run to thousands of median steps (measured: 135,000 and 179,000 for
-            # two of five seeds of the mid run's pi_0, against 22 and 27 for two others). A settling
-            # error beyond the divergence threshold is what the discarding rule calls divergence, so
-            # the data say only "W >= threshold".
-            note = (f"fit, W capped at the divergence threshold (the fit extrapolated to "
-                    f"{W / median_step:.0f} median steps)")
-            W = threshold
-        # 95 % bootstrap interval of W, capped like W (beyond the threshold the data say only ">=")
-        ci = bootstrap_W(blend_s[blend_kept], blend_x[blend_kept], cfg.bootstrap, cfg.bootstrap_seed)
-        W_ci = None if ci is None else (min(ci[0], threshold), min(ci[1], threshold))
-    except ValueError as err:
-        W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
-        r, note, W_ci = None, f"fallback: W from the open-loop error ({err})", None
-
-    # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
-    sigma_alpha = calibrated_sigma(steps.sigma, W)
-    pooled = pooled_sigma(steps.sigma, W)
-
-    # Step 5: Table I's closed-loop pooled variant, scaled the same way (Eq. 16)
-    closed = None
-    if cfg.closed_loop:
-        say("closed-loop rollouts for the closed-loop pooled variant")
-        sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
-                                         cfg.closed_loop_segments, cfg.discard_collisions)
-        if sigma_bar_cl is None:                  # documented fallback: no usable closed-loop step
-            closed = pooled.copy()
-            note += "; closed loop: every rollout failed at once, open-loop pooled used"
-        else:
-            closed = calibrated_sigma(sigma_bar_cl, W)
-    return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
-                       sigma_hat=steps.sigma, sigma_alpha=sigma_alpha,
-                       episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
-                       closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=blend_s,
-                       blend_x=blend_x, blend_kept=blend_kept,
-                       blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
-                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci)
+        raise ValueError(f"median_step must be > 0, got {median_step}")
+    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
 
 
-# ----------------------------------------------------------------------------------------------
-# Figures
-# ----------------------------------------------------------------------------------------------
-
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
-    95 % bootstrap interval (an error bar at s = 1)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    c = calibration
-    unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(8.2, 3.8))
-    kept = c.blend_kept
-    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
-               label=f"blended rollouts ({int(kept.sum())})")
-    if np.any(~kept):
-        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
-                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
-    if c.r is not None:
-        s = np.linspace(0.0, 1.0, 201)
-        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
-                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
-    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
-               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
-    if c.W_ci is not None:
-        lo, hi = c.W_ci[0] / unit, c.W_ci[1] / unit
-        ax.errorbar([1.0], [c.W / unit], yerr=[[max(c.W / unit - lo, 0.0)], [max(hi - c.W / unit, 0.0)]],
-                    fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
-                    label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
-    ax.set_xlim(0, 1)
-    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
-    ax.set_ylabel("settling error [median steps]")
-    ax.set_title("Blend fit for W (paper Fig. 4)")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
+def _calibration_fields(data: dict) -> dict:
+    """Calibration.from_dict's typing: JSON lists back to float, int and bool arrays (a dict written
+    before W_ci existed lacks it: the default None)."""
+    arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
+              "blend_beta", "sigma_per_joint"}
+    ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
+    kwargs = {}
+    for k, v in data.items():
+        if k in arrays and v is not None:
+            v = np.asarray(v, dtype=np.float64)
+        elif k in ints:
+            v = np.asarray(v, dtype=np.int64)
+        elif k == "blend_kept":
+            v = np.asarray(v, dtype=bool)
+        kwargs[k] = v
+    return kwargs
 
 
-def _ee_jacobian(env, q: np.ndarray, h: float = 1e-5) -> np.ndarray:
-    """d ee / d q at each row of q (B, dof) by central differences -> (B, dim, dof)."""
-    B, dof = q.shape
-    offsets = h * np.eye(dof)                                                # (dof, dof)
-    plus = env.ee((q[:, None] + offsets[None]).reshape(-1, dof)).reshape(B, dof, -1)
-    minus = env.ee((q[:, None] - offsets[None]).reshape(-1, dof)).reshape(B, dof, -1)
-    return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                    # (B, dim, dof)
-
-
-def _draw_ellipses(ax, env, q: np.ndarray, sigma: np.ndarray, color, n_std: float = 2.0) -> None:
-    """n_std ellipses of joint covariances sigma (B, dof, dof) at q (B, dof), pushed to the
-    end-effector plane to first order: Sigma_ee = J Sigma J^T (J the fk Jacobian)."""
-    from matplotlib.patches import Ellipse
-
-    J = _ee_jacobian(env, q)                                                 # (B, 2, dof)
-    sigma_ee = J @ sigma @ J.transpose(0, 2, 1)                              # (B, 2, 2)
-    centers = env.ee(q)
-    for c, S in zip(centers, sigma_ee):
-        vals, vecs = np.linalg.eigh(S)
-        vals = np.maximum(vals, 0.0)
-        angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-        ax.add_patch(Ellipse(c, 2 * n_std * math.sqrt(vals[1]), 2 * n_std * math.sqrt(vals[0]),
-                             angle=angle, facecolor=color, edgecolor=color, alpha=0.35, lw=0.8))
-
-
-def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
-                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
-                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
-                         generator: torch.Generator | None = None) -> None:
-    """Fig. 2, panels (a)-(d), on one planar intervention (end-effector plane, 2-sigma ellipses).
-
-    (a) open-loop policy samples (end-effector paths of the chunks' executed steps) and Sigma_hat_t (Eq. 1) at
-        every `stride`-th label step of the episode's longest expert segment; (b) blended rollouts
-        at several beta from the segment's first state (dashed: discarded); (c) Sigma^alpha_t
-        (Eq. 14) with the calibration's W; (d) the calibration's pooled Sigma_bar^alpha (Eq. 16).
-    Joint covariances are drawn in the end-effector plane through the fk Jacobian, J Sigma J^T.
-    diverge_threshold is in median steps, as in CalibrationConfig.
-    """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    env.reset(seed=int(episode["seed"]))
-    if env.ee(env.q[None]).shape[-1] != 2:
-        raise ValueError(f"plot_method_overview draws a planar env (2D end effector), got {type(env).__name__}")
-    H = policy_horizon(policy)
-    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
-    q_exp = np.asarray(episode["q"], dtype=np.float64)
-    actions = np.asarray(episode["action"], dtype=np.float64)
-    starts = label_starts(episode, H)
-    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
-    expert_path = env.ee(q_exp[start:end])
-
-    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
-    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
-    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
-    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
-    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
-    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
-                           diverge_threshold * calibration.median_step, (start, end))
-
-    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
-    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
-              r"(b) blended rollouts, partial denoising at $\beta$",
-              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
-              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
-    for ax, title in zip(axes, titles):
-        env.render(ax, q=q_exp[start], alpha=0.5)
-        ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
-        ax.set_title(title, fontsize=10)
-        ax.set_xticks([])
-        ax.set_yticks([])
-
-    ax = axes[0]
-    for t, chunks in zip(steps, samples):
-        for chunk in chunks:  # the executed steps, from the state they were sampled at
-            ax.plot(*env.ee(np.concatenate([q_exp[t][None], chunk[:n_act]])).T, color="tab:orange", lw=0.7, alpha=0.6)
-    _draw_ellipses(ax, env, q_exp[steps], sigma_hat, "tab:orange")
-    ax.plot([], [], color="tab:orange", label="policy chunks")
-
-    ax = axes[1]
-    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
-    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
-        path_ee = env.ee(blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
-        ax.plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
-                label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
-                      + ("" if blend.kept[b] else " (discarded)"))
-
-    _draw_ellipses(axes[2], env, q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red")
-    _draw_ellipses(axes[3], env, q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
-                   "tab:purple")
-    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
-    axes[3].text(0.02, 0.02, f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes,
-                 fontsize=8)
-    for ax in axes[:2]:  # below the panel, outside the data
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), frameon=False)
-    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
-                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma)")
-    # every panel zoomed to the intervention (the scene around it stays in Fig. 5)
-    pts = np.concatenate([expert_path, *[env.ee(blend.rollouts.trajectory[b]) for b in range(len(blend.betas))]])
-    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
-    for ax in axes:
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
-    plt.close(fig)
-
+def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
+    """policy.sample over rows of obs in slices of at most max_batch rows (a memory bound)."""
+    parts = [policy.sample(obs[i:i + max_batch], generator=generator)
+             for i in range(0, len(obs), max_batch)]
+    return np.concatenate(parts, axis=0)                                    # (B, H, dof)
 
 # ----------------------------------------------------------------------------------------------
 # Demo
 # ----------------------------------------------------------------------------------------------
 
-def straight_line_episodes(env, seeds, min_steps: int = 32, speed: float = 0.8, margin: int = 3) -> list[dict]:
-    """Stand-in expert data for the demo and tests (dagger.py calibrates on the oracle's data).
-
-    In each scenario the arm moves in a straight joint-space line toward the goal configuration
-    nearest its start, at `speed` times the joint speed limit, and the motion is cut `margin` steps
-    before the first contact. Scenarios whose free prefix is shorter than min_steps are skipped.
-    """
-    episodes = []
-    for seed in seeds:
-        env.reset(seed=int(seed))
-        q0, goals = env.q, env.goal_configurations()
-        if len(goals) == 0:
-            continue
-        target = goals[np.argmin(np.abs(goals - q0).max(axis=1))]
-        n = int(np.ceil(np.abs(target - q0).max() / (speed * env.max_step)))
-        line = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (target - q0)    # (n + 1, dof)
-        hits = env.in_collision(line)
-        T = (int(np.argmax(hits)) - margin) if hits.any() else n + 1
-        if T < min_steps:
-            continue
-        q = line[:T]
-        q_prev = np.concatenate([q[:1], q[:-1]])
-        action = np.concatenate([q[1:], q[-1:]])                             # q[t+1] follows from action[t]
-        episodes.append({"obs": env.make_obs(q, q_prev), "q": q, "action": action,
-                         "expert": np.ones(T, dtype=bool), "seed": int(seed)})
-    return episodes
-
-
 if __name__ == "__main__":
-    # Calibrate a small policy trained on stand-in expert paths (dagger.py does this on the oracle's
-    # interventions, once per round) and draw Figs. 2 and 4 into the current folder.
+    # Calibrate a small policy trained on stand-in expert paths (envs.straight_line_episode; dagger.py
+    # does this on the oracle's interventions, once per round) and draw Figs. 2 and 4 into the
+    # current folder.
     import time
 
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train
 
     env = envs.make_env("planar")
-    episodes = straight_line_episodes(env, env.train_seeds(120))
+    episodes = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(120)]
     unit = envs.median_step(episodes)
     print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad; training a small policy")
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))

@@ -350,17 +350,24 @@ envs = pytest.importorskip("envs")
 diffusion = pytest.importorskip("diffusion")
 
 
-@pytest.fixture(scope="module")
-def planar():
-    """The planar env, stand-in expert episodes, and a tiny untrained policy (normalizer fitted)."""
-    env = envs.make_env("planar")
-    episodes = cal.straight_line_episodes(env, env.train_seeds(40))[:4]
-    assert len(episodes) == 4
+def _tiny_policy(env, episodes):
+    """A tiny untrained policy (normalizer fitted on the episodes)."""
     policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(
         obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=10, down_dims=(8, 16), n_groups=4,
         step_embed_dim=16))
     policy.fit_normalizer(*diffusion.chunk_dataset(episodes, 16))
-    return env, episodes, policy
+    return policy
+
+
+@pytest.fixture(scope="module")
+def planar():
+    """The planar env, stand-in expert episodes (all expert, at least 32 steps), and a tiny untrained
+    policy (normalizer fitted)."""
+    env = envs.make_env("planar")
+    episodes = [envs.straight_line_episode(env, seed, expert_from=0) for seed in env.train_seeds(40)]
+    episodes = [ep for ep in episodes if len(ep["q"]) >= 32][:4]
+    assert len(episodes) == 4
+    return env, episodes, _tiny_policy(env, episodes)
 
 
 def test_blend_at_beta_zero_retraces_the_expert(planar):
@@ -390,21 +397,35 @@ def test_rollouts_refuse_episodes_from_another_scenario(planar):
 def test_blend_rollouts_mark_divergence(planar):
     env, episodes, policy = planar
     out = cal.blend_rollouts(env, policy, episodes[0], [0.9], generator=torch.Generator().manual_seed(0),
-                             diverge_threshold=1e-6)
+                             diverge_rad=1e-6)
     assert out.rollouts.diverged[0] and not out.kept[0]
     assert out.rollouts.n_recorded[0] < len(episodes[0]["q"]) - 1             # stopped at divergence
+
+
+def _line_into_an_obstacle(env, seeds, past=3, speed=0.8):
+    """An all-expert episode that moves in a straight joint-space line toward the goal configuration
+    nearest its start (speed times the joint step limit) and runs `past` steps into the first obstacle
+    it meets, in the first of the scenarios where the line meets one; and its first contact step."""
+    for seed in seeds:
+        env.reset(seed=int(seed))
+        q0, goals = env.q, env.goal_configurations()
+        target = goals[np.argmin(np.abs(goals - q0).max(axis=1))]
+        n = int(np.ceil(np.abs(target - q0).max() / (speed * env.max_step)))
+        line = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (target - q0)    # (n + 1, dof)
+        hits = env.in_collision(line)
+        if hits.any() and int(np.argmax(hits)) + past >= 32:
+            q = line[:int(np.argmax(hits)) + past]
+            q_prev = np.concatenate([q[:1], q[:-1]])
+            episode = {"obs": env.make_obs(q, q_prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
+                       "expert": np.ones(len(q), dtype=bool), "seed": int(seed)}
+            return episode, int(np.argmax(hits))
+    raise AssertionError("no straight line meets an obstacle")
 
 
 def test_contacts_are_recorded_and_discarded_only_on_request(planar):
     env, _, policy = planar
     # an expert path that runs 3 steps into an obstacle: at beta = 0 the rollout retraces it exactly
-    # (the first straight line that meets an obstacle at all)
-    for ep in cal.straight_line_episodes(env, env.train_seeds(80), margin=-3):
-        env.reset(seed=ep["seed"])
-        hits = env.in_collision(ep["q"])                                     # its scenario's geometry
-        first_contact = int(np.argmax(hits))
-        if hits.any():
-            break
+    ep, first_contact = _line_into_an_obstacle(env, env.train_seeds(80))
     kept = cal.blend_rollouts(env, policy, ep, [0.0])
     assert kept.rollouts.collided[0] and kept.kept[0] and kept.x[0] == 0.0
     assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1                    # ran through the contact
@@ -479,3 +500,24 @@ def test_rollouts_per_beta_repeats_every_ratio_on_other_segments(planar):
     assert np.any(c.blend_episode[:13] != c.blend_episode[13:])              # the repeat starts elsewhere
     with pytest.raises(ValueError, match="rollouts_per_beta must be an int >= 1"):
         cal.calibrate(env, policy, episodes, unit, cal.CalibrationConfig(rollouts_per_beta=0))
+
+
+def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
+    """Fig. 2 for EngineReach3D: the same panels on the top view (x, y), no arm drawing."""
+    env = envs.make_env("engine3d")
+    episodes = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(6)]
+    episode = max(episodes, key=lambda ep: len(ep["q"]))
+    assert env.dim == 3 and len(episode["q"]) >= 30
+    policy = _tiny_policy(env, [episode])
+    unit = envs.median_step(episodes)
+    S = _random_covariances(6, env.dof, seed=5) * unit ** 2
+    W = 3 * unit
+    c = cal.Calibration(
+        W=W, r=2.0, fit_note="fit", median_step=unit, sigma_hat=S, sigma_alpha=cal.calibrated_sigma(S, W),
+        episode_index=np.zeros(6, dtype=np.int64), timestep=np.arange(6) * 2, pooled=cal.pooled_sigma(S, W),
+        closed_loop_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13), blend_s=np.linspace(0.01, 0.98, 13),
+        blend_x=np.linspace(0.0, W, 13), blend_kept=np.ones(13, dtype=bool),
+        blend_episode=np.zeros(13, dtype=np.int64), blend_start=np.full(13, 5))
+    path = tmp_path / "fig2_engine3d.png"
+    cal.plot_method_overview(env, episode, c, policy, path, n_samples=2, generator=torch.Generator().manual_seed(1))
+    assert path.stat().st_size > 20_000
