@@ -1,14 +1,16 @@
-"""A DDPM diffusion policy over action chunks, written from the DDPM equations.
+"""A DDPM diffusion policy over action chunks, written from the DDPM equations (Ho et al. 2020).
 
-Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpolator"):
-  - forward process, Eq. (5), in closed form ............ q_sample
-  - reverse process, Eq. (6), one step .................. p_sample
-  - noise schedule beta_k, alpha_k, alphabar_k .......... make_schedule / Schedule
-  - epsilon network eps_theta(a, k | o) over chunks ..... ConditionalUnet1D (Chi et al.'s diffusion policy,
-                                                          CNN variant), used by DiffusionPolicy
-  - action chunks of horizon H, labels (Sec. IV-C) ...... chunk_dataset, label_mask
-  - image observations (Sec. V, the UR5 task) ............ ImageEncoder, a small CNN (PolicyConfig.image_shape)
-  - BC / fine-tuning / co-training (Alg. step 4) ........ train
+Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpolator", Sec. IV-C):
+  - noise schedule beta_k, alpha_k = 1 - beta_k, alphabar_k (defined with Eqs. 5-6) .. make_schedule, Schedule
+  - forward process, Eq. (5), in closed form ............................. q_sample
+  - reverse process, Eq. (6), one step ................................... p_sample
+  - epsilon network eps_theta(a_k, k | o) over a chunk ................... ConditionalUnet1D (the 1-D conv
+                                                                           U-Net of diffusion policy, FiLM)
+  - the policy pi_theta(a_{t:t+H} | o_t): sampling, DDPM loss ............ DiffusionPolicy
+  - action chunks of horizon H; the label rule (Sec. IV-C) ............... expert_runs, label_mask,
+                                                                           chunk_dataset
+  - BC, co-training, fine-tuning (Sec. IV-A steps 1, 4, 6) ............... train
+  - image observations of the UR5 task (Sec. V) .......................... ImageEncoder (behind the banner)
 
 Index convention (read this once, it is used everywhere):
   The paper numbers the diffusion steps k = 1..K, with alphabar_k = prod_{s=1..k} alpha_s and
@@ -20,23 +22,11 @@ Index convention (read this once, it is used everywhere):
   is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 it returns the
   clean chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
-Architecture: the 1-D temporal convolution U-Net of diffusion policy (Chi et al. 2023, CNN-based variant),
-because it is the paper's network (the authors train LeRobot's DiffusionPolicy with down_dims
-(128, 256, 512), kernel 5, 8 groups and a 128-wide step embedding). The chunk (H, dof) is read as a
-length-H signal with dof channels; convolutions along time give the predicted noise a local structure in
-time, and the downsampling lets the deeper blocks see the whole chunk. Every residual block is
-FiLM-conditioned (Perez et al.) on [step features, observation features]. On a CPU this network is the
-expensive part of the project (training, and the full K = 100 step reverse process for every decision):
-benchmarks/bench_diffusion.py measures its cost at three widths, and PolicyConfig.down_dims picks one.
-FiLM is a linear map of Mish([step features, obs features]), so it is exactly the sum of an observation
-term and a step term: the observation term is computed once per sampling call and the step term once for
-all K steps (a K-row table); a reverse step adds the two and runs only the convolutions.
-
-Image observations: the observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its
-last C*H*W entries are an image (channel-first, flattened, pixels in [0, 1]; envs.EngineReach3D with
-image_obs=True). A small CNN (ImageEncoder) turns the image into image_features numbers that join the
-low-dimensional part as observation features. Because the image is part of the observation term of
-FiLM, the CNN runs once per sampling call, not once per diffusion step.
+The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al.
+2023): the chunk (H, dof) is a length-H signal with dof channels, convolved along time, halved in length
+between levels, every residual block FiLM-conditioned (Perez et al.) on [step features, observation
+features]. On a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py measures it;
+PolicyConfig.down_dims picks the width).
 """
 
 import copy
@@ -57,115 +47,66 @@ import torch.nn as nn
 
 @dataclass
 class PolicyConfig:
-    obs_dim: int                 # length of the flat observation vector
-    dof: int                     # joints per action (3 planar, 6 UR5)
-    horizon: int = 16            # H: actions per predicted chunk
-    n_act: int = 8               # actions of a chunk executed before re-planning (used by the rollout loop)
-    K: int = 100                 # diffusion steps (the diffusion-policy default)
-    schedule: str = "squaredcos" # 'squaredcos' (Nichol & Dhariwal, diffusion-policy default) or 'linear'
+    # the paper (Sec. IV-B/C) and the authors' setup (PAPER_SETUP.md §1-2)
+    obs_dim: int                 # length of the flat observation vector o_t (entries)
+    dof: int                     # joints per action, d (3 planar, 6 UR5)
+    horizon: int = 16            # H: actions per predicted chunk (steps)
+    n_act: int = 8               # actions of a chunk executed before re-planning (steps; used by the rollout loop)
+    K: int = 100                 # diffusion steps (the authors': 100)
+    schedule: str = "squaredcos" # 'squaredcos' (the authors'); 'linear' is a research option (behind the banner)
     down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512)); the chunk
                                        # is halved in time between levels, so H must divide by 2**(levels - 1)
-    kernel_size: int = 5         # temporal convolution kernel (odd: 'same' padding keeps the length)
+    kernel_size: int = 5         # temporal convolution kernel (steps; odd: 'same' padding keeps the length)
     n_groups: int = 8            # GroupNorm groups; every down_dim must be a multiple
     step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
     joint_obs: bool = False      # obs starts with (q_t, q_{t-1}) as in envs.py: learn chunks relative to q_t and
-                                 # give the network the joint velocity q_t - q_{t-1} (see DiffusionPolicy)
-    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image (channel-first, in [0, 1]) that a small
+                                 # give the network the joint velocity q_t - q_{t-1} (why: at _fit_min_max)
+    # not in the paper
+    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image (channel-first, in [0, 1]) that our small
                                  # CNN encodes (ImageEncoder); () = no image. envs: env.image_shape
     image_features: int = 64     # size of the CNN's image code
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
-        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
-        dims = self.down_dims
-        if (not isinstance(dims, (tuple, list)) or not dims
-                or any(not isinstance(d, (int, np.integer)) or d < 1 or d % self.n_groups for d in dims)):
-            raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
-                             f"n_groups={self.n_groups} (GroupNorm splits every width into n_groups groups), "
-                             f"got {dims!r}")
-        self.down_dims = tuple(int(d) for d in dims)                   # a list from a JSON config, numpy ints
-        if self.horizon % 2 ** (len(self.down_dims) - 1):
-            raise ValueError(f"PolicyConfig.horizon={self.horizon} must be divisible by "
-                             f"2**(len(down_dims) - 1) = {2 ** (len(self.down_dims) - 1)}: the U-Net halves the "
-                             f"chunk {len(self.down_dims) - 1} times (down_dims={self.down_dims})")
-        if self.kernel_size % 2 == 0:
-            raise ValueError(f"PolicyConfig.kernel_size must be odd (padding k // 2 keeps the length), "
-                             f"got {self.kernel_size}")
-        if self.n_act > self.horizon:
-            raise ValueError(f"PolicyConfig.n_act={self.n_act} must be <= horizon={self.horizon}")
-        if self.schedule not in ("squaredcos", "linear"):
-            raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {self.schedule!r}")
-        if self.step_embed_dim % 2:
-            raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {self.step_embed_dim}")
-        self.image_shape = tuple(int(n) for n in self.image_shape)
-        if self.image_shape and (len(self.image_shape) != 3 or min(self.image_shape[1:]) < 8
-                                 or self.image_shape[0] < 1):
-            raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
-                             f"width >= 8 (three stride-2 convolutions), got {self.image_shape}")
-        if self.image_shape and self.image_dim >= self.obs_dim:
-            raise ValueError(f"PolicyConfig.image_shape {self.image_shape} holds {self.image_dim} numbers; the "
-                             f"observation (obs_dim={self.obs_dim}) must be longer (joint positions come first)")
-        if not isinstance(self.image_features, (int, np.integer)) or self.image_features < 1:
-            raise ValueError(f"PolicyConfig.image_features must be a positive int, got {self.image_features!r}")
-        if self.joint_obs and self.low_dim < 2 * self.dof:
-            raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * self.dof} (obs starts with "
-                             f"q_t, q_t-1), got obs_dim={self.obs_dim}; use joint_obs=False")
+        _check_policy_config(self)                                     # ValueError on a bad knob (behind the banner)
 
     @property
-    def image_dim(self):
-        """Entries of the observation that are image pixels (its last ones); 0 without an image."""
+    def image_dim(self):         # entries of the observation that are image pixels (its last ones); 0: no image
         return int(np.prod(self.image_shape)) if self.image_shape else 0
 
     @property
-    def low_dim(self):
-        """Entries of the observation before the image: joint positions, goal, obstacles."""
+    def low_dim(self):           # entries of the observation before the image: joints, goal, obstacles
         return self.obs_dim - self.image_dim
 
     @property
-    def cond_input_dim(self):
-        """Length of the observation features that condition the U-Net: the low-dimensional observation,
-        the velocity if joint_obs, the CNN's image code if there is an image."""
+    def cond_input_dim(self):    # observation features for FiLM: low-dim obs, velocity (joint_obs), image code
         return (self.low_dim + (self.dof if self.joint_obs else 0)
                 + (self.image_features if self.image_shape else 0))
 
 
 @dataclass
 class TrainConfig:
+    # the paper (Sec. IV-A) and the authors' setup (PAPER_SETUP.md §2)
     steps: int = 10_000              # optimizer steps of this run (the total, also when resuming)
     batch_size: int = 256            # chunks per step (base + augmented)
     lr: float = 1e-3                 # peak AdamW learning rate (after warmup)
-    weight_decay: float = 1e-6       # AdamW weight decay (diffusion-policy default)
-    warmup_steps: int = 500          # linear warmup from 0 to lr, then cosine decay to 0 at `steps`
-    ema_decay: float = 0.999         # EMA of the weights used for sampling; timescale ~1/(1-decay) = 1000 steps
-    seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
+    weight_decay: float = 1e-6       # AdamW weight decay (the authors')
+    warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
-    # Observation noise in training, raw units (the authors: 0.01 rad on the joints, 0.005 m on the environment
-    # numbers), labels unchanged: a float for every entry or one std per entry (obs_dim,). 0 = none.
+    # Observation noise in training, raw observation units (rad on the joints, m on the environment numbers;
+    # the authors: 0.01 rad and 0.005 m), labels unchanged: one std for every entry or one per entry (obs_dim,).
     obs_noise: object = 0.0
-    log_every: int = 500             # steps between progress lines (0 = silent)
-    log_seconds: float = 10.0        # ... and a line at least this often (wall clock) unless silent
-    checkpoint_steps: tuple = ()     # steps after which a checkpoint is written
+    # not in the paper
+    ema_decay: float = 0.999         # EMA of the weights used for sampling (the authors use none); timescale
+                                     # ~1/(1 - decay) = 1000 optimizer steps
+    seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
+    log_every: int = 500             # optimizer steps between progress lines (0 = silent)
+    log_seconds: float = 10.0        # ... and a line at least this often (seconds, wall clock) unless silent
+    checkpoint_steps: tuple = ()     # optimizer steps after which a checkpoint is written
     checkpoint_path: str = ""        # where; '{step}' in the path is replaced by the step number
 
     def __post_init__(self):
-        if self.steps < 0 or self.batch_size < 1 or self.warmup_steps < 0:
-            raise ValueError(f"TrainConfig needs steps >= 0, batch_size >= 1, warmup_steps >= 0; got "
-                             f"{self.steps}, {self.batch_size}, {self.warmup_steps}")
-        if not 0.0 <= self.aug_fraction <= 1.0:
-            raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {self.aug_fraction}")
-        if not 0.0 <= self.ema_decay < 1.0:
-            raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
-        noise = np.asarray(self.obs_noise, dtype=np.float64)
-        if noise.ndim > 1 or not np.all(np.isfinite(noise)) or np.any(noise < 0):
-            raise ValueError(f"TrainConfig.obs_noise must be a std >= 0 or a vector of them (one per observation "
-                             f"entry), got {self.obs_noise!r}")
-        self.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
-        self.checkpoint_steps = tuple(int(s) for s in self.checkpoint_steps)
-        if self.checkpoint_steps and not self.checkpoint_path:
-            raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
+        _check_train_config(self)                                      # validates and normalizes (behind the banner)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -210,13 +151,7 @@ def make_schedule(K=100, kind="squaredcos"):
         betas = np.minimum(1.0 - f[1:] / f[:-1], 0.999)
         # <<< exercise 1
     elif kind == "linear":
-        # Ho et al.'s 1e-4 .. 0.02 are for K = 1000; scaled by 1000 / K (Nichol & Dhariwal) so that
-        # alphabar_K ~ 4e-5 for any K and the reverse process may start from N(0, I). Unscaled at K = 100,
-        # alphabar_K would be 0.37: the last level would still be mostly signal.
-        scale = 1000.0 / K
-        betas = np.linspace(scale * 1e-4, scale * 0.02, K, dtype=np.float64)
-        if betas.max() >= 1.0:
-            raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
+        betas = _linear_betas(K)                                       # a research option (behind the banner)
     else:
         raise ValueError(f"schedule kind must be 'squaredcos' or 'linear', got {kind!r}")
     # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
@@ -241,17 +176,6 @@ def make_schedule(K=100, kind="squaredcos"):
     return Schedule(**{name: torch.tensor(value, dtype=torch.float32) for name, value in arrays.items()})
 
 
-def _per_row(coef, k, like):
-    """coef[k] shaped to broadcast against `like` (B, ...). k: int or (B,) long tensor."""
-    if not torch.is_tensor(k):
-        k = torch.tensor(k, device=coef.device)
-    k = k.to(coef.device).long()
-    if k.numel() and (int(k.min()) < 0 or int(k.max()) >= coef.shape[0]):
-        raise ValueError(f"diffusion step k must be in 0..{coef.shape[0] - 1}, got {k.tolist()}")
-    value = coef[k]
-    return value.reshape(value.shape + (1,) * (like.dim() - value.dim()))
-
-
 def q_sample(schedule, a0, k, eps):
     """Forward process: the chunk a0 diffused to code level k (paper step k + 1) with noise eps.
 
@@ -259,6 +183,7 @@ def q_sample(schedule, a0, k, eps):
     independent Gaussians is Gaussian) to the closed form
         a_k = sqrt(alphabar_k) a_0 + sqrt(1 - alphabar_k) eps,   eps ~ N(0, I).
     """
+    # _per_row(coef, k, a0): coef[k] of each row's level, shaped to broadcast against a0 (behind the banner)
     # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
     # Eq. (5), closed form over k + 1 steps.
     return (_per_row(schedule.sqrt_alphas_cumprod, k, a0) * a0
@@ -340,26 +265,6 @@ class ConditionalResidualBlock(nn.Module):
         return self.conv2(h) + self.residual(x)                      # (B, out, T)
 
 
-class ImageEncoder(nn.Module):
-    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
-
-    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
-    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
-    """
-
-    def __init__(self, shape, features):
-        super().__init__()
-        channels, height, width = shape
-        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
-                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
-                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
-        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
-            height, width = (height + 1) // 2, (width + 1) // 2
-        self.fc = nn.Linear(32 * height * width, features)
-
-    def forward(self, image):
-        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
-
 
 class ConditionalUnet1D(nn.Module):
     """eps_theta(a_k, k | o): the noisy chunk (B, H, dof) in, the predicted noise (B, H, dof) out.
@@ -374,10 +279,10 @@ class ConditionalUnet1D(nn.Module):
     L, L-1, .., 1, and its last upsampling restores the length T, so the shallowest skip goes unused.
     Output: a Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
 
-    Conditioning: every residual block's FiLM is film(Mish([step features, obs features])). Splitting the
-    weight W = [W_s | W_o] along its input gives film = (W_s Mish(step) + b) + W_o Mish(obs): step_table()
-    computes the first term for all K steps at once, obs_terms() the second once per observation, and
-    forward() takes their sum, one row of all blocks' (scale, bias) stacked (the FiLM vector, film_size).
+    Conditioning: every block's FiLM is film(Mish([step features, obs features])). Splitting the weight
+    W = [W_s | W_o] along its input gives film = (W_s Mish(step) + b) + W_o Mish(obs): step_table() computes
+    the first term for all K steps at once, obs_terms() the second once per sampling call (the image CNN
+    included), and forward() takes their sum, all blocks' (scale, bias) in one row (film_size wide).
     """
 
     def __init__(self, cfg):
@@ -468,30 +373,17 @@ class ConditionalUnet1D(nn.Module):
         return self.final(x).transpose(1, 2)                         # (B, dof, H) -> (B, H, dof)
 
 
-def check_array(name, x, shape):
-    """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
-    x = np.asarray(x) if not torch.is_tensor(x) else x
-    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
-        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
-                         f"got {tuple(x.shape)}")
-    finite = torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()
-    if not finite:
-        raise ValueError(f"{name} contains NaN or inf")
-    return x
+# ----------------------------------------------------------------------------------------------
+# The policy: normalization, the DDPM loss, sampling by the reverse process
 
 
 class DiffusionPolicy(nn.Module):
     """pi_theta(a_{t:t+H} | o_t): DDPM over normalized action chunks, with an EMA copy for sampling.
 
-    Normalization (min-max to [-1, 1], fitted on the dataset, saved with the weights). With
-    cfg.joint_obs the policy uses that the observation starts with (q_t, q_{t-1}) (envs.py's layout):
-      - the chunk is normalized relative to the current joint position, (a - q_t - center) / half. A chunk
-        moves at most H * max_step (1 rad planar: 20 steps of 0.05) while the joints range over 2 pi:
-        normalized over the joint range, the motion that decides the path would be a small fraction of [-1, 1] and only the
-        last few diffusion steps would resolve it;
-      - the velocity q_t - q_{t-1}, min-max normalized, is appended to the network's observation input; as
-        the difference of two inputs of range 2 pi it would be a tiny signal for the first layer to find.
-    The interface stays in joint units and absolute targets: sample() returns q_t + the predicted motion.
+    Observations and chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved with the
+    weights); with cfg.joint_obs a chunk is normalized relative to q_t and the network also sees the joint
+    velocity (why: the comment at _fit_min_max, behind the banner). The interface stays in joint units and
+    absolute targets: sample() returns q_t + the predicted motion.
     """
 
     def __init__(self, cfg, device="cpu"):
@@ -513,8 +405,6 @@ class DiffusionPolicy(nn.Module):
         self.schedule = make_schedule(cfg.K, cfg.schedule)
         self.to(device)
 
-    # -- bookkeeping -------------------------------------------------------------------------------
-
     @property
     def device(self):
         return self.obs_center.device
@@ -528,35 +418,9 @@ class DiffusionPolicy(nn.Module):
     # -- normalization -----------------------------------------------------------------------------
 
     def fit_normalizer(self, obs, actions):
-        """Min-max fit on the dataset: obs (N, obs_dim) and actions (N, H, dof), joint units. Without joint_obs
-        the actions may also be any (M, dof) set of actions. Image pixels are not fitted: [0, 1] -> [-1, 1]."""
-        cfg = self.cfg
-        obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]  # the pixels need no float64 copy
-        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.ndim == 3 or cfg.joint_obs:
-            check_array("actions", actions, (len(obs) if cfg.joint_obs else None, cfg.horizon, cfg.dof))
-        else:
-            check_array("actions", actions, (None, cfg.dof))
-        if len(obs) == 0 or len(actions) == 0:
-            raise ValueError("fit_normalizer needs at least one observation and one action")
-        parts = {"obs": obs}
-        if cfg.joint_obs:
-            q, q_prev = obs[:, :cfg.dof], obs[:, cfg.dof:2 * cfg.dof]
-            parts["vel"] = q - q_prev
-            actions = actions - q[:, None, :]                          # (N, H, dof) motion from q_t
-        parts["act"] = actions.reshape(-1, cfg.dof)
-        for prefix, x in parts.items():
-            lo, hi = x.min(axis=0), x.max(axis=0)
-            half = (hi - lo) / 2
-            # A constant dimension would divide by zero: give it half range 1 so it maps to 0.
-            half = np.where(half > 1e-6, half, 1.0)
-            n = x.shape[1]
-            getattr(self, f"{prefix}_center")[:n].copy_(torch.as_tensor((hi + lo) / 2))
-            getattr(self, f"{prefix}_half")[:n].copy_(torch.as_tensor(half))
-        self.obs_center[cfg.low_dim:] = 0.5                             # image pixels: [0, 1] -> [-1, 1]
-        self.obs_half[cfg.low_dim:] = 0.5
-        self.normalizer_fitted.fill_(True)
+        """Min-max fit on the dataset: obs (N, obs_dim) and actions (N, H, dof), joint units (_fit_min_max,
+        behind the banner). Image pixels are not fitted: [0, 1] -> [-1, 1]."""
+        _fit_min_max(self, obs, actions)
 
     def normalize_obs(self, obs):
         """Raw observations (B, obs_dim) -> the network's observation input: the normalized low-dimensional
@@ -602,9 +466,7 @@ class DiffusionPolicy(nn.Module):
 
     def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
         """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
-
-        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps.
-        """
+        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps."""
         B = a_k_norm.shape[0]
         obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
         k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
@@ -681,37 +543,16 @@ class DiffusionPolicy(nn.Module):
 
     def save(self, path, extra=None):
         """One file: config, weights, EMA weights, normalizer (and `extra`, e.g. the training state)."""
-        payload = {"format": CHECKPOINT_FORMAT, "config": asdict(self.cfg),
-                   "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
-        if extra is not None:
-            payload["train_state"] = extra
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        tmp = f"{path}.tmp"
-        torch.save(payload, tmp)
-        os.replace(tmp, path)                                          # never leave a half-written file
+        _write_checkpoint(self, path, extra)                           # the file format: behind the banner
 
     @classmethod
     def load(cls, path, device="cpu"):
+        """The policy saved at path. FileNotFoundError if there is none; CheckpointDamagedError (a
+        ValueError) if the file is truncated or not a checkpoint of this code."""
         payload = _read_checkpoint(path)
         policy = cls(PolicyConfig(**payload["config"]), device=device)
         policy.load_state_dict(payload["state_dict"])
         return policy
-
-
-# v1 held the earlier residual-MLP epsilon network; v2 holds the U-Net. A v1 file cannot be loaded.
-CHECKPOINT_FORMAT = "diffusion-policy-v2"
-
-
-def _read_checkpoint(path):
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no policy checkpoint at {path!r}")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
-    if payload.get("format") == "diffusion-policy-v1":
-        raise ValueError(f"{path!r} is a diffusion-policy-v1 checkpoint (the earlier residual-MLP network); "
-                         f"this code reads {CHECKPOINT_FORMAT} (the U-Net): retrain the policy")
-    if payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path!r} is not a {CHECKPOINT_FORMAT} checkpoint")
-    return payload
 
 
 # ----------------------------------------------------------------------------------------------
@@ -768,7 +609,7 @@ def chunk_dataset(episodes, H):
 
 
 # ----------------------------------------------------------------------------------------------
-# Training: AdamW, warmup + cosine decay, EMA, checkpoints, resume, co-training hook
+# Training: AdamW, warmup + cosine decay, EMA, the co-training hook (Sec. IV-A steps 1, 4, 6)
 
 
 def lr_at(step, cfg):
@@ -785,6 +626,350 @@ def update_ema(policy, step, decay):
     # dominated by the random initial weights during a short run.
     d = min(decay, (1.0 + step) / (10.0 + step))
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
+
+
+def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
+    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
+
+    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
+      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
+      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
+      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
+    - resume_from: a checkpoint written by this function (cfg.checkpoint_steps); the resumed run ends with
+      the same numbers as an uninterrupted one (_resume_training, behind the banner).
+    """
+    pc = policy.cfg
+    obs, chunks = _check_train_inputs(policy, obs, chunks, cfg, sampler)
+    n_aug = int(round(cfg.aug_fraction * cfg.batch_size))            # augmented rows per batch
+    n_base = cfg.batch_size - n_aug                                    # rows from (obs, chunks)
+    if not bool(policy.normalizer_fitted):
+        policy.fit_normalizer(obs, chunks)
+    dev = policy.device
+    with torch.no_grad():
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)     # raw: the noise is in raw units
+        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
+    noise_std = torch.as_tensor(np.broadcast_to(np.asarray(cfg.obs_noise, dtype=np.float32), (pc.obs_dim,)).copy(),
+                                device=dev)                            # (obs_dim,)
+    noisy = bool((noise_std > 0).any())
+
+    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                  foreach=True)
+    rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
+    step = 0
+    if resume_from is not None:                                        # weights, optimizer, rng, gen, sampler
+        step = _resume_training(resume_from, policy, optimizer, rng, gen, sampler)
+
+    policy.train()
+    t0, losses, last_step = time.time(), [], step
+    while step < cfg.steps:
+        lr = lr_at(step, cfg)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
+        o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
+        mask = None                                                    # None: every step is in the loss
+        if n_aug:                                                      # co-training (Sec. IV-A step 4)
+            o_aug, a_aug, m_aug = _draw_augmented(policy, sampler, n_aug, rng)   # raw, normalized, mask or None
+            with torch.no_grad():
+                o, a = torch.cat([o, o_aug]), torch.cat([a, a_aug])
+                if m_aug is not None:
+                    mask = torch.cat([torch.ones(n_base, pc.horizon, dtype=torch.bool, device=dev),
+                                      m_aug])                          # (B, H): base rows all True
+        with torch.no_grad():
+            if noisy:
+                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
+                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
+                o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
+            o = policy.normalize_obs(o)                                # (B, cond input)
+        loss = policy.loss(o, a, generator=gen, mask=mask)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        update_ema(policy, step, cfg.ema_decay)
+        losses.append(loss.item())
+        step += 1
+
+        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps
+                              or time.time() - t0 >= cfg.log_seconds):
+            rate = (step - last_step) / max(time.time() - t0, 1e-9)
+            log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
+                f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
+            t0, losses, last_step = time.time(), [], step
+        if step in cfg.checkpoint_steps:
+            _save_training_checkpoint(policy, cfg, step, optimizer, rng, gen, sampler)
+    policy.eval()
+    return policy
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# Argument checks, the per-row indexing of the schedule (_per_row), the min-max normalizer, the linear
+# schedule (a research option), the image CNN, checkpoint files and train()'s resume plumbing, the toy data.
+
+
+# ----------------------------------------------------------------------------------------------
+# Argument checks: a clear ValueError naming the bad value
+
+
+def _check_policy_config(cfg):
+    """PolicyConfig.__post_init__: ValueError on a bad field; makes down_dims and image_shape int tuples."""
+    for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim"):
+        value = getattr(cfg, name)
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
+    dims = cfg.down_dims
+    if (not isinstance(dims, (tuple, list)) or not dims
+            or any(not isinstance(d, (int, np.integer)) or d < 1 or d % cfg.n_groups for d in dims)):
+        raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
+                         f"n_groups={cfg.n_groups} (GroupNorm splits every width into n_groups groups), "
+                         f"got {dims!r}")
+    cfg.down_dims = tuple(int(d) for d in dims)                        # a list from a JSON config, numpy ints
+    if cfg.horizon % 2 ** (len(cfg.down_dims) - 1):
+        raise ValueError(f"PolicyConfig.horizon={cfg.horizon} must be divisible by "
+                         f"2**(len(down_dims) - 1) = {2 ** (len(cfg.down_dims) - 1)}: the U-Net halves the "
+                         f"chunk {len(cfg.down_dims) - 1} times (down_dims={cfg.down_dims})")
+    if cfg.kernel_size % 2 == 0:
+        raise ValueError(f"PolicyConfig.kernel_size must be odd (padding k // 2 keeps the length), "
+                         f"got {cfg.kernel_size}")
+    if cfg.n_act > cfg.horizon:
+        raise ValueError(f"PolicyConfig.n_act={cfg.n_act} must be <= horizon={cfg.horizon}")
+    if cfg.schedule not in ("squaredcos", "linear"):
+        raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {cfg.schedule!r}")
+    if cfg.step_embed_dim % 2:
+        raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {cfg.step_embed_dim}")
+    cfg.image_shape = tuple(int(n) for n in cfg.image_shape)
+    if cfg.image_shape and (len(cfg.image_shape) != 3 or min(cfg.image_shape[1:]) < 8
+                            or cfg.image_shape[0] < 1):
+        raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
+                         f"width >= 8 (three stride-2 convolutions), got {cfg.image_shape}")
+    if cfg.image_shape and cfg.image_dim >= cfg.obs_dim:
+        raise ValueError(f"PolicyConfig.image_shape {cfg.image_shape} holds {cfg.image_dim} numbers; the "
+                         f"observation (obs_dim={cfg.obs_dim}) must be longer (joint positions come first)")
+    if not isinstance(cfg.image_features, (int, np.integer)) or cfg.image_features < 1:
+        raise ValueError(f"PolicyConfig.image_features must be a positive int, got {cfg.image_features!r}")
+    if cfg.joint_obs and cfg.low_dim < 2 * cfg.dof:
+        raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * cfg.dof} (obs starts with "
+                         f"q_t, q_t-1), got obs_dim={cfg.obs_dim}; use joint_obs=False")
+
+
+def _check_train_config(cfg):
+    """TrainConfig.__post_init__: ValueError on a bad field; obs_noise becomes a float or a tuple of floats."""
+    if cfg.steps < 0 or cfg.batch_size < 1 or cfg.warmup_steps < 0:
+        raise ValueError(f"TrainConfig needs steps >= 0, batch_size >= 1, warmup_steps >= 0; got "
+                         f"{cfg.steps}, {cfg.batch_size}, {cfg.warmup_steps}")
+    if not 0.0 <= cfg.aug_fraction <= 1.0:
+        raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {cfg.aug_fraction}")
+    if not 0.0 <= cfg.ema_decay < 1.0:
+        raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {cfg.ema_decay}")
+    noise = np.asarray(cfg.obs_noise, dtype=np.float64)
+    if noise.ndim > 1 or not np.all(np.isfinite(noise)) or np.any(noise < 0):
+        raise ValueError(f"TrainConfig.obs_noise must be a std >= 0 or a vector of them (one per observation "
+                         f"entry), got {cfg.obs_noise!r}")
+    cfg.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
+    cfg.checkpoint_steps = tuple(int(s) for s in cfg.checkpoint_steps)
+    if cfg.checkpoint_steps and not cfg.checkpoint_path:
+        raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
+
+
+
+def check_array(name, x, shape):
+    """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
+    x = np.asarray(x) if not torch.is_tensor(x) else x
+    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
+        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
+                         f"got {tuple(x.shape)}")
+    finite = torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()
+    if not finite:
+        raise ValueError(f"{name} contains NaN or inf")
+    return x
+
+
+
+def _check_train_inputs(policy, obs, chunks, cfg, sampler):
+    """train()'s arguments: the dataset's shapes, a sampler where aug_fraction needs one, one obs_noise std per
+    observation entry. Returns (obs, chunks) as check_array gives them."""
+    pc = policy.cfg
+    obs = check_array("obs", obs, (None, pc.obs_dim))
+    chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
+    if len(obs) != len(chunks) or len(obs) == 0:
+        raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
+    if round(cfg.aug_fraction * cfg.batch_size) and sampler is None:
+        raise ValueError(f"aug_fraction={cfg.aug_fraction} needs a sampler")
+    if np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim:
+        raise ValueError(f"TrainConfig.obs_noise has {len(cfg.obs_noise)} stds, the observation has "
+                         f"obs_dim={pc.obs_dim} entries: give one per entry or a single float")
+    return obs, chunks
+
+
+def _draw_augmented(policy, sampler, n_aug, rng):
+    """n_aug pairs from the co-training sampler, checked: (raw obs (n_aug, obs_dim), normalized chunks
+    (n_aug, H, dof), mask (n_aug, H) bool tensor or None) on the policy's device."""
+    pc, dev = policy.cfg, policy.device
+    drawn = sampler(n_aug, rng)
+    if len(drawn) not in (2, 3):
+        raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask), got {len(drawn)} arrays")
+    o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
+    a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
+    mask = None
+    if len(drawn) == 3:
+        mask = np.asarray(drawn[2])
+        if mask.shape != (n_aug, pc.horizon) or mask.dtype != bool:
+            raise ValueError(f"sampler mask must be bool ({n_aug}, {pc.horizon}), got {mask.dtype} {mask.shape}")
+        mask = torch.as_tensor(mask, device=dev)
+    with torch.no_grad():
+        o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
+        a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
+        return o_aug, policy.normalize_actions(a_aug, o_aug), mask
+
+
+# ----------------------------------------------------------------------------------------------
+# Normalization to [-1, 1] (DiffusionPolicy.fit_normalizer)
+#
+# With PolicyConfig.joint_obs (the authors' relative actions, PAPER_SETUP.md §1) the observation starts with
+# (q_t, q_{t-1}) and
+#   - the chunk is normalized relative to the current joint position, (a - q_t - center) / half: a chunk
+#     moves about H * max_step (1 rad planar) while the joints range over 2 pi, so normalized over the
+#     joint range the motion would be a small fraction of [-1, 1], resolved only by the last diffusion steps;
+#   - the velocity q_t - q_{t-1}, min-max normalized, is appended to the network's observation input (as
+#     the difference of two inputs of range 2 pi it would be a tiny signal for the first layer to find).
+
+
+def _fit_min_max(policy, obs, actions):
+    """DiffusionPolicy.fit_normalizer: min-max (center, half range) of the observations, the velocities
+    (joint_obs) and the actions (relative to q_t with joint_obs) into the policy's buffers. Without joint_obs
+    the actions may also be any (M, dof) set of actions."""
+    cfg = policy.cfg
+    obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]  # the pixels need no float64 copy
+    obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
+    actions = np.asarray(actions, dtype=np.float64)
+    if actions.ndim == 3 or cfg.joint_obs:
+        check_array("actions", actions, (len(obs) if cfg.joint_obs else None, cfg.horizon, cfg.dof))
+    else:
+        check_array("actions", actions, (None, cfg.dof))
+    if len(obs) == 0 or len(actions) == 0:
+        raise ValueError("fit_normalizer needs at least one observation and one action")
+    parts = {"obs": obs}
+    if cfg.joint_obs:
+        q, q_prev = obs[:, :cfg.dof], obs[:, cfg.dof:2 * cfg.dof]
+        parts["vel"] = q - q_prev
+        actions = actions - q[:, None, :]                          # (N, H, dof) motion from q_t
+    parts["act"] = actions.reshape(-1, cfg.dof)
+    for prefix, x in parts.items():
+        lo, hi = x.min(axis=0), x.max(axis=0)
+        half = (hi - lo) / 2
+        # A constant dimension would divide by zero: give it half range 1 so it maps to 0.
+        half = np.where(half > 1e-6, half, 1.0)
+        n = x.shape[1]
+        getattr(policy, f"{prefix}_center")[:n].copy_(torch.as_tensor((hi + lo) / 2))
+        getattr(policy, f"{prefix}_half")[:n].copy_(torch.as_tensor(half))
+    policy.obs_center[cfg.low_dim:] = 0.5                             # image pixels: [0, 1] -> [-1, 1]
+    policy.obs_half[cfg.low_dim:] = 0.5
+    policy.normalizer_fitted.fill_(True)
+
+
+def _per_row(coef, k, like):
+    """coef[k] shaped to broadcast against `like` (B, ...). k: int or (B,) long tensor."""
+    if not torch.is_tensor(k):
+        k = torch.tensor(k, device=coef.device)
+    k = k.to(coef.device).long()
+    if k.numel() and (int(k.min()) < 0 or int(k.max()) >= coef.shape[0]):
+        raise ValueError(f"diffusion step k must be in 0..{coef.shape[0] - 1}, got {k.tolist()}")
+    value = coef[k]
+    return value.reshape(value.shape + (1,) * (like.dim() - value.dim()))
+
+# ----------------------------------------------------------------------------------------------
+# A research option: the linear schedule of DDPM, rescaled to K steps
+
+
+def _linear_betas(K):
+    """beta_k for make_schedule(K, 'linear'). Ho et al.'s 1e-4 .. 0.02 are for K = 1000; scaled by 1000 / K
+    (Nichol & Dhariwal) so that alphabar_K ~ 4e-5 for any K and the reverse process may start from N(0, I).
+    Unscaled at K = 100, alphabar_K would be 0.37: the last level would still be mostly signal."""
+    scale = 1000.0 / K
+    betas = np.linspace(scale * 1e-4, scale * 0.02, K, dtype=np.float64)
+    if betas.max() >= 1.0:
+        raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
+    return betas
+
+
+# ----------------------------------------------------------------------------------------------
+# Image observations (the UR5 policy sees images, Sec. V; envs.EngineConfig(image_obs=True))
+#
+# The observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its last C*H*W entries
+# are an image (channel-first, flattened, pixels in [0, 1]). ImageEncoder turns it into image_features
+# numbers that join the low-dimensional part as observation features (ConditionalUnet1D.obs_features).
+# Being part of FiLM's observation term, the CNN runs once per sampling call, not once per diffusion step.
+# The paper does not specify its image encoder; this one is ours, small enough to train on a CPU.
+
+
+class ImageEncoder(nn.Module):
+    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
+
+    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
+    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
+    """
+
+    def __init__(self, shape, features):
+        super().__init__()
+        channels, height, width = shape
+        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
+                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
+                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
+        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
+            height, width = (height + 1) // 2, (width + 1) // 2
+        self.fc = nn.Linear(32 * height * width, features)
+
+    def forward(self, image):
+        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoint files and train()'s resume plumbing
+
+
+# v1 held the earlier residual-MLP epsilon network; v2 holds the U-Net. A v1 file cannot be loaded.
+CHECKPOINT_FORMAT = "diffusion-policy-v2"
+
+
+def _write_checkpoint(policy, path, extra=None):
+    """DiffusionPolicy.save: written to path.tmp, then renamed, so that path never holds a half-written file."""
+    payload = {"format": CHECKPOINT_FORMAT, "config": asdict(policy.cfg),
+               "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()}}
+    if extra is not None:
+        payload["train_state"] = extra
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp"
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+class CheckpointDamagedError(ValueError):
+    """A checkpoint file that cannot be read: truncated (a run killed while copying it), overwritten, or not
+    a torch file at all."""
+
+
+def _read_checkpoint(path):
+    """The payload dict of a file written by DiffusionPolicy.save. FileNotFoundError if there is no file,
+    CheckpointDamagedError if it cannot be read, ValueError if it is another format."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no policy checkpoint at {path!r}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError:                                                    # unreadable (permissions, disk): not damage
+        raise
+    except Exception as err:                                           # EOFError, zip RuntimeError, UnpicklingError, ...
+        raise CheckpointDamagedError(f"checkpoint {path} is damaged (truncated or not a checkpoint; torch.load "
+                                     f"raised {type(err).__name__}): delete it and run again to re-make it") from None
+    if not isinstance(payload, dict):
+        raise CheckpointDamagedError(f"checkpoint {path} is damaged (it holds a {type(payload).__name__}, not a "
+                                     f"checkpoint): delete it and run again to re-make it")
+    if payload.get("format") == "diffusion-policy-v1":
+        raise ValueError(f"{path!r} is a diffusion-policy-v1 checkpoint (the earlier residual-MLP network); "
+                         f"this code reads {CHECKPOINT_FORMAT} (the U-Net): retrain the policy")
+    if payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path!r} is not a {CHECKPOINT_FORMAT} checkpoint")
+    return payload
 
 
 def _as_torch(x):
@@ -809,116 +994,34 @@ def _checkpoint_path(cfg, step):
     return cfg.checkpoint_path.replace("{step}", str(step))
 
 
-def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
-    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
+def _save_training_checkpoint(policy, cfg, step, optimizer, rng, gen, sampler):
+    """train()'s checkpoint after `step` steps: the policy plus everything a resumed run needs to continue
+    with the same numbers (optimizer, both random streams, the sampler's state if it has one)."""
+    policy.save(_checkpoint_path(cfg, step), extra={
+        "step": step, "optimizer": optimizer.state_dict(),
+        "numpy_rng": json.dumps(rng.bit_generator.state), "torch_rng": gen.get_state(),
+        "train_config": json.dumps(asdict(cfg)),
+        "sampler": _as_torch(sampler.state_dict()) if hasattr(sampler, "state_dict") else None})
 
-    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
-      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
-      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
-      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
-    - resume_from: a checkpoint written by this function; restores weights, EMA, optimizer, step and both
-      random streams, so the resumed run ends with the same numbers as an uninterrupted one. A sampler with
-      state_dict() / load_state_dict() (e.g. a pool of generated pairs) is saved and restored with them.
-    """
-    pc = policy.cfg
-    obs = check_array("obs", obs, (None, pc.obs_dim))
-    chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
-    if len(obs) != len(chunks) or len(obs) == 0:
-        raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
-    n_aug = int(round(cfg.aug_fraction * cfg.batch_size))
-    if n_aug and sampler is None:
-        raise ValueError(f"aug_fraction={cfg.aug_fraction} needs a sampler")
-    n_base = cfg.batch_size - n_aug
-    if not bool(policy.normalizer_fitted):
-        policy.fit_normalizer(obs, chunks)
-    dev = policy.device
-    with torch.no_grad():
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)     # raw: the noise is in raw units
-        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
-    if np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim:
-        raise ValueError(f"TrainConfig.obs_noise has {len(cfg.obs_noise)} stds, the observation has "
-                         f"obs_dim={pc.obs_dim} entries: give one per entry or a single float")
-    noise_std = torch.as_tensor(np.broadcast_to(np.asarray(cfg.obs_noise, dtype=np.float32), (pc.obs_dim,)).copy(),
-                                device=dev)                            # (obs_dim,)
-    noisy = bool((noise_std > 0).any())
 
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                  foreach=True)
-    rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
-    gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
-    step = 0
-    if resume_from is not None:
-        payload = _read_checkpoint(resume_from)
-        if "train_state" not in payload:
-            raise ValueError(f"{resume_from!r} holds no training state (was it written by policy.save?)")
-        policy.load_state_dict(payload["state_dict"])
-        state = payload["train_state"]
-        optimizer.load_state_dict(state["optimizer"])
-        rng.bit_generator.state = json.loads(state["numpy_rng"])
-        gen.set_state(state["torch_rng"])
-        step = int(state["step"])
-        if state.get("sampler") is not None and hasattr(sampler, "load_state_dict"):
-            sampler.load_state_dict(_as_numpy(state["sampler"]))
-
-    policy.train()
-    t0, losses, last_step = time.time(), [], step
-    while step < cfg.steps:
-        lr = lr_at(step, cfg)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
-        o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
-        mask = None                                                    # None: every step is in the loss
-        if n_aug:
-            drawn = sampler(n_aug, rng)
-            if len(drawn) not in (2, 3):
-                raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask), got {len(drawn)} arrays")
-            o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
-            a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
-            with torch.no_grad():
-                o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
-                a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
-                o = torch.cat([o, o_aug])
-                a = torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
-                if len(drawn) == 3:
-                    m_aug = np.asarray(drawn[2])
-                    if m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool:
-                        raise ValueError(f"sampler mask must be bool ({n_aug}, {pc.horizon}), got {m_aug.dtype} {m_aug.shape}")
-                    mask = torch.cat([torch.ones(n_base, pc.horizon, dtype=torch.bool, device=dev),
-                                      torch.as_tensor(m_aug, device=dev)])  # (B, H): base rows all True
-        with torch.no_grad():
-            if noisy:
-                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
-                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
-                o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
-            o = policy.normalize_obs(o)                                # (B, cond input)
-        loss = policy.loss(o, a, generator=gen, mask=mask)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        update_ema(policy, step, cfg.ema_decay)
-        losses.append(loss.item())
-        step += 1
-
-        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps
-                              or time.time() - t0 >= cfg.log_seconds):
-            rate = (step - last_step) / max(time.time() - t0, 1e-9)
-            log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
-                f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
-            t0, losses, last_step = time.time(), [], step
-        if step in cfg.checkpoint_steps:
-            policy.save(_checkpoint_path(cfg, step), extra={
-                "step": step, "optimizer": optimizer.state_dict(),
-                "numpy_rng": json.dumps(rng.bit_generator.state), "torch_rng": gen.get_state(),
-                "train_config": json.dumps(asdict(cfg)),
-                "sampler": _as_torch(sampler.state_dict()) if hasattr(sampler, "state_dict") else None})
-    policy.eval()
-    return policy
+def _resume_training(path, policy, optimizer, rng, gen, sampler):
+    """Restore what _save_training_checkpoint wrote into policy, optimizer, rng and gen (and a sampler with
+    load_state_dict(), e.g. a pool of generated pairs); returns the step to continue from."""
+    payload = _read_checkpoint(path)
+    if "train_state" not in payload:
+        raise ValueError(f"{path!r} holds no training state (was it written by policy.save?)")
+    policy.load_state_dict(payload["state_dict"])
+    state = payload["train_state"]
+    optimizer.load_state_dict(state["optimizer"])
+    rng.bit_generator.state = json.loads(state["numpy_rng"])
+    gen.set_state(state["torch_rng"])
+    if state.get("sampler") is not None and hasattr(sampler, "load_state_dict"):
+        sampler.load_state_dict(_as_numpy(state["sampler"]))
+    return int(state["step"])
 
 
 # ----------------------------------------------------------------------------------------------
-# Demo: a 2-D toy task with two modes (go up-right or down-left); the policy must keep both.
+# Demo data: a 2-D toy task with two modes (go up-right or down-left); the policy must keep both.
 
 
 def toy_two_mode_data(n, H=4, seed=0):

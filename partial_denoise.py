@@ -1,13 +1,13 @@
 """Partial denoising: blend an expert action chunk with the policy's own prior (paper Sec. IV-B, IV-C, Fig. 3).
 
-Paper map:
+Paper map (paper.tex), in the paper's order:
   - linear interpolation, Eq. (3) ................................ lerp_blend
-  - switching step k_sw = ToInteger(beta K) ...................... switch_step
-  - sigma^2_{k_sw} = 1 - alphabar_{k_sw} (Sec. IV-D) ............ noise_fraction
-  - SDEdit bound, Eq. (7) ........................................ sdedit_bound
+  - switching step k_sw = ToInteger(beta K) (Sec. IV-B) .......... switch_step
   - partial diffusion as the learned interpolator f_theta, Eq. (4),
-    extended to chunks (Sec. IV-C: flatten (H, dof) into one vector) partial_denoise
-  - Fig. 3 (samples at several beta at one state) ............... plot_partial_denoising
+    extended to chunks (Sec. IV-C: flatten (H, dof) into one vector) partial_denoise (Eqs. 5-6 in diffusion.py)
+  - SDEdit bound, Eq. (7) ........................................ sdedit_bound
+  - sigma^2_{k_sw} = 1 - alphabar_{k_sw} (Sec. IV-D) ............. noise_fraction
+  - Fig. 3 (samples at several beta at one state) ................ plot_partial_denoising
 
 Partial diffusion (Yoneda et al., "To the noise and back"; SDEdit, Meng et al.): diffuse the expert chunk
 forward to an intermediate noise level with Eq. (5), then let the policy run the reverse process Eq. (6)
@@ -31,6 +31,8 @@ level K, which is pure noise up to sqrt(alphabar_K) a* (5e-4 a* for the capped s
 K = 100), i.e. unguided sampling.
 """
 
+import math
+
 import numpy as np
 import torch
 
@@ -38,43 +40,7 @@ from diffusion import check_array, q_sample
 
 
 # ----------------------------------------------------------------------------------------------
-# Small helpers: the paper's formulas
-
-
-def _check_beta(beta):
-    """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
-    b = np.asarray(beta, dtype=np.float64)
-    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
-        raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
-    return b
-
-
-def switch_step(beta, K):
-    """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas.
-
-    ToInteger = round to the nearest integer, halves up (floor(beta K + 1/2)). Nearest, not floor: beta K is
-    computed in floating point, and 0.29 * 100 = 28.999999999999996 would floor to 28; nearest is also
-    the unbiased choice. Halves up, not Python's round-half-to-even, so that k_sw is monotone in beta.
-    """
-    b = _check_beta(beta)
-    if not isinstance(K, (int, np.integer)) or K < 1:
-        raise ValueError(f"K must be a positive int, got {K!r}")
-    # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
-    k_sw = np.floor(b * K + 0.5).astype(np.int64)
-    return int(k_sw) if k_sw.ndim == 0 else k_sw
-    # <<< exercise 3
-
-
-def _alphabar_with_zero(schedule):
-    """(K + 1,) float64: alphabar_k for paper steps k = 0..K, with alphabar_0 = 1 (the clean chunk)."""
-    return np.concatenate([[1.0], schedule.alphas_cumprod.double().cpu().numpy()])
-
-
-def noise_fraction(schedule, beta):
-    """sigma^2_{k_sw} = 1 - alphabar_{k_sw} in [0, 1]: the share of noise in the diffused expert chunk."""
-    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
-    return 1.0 - _alphabar_with_zero(schedule)[switch_step(beta, schedule.K)]
-    # <<< exercise 4
+# Blending: Eq. (3), then the learned interpolator of Eq. (4) by partial diffusion
 
 
 def lerp_blend(a_policy, a_expert, beta):
@@ -91,31 +57,20 @@ def lerp_blend(a_policy, a_expert, beta):
     # <<< exercise 4
 
 
-def sdedit_bound(sigma2, bound, d, delta):
-    """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
-    and a noise prediction with ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1).
+def switch_step(beta, K):
+    """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas.
 
-    Read it as the scale of the blend, sigma^2_{k_sw} (how the paper uses it in Eqs. 8-12), not as a
-    guarantee for this sampler: its leading term d + 2 sqrt(-d log delta) - 2 log delta is the chi-square
-    tail of the forward noise sigma^2 alone, while DDPM's reverse steps add their own posterior noise. With
-    eps_theta = 0 (bound 0) the error variance is ~1.9 sigma^2 per dimension at beta = 0.2, and the bound
-    holds for ~90% of samples instead of 95% (d = 8; tests/test_partial_denoise.py). A model that pulls the
-    chunk toward its data (every trained policy) removes that noise again and stays within the bound.
+    ToInteger = round to the nearest integer, halves up (floor(beta K + 1/2)). Nearest, not floor: beta K is
+    computed in floating point, and 0.29 * 100 = 28.999999999999996 would floor to 28; nearest is also
+    the unbiased choice. Halves up, not Python's round-half-to-even, so that k_sw is monotone in beta.
     """
-    sigma2 = np.asarray(sigma2, dtype=np.float64)
-    if np.any(~np.isfinite(sigma2)) or np.any((sigma2 < 0) | (sigma2 > 1)):
-        raise ValueError(f"sigma2 must be a noise fraction in [0, 1], got {sigma2!r}")
-    if not bound >= 0 or not d >= 1 or not 0 < delta < 1:
-        raise ValueError(f"need bound >= 0, d >= 1, 0 < delta < 1; got bound={bound}, d={d}, delta={delta}")
-    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
-    log_delta = np.log(delta)
-    # Eq. (7)
-    return sigma2 * (bound * sigma2 + d + 2.0 * np.sqrt(-d * log_delta) - 2.0 * log_delta)
-    # <<< exercise 4
-
-
-# ----------------------------------------------------------------------------------------------
-# The core
+    b = _check_beta(beta)
+    if not isinstance(K, (int, np.integer)) or K < 1:
+        raise ValueError(f"K must be a positive int, got {K!r}")
+    # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
+    k_sw = np.floor(b * K + 0.5).astype(np.int64)
+    return int(k_sw) if k_sw.ndim == 0 else k_sw
+    # <<< exercise 3
 
 
 def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=True):
@@ -156,17 +111,60 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
 
 
 # ----------------------------------------------------------------------------------------------
+# How far the blend may move: Eq. (7) and the noise fraction sigma^2_{k_sw} (Sec. IV-D)
+
+
+def sdedit_bound(sigma2, bound, d, delta):
+    """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
+    and a noise prediction with ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1).
+
+    Read it as the scale of the blend, sigma^2_{k_sw} (how the paper uses it in Eqs. 8-12), not as a
+    guarantee for this sampler: its leading term d + 2 sqrt(-d log delta) - 2 log delta is the chi-square
+    tail of the forward noise sigma^2 alone, while DDPM's reverse steps add their own posterior noise. With
+    eps_theta = 0 (bound 0) the error variance is ~1.9 sigma^2 per dimension at beta = 0.2, and the bound
+    holds for ~90% of samples instead of 95% (d = 8; tests/test_partial_denoise.py). A model that pulls the
+    chunk toward its data (every trained policy) removes that noise again and stays within the bound.
+    """
+    sigma2 = np.asarray(sigma2, dtype=np.float64)
+    if np.any(~np.isfinite(sigma2)) or np.any((sigma2 < 0) | (sigma2 > 1)):
+        raise ValueError(f"sigma2 must be a noise fraction in [0, 1], got {sigma2!r}")
+    if not bound >= 0 or not d >= 1 or not 0 < delta < 1:
+        raise ValueError(f"need bound >= 0, d >= 1, 0 < delta < 1; got bound={bound}, d={d}, delta={delta}")
+    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
+    log_delta = np.log(delta)
+    # Eq. (7)
+    return sigma2 * (bound * sigma2 + d + 2.0 * np.sqrt(-d * log_delta) - 2.0 * log_delta)
+    # <<< exercise 4
+
+
+def _alphabar_with_zero(schedule):
+    """(K + 1,) float64: alphabar_k for paper steps k = 0..K, with alphabar_0 = 1 (the clean chunk)."""
+    return np.concatenate([[1.0], schedule.alphas_cumprod.double().cpu().numpy()])
+
+
+def noise_fraction(schedule, beta):
+    """sigma^2_{k_sw} = 1 - alphabar_{k_sw} in [0, 1]: the share of noise in the diffused expert chunk."""
+    # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
+    return 1.0 - _alphabar_with_zero(schedule)[switch_step(beta, schedule.K)]
+    # <<< exercise 4
+
+
+# ----------------------------------------------------------------------------------------------
 # Fig. 3
 
 
 def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None,
-                           n_samples=6):
-    """The paper's Fig. 3: at one state, the expert chunk, unguided samples (beta = 1) and partial-denoising
-    samples at several beta, drawn as end-effector paths over the scene (env.render, env.fk).
+                           n_samples=16):
+    """The paper's Fig. 3: at one state, the expert chunk, partial-denoising samples at several beta and
+    unguided samples (beta = 1), drawn as end-effector paths; one panel per beta, the scene in the first.
 
     obs (obs_dim,), expert_chunk (H, dof) joint targets; q (dof,) the arm's joint positions at obs
     (default env.q). Each path starts at the current end effector and visits the end effector of every
-    action of the chunk (actions are absolute joint targets, so env.fk of a target is where it leads).
+    action of the chunk (actions are absolute joint targets, so env.ee of a target is where it leads).
+    A planar env (env.dim == 2) is drawn in its plane over its scene (env.render); a 3-D env
+    (EngineReach3D) in the top view, x and y in m, with the goal as a marker (its render on a 2-D axis is
+    a camera picture, not a drawing to scale). Every panel shows n_samples paths per beta: a mean path would
+    be misleading, since at large beta the samples split between the policy's modes.
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -177,47 +175,93 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     if obs.ndim != 1 or expert_chunk.ndim != 2:
         raise ValueError(f"plot_partial_denoising takes one state: obs (obs_dim,), expert_chunk (H, dof); "
                          f"got {obs.shape}, {expert_chunk.shape}")
+    if env.dim not in (2, 3):
+        raise ValueError(f"plot_partial_denoising draws a 2-D or 3-D workspace, got dim = {env.dim}")
+    planar = env.dim == 2
     betas = [float(b) for b in _check_beta(np.atleast_1d(betas))]
     q = np.asarray(env.q if q is None else q, dtype=np.float64)
-    start = env.ee(q[None])                                    # (1, dim)
+    start = env.ee(q[None])[:, :2]                              # (1, 2): the plane, or the top view (x, y)
 
-    def ee_path(chunk):                                        # (H, dof) -> (H + 1, dim)
-        return np.concatenate([start, env.ee(chunk)])
+    def ee_path(chunk):                                        # (H, dof) -> (H + 1, 2)
+        return np.concatenate([start, env.ee(chunk)[:, :2]])
 
     levels = betas + [1.0]
     obs_b = np.repeat(obs[None], n_samples * len(levels), axis=0)
     chunk_b = np.repeat(expert_chunk[None], n_samples * len(levels), axis=0)
     beta_b = np.repeat(levels, n_samples)
     samples = partial_denoise(policy, obs_b, chunk_b, beta_b, generator=generator)   # (n * L, H, dof)
+    paths = np.stack([ee_path(chunk) for chunk in samples]).reshape(len(levels), n_samples, -1, 2)
+    expert_xy = ee_path(expert_chunk)                          # (H + 1, 2)
 
-    # Left: the whole scene; right: a close-up of the paths (same drawing, tighter limits).
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
-    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(betas)))
-    expert_xy = ee_path(expert_chunk)
-    all_xy = [expert_xy]
-    for ax in axes:
-        env.render(ax, q=q, alpha=0.35)
-        for i, beta in enumerate(levels):
-            unguided = i == len(betas)
-            color = "tab:red" if unguided else colors[i]
-            label = "unguided policy (beta = 1)" if unguided else f"partial denoising, beta = {beta:.2f}"
-            for j in range(n_samples):
-                path_xy = ee_path(samples[i * n_samples + j])
-                all_xy.append(path_xy)
-                ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color=color, lw=1.2, alpha=0.8,
-                        label=label if j == 0 else None)
-        ax.plot(expert_xy[:, 0], expert_xy[:, 1], "-o", color="tab:blue", lw=2.5, ms=3, label="expert chunk")
-    lo, hi = np.min(np.concatenate(all_xy), axis=0), np.max(np.concatenate(all_xy), axis=0)
+    # Panel 0: the whole scene with every path; panels 1..L: one beta each, zoomed to all paths.
+    ncols = min(3, len(levels) + 1)
+    nrows = math.ceil((len(levels) + 1) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 4.4 * nrows + 0.6), squeeze=False)
+    axes = axes.ravel()
+    colors = plt.cm.plasma(np.linspace(0.05, 0.8, len(levels)))   # dark: close to the expert, light: the policy
+    sigma2 = noise_fraction(policy.schedule, levels)
+    for ax in axes[len(levels) + 1:]:
+        ax.set_visible(False)
+    for p, ax in enumerate(axes[:len(levels) + 1]):
+        if planar:
+            env.render(ax, q=q, alpha=0.35)
+        else:
+            ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none")
+            ax.set_aspect("equal")
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+        ax.plot(*expert_xy.T, "-o", color="tab:blue", lw=3, ms=3, alpha=0.8)   # under the samples
+        for i in (range(len(levels)) if p == 0 else [p - 1]):
+            for path_xy in paths[i]:
+                ax.plot(*path_xy.T, "-", color=colors[i], lw=1.0, alpha=0.6)
+        ax.plot(*start[0], "ko", ms=5)
+        if p == 0:
+            ax.set_title("the scene, every beta" + ("" if planar else " (top view)"), fontsize=10)
+        else:
+            i = p - 1
+            name = r"unguided policy, $\beta$ = 1" if i == len(betas) else rf"$\beta$ = {levels[i]:.2f}"
+            ax.set_title(rf"{name} ($k_{{sw}}$ = {switch_step(levels[i], policy.cfg.K)}, "
+                         rf"$\sigma^2_{{k_{{sw}}}}$ = {sigma2[i]:.3f})", fontsize=10)
+    all_xy = np.concatenate([paths.reshape(-1, 2), expert_xy])
+    lo, hi = all_xy.min(axis=0), all_xy.max(axis=0)
     center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.05) * 1.15
-    axes[1].set_xlim(center[0] - half, center[0] + half)
-    axes[1].set_ylim(center[1] - half, center[1] + half)
-    axes[0].set_title("Partial denoising at one state (Fig. 3)")
-    axes[1].set_title("close-up of the end-effector paths")
-    axes[1].legend(loc="best", fontsize=7)
-    fig.tight_layout()
+    for ax in axes[1:len(levels) + 1]:                         # the same close-up for every beta
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+    if not planar:                                             # the scene panel: paths, start and goal
+        scene = np.concatenate([all_xy, env.goal[None, :2]])
+        lo, hi = scene.min(axis=0), scene.max(axis=0)
+        center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.05) * 1.15
+        axes[0].set_xlim(center[0] - half, center[0] + half)
+        axes[0].set_ylim(center[1] - half, center[1] + half)
+
+    # One legend for all panels, below them (outside the data).
+    handles = [plt.Line2D([], [], color="tab:blue", marker="o", ms=3, lw=2.5, label="expert chunk"),
+               plt.Line2D([], [], color="k", marker="o", lw=0, label="end effector now")]
+    handles += [plt.Line2D([], [], color=c, lw=1.5, label=(r"unguided ($\beta$ = 1)" if i == len(betas)
+                                                            else rf"$\beta$ = {levels[i]:.2f}"))
+                for i, c in enumerate(colors)]
+    handles.append(plt.Line2D([], [], lw=0, label=f"{n_samples} samples per beta"))
+    if not planar:
+        handles.append(plt.Line2D([], [], color="tab:green", marker="*", ms=12, lw=0, label="goal"))
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=8, frameon=False)
+    fig.suptitle("Partial denoising at one state (Fig. 3): end-effector paths of the chunks"
+                 + ("" if planar else ", top view"))
+    fig.tight_layout(rect=(0, 0.6 / (4.4 * nrows + 0.6) + 0.04, 1, 0.96))
     fig.savefig(path, dpi=150)
     plt.close(fig)
     return path
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+
+
+def _check_beta(beta):
+    """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
+    b = np.asarray(beta, dtype=np.float64)
+    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
+        raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
+    return b
 
 
 # ----------------------------------------------------------------------------------------------

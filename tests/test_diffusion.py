@@ -222,6 +222,31 @@ def test_save_load_round_trip(toy_trained, tmp_path):
         DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
 
 
+def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
+    """A truncated file (half of a real checkpoint), junk bytes and an empty file: load and resume raise
+    CheckpointDamagedError (a ValueError) naming the file and saying how to re-make it, never a raw
+    EOFError / RuntimeError / UnpicklingError."""
+    from diffusion import CheckpointDamagedError
+    obs, chunks = toy_two_mode_data(100, H=4, seed=0)
+    full = str(tmp_path / "full.pt")
+    train(tiny_policy(), obs, chunks, TrainConfig(steps=2, batch_size=8, warmup_steps=1, log_every=0,
+                                                  checkpoint_steps=(2,), checkpoint_path=full))
+    data = open(full, "rb").read()
+    damaged = {"half.pt": data[:len(data) // 2], "junk.pt": bytes(range(256)) * 4, "empty.pt": b""}
+    for name, content in damaged.items():
+        path = str(tmp_path / name)
+        with open(path, "wb") as f:
+            f.write(content)
+        for read in (lambda: DiffusionPolicy.load(path),
+                     lambda: train(tiny_policy(), obs, chunks, TrainConfig(steps=4, batch_size=8, log_every=0),
+                                   resume_from=path)):
+            with pytest.raises(CheckpointDamagedError, match="damaged") as err:
+                read()
+            assert isinstance(err.value, ValueError)
+            assert path in str(err.value) and "delete it" in str(err.value)
+    DiffusionPolicy.load(full)                                         # the intact file still loads
+
+
 def test_batched_sampling_equals_looped(toy_trained):
     obs = np.random.default_rng(1).uniform(-1, 1, (3, 2)).astype(np.float32)
     batched = toy_trained.sample(obs, generator=torch.Generator().manual_seed(5))

@@ -267,3 +267,21 @@ def test_plot_partial_denoising_writes_figure(tmp_path):
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError):
         plot_partial_denoising(env, policy, obs[None], expert, (0.1,), path, generator())
+
+
+def test_plot_partial_denoising_draws_the_3d_env_in_the_top_view(tmp_path):
+    """Fig. 3 for EngineReach3D (dim 3): the same panels, end-effector paths projected on x, y (m)."""
+    envs = pytest.importorskip("envs")
+    pytest.importorskip("pybullet")
+    env = envs.make_env("engine3d")
+    obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
+    q = info["q"]
+    assert env.dim == 3 and env.dof == 6
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=10, down_dims=(8, 16),
+                                          n_groups=4, step_embed_dim=16, joint_obs=True))
+    expert = q[None, :] + np.linspace(0.02, 0.3, 16)[:, None] * np.array([[1.0, -0.5, 0.3, 0.2, 0.1, 0.0]])
+    policy.fit_normalizer(np.stack([obs, obs]), np.stack([expert, expert + 0.1]))
+    path = str(tmp_path / "fig3_engine3d.png")
+    assert plot_partial_denoising(env, policy, obs, expert, (0.1, 0.5), path, generator(), q=q, n_samples=3) == path
+    with open(path, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
