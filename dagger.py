@@ -1152,6 +1152,16 @@ FIGURE_CAPTIONS = {
 }
 
 
+def figure_caption(name, cfg):
+    """FIGURE_CAPTIONS[name], said for the run's env (Table II and the top view for the UR5)."""
+    caption = FIGURE_CAPTIONS[name]
+    if cfg.env == "engine3d":
+        caption = caption.replace("Table I as", "Table II as")
+        if name[:4] in ("fig1", "fig2", "fig3"):
+            caption += " The UR5's end effector is drawn in the top view (x, y in m)."
+    return caption
+
+
 def write_markdown_report(run, text, stats):
     """report.md: the run folder readable on its own -- the table, the statistics in words, every figure
     with a one-line caption of what to see."""
@@ -1177,7 +1187,7 @@ def write_markdown_report(run, text, stats):
     if figures:
         lines += ["## Figures", ""]
         for f in figures:
-            lines += [f"**{f}** — {FIGURE_CAPTIONS[f]}", "", f"![{f}](figures/{f})", ""]
+            lines += [f"**{f}** — {figure_caption(f, cfg)}", "", f"![{f}](figures/{f})", ""]
     with open(os.path.join(run.root, "report.md"), "w") as fh:
         fh.write("\n".join(lines))
 
@@ -1188,8 +1198,7 @@ def make_figures(run, demos, stats):
     fig = lambda name: run.path("figures", name)  # noqa: E731
     env = make_run_env(cfg)
     rdir = os.path.join(run.root, "lineage_0", "round_1")
-    planar = env.dim == 2  # figs 1-3 and the fig5 drawing are planar; the UR5 gets a pybullet render
-    if planar:
+    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
         oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
     else:
         env.reset(seed=int(demos[0]["seed"]))
@@ -1204,15 +1213,13 @@ def make_figures(run, demos, stats):
     # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
     calibrated = os.path.join(rdir, "checkpoints", "hg_dagger.pt")
     policy = load_policy(calibrated if os.path.exists(calibrated) else run.path("checkpoints", "bc.pt"),
-                                            device=cfg.device)
+                         device=cfg.device)
     gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
     # the episode with the longest intervention shows the method best
     e = int(np.argmax([ep["expert"].sum() for ep in D1]))
     episode = D1[e]
     calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
-    if not planar:
-        run.log("figures 1-3 draw end-effector paths in the plane: drawn for the planar env only")
-        return
+    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
     calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
                                    generator=gen())
     relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),

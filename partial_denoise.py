@@ -210,7 +210,7 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
             ax.set_aspect("equal")
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
-        ax.plot(*expert_xy.T, "-o", color="tab:blue", lw=3, ms=3, alpha=0.8)   # under the samples
+        ax.plot(*expert_xy.T, "-o", color="tab:blue", lw=2.5, ms=3, alpha=0.9, zorder=5)   # on top: the reference
         for i in (range(len(levels)) if p == 0 else [p - 1]):
             for path_xy in paths[i]:
                 ax.plot(*path_xy.T, "-", color=colors[i], lw=1.0, alpha=0.6)

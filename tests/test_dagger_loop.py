@@ -164,7 +164,7 @@ def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_pa
 
 def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
     """Every stage with the UR5 env and camera images: demos, BC, HG-DAgger with the 6-dof oracle,
-    calibration, augmentation that reuses recorded images, evaluation, figures."""
+    calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""
     cfg = replace(TINY, name="tiny_images", env="engine3d", image_obs=True, image_size=16, n_demos=2,
                   episodes_per_round=2, eval_scenarios=2, methods=("bc", "hg_dagger", "pooled"))
     root = dagger.run_experiment(cfg, str(tmp_path / "images"))
@@ -172,7 +172,8 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
     assert set(results["success"]) == {"bc", "hg_dagger", "pooled"}
     D0 = dagger.envs.load_episodes(os.path.join(root, "data", "D0.npz"))
     assert D0[0]["obs"].shape[1] == 15 + 3 * 16 * 16                 # the images are in the data
-    for f in ("fig5_environment.png", "fig5_policy_view.png", "lineage_0/round_1/checkpoints/pooled.pt"):
+    for f in ("fig1_recovery.png", "fig2_method_overview.png", "fig3_partial_denoising.png", "fig4_blend_fit.png",
+              "fig5_environment.png", "fig5_policy_view.png", "table_i.png", "lineage_0/round_1/checkpoints/pooled.pt"):
         assert os.path.isfile(os.path.join(root, f if "/" in f else os.path.join("figures", f)))
 
 
