@@ -4,8 +4,8 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - noise schedule beta_k, alpha_k = 1 - beta_k, alphabar_k (defined with Eqs. 5-6) .. make_schedule, Schedule
   - forward process, Eq. (5), in closed form ............................. q_sample
   - reverse process, Eq. (6), one step ................................... p_sample
-  - epsilon network eps_theta(a_k, k | o) over a chunk ................... ConditionalUnet1D (the 1-D conv
-                                                                           U-Net of diffusion policy, FiLM)
+  - epsilon network eps_theta(a_k, k | o) over a chunk ................... ConditionalUnet1D (behind the
+                                                                           banner: the paper does not give it)
   - the policy pi_theta(a_{t:t+H} | o_t): sampling, DDPM loss ............ DiffusionPolicy
   - action chunks of horizon H; the label rule (Sec. IV-C) ............... expert_runs, label_mask,
                                                                            chunk_dataset
@@ -23,9 +23,7 @@ Index convention (read this once, it is used everywhere):
   clean chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
 The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al.
-2023): the chunk (H, dof) is a length-H signal with dof channels, convolved along time, halved in length
-between levels, every residual block FiLM-conditioned (Perez et al.) on [step features, observation
-features]. On a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py measures it;
+2023). On a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py measures it;
 PolicyConfig.down_dims picks the width).
 """
 
@@ -42,7 +40,7 @@ import torch.nn as nn
 
 
 # ----------------------------------------------------------------------------------------------
-# Config
+# Config (the longer notes on some knobs: "Config notes", behind the banner)
 
 
 @dataclass
@@ -54,16 +52,13 @@ class PolicyConfig:
     n_act: int = 8               # actions of a chunk executed before re-planning (steps; used by the rollout loop)
     K: int = 100                 # diffusion steps (the authors': 100)
     schedule: str = "squaredcos" # 'squaredcos' (the authors'); 'linear' is a research option (behind the banner)
-    down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512)); the chunk
-                                       # is halved in time between levels, so H must divide by 2**(levels - 1)
-    kernel_size: int = 5         # temporal convolution kernel (steps; odd: 'same' padding keeps the length)
+    down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512))
+    kernel_size: int = 5         # temporal convolution kernel (steps; odd)
     n_groups: int = 8            # GroupNorm groups; every down_dim must be a multiple
     step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
-    joint_obs: bool = False      # obs starts with (q_t, q_{t-1}) as in envs.py: learn chunks relative to q_t and
-                                 # give the network the joint velocity q_t - q_{t-1} (why: at _fit_min_max)
+    joint_obs: bool = False      # obs starts with (q_t, q_{t-1}): chunks relative to q_t, velocity as an input
     # not in the paper
-    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image (channel-first, in [0, 1]) that our small
-                                 # CNN encodes (ImageEncoder); () = no image. envs: env.image_shape
+    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image in [0, 1] (ImageEncoder); () = none
     image_features: int = 64     # size of the CNN's image code
     seed: int = 0                # seed of the weight initialisation
 
@@ -93,12 +88,9 @@ class TrainConfig:
     weight_decay: float = 1e-6       # AdamW weight decay (the authors')
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
-    # Observation noise in training, raw observation units (rad on the joints, m on the environment numbers;
-    # the authors: 0.01 rad and 0.005 m), labels unchanged: one std for every entry or one per entry (obs_dim,).
-    obs_noise: object = 0.0
+    obs_noise: object = 0.0          # observation noise std in training, raw units (rad, m): one, or (obs_dim,)
     # not in the paper
-    ema_decay: float = 0.999         # EMA of the weights used for sampling (the authors use none); timescale
-                                     # ~1/(1 - decay) = 1000 optimizer steps
+    ema_decay: float = 0.999         # EMA of the weights used for sampling; timescale 1/(1 - decay) optimizer steps
     seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
     log_every: int = 500             # optimizer steps between progress lines (0 = silent)
     log_seconds: float = 10.0        # ... and a line at least this often (seconds, wall clock) unless silent
@@ -220,7 +212,391 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
 
 
 # ----------------------------------------------------------------------------------------------
-# The epsilon network: Chi et al.'s 1-D temporal convolution U-Net, FiLM-conditioned on (k, o)
+# The policy: the DDPM loss, sampling by the reverse process
+
+
+class DiffusionPolicy(nn.Module):
+    """pi_theta(a_{t:t+H} | o_t): DDPM over action chunks, with an EMA copy of eps_theta for sampling.
+
+    Observations and chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved with the
+    weights; with cfg.joint_obs chunks relative to q_t). The interface stays in joint units and absolute
+    targets: sample() returns chunks of joint positions.
+    """
+
+    def __init__(self, cfg, device="cpu"):
+        super().__init__()
+        self.cfg = cfg
+        with torch.random.fork_rng(devices=[]):                       # init from cfg.seed; caller's RNG untouched
+            torch.manual_seed(cfg.seed)
+            self.net = ConditionalUnet1D(cfg)                          # eps_theta (behind the banner)
+        self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
+        _register_normalizer(self)                                     # min-max buffers (behind the banner)
+        self.schedule = make_schedule(cfg.K, cfg.schedule)
+        self.to(device)
+
+    # Plumbing (the details behind the banner): device, normalization to [-1, 1], FiLM pieces, noise, files.
+    @property
+    def device(self):
+        return self.obs_center.device
+
+    def _apply(self, fn, *args, **kwargs):     # .to(device): the schedule (derived, not a buffer) follows
+        super()._apply(fn, *args, **kwargs)
+        self.schedule = make_schedule(self.cfg.K, self.cfg.schedule).to(self.obs_center.device)
+        return self
+
+    def fit_normalizer(self, obs, actions):    # min-max fit on obs (N, obs_dim), actions (N, H, dof), joint units
+        _fit_min_max(self, obs, actions)
+
+    def normalize_obs(self, obs):              # raw (B, obs_dim) -> the network's observation input
+        return _normalize_obs(self, obs)
+
+    def normalize_actions(self, a, obs=None):  # chunks (B, H, dof), joint units -> [-1, 1]; obs: raw, for joint_obs
+        return (a - _action_origin(self, obs) - self.act_center) / self.act_half
+
+    def unnormalize_actions(self, a, obs=None):  # the inverse of normalize_actions
+        return a * self.act_half + self.act_center + _action_origin(self, obs)
+
+    def condition(self, obs_norm, use_ema=True):  # FiLM pieces: (obs terms (B, F), step table (K, F))
+        net = self.ema_net if use_ema else self.net
+        return net.obs_terms(obs_norm), net.step_table()
+
+    def draw_noise(self, B, generator=None):   # (B, K + 1, H, dof): [:, 0] start noise, [:, 1 + k] z at level k
+        return _draw_noise_rows(self, B, generator)
+
+    def save(self, path, extra=None):          # config, weights, EMA weights, normalizer (+ extra) in one file
+        _write_checkpoint(self, path, extra)
+
+    @classmethod
+    def load(cls, path, device="cpu"):         # FileNotFoundError, or CheckpointDamagedError (a ValueError)
+        return _load_policy(cls, path, device)
+
+    # The paper: eps_theta, the loss, the reverse process (Eq. 6) and sampling.
+    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
+        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
+        The network's FiLM input is the sum of an observation part and a step part (ConditionalUnet1D);
+        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps."""
+        B = a_k_norm.shape[0]
+        obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
+        k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
+        film = obs_part + step_part[k]                                # (B, F)
+        return (self.ema_net if use_ema else self.net)(a_k_norm, film)   # (B, H, dof)
+
+    def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
+        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}.
+        mask: optional (B, H) bool, True = the chunk step is in the loss (_masked_mse, behind the banner)."""
+        B = chunk_norm.shape[0]
+        gdev = generator.device if generator is not None else self.device
+        k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
+        eps = torch.randn(chunk_norm.shape, generator=generator, device=gdev).to(self.device)
+        a_k = q_sample(self.schedule, chunk_norm, k, eps)              # Eq. (5)
+        eps_pred = self.predict_eps(a_k, k, obs_norm, use_ema=False)   # (B, H, dof)
+        if mask is None:
+            return nn.functional.mse_loss(eps_pred, eps)
+        return _masked_mse(eps_pred, eps, mask, self.device)
+
+    @torch.inference_mode()
+    def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
+        """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.
+
+        a_k (B, H, dof) normalized, row i at level k_start[i]; k_start[i] = -1 means row i is already clean
+        and is returned unchanged. z (B, K, H, dof): z[:, k] is the noise of the step at level k.
+        """
+        cond = self.condition(obs_norm, use_ema)
+        a = a_k.clone()
+        top = int(k_start.max()) if len(k_start) else -1
+        for k in range(top, -1, -1):
+            active = k_start >= k                                      # rows that have reached level k
+            idx = active.nonzero().squeeze(1) if not bool(active.all()) else None
+            if idx is None:
+                eps = self.predict_eps(a, k, None, use_ema, cond=cond)
+                a = p_sample(self.schedule, eps, a, k, noise=z[:, k])   # Eq. (6)
+            else:
+                sub_cond = (cond[0][idx], cond[1])
+                eps = self.predict_eps(a[idx], k, None, use_ema, cond=sub_cond)
+                a[idx] = p_sample(self.schedule, eps, a[idx], k, noise=z[idx, k])
+        return a
+
+    def sample(self, obs, generator=None, use_ema=True):
+        """Unguided sampling: obs (B, obs_dim) np.ndarray -> chunks (B, H, dof) float64 in joint units."""
+        obs = check_array("obs", obs, (None, self.cfg.obs_dim))
+        B = obs.shape[0]
+        with torch.inference_mode():
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            obs_norm = self.normalize_obs(obs_t)
+            noise = self.draw_noise(B, generator)
+            a_K = noise[:, 0]                                          # pure noise stands in for level K - 1
+            k_start = torch.full((B,), self.cfg.K - 1, device=self.device)
+            a0 = self.reverse_process(a_K, k_start, obs_norm, noise[:, 1:], use_ema)
+            return self.unnormalize_actions(a0.double(), obs_t.double()).cpu().numpy()
+
+
+# ----------------------------------------------------------------------------------------------
+# Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
+
+
+def expert_runs(expert, H):
+    """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
+    can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
+    (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
+    of H and is discarded, also when it ends the episode. Every other module derives its labels from here.
+    """
+    expert = np.asarray(expert, dtype=bool)
+    T = len(expert)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
+    runs = [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
+    return [(s, e) for s, e in runs if e - s >= H or (s == 0 and e == T)]
+
+
+def label_mask(expert, H):
+    """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
+    t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
+    (the chunk is then padded with the last action)."""
+    expert = np.asarray(expert, dtype=bool)
+    T = len(expert)
+    mask = np.zeros(T, dtype=bool)
+    for start, end in expert_runs(expert, H):
+        mask[start:(end if end == T else end - H + 1)] = True
+    return mask
+
+
+def chunk_dataset(episodes, H):
+    """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
+    A chunk is action[t : t + H]; past the episode end it repeats the last action."""
+    if not isinstance(H, (int, np.integer)) or H < 1:
+        raise ValueError(f"H must be a positive int, got {H!r}")
+    obs_list, chunk_list = [], []
+    for i, ep in enumerate(episodes):
+        for key in ("obs", "action", "expert"):
+            if key not in ep:
+                raise ValueError(f"episode {i} has no {key!r} array (has {sorted(ep)})")
+        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"])
+        T = len(action)
+        if len(obs) != T or len(expert) != T or action.ndim != 2:
+            raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
+                             "must share the length T, with action of shape (T, dof)")
+        starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
+        steps = np.minimum(starts[:, None] + np.arange(H)[None, :], T - 1)   # (n, H), padded at the end
+        obs_list.append(obs[starts].astype(np.float32))
+        chunk_list.append(action[steps].astype(np.float32))            # (n, H, dof)
+    if not obs_list:
+        raise ValueError("chunk_dataset needs at least one episode")
+    return np.concatenate(obs_list), np.concatenate(chunk_list)
+
+
+# ----------------------------------------------------------------------------------------------
+# Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6)
+
+
+def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
+    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
+
+    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
+      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
+      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
+      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
+    - resume_from: a checkpoint written by this function (cfg.checkpoint_steps), see _resume_training.
+    """
+    pc = policy.cfg
+    obs, chunks = _check_train_inputs(policy, obs, chunks, cfg, sampler)
+    n_aug = int(round(cfg.aug_fraction * cfg.batch_size))            # augmented rows per batch
+    n_base = cfg.batch_size - n_aug                                    # rows from (obs, chunks)
+    if not bool(policy.normalizer_fitted):
+        policy.fit_normalizer(obs, chunks)
+    dev = policy.device
+    with torch.no_grad():
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)     # raw: the noise is in raw units
+        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
+    noise_std = torch.as_tensor(np.broadcast_to(np.asarray(cfg.obs_noise, dtype=np.float32), (pc.obs_dim,)).copy(),
+                                device=dev)                            # (obs_dim,)
+    noisy = bool((noise_std > 0).any())
+
+    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                  foreach=True)
+    rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
+    step = 0
+    if resume_from is not None:                                        # weights, optimizer, rng, gen, sampler
+        step = _resume_training(resume_from, policy, optimizer, rng, gen, sampler)
+
+    policy.train()
+    progress = _Progress(cfg, step, log)                               # progress lines (behind the banner)
+    while step < cfg.steps:
+        lr = lr_at(step, cfg)                                          # warmup + cosine (behind the banner)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
+        o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
+        mask = None                                                    # None: every step is in the loss
+        if n_aug:                                                      # co-training (Sec. IV-A step 4)
+            o, a, mask = _append_augmented(policy, sampler, n_aug, rng, o, a)   # + n_aug rows, mask or None
+        with torch.no_grad():
+            if noisy:
+                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
+                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
+                o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
+            o = policy.normalize_obs(o)                                # (B, cond input)
+        loss = policy.loss(o, a, generator=gen, mask=mask)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        update_ema(policy, step, cfg.ema_decay)                        # EMA copy for sampling (behind the banner)
+        step += 1
+        progress.update(step, loss.item())
+        if step in cfg.checkpoint_steps:
+            _save_training_checkpoint(policy, cfg, step, optimizer, rng, gen, sampler)
+    policy.eval()
+    return policy
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# Config notes, argument checks, the epsilon network (the authors' U-Net) and the image CNN, the min-max
+# normalizer, the per-row indexing of the schedule (_per_row), the noise draws of a reverse process, the
+# masked loss, train()'s learning-rate schedule, EMA and progress lines, the linear schedule (a research
+# option), checkpoint files and train()'s resume plumbing, the toy data.
+
+
+# ----------------------------------------------------------------------------------------------
+# Config notes (the longer "why" of some PolicyConfig / TrainConfig knobs)
+#
+# PolicyConfig.down_dims: the U-Net halves the chunk in time between levels, so horizon must divide by
+#   2**(len(down_dims) - 1); every width must be a multiple of n_groups (GroupNorm). The authors use
+#   (128, 256, 512); our default is narrower for a CPU (benchmarks/bench_diffusion.py measures the widths).
+# PolicyConfig.kernel_size: odd, so that padding kernel_size // 2 keeps the chunk's length.
+# PolicyConfig.joint_obs: the observation starts with (q_t, q_{t-1}) as in envs.py; chunks are learned
+#   relative to q_t and the network also sees the joint velocity q_t - q_{t-1} (why: at _fit_min_max).
+# PolicyConfig.image_shape: the last C*H*W observation entries are a channel-first image in [0, 1] that
+#   ImageEncoder encodes; the envs give it as env.image_shape.
+# TrainConfig.obs_noise: raw observation units, rad on the joints and m on the environment numbers (the
+#   authors: 0.01 rad and 0.005 m); a float for every entry or one std per entry (obs_dim,). 0 = none.
+# TrainConfig.ema_decay: the authors use no EMA; with 0.999 the average spans ~1/(1 - decay) = 1000
+#   optimizer steps (update_ema).
+
+
+# ----------------------------------------------------------------------------------------------
+# Argument checks: a clear ValueError naming the bad value
+
+
+def _check_policy_config(cfg):
+    """PolicyConfig.__post_init__: ValueError on a bad field; makes down_dims and image_shape int tuples."""
+    for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim"):
+        value = getattr(cfg, name)
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
+    dims = cfg.down_dims
+    if (not isinstance(dims, (tuple, list)) or not dims
+            or any(not isinstance(d, (int, np.integer)) or d < 1 or d % cfg.n_groups for d in dims)):
+        raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
+                         f"n_groups={cfg.n_groups} (GroupNorm splits every width into n_groups groups), "
+                         f"got {dims!r}")
+    cfg.down_dims = tuple(int(d) for d in dims)                        # a list from a JSON config, numpy ints
+    if cfg.horizon % 2 ** (len(cfg.down_dims) - 1):
+        raise ValueError(f"PolicyConfig.horizon={cfg.horizon} must be divisible by "
+                         f"2**(len(down_dims) - 1) = {2 ** (len(cfg.down_dims) - 1)}: the U-Net halves the "
+                         f"chunk {len(cfg.down_dims) - 1} times (down_dims={cfg.down_dims})")
+    if cfg.kernel_size % 2 == 0:
+        raise ValueError(f"PolicyConfig.kernel_size must be odd (padding k // 2 keeps the length), "
+                         f"got {cfg.kernel_size}")
+    if cfg.n_act > cfg.horizon:
+        raise ValueError(f"PolicyConfig.n_act={cfg.n_act} must be <= horizon={cfg.horizon}")
+    if cfg.schedule not in ("squaredcos", "linear"):
+        raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {cfg.schedule!r}")
+    if cfg.step_embed_dim % 2:
+        raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {cfg.step_embed_dim}")
+    cfg.image_shape = tuple(int(n) for n in cfg.image_shape)
+    if cfg.image_shape and (len(cfg.image_shape) != 3 or min(cfg.image_shape[1:]) < 8
+                            or cfg.image_shape[0] < 1):
+        raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
+                         f"width >= 8 (three stride-2 convolutions), got {cfg.image_shape}")
+    if cfg.image_shape and cfg.image_dim >= cfg.obs_dim:
+        raise ValueError(f"PolicyConfig.image_shape {cfg.image_shape} holds {cfg.image_dim} numbers; the "
+                         f"observation (obs_dim={cfg.obs_dim}) must be longer (joint positions come first)")
+    if not isinstance(cfg.image_features, (int, np.integer)) or cfg.image_features < 1:
+        raise ValueError(f"PolicyConfig.image_features must be a positive int, got {cfg.image_features!r}")
+    if cfg.joint_obs and cfg.low_dim < 2 * cfg.dof:
+        raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * cfg.dof} (obs starts with "
+                         f"q_t, q_t-1), got obs_dim={cfg.obs_dim}; use joint_obs=False")
+
+
+def _check_train_config(cfg):
+    """TrainConfig.__post_init__: ValueError on a bad field; obs_noise becomes a float or a tuple of floats."""
+    if cfg.steps < 0 or cfg.batch_size < 1 or cfg.warmup_steps < 0:
+        raise ValueError(f"TrainConfig needs steps >= 0, batch_size >= 1, warmup_steps >= 0; got "
+                         f"{cfg.steps}, {cfg.batch_size}, {cfg.warmup_steps}")
+    if not 0.0 <= cfg.aug_fraction <= 1.0:
+        raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {cfg.aug_fraction}")
+    if not 0.0 <= cfg.ema_decay < 1.0:
+        raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {cfg.ema_decay}")
+    noise = np.asarray(cfg.obs_noise, dtype=np.float64)
+    if noise.ndim > 1 or not np.all(np.isfinite(noise)) or np.any(noise < 0):
+        raise ValueError(f"TrainConfig.obs_noise must be a std >= 0 or a vector of them (one per observation "
+                         f"entry), got {cfg.obs_noise!r}")
+    cfg.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
+    cfg.checkpoint_steps = tuple(int(s) for s in cfg.checkpoint_steps)
+    if cfg.checkpoint_steps and not cfg.checkpoint_path:
+        raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
+
+
+def check_array(name, x, shape):
+    """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
+    x = np.asarray(x) if not torch.is_tensor(x) else x
+    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
+        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
+                         f"got {tuple(x.shape)}")
+    finite = torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()
+    if not finite:
+        raise ValueError(f"{name} contains NaN or inf")
+    return x
+
+
+def _check_train_inputs(policy, obs, chunks, cfg, sampler):
+    """train()'s arguments: the dataset's shapes, a sampler where aug_fraction needs one, one obs_noise std per
+    observation entry. Returns (obs, chunks) as check_array gives them."""
+    pc = policy.cfg
+    obs = check_array("obs", obs, (None, pc.obs_dim))
+    chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
+    if len(obs) != len(chunks) or len(obs) == 0:
+        raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
+    if round(cfg.aug_fraction * cfg.batch_size) and sampler is None:
+        raise ValueError(f"aug_fraction={cfg.aug_fraction} needs a sampler")
+    if np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim:
+        raise ValueError(f"TrainConfig.obs_noise has {len(cfg.obs_noise)} stds, the observation has "
+                         f"obs_dim={pc.obs_dim} entries: give one per entry or a single float")
+    return obs, chunks
+
+
+def _append_augmented(policy, sampler, n_aug, rng, o, a):
+    """train()'s co-training rows: n_aug pairs from the sampler, checked, appended to the base rows o (raw,
+    (n_base, obs_dim)) and a (normalized, (n_base, H, dof)). Returns (o, a, mask): mask (B, H) bool with the
+    base rows all True if the sampler gives a mask, else None."""
+    pc, dev = policy.cfg, policy.device
+    drawn = sampler(n_aug, rng)
+    if len(drawn) not in (2, 3):
+        raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask), got {len(drawn)} arrays")
+    o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
+    a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
+    m_aug = None
+    if len(drawn) == 3:
+        m_aug = np.asarray(drawn[2])
+        if m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool:
+            raise ValueError(f"sampler mask must be bool ({n_aug}, {pc.horizon}), got {m_aug.dtype} {m_aug.shape}")
+        m_aug = torch.as_tensor(m_aug, device=dev)
+    with torch.no_grad():
+        o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
+        a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
+        a_aug = policy.normalize_actions(a_aug, o_aug)
+        o, a = torch.cat([o, o_aug]), torch.cat([a, a_aug])
+        mask = None
+        if m_aug is not None:
+            mask = torch.cat([torch.ones(len(o) - n_aug, pc.horizon, dtype=torch.bool, device=dev),
+                              m_aug])                                  # (B, H): base rows all True
+    return o, a, mask
+
+
+# ----------------------------------------------------------------------------------------------
+# The epsilon network eps_theta(a_k, k | o): Chi et al.'s 1-D temporal convolution U-Net, FiLM-conditioned
+# on (k, o). The paper does not describe its network; this is the authors' (PAPER_SETUP.md §2: LeRobot's
+# diffusion policy, the CNN variant), with PolicyConfig.down_dims picking the width.
 
 
 def step_embedding(k, dim):
@@ -263,7 +639,6 @@ class ConditionalResidualBlock(nn.Module):
         scale, bias = film[:, :, None].chunk(2, dim=1)               # (B, out, 1) each
         h = scale * h + bias
         return self.conv2(h) + self.residual(x)                      # (B, out, T)
-
 
 
 class ConditionalUnet1D(nn.Module):
@@ -374,453 +749,34 @@ class ConditionalUnet1D(nn.Module):
 
 
 # ----------------------------------------------------------------------------------------------
-# The policy: normalization, the DDPM loss, sampling by the reverse process
+# Image observations (the UR5 policy sees images, Sec. V; envs.EngineConfig(image_obs=True))
+#
+# The observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its last C*H*W entries
+# are an image (channel-first, flattened, pixels in [0, 1]). ImageEncoder turns it into image_features
+# numbers that join the low-dimensional part as observation features (ConditionalUnet1D.obs_features).
+# Being part of FiLM's observation term, the CNN runs once per sampling call, not once per diffusion step.
+# The paper does not specify its image encoder; this one is ours, small enough to train on a CPU.
 
 
-class DiffusionPolicy(nn.Module):
-    """pi_theta(a_{t:t+H} | o_t): DDPM over normalized action chunks, with an EMA copy for sampling.
+class ImageEncoder(nn.Module):
+    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
 
-    Observations and chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved with the
-    weights); with cfg.joint_obs a chunk is normalized relative to q_t and the network also sees the joint
-    velocity (why: the comment at _fit_min_max, behind the banner). The interface stays in joint units and
-    absolute targets: sample() returns q_t + the predicted motion.
+    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
+    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
     """
 
-    def __init__(self, cfg, device="cpu"):
+    def __init__(self, shape, features):
         super().__init__()
-        self.cfg = cfg
-        # Weight init from cfg.seed without touching the caller's global torch RNG state.
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(cfg.seed)
-            self.net = ConditionalUnet1D(cfg)
-        self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
-        # Min-max normalizer (center, half range) -> [-1, 1]; part of state_dict, so saved with the weights.
-        self.register_buffer("obs_center", torch.zeros(cfg.obs_dim))
-        self.register_buffer("obs_half", torch.ones(cfg.obs_dim))
-        self.register_buffer("vel_center", torch.zeros(cfg.dof))    # used with joint_obs only
-        self.register_buffer("vel_half", torch.ones(cfg.dof))
-        self.register_buffer("act_center", torch.zeros(cfg.dof))
-        self.register_buffer("act_half", torch.ones(cfg.dof))
-        self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
-        self.schedule = make_schedule(cfg.K, cfg.schedule)
-        self.to(device)
+        channels, height, width = shape
+        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
+                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
+                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
+        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
+            height, width = (height + 1) // 2, (width + 1) // 2
+        self.fc = nn.Linear(32 * height * width, features)
 
-    @property
-    def device(self):
-        return self.obs_center.device
-
-    def _apply(self, fn, *args, **kwargs):
-        # Keep the schedule (not a buffer: it is derived from the config) on the module's device.
-        super()._apply(fn, *args, **kwargs)
-        self.schedule = make_schedule(self.cfg.K, self.cfg.schedule).to(self.obs_center.device)
-        return self
-
-    # -- normalization -----------------------------------------------------------------------------
-
-    def fit_normalizer(self, obs, actions):
-        """Min-max fit on the dataset: obs (N, obs_dim) and actions (N, H, dof), joint units (_fit_min_max,
-        behind the banner). Image pixels are not fitted: [0, 1] -> [-1, 1]."""
-        _fit_min_max(self, obs, actions)
-
-    def normalize_obs(self, obs):
-        """Raw observations (B, obs_dim) -> the network's observation input: the normalized low-dimensional
-        observation, then the normalized velocity (dof) if joint_obs, then the image pixels if any (the CNN
-        reads them from the end, ConditionalUnet1D.obs_features). Without an image: (B, cfg.cond_input_dim)."""
-        cfg = self.cfg
-        o = (obs - self.obs_center) / self.obs_half
-        if not cfg.joint_obs and not cfg.image_shape:
-            return o
-        parts = [o[:, :cfg.low_dim]]
-        if cfg.joint_obs:
-            d = cfg.dof
-            parts.append((obs[:, :d] - obs[:, d:2 * d] - self.vel_center) / self.vel_half)
-        if cfg.image_shape:
-            parts.append(o[:, cfg.low_dim:])
-        return torch.cat(parts, dim=1)
-
-    def _origin(self, obs):
-        """(B, 1, dof): what chunks are measured from -- q_t with joint_obs, else nothing (zero)."""
-        if not self.cfg.joint_obs:
-            return torch.zeros((), device=self.device)
-        if obs is None:
-            raise ValueError("with joint_obs, normalize_actions / unnormalize_actions need the raw obs")
-        return obs[:, None, :self.cfg.dof]
-
-    def normalize_actions(self, a, obs=None):
-        """Chunks (B, H, dof) in joint units -> normalized; obs: the raw (B, obs_dim), needed with joint_obs."""
-        return (a - self._origin(obs) - self.act_center) / self.act_half
-
-    def unnormalize_actions(self, a, obs=None):
-        """The inverse of normalize_actions."""
-        return a * self.act_half + self.act_center + self._origin(obs)
-
-    # -- the network -------------------------------------------------------------------------------
-
-    def _net(self, use_ema):
-        return self.ema_net if use_ema else self.net
-
-    def condition(self, obs_norm, use_ema=True):
-        """Per-call FiLM pieces: (observation terms (B, F), step table (K, F)), F = the net's film_size."""
-        net = self._net(use_ema)
-        return net.obs_terms(obs_norm), net.step_table()
-
-    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
-        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
-        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps."""
-        B = a_k_norm.shape[0]
-        obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
-        k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
-        film = obs_part + step_part[k]                                # (B, F)
-        return self._net(use_ema)(a_k_norm, film)                      # (B, H, dof)
-
-    def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
-        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}.
-
-        mask: optional (B, H) bool, True = the chunk step is in the loss (all dof of a step share it);
-        the mean is then over the unmasked (row, step, dof) entries only -- the held tail of a servo
-        label (relabel.servo_return_chunk, PAPER_SETUP.md §6) is left out. None: the plain mean."""
-        B = chunk_norm.shape[0]
-        gdev = generator.device if generator is not None else self.device
-        k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
-        eps = torch.randn(chunk_norm.shape, generator=generator, device=gdev).to(self.device)
-        a_k = q_sample(self.schedule, chunk_norm, k, eps)              # Eq. (5)
-        eps_pred = self.predict_eps(a_k, k, obs_norm, use_ema=False)   # (B, H, dof)
-        if mask is None:
-            return nn.functional.mse_loss(eps_pred, eps)
-        weight = torch.as_tensor(mask, device=self.device).to(eps.dtype)[:, :, None]  # (B, H, 1)
-        squared = (eps_pred - eps) ** 2 * weight                       # (B, H, dof), masked steps -> 0
-        return squared.sum() / (weight.sum() * eps.shape[-1]).clamp(min=1.0)
-
-    # -- sampling ----------------------------------------------------------------------------------
-
-    def draw_noise(self, B, generator=None):
-        """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] is the starting noise,
-        [:, 1 + k] is the z of the reverse step at code level k. Drawn row after row (one randn call each:
-        torch's CPU normal sampler fills blocks of 16 numbers, so one big call would not split into the
-        same per-row numbers), a row's draws do not depend on how the batch is split: sampling a batch
-        equals sampling its rows one by one from the same generator."""
-        shape = (B, self.cfg.K + 1, self.cfg.horizon, self.cfg.dof)
-        gdev = generator.device if generator is not None else torch.device("cpu")
-        rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
-        return torch.stack(rows).to(self.device) if rows else torch.empty(shape, device=self.device)
-
-    @torch.inference_mode()
-    def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
-        """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.
-
-        a_k (B, H, dof) normalized, row i at level k_start[i]; k_start[i] = -1 means row i is already clean
-        and is returned unchanged. z (B, K, H, dof): z[:, k] is the noise of the step at level k.
-        """
-        cond = self.condition(obs_norm, use_ema)
-        a = a_k.clone()
-        top = int(k_start.max()) if len(k_start) else -1
-        for k in range(top, -1, -1):
-            active = k_start >= k                                      # rows that have reached level k
-            idx = active.nonzero().squeeze(1) if not bool(active.all()) else None
-            if idx is None:
-                eps = self.predict_eps(a, k, None, use_ema, cond=cond)
-                a = p_sample(self.schedule, eps, a, k, noise=z[:, k])   # Eq. (6)
-            else:
-                sub_cond = (cond[0][idx], cond[1])
-                eps = self.predict_eps(a[idx], k, None, use_ema, cond=sub_cond)
-                a[idx] = p_sample(self.schedule, eps, a[idx], k, noise=z[idx, k])
-        return a
-
-    def sample(self, obs, generator=None, use_ema=True):
-        """Unguided sampling: obs (B, obs_dim) np.ndarray -> chunks (B, H, dof) float64 in joint units."""
-        obs = check_array("obs", obs, (None, self.cfg.obs_dim))
-        B = obs.shape[0]
-        with torch.inference_mode():
-            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-            obs_norm = self.normalize_obs(obs_t)
-            noise = self.draw_noise(B, generator)
-            a_K = noise[:, 0]                                          # pure noise stands in for level K - 1
-            k_start = torch.full((B,), self.cfg.K - 1, device=self.device)
-            a0 = self.reverse_process(a_K, k_start, obs_norm, noise[:, 1:], use_ema)
-            return self.unnormalize_actions(a0.double(), obs_t.double()).cpu().numpy()
-
-    # -- persistence -------------------------------------------------------------------------------
-
-    def save(self, path, extra=None):
-        """One file: config, weights, EMA weights, normalizer (and `extra`, e.g. the training state)."""
-        _write_checkpoint(self, path, extra)                           # the file format: behind the banner
-
-    @classmethod
-    def load(cls, path, device="cpu"):
-        """The policy saved at path. FileNotFoundError if there is none; CheckpointDamagedError (a
-        ValueError) if the file is truncated or not a checkpoint of this code."""
-        payload = _read_checkpoint(path)
-        policy = cls(PolicyConfig(**payload["config"]), device=device)
-        policy.load_state_dict(payload["state_dict"])
-        return policy
-
-
-# ----------------------------------------------------------------------------------------------
-# Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
-
-
-def expert_runs(expert, H):
-    """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
-    can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
-    (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
-    of H and is discarded, also when it ends the episode. Every other module derives its labels from here.
-    """
-    expert = np.asarray(expert, dtype=bool)
-    T = len(expert)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
-    runs = [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
-    return [(s, e) for s, e in runs if e - s >= H or (s == 0 and e == T)]
-
-
-def label_mask(expert, H):
-    """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
-    t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
-    (the chunk is then padded with the last action)."""
-    expert = np.asarray(expert, dtype=bool)
-    T = len(expert)
-    mask = np.zeros(T, dtype=bool)
-    for start, end in expert_runs(expert, H):
-        mask[start:(end if end == T else end - H + 1)] = True
-    return mask
-
-
-def chunk_dataset(episodes, H):
-    """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
-    A chunk is action[t : t + H]; past the episode end it repeats the last action."""
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive int, got {H!r}")
-    obs_list, chunk_list = [], []
-    for i, ep in enumerate(episodes):
-        for key in ("obs", "action", "expert"):
-            if key not in ep:
-                raise ValueError(f"episode {i} has no {key!r} array (has {sorted(ep)})")
-        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"])
-        T = len(action)
-        if len(obs) != T or len(expert) != T or action.ndim != 2:
-            raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
-                             "must share the length T, with action of shape (T, dof)")
-        starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
-        steps = np.minimum(starts[:, None] + np.arange(H)[None, :], T - 1)   # (n, H), padded at the end
-        obs_list.append(obs[starts].astype(np.float32))
-        chunk_list.append(action[steps].astype(np.float32))            # (n, H, dof)
-    if not obs_list:
-        raise ValueError("chunk_dataset needs at least one episode")
-    return np.concatenate(obs_list), np.concatenate(chunk_list)
-
-
-# ----------------------------------------------------------------------------------------------
-# Training: AdamW, warmup + cosine decay, EMA, the co-training hook (Sec. IV-A steps 1, 4, 6)
-
-
-def lr_at(step, cfg):
-    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.steps."""
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
-
-
-@torch.no_grad()
-def update_ema(policy, step, decay):
-    # Warm-up of the decay ((1 + t) / (10 + t), as in common EMA implementations) so that the EMA is not
-    # dominated by the random initial weights during a short run.
-    d = min(decay, (1.0 + step) / (10.0 + step))
-    torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
-
-
-def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, log=print):
-    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
-
-    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
-      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
-      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
-      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
-    - resume_from: a checkpoint written by this function (cfg.checkpoint_steps); the resumed run ends with
-      the same numbers as an uninterrupted one (_resume_training, behind the banner).
-    """
-    pc = policy.cfg
-    obs, chunks = _check_train_inputs(policy, obs, chunks, cfg, sampler)
-    n_aug = int(round(cfg.aug_fraction * cfg.batch_size))            # augmented rows per batch
-    n_base = cfg.batch_size - n_aug                                    # rows from (obs, chunks)
-    if not bool(policy.normalizer_fitted):
-        policy.fit_normalizer(obs, chunks)
-    dev = policy.device
-    with torch.no_grad():
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=dev)     # raw: the noise is in raw units
-        chunks_n = policy.normalize_actions(torch.as_tensor(chunks, dtype=torch.float32, device=dev), obs_t)
-    noise_std = torch.as_tensor(np.broadcast_to(np.asarray(cfg.obs_noise, dtype=np.float32), (pc.obs_dim,)).copy(),
-                                device=dev)                            # (obs_dim,)
-    noisy = bool((noise_std > 0).any())
-
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                  foreach=True)
-    rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
-    gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
-    step = 0
-    if resume_from is not None:                                        # weights, optimizer, rng, gen, sampler
-        step = _resume_training(resume_from, policy, optimizer, rng, gen, sampler)
-
-    policy.train()
-    t0, losses, last_step = time.time(), [], step
-    while step < cfg.steps:
-        lr = lr_at(step, cfg)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
-        o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
-        mask = None                                                    # None: every step is in the loss
-        if n_aug:                                                      # co-training (Sec. IV-A step 4)
-            o_aug, a_aug, m_aug = _draw_augmented(policy, sampler, n_aug, rng)   # raw, normalized, mask or None
-            with torch.no_grad():
-                o, a = torch.cat([o, o_aug]), torch.cat([a, a_aug])
-                if m_aug is not None:
-                    mask = torch.cat([torch.ones(n_base, pc.horizon, dtype=torch.bool, device=dev),
-                                      m_aug])                          # (B, H): base rows all True
-        with torch.no_grad():
-            if noisy:
-                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
-                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
-                o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
-            o = policy.normalize_obs(o)                                # (B, cond input)
-        loss = policy.loss(o, a, generator=gen, mask=mask)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        update_ema(policy, step, cfg.ema_decay)
-        losses.append(loss.item())
-        step += 1
-
-        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps
-                              or time.time() - t0 >= cfg.log_seconds):
-            rate = (step - last_step) / max(time.time() - t0, 1e-9)
-            log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
-                f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
-            t0, losses, last_step = time.time(), [], step
-        if step in cfg.checkpoint_steps:
-            _save_training_checkpoint(policy, cfg, step, optimizer, rng, gen, sampler)
-    policy.eval()
-    return policy
-
-
-# ==== Beyond the paper (safe to skip) ====================================================
-# Argument checks, the per-row indexing of the schedule (_per_row), the min-max normalizer, the linear
-# schedule (a research option), the image CNN, checkpoint files and train()'s resume plumbing, the toy data.
-
-
-# ----------------------------------------------------------------------------------------------
-# Argument checks: a clear ValueError naming the bad value
-
-
-def _check_policy_config(cfg):
-    """PolicyConfig.__post_init__: ValueError on a bad field; makes down_dims and image_shape int tuples."""
-    for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim"):
-        value = getattr(cfg, name)
-        if not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
-    dims = cfg.down_dims
-    if (not isinstance(dims, (tuple, list)) or not dims
-            or any(not isinstance(d, (int, np.integer)) or d < 1 or d % cfg.n_groups for d in dims)):
-        raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
-                         f"n_groups={cfg.n_groups} (GroupNorm splits every width into n_groups groups), "
-                         f"got {dims!r}")
-    cfg.down_dims = tuple(int(d) for d in dims)                        # a list from a JSON config, numpy ints
-    if cfg.horizon % 2 ** (len(cfg.down_dims) - 1):
-        raise ValueError(f"PolicyConfig.horizon={cfg.horizon} must be divisible by "
-                         f"2**(len(down_dims) - 1) = {2 ** (len(cfg.down_dims) - 1)}: the U-Net halves the "
-                         f"chunk {len(cfg.down_dims) - 1} times (down_dims={cfg.down_dims})")
-    if cfg.kernel_size % 2 == 0:
-        raise ValueError(f"PolicyConfig.kernel_size must be odd (padding k // 2 keeps the length), "
-                         f"got {cfg.kernel_size}")
-    if cfg.n_act > cfg.horizon:
-        raise ValueError(f"PolicyConfig.n_act={cfg.n_act} must be <= horizon={cfg.horizon}")
-    if cfg.schedule not in ("squaredcos", "linear"):
-        raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {cfg.schedule!r}")
-    if cfg.step_embed_dim % 2:
-        raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {cfg.step_embed_dim}")
-    cfg.image_shape = tuple(int(n) for n in cfg.image_shape)
-    if cfg.image_shape and (len(cfg.image_shape) != 3 or min(cfg.image_shape[1:]) < 8
-                            or cfg.image_shape[0] < 1):
-        raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
-                         f"width >= 8 (three stride-2 convolutions), got {cfg.image_shape}")
-    if cfg.image_shape and cfg.image_dim >= cfg.obs_dim:
-        raise ValueError(f"PolicyConfig.image_shape {cfg.image_shape} holds {cfg.image_dim} numbers; the "
-                         f"observation (obs_dim={cfg.obs_dim}) must be longer (joint positions come first)")
-    if not isinstance(cfg.image_features, (int, np.integer)) or cfg.image_features < 1:
-        raise ValueError(f"PolicyConfig.image_features must be a positive int, got {cfg.image_features!r}")
-    if cfg.joint_obs and cfg.low_dim < 2 * cfg.dof:
-        raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * cfg.dof} (obs starts with "
-                         f"q_t, q_t-1), got obs_dim={cfg.obs_dim}; use joint_obs=False")
-
-
-def _check_train_config(cfg):
-    """TrainConfig.__post_init__: ValueError on a bad field; obs_noise becomes a float or a tuple of floats."""
-    if cfg.steps < 0 or cfg.batch_size < 1 or cfg.warmup_steps < 0:
-        raise ValueError(f"TrainConfig needs steps >= 0, batch_size >= 1, warmup_steps >= 0; got "
-                         f"{cfg.steps}, {cfg.batch_size}, {cfg.warmup_steps}")
-    if not 0.0 <= cfg.aug_fraction <= 1.0:
-        raise ValueError(f"TrainConfig.aug_fraction must be in [0, 1], got {cfg.aug_fraction}")
-    if not 0.0 <= cfg.ema_decay < 1.0:
-        raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {cfg.ema_decay}")
-    noise = np.asarray(cfg.obs_noise, dtype=np.float64)
-    if noise.ndim > 1 or not np.all(np.isfinite(noise)) or np.any(noise < 0):
-        raise ValueError(f"TrainConfig.obs_noise must be a std >= 0 or a vector of them (one per observation "
-                         f"entry), got {cfg.obs_noise!r}")
-    cfg.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
-    cfg.checkpoint_steps = tuple(int(s) for s in cfg.checkpoint_steps)
-    if cfg.checkpoint_steps and not cfg.checkpoint_path:
-        raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
-
-
-
-def check_array(name, x, shape):
-    """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
-    x = np.asarray(x) if not torch.is_tensor(x) else x
-    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
-        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
-                         f"got {tuple(x.shape)}")
-    finite = torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()
-    if not finite:
-        raise ValueError(f"{name} contains NaN or inf")
-    return x
-
-
-
-def _check_train_inputs(policy, obs, chunks, cfg, sampler):
-    """train()'s arguments: the dataset's shapes, a sampler where aug_fraction needs one, one obs_noise std per
-    observation entry. Returns (obs, chunks) as check_array gives them."""
-    pc = policy.cfg
-    obs = check_array("obs", obs, (None, pc.obs_dim))
-    chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
-    if len(obs) != len(chunks) or len(obs) == 0:
-        raise ValueError(f"obs and chunks need the same non-zero length, got {len(obs)} and {len(chunks)}")
-    if round(cfg.aug_fraction * cfg.batch_size) and sampler is None:
-        raise ValueError(f"aug_fraction={cfg.aug_fraction} needs a sampler")
-    if np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim:
-        raise ValueError(f"TrainConfig.obs_noise has {len(cfg.obs_noise)} stds, the observation has "
-                         f"obs_dim={pc.obs_dim} entries: give one per entry or a single float")
-    return obs, chunks
-
-
-def _draw_augmented(policy, sampler, n_aug, rng):
-    """n_aug pairs from the co-training sampler, checked: (raw obs (n_aug, obs_dim), normalized chunks
-    (n_aug, H, dof), mask (n_aug, H) bool tensor or None) on the policy's device."""
-    pc, dev = policy.cfg, policy.device
-    drawn = sampler(n_aug, rng)
-    if len(drawn) not in (2, 3):
-        raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask), got {len(drawn)} arrays")
-    o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
-    a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
-    mask = None
-    if len(drawn) == 3:
-        mask = np.asarray(drawn[2])
-        if mask.shape != (n_aug, pc.horizon) or mask.dtype != bool:
-            raise ValueError(f"sampler mask must be bool ({n_aug}, {pc.horizon}), got {mask.dtype} {mask.shape}")
-        mask = torch.as_tensor(mask, device=dev)
-    with torch.no_grad():
-        o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
-        a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
-        return o_aug, policy.normalize_actions(a_aug, o_aug), mask
+    def forward(self, image):
+        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -833,6 +789,46 @@ def _draw_augmented(policy, sampler, n_aug, rng):
 #     joint range the motion would be a small fraction of [-1, 1], resolved only by the last diffusion steps;
 #   - the velocity q_t - q_{t-1}, min-max normalized, is appended to the network's observation input (as
 #     the difference of two inputs of range 2 pi it would be a tiny signal for the first layer to find).
+
+
+def _register_normalizer(policy):
+    """DiffusionPolicy's min-max normalizer (center, half range) -> [-1, 1]: buffers, so part of state_dict and
+    saved with the weights; identity until fit_normalizer."""
+    cfg = policy.cfg
+    policy.register_buffer("obs_center", torch.zeros(cfg.obs_dim))
+    policy.register_buffer("obs_half", torch.ones(cfg.obs_dim))
+    policy.register_buffer("vel_center", torch.zeros(cfg.dof))    # used with joint_obs only
+    policy.register_buffer("vel_half", torch.ones(cfg.dof))
+    policy.register_buffer("act_center", torch.zeros(cfg.dof))
+    policy.register_buffer("act_half", torch.ones(cfg.dof))
+    policy.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+
+
+def _normalize_obs(policy, obs):
+    """DiffusionPolicy.normalize_obs: raw observations (B, obs_dim) -> the network's observation input: the
+    normalized low-dimensional observation, then the normalized velocity (dof) if joint_obs, then the image
+    pixels if any (the CNN reads them from the end, ConditionalUnet1D.obs_features). Without an image:
+    (B, cfg.cond_input_dim)."""
+    cfg = policy.cfg
+    o = (obs - policy.obs_center) / policy.obs_half
+    if not cfg.joint_obs and not cfg.image_shape:
+        return o
+    parts = [o[:, :cfg.low_dim]]
+    if cfg.joint_obs:
+        d = cfg.dof
+        parts.append((obs[:, :d] - obs[:, d:2 * d] - policy.vel_center) / policy.vel_half)
+    if cfg.image_shape:
+        parts.append(o[:, cfg.low_dim:])
+    return torch.cat(parts, dim=1)
+
+
+def _action_origin(policy, obs):
+    """(B, 1, dof): what chunks are measured from -- q_t with joint_obs, else nothing (zero)."""
+    if not policy.cfg.joint_obs:
+        return torch.zeros((), device=policy.device)
+    if obs is None:
+        raise ValueError("with joint_obs, normalize_actions / unnormalize_actions need the raw obs")
+    return obs[:, None, :policy.cfg.dof]
 
 
 def _fit_min_max(policy, obs, actions):
@@ -868,6 +864,10 @@ def _fit_min_max(policy, obs, actions):
     policy.normalizer_fitted.fill_(True)
 
 
+# ----------------------------------------------------------------------------------------------
+# The per-row indexing of the schedule (q_sample, p_sample)
+
+
 def _per_row(coef, k, like):
     """coef[k] shaped to broadcast against `like` (B, ...). k: int or (B,) long tensor."""
     if not torch.is_tensor(k):
@@ -877,6 +877,79 @@ def _per_row(coef, k, like):
         raise ValueError(f"diffusion step k must be in 0..{coef.shape[0] - 1}, got {k.tolist()}")
     value = coef[k]
     return value.reshape(value.shape + (1,) * (like.dim() - value.dim()))
+
+
+# ----------------------------------------------------------------------------------------------
+# The noise draws of one reverse process (DiffusionPolicy.draw_noise)
+
+
+def _draw_noise_rows(policy, B, generator=None):
+    """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] is the starting noise, [:, 1 + k]
+    is the z of the reverse step at code level k. Drawn row after row (one randn call each: torch's CPU
+    normal sampler fills blocks of 16 numbers, so one big call would not split into the same per-row
+    numbers), a row's draws do not depend on how the batch is split: sampling a batch equals sampling its
+    rows one by one from the same generator."""
+    shape = (B, policy.cfg.K + 1, policy.cfg.horizon, policy.cfg.dof)
+    gdev = generator.device if generator is not None else torch.device("cpu")
+    rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
+    return torch.stack(rows).to(policy.device) if rows else torch.empty(shape, device=policy.device)
+
+
+# ----------------------------------------------------------------------------------------------
+# The masked DDPM loss (DiffusionPolicy.loss(mask=...))
+#
+# A servo label (relabel.servo_return_chunk, PAPER_SETUP.md §6) holds its last position once it is back on
+# the expert's path; those held steps are not the expert's and are left out of the loss.
+
+
+def _masked_mse(eps_pred, eps, mask, device):
+    """Mean of (eps_pred - eps)^2 over the unmasked (row, step, dof) entries; mask (B, H) bool, True = in the
+    loss (all dof of a step share it)."""
+    weight = torch.as_tensor(mask, device=device).to(eps.dtype)[:, :, None]  # (B, H, 1)
+    squared = (eps_pred - eps) ** 2 * weight                       # (B, H, dof), masked steps -> 0
+    return squared.sum() / (weight.sum() * eps.shape[-1]).clamp(min=1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# train()'s learning-rate schedule (the authors': warmup + cosine), EMA (ours) and progress lines
+
+
+def lr_at(step, cfg):
+    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.steps."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+@torch.no_grad()
+def update_ema(policy, step, decay):
+    """policy.ema_net (the weights used for sampling) <- the EMA of policy.net after optimizer step `step`."""
+    # Warm-up of the decay ((1 + t) / (10 + t), as in common EMA implementations) so that the EMA is not
+    # dominated by the random initial weights during a short run.
+    d = min(decay, (1.0 + step) / (10.0 + step))
+    torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
+
+
+class _Progress:
+    """train()'s progress lines: mean loss, rate and time left, every cfg.log_every optimizer steps and at
+    least every cfg.log_seconds (wall clock); silent when log_every = 0."""
+
+    def __init__(self, cfg, step, log):
+        self.cfg, self.log = cfg, log
+        self.t0, self.losses, self.last_step = time.time(), [], step
+
+    def update(self, step, loss):
+        """After optimizer step `step` with loss value `loss` (a float)."""
+        cfg = self.cfg
+        self.losses.append(loss)
+        if cfg.log_every and (step % cfg.log_every == 0 or step == cfg.steps
+                              or time.time() - self.t0 >= cfg.log_seconds):
+            rate = (step - self.last_step) / max(time.time() - self.t0, 1e-9)
+            self.log(f"step {step}/{cfg.steps} | loss {np.mean(self.losses):.4f} | {rate:.0f} steps/s | "
+                     f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
+            self.t0, self.losses, self.last_step = time.time(), [], step
+
 
 # ----------------------------------------------------------------------------------------------
 # A research option: the linear schedule of DDPM, rescaled to K steps
@@ -891,37 +964,6 @@ def _linear_betas(K):
     if betas.max() >= 1.0:
         raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
     return betas
-
-
-# ----------------------------------------------------------------------------------------------
-# Image observations (the UR5 policy sees images, Sec. V; envs.EngineConfig(image_obs=True))
-#
-# The observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its last C*H*W entries
-# are an image (channel-first, flattened, pixels in [0, 1]). ImageEncoder turns it into image_features
-# numbers that join the low-dimensional part as observation features (ConditionalUnet1D.obs_features).
-# Being part of FiLM's observation term, the CNN runs once per sampling call, not once per diffusion step.
-# The paper does not specify its image encoder; this one is ours, small enough to train on a CPU.
-
-
-class ImageEncoder(nn.Module):
-    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
-
-    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
-    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
-    """
-
-    def __init__(self, shape, features):
-        super().__init__()
-        channels, height, width = shape
-        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
-                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
-                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
-        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
-            height, width = (height + 1) // 2, (width + 1) // 2
-        self.fc = nn.Linear(32 * height * width, features)
-
-    def forward(self, image):
-        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -972,6 +1014,15 @@ def _read_checkpoint(path):
     return payload
 
 
+def _load_policy(cls, path, device="cpu"):
+    """DiffusionPolicy.load: the policy saved at path. FileNotFoundError if there is none;
+    CheckpointDamagedError (a ValueError) if the file is truncated or not a checkpoint of this code."""
+    payload = _read_checkpoint(path)
+    policy = cls(PolicyConfig(**payload["config"]), device=device)
+    policy.load_state_dict(payload["state_dict"])
+    return policy
+
+
 def _as_torch(x):
     """numpy arrays -> tensors inside nested dicts / lists (checkpoints are read with weights_only=True)."""
     if isinstance(x, dict):
@@ -1006,7 +1057,8 @@ def _save_training_checkpoint(policy, cfg, step, optimizer, rng, gen, sampler):
 
 def _resume_training(path, policy, optimizer, rng, gen, sampler):
     """Restore what _save_training_checkpoint wrote into policy, optimizer, rng and gen (and a sampler with
-    load_state_dict(), e.g. a pool of generated pairs); returns the step to continue from."""
+    load_state_dict(), e.g. a pool of generated pairs); returns the step to continue from. The resumed
+    train() run ends with the same numbers as an uninterrupted one."""
     payload = _read_checkpoint(path)
     if "train_state" not in payload:
         raise ValueError(f"{path!r} holds no training state (was it written by policy.save?)")
