@@ -14,12 +14,14 @@ The paper measures both offline, without an expert in the loop (Sec. IV-D). In t
    fitted for the policy's settling error W and the gain ratio r = K*/K_theta (Fig. 4).
 4. `dart_alpha`, `dart_sigma`, `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) in
    Eq. (2) gives Sigma^alpha_t (Eq. 14, Fig. 2c) and the pooled Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
-5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`.
+5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`
+   (the record, its report and JSON: after the banner).
 6. Figures: `plot_method_overview` (Fig. 2) and `plot_blend_fit` (Fig. 4).
 
 Beyond the paper (after the banner): the fit's robust refinement, W's bootstrap interval and cap,
 the batched closed-loop simulator behind the rollouts (with the authors' monotone time matching),
-and Table I's "closed-loop pooled" variant (`closed_loop_sigma`).
+Table I's "closed-loop pooled" variant (`closed_loop_sigma`), the expert-data helpers (`expert_chunk`,
+`label_starts`, `expert_segments`: the label rule of diffusion.label_mask), input checks, figure plumbing.
 
 Units: joint deviations, W and covariances in radians (rad^2), so relabel.py draws states from them
 directly; step counts in env steps (0.1 s). `diverge_threshold`, reports and figures are in median
@@ -71,39 +73,6 @@ class CalibrationConfig:
 
 
 # ----------------------------------------------------------------------------------------------
-# Helpers: expert segments, label starts, expert chunks
-# ----------------------------------------------------------------------------------------------
-
-def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
-    """The expert runs [start, end) that can label chunks of `horizon` steps (the label rule in
-    diffusion.expert_runs): a demonstration gives one (the whole episode), an intervention episode
-    one per intervention of at least `horizon` steps."""
-    return expert_runs(episode["expert"], horizon)
-
-
-def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask, the rule
-    the training data uses)."""
-    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
-
-
-def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
-    """actions[t:t+H] with actions past `end` (default: the episode end) replaced by the last one.
-
-    Past the end of an intervention the recorded actions are the policy's, so the time-matched
-    expert chunk repeats the last expert action instead (diffusion.chunk_dataset's padding).
-    """
-    end = len(actions) if end is None else end
-    idx = np.minimum(np.arange(t, t + horizon), end - 1)
-    return actions[idx]                                                     # (H, dof)
-
-
-def policy_horizon(policy) -> int:
-    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
-    return int(policy.cfg.horizon)
-
-
-# ----------------------------------------------------------------------------------------------
 # Step 1: open-loop Sigma_hat_t along the expert data (Eq. 1)
 # ----------------------------------------------------------------------------------------------
 
@@ -120,19 +89,15 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
                     n_act: int | None = None) -> StepCovariances:
     """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
 
-    At step t the policy samples `n_samples` chunks from the recorded observation obs[t]; with d =
-    sampled chunk - expert chunk actions[t:t+H] over the first n_act steps, Sigma_hat_t = the mean
-    of d d^T over samples and steps (dof, dof). Only the executed steps count (authors' protocol: the
-    rest of a chunk is re-planned before it runs); n_act defaults to policy.cfg.n_act (else H).
-    Uncentered, as Eq. (1) compares with the expert, not with the policy's mean. As in the paper the
-    states are the clean expert data's, not noised rollouts', so no simulator is needed.
+    At step t the policy samples `n_samples` chunks from the recorded obs[t]; with d = sampled chunk -
+    expert chunk actions[t:t+H] over the first n_act steps (the executed ones: the rest is re-planned
+    before it runs; default policy.cfg.n_act), Sigma_hat_t = the mean of d d^T over samples and steps
+    (dof, dof). Uncentered: Eq. (1) compares with the expert, not with the policy's mean.
     """
-    if stride < 1 or n_samples < 1:
-        raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
+    _check_sampling(stride, n_samples)
     H = policy_horizon(policy)
     n_act = int(getattr(policy.cfg, "n_act", H)) if n_act is None else int(n_act)
-    if not 1 <= n_act <= H:
-        raise ValueError(f"n_act must be in 1..H = {H}, got {n_act}")
+    _check_n_act(n_act, H)
     obs_rows, chunks, ep_idx, steps = [], [], [], []
     for e, ep in enumerate(episodes):
         starts = label_starts(ep, H)
@@ -143,9 +108,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
                 chunks.append(expert_chunk(actions, int(t), H, end))
                 ep_idx.append(e)
                 steps.append(int(t))
-    if not obs_rows:
-        raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
-                         "open_loop_sigma needs expert segments of at least H steps")
+    _check_found_labels(obs_rows, H, episodes)
     # >>> exercise 5: open-loop Sigma_hat_t along the expert data (Eq. 1)
     obs = np.repeat(np.stack(obs_rows).astype(np.float32), n_samples, axis=0)   # (M*n, obs_dim)
     samples = _sample_batched(policy, obs, generator, max_batch).astype(np.float64)
@@ -179,18 +142,14 @@ def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationCo
     """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
 
     From the segment's first state (default: the episode's longest expert segment) every decision
-    calls partial_denoise(policy, obs, expert chunk at the cursor, beta) and executes the first
-    n_act actions. Rollouts whose nearest-state distance reaches diverge_rad (radians: the
-    divergence threshold times the median step; 0.4 is about 15 median steps of the planar oracle
-    demos) or that record fewer than cfg.min_rollout_steps steps are not kept ("we discard the
-    blended trajectories that diverge"); contacts only with discard_collisions (see `_closed_loop`).
+    executes the first n_act actions of partial_denoise(policy, obs, expert chunk at the cursor, beta).
+    Rollouts whose nearest-state distance reaches diverge_rad (radians; 0.4 is about 15 median steps of
+    the planar oracle demos) or that record fewer than cfg.min_rollout_steps steps are not kept ("we
+    discard the blended trajectories that diverge"); contacts only with discard_collisions (`_closed_loop`).
     """
     H = policy_horizon(policy)
     if segment is None:
-        segments = expert_segments(episode, H)
-        if not segments:
-            raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {H} steps")
-        segment = max(segments, key=lambda se: se[1] - se[0])
+        segment = _longest_segment(episode, H)
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_rad,
                   discard_collisions, cfg)
@@ -200,8 +159,7 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
            discard_collisions: bool = False, cfg: CalibrationConfig | None = None) -> BlendRollouts:
     """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians)."""
     cfg = cfg or CalibrationConfig()
-    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
-        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
+    _check_betas(betas)
 
     def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
@@ -218,13 +176,11 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
 def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
                    settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
     """x of Eq. (12) per rollout: sqrt(mean_t e_t^2) over the recorded steps t in [settle_start,
-    settle_end] (the steps before are the transient toward the blend's equilibrium), e_t = distance
-    (rad) from q_t to the nearest expert state around the rollout's cursor (`advance_cursor`). A
-    rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps, for
-    the figure. Norm, not per joint: see `fit_equilibrium`.
+    settle_end] (before them: the transient), e_t = distance (rad) from q_t to the nearest expert
+    state around the rollout's cursor (`advance_cursor`); the norm, not per joint (`fit_equilibrium`).
+    A rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps.
     """
-    if rollouts.nearest_error is None:
-        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
+    _check_nearest_error(rollouts)
     x = np.zeros(len(rollouts.n_recorded))
     for b, n in enumerate(rollouts.n_recorded):
         e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
@@ -246,10 +202,7 @@ def equilibrium(s, W, r):
     x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
     """
     s = np.asarray(s, dtype=np.float64)
-    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if not r > 0:
-        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    _check_s_and_r(s, r)
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     # Eq. (12): x = W s / (s + r (1 - s))
     return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
@@ -278,27 +231,14 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
                     n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
     """Least squares for W and r > 0 in Eq. (12) from points (s_i, x_i).
 
-    For a fixed r the model is linear in W, so W has a closed form (`_best_W`); r is searched on a
-    log grid over r_bounds, and `refine_fit_robust` refines the grid's best (beyond the paper:
-    golden section in log r, Huber weights against outliers; huber_k, n_iter).
-    We fit the *norm* of the joint deviation: with isotropic gains (Eqs. 9-10) every joint follows
-    x_j = W_j g(s) with the same g, so ||x|| = ||W|| g(s) is Eq. (12) again, and Eq. (14) needs only
-    ||W||^2 (signed per-joint deviations would also partly cancel). W is x extrapolated to s = 1,
-    past the largest measured s: r_bounds keep it finite (see `cap_W`).
-    Needs at least 3 finite points with at least 2 distinct s > 0 (otherwise ValueError). If every
-    x is 0 the policy tracks the expert exactly: W = 0 and r is unidentifiable; r = 1 is returned.
+    For a fixed r the model is linear in W: W in closed form (`_best_W`), r on a log grid over
+    r_bounds, the grid's best refined by `refine_fit_robust` (beyond the paper). x is the *norm* of
+    the joint deviation: with isotropic gains (Eqs. 9-10) every joint follows x_j = W_j g(s), so
+    ||x|| = ||W|| g(s) is Eq. (12) again and Eq. (14) needs only ||W||^2 (signed per-joint deviations
+    would partly cancel). W is x extrapolated to s = 1: r_bounds keep it finite (see `cap_W`). Needs
+    >= 3 finite points with >= 2 distinct s > 0 (else ValueError). Every x = 0: W = 0, r = 1 (unidentifiable).
     """
-    s = np.asarray(s, dtype=np.float64).reshape(-1)
-    x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if s.shape != x.shape:
-        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
-    ok = np.isfinite(s) & np.isfinite(x)
-    s, x = s[ok], x[ok]
-    if np.any((s < 0) | (s > 1)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
-        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
-                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
+    s, x = _fit_points(s, x)                       # the finite points, checked
     if not np.any(x != 0):
         return EquilibriumFit(0.0, 1.0, len(s), 0.0)
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
@@ -334,13 +274,12 @@ def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
 def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
     """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
 
-    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector.
-    Guard: a step with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no
-    direction to keep; it gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
+    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector. A step
+    with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no direction to keep: it
+    gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
     """
     sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
-        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+    _check_covariances(sigma_hat)
     # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     w2 = float(np.sum(np.square(W)))
     d = sigma_hat.shape[-1]
@@ -355,8 +294,7 @@ def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
 def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
     """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
     sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
-    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
-        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+    _check_covariance_list(sigma_hats)
     # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
     sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
     return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
@@ -378,8 +316,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says why; never NaN.
     """
     cfg = cfg or CalibrationConfig()
-    if not median_step > 0:
-        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
+    _check_median_step(median_step)
     H = policy_horizon(policy)
     threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
     say = log or (lambda msg: None)
@@ -419,6 +356,87 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
                        blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
                        blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci)
 
+
+# ----------------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------------
+
+def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
+                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
+                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
+                         generator: torch.Generator | None = None) -> None:
+    """Fig. 2 (a)-(d) on the episode's longest expert segment, Sigma_hat_t at every `stride`-th label
+    step, blended rollouts at `betas` (diverge_threshold in median steps). Covariances are 2-sigma
+    ellipses of J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y).
+    """
+    plt = _pyplot()
+    env.reset(seed=int(episode["seed"]))
+    _check_workspace(env)
+    q_exp = np.asarray(episode["q"], dtype=np.float64)
+    # Eq. (1) on this segment as in open_loop_sigma, keeping the samples: steps (m,), samples (m, n, H, dof)
+    (start, end), steps, samples, sigma_hat = _overview_open_loop(policy, episode, n_samples, stride, n_act,
+                                                                  generator)
+    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
+                           diverge_threshold * calibration.median_step, (start, end))
+
+    expert_path = _ee_xy(env, q_exp[start:end])                              # (n, 2) end effector
+    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
+    _overview_panels(env, axes, q_exp[start], expert_path)                   # scene or goal, expert path, titles
+
+    # (a) each sampled chunk's executed steps from its state, and Sigma_hat_t
+    for t, chunks in zip(steps, samples):
+        for chunk in chunks:
+            axes[0].plot(*_ee_xy(env, np.concatenate([q_exp[t][None], chunk[:n_act]])).T,
+                         color="tab:orange", lw=0.7, alpha=0.6)
+    env.draw_noise_ellipses(axes[0], q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
+    axes[0].plot([], [], color="tab:orange", label="policy chunks")
+
+    # (b) the blended rollouts, dashed where discarded, with their settling error x
+    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
+    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
+        path_ee = _ee_xy(env, blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
+        axes[1].plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
+                     label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
+                           + ("" if blend.kept[b] else " (discarded)"))
+
+    # (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14); (d) the pooled Sigma_bar^alpha (Eq. 16)
+    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
+                            alpha=0.35)
+    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
+                            "tab:purple", alpha=0.35)
+    _finish_overview(fig, axes, env, episode, calibration, expert_path, blend, path)  # legends, zoom, save
+
+
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
+    95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
+    plt = _pyplot()
+    c = calibration
+    unit = c.median_step if median_step is None else median_step
+    fig, ax = plt.subplots(figsize=(8.2, 3.8))
+    kept = c.blend_kept
+    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
+               label=f"blended rollouts ({int(kept.sum())})")
+    if np.any(~kept):
+        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
+                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
+    if c.r is not None:
+        s = np.linspace(0.0, 1.0, 201)
+        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
+                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
+    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
+               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
+    if c.W_ci is not None:
+        _draw_W_interval(ax, c.W / unit, c.W_ci[0] / unit, c.W_ci[1] / unit)    # an error bar at s = 1
+    _finish_blend_fit(fig, ax, path)                                             # axes, legend, save
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The calibration record; the expert-data helpers; the fit's robust refinement, W's cap and interval;
+# how the blend rollouts are dealt; the batched closed-loop simulator behind every rollout; Table I's
+# closed-loop pooled variant; input checks; figure plumbing.
+
+# ---- the record `calibrate` returns: its report and JSON ---------------------------------------
 
 @dataclass
 class Calibration:
@@ -474,149 +492,71 @@ class Calibration:
         return "\n".join(lines)
 
 
-# ----------------------------------------------------------------------------------------------
-# Figures
-# ----------------------------------------------------------------------------------------------
+def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
+    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
+    if not median_step > 0:
+        raise ValueError(f"median_step must be > 0, got {median_step}")
+    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
 
-def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
-                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
-                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
-                         generator: torch.Generator | None = None) -> None:
-    """Fig. 2 (a)-(d) on the episode's longest expert segment: (a) open-loop samples (the executed
-    steps) and Sigma_hat_t (Eq. 1) at every `stride`-th label step; (b) blended rollouts at several
-    beta (dashed: discarded; diverge_threshold in median steps); (c) Sigma^alpha_t (Eq. 14) with the
-    calibration's W; (d) its pooled Sigma_bar^alpha (Eq. 16). Covariances are drawn at the end
-    effector as 2-sigma ellipses of J Sigma J^T (env.draw_noise_ellipses): a planar env in its plane
-    over its scene (env.render), a 3-D env (EngineReach3D) in the top view (x, y), its goal a marker.
+
+def _calibration_fields(data: dict) -> dict:
+    """Calibration.from_dict's typing: JSON lists back to float, int and bool arrays (a dict written
+    before W_ci existed lacks it: the default None)."""
+    arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
+              "blend_beta", "sigma_per_joint"}
+    ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
+    kwargs = {}
+    for k, v in data.items():
+        if k in arrays and v is not None:
+            v = np.asarray(v, dtype=np.float64)
+        elif k in ints:
+            v = np.asarray(v, dtype=np.int64)
+        elif k == "blend_kept":
+            v = np.asarray(v, dtype=bool)
+        kwargs[k] = v
+    return kwargs
+
+
+# ---- expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py) ----
+
+def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
+    """The expert runs [start, end) that can label chunks of `horizon` steps (the label rule in
+    diffusion.expert_runs): a demonstration gives one (the whole episode), an intervention episode
+    one per intervention of at least `horizon` steps."""
+    return expert_runs(episode["expert"], horizon)
+
+
+def label_starts(episode: dict, horizon: int) -> np.ndarray:
+    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask, the rule
+    the training data uses)."""
+    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
+
+
+def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
+    """actions[t:t+H] with actions past `end` (default: the episode end) replaced by the last one.
+
+    Past the end of an intervention the recorded actions are the policy's, so the time-matched
+    expert chunk repeats the last expert action instead (diffusion.chunk_dataset's padding).
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    env.reset(seed=int(episode["seed"]))
-    if env.dim not in (2, 3):
-        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
-    planar = env.dim == 2
-    H = policy_horizon(policy)
-    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
-    q_exp = np.asarray(episode["q"], dtype=np.float64)
-    actions = np.asarray(episode["action"], dtype=np.float64)
-    starts = label_starts(episode, H)
-    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
-
-    def ee_xy(q):                                    # (..., 2): the planar env's plane, or a 3-D env's top view
-        return env.ee(q)[..., :2]
-
-    expert_path = ee_xy(q_exp[start:end])
-
-    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
-    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
-    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
-    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
-    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
-    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
-                           diverge_threshold * calibration.median_step, (start, end))
-
-    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
-    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
-              r"(b) blended rollouts, partial denoising at $\beta$",
-              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
-              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
-    for ax, title in zip(axes, titles):
-        if planar:
-            env.render(ax, q=q_exp[start], alpha=0.5)
-        else:                                                    # no 2-D drawing of a 3-D arm: the goal only
-            ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
-        ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
-        ax.set_title(title, fontsize=10)
-        if planar:
-            ax.set_xticks([])
-            ax.set_yticks([])
-        else:
-            ax.set_aspect("equal")
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
-
-    ax = axes[0]
-    for t, chunks in zip(steps, samples):
-        for chunk in chunks:  # the executed steps, from the state they were sampled at
-            path_ee = ee_xy(np.concatenate([q_exp[t][None], chunk[:n_act]]))
-            ax.plot(*path_ee.T, color="tab:orange", lw=0.7, alpha=0.6)
-    env.draw_noise_ellipses(ax, q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
-    ax.plot([], [], color="tab:orange", label="policy chunks")
-
-    ax = axes[1]
-    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
-    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
-        path_ee = ee_xy(blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
-        ax.plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
-                label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
-                      + ("" if blend.kept[b] else " (discarded)"))
-
-    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
-                            alpha=0.35)
-    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
-                            "tab:purple", alpha=0.35)
-    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
-    where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
-    axes[3].text(s=f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes, fontsize=8, **where)
-    for ax in axes[:2]:  # below the panel, outside the data
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07 if planar else -0.12), frameon=False)
-    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
-                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma"
-                 + ("" if planar else "; top view") + ")")
-    # every panel zoomed to the intervention (the scene around it stays in Fig. 5), and the 3-D goal
-    pts = np.concatenate([expert_path, *[ee_xy(blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
-                          np.empty((0, 2)) if planar else env.goal[None, :2]])
-    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
-    for ax in axes:
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
-    plt.close(fig)
+    end = len(actions) if end is None else end
+    idx = np.minimum(np.arange(t, t + horizon), end - 1)
+    return actions[idx]                                                     # (H, dof)
 
 
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
-    95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    c = calibration
-    unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(8.2, 3.8))
-    kept = c.blend_kept
-    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
-               label=f"blended rollouts ({int(kept.sum())})")
-    if np.any(~kept):
-        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
-                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
-    if c.r is not None:
-        s = np.linspace(0.0, 1.0, 201)
-        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
-                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
-    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
-               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
-    if c.W_ci is not None:
-        lo, hi = c.W_ci[0] / unit, c.W_ci[1] / unit
-        ax.errorbar([1.0], [c.W / unit], yerr=[[max(c.W / unit - lo, 0.0)], [max(hi - c.W / unit, 0.0)]],
-                    fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
-                    label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
-    ax.set_xlim(0, 1)
-    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
-    ax.set_ylabel("settling error [median steps]")
-    ax.set_title("Blend fit for W (paper Fig. 4)")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
+def policy_horizon(policy) -> int:
+    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
+    return int(policy.cfg.horizon)
 
 
-# ==== Beyond the paper (safe to skip) ====================================================
-# The fit's robust refinement, W's cap and interval; how the blend rollouts are dealt; the batched
-# closed-loop simulator behind every rollout; Table I's closed-loop pooled variant; plumbing.
+def _longest_segment(episode: dict, horizon: int) -> tuple[int, int]:
+    """blend_rollouts' default segment: the episode's longest expert segment (ValueError if none)."""
+    segments = expert_segments(episode, horizon)
+    if not segments:
+        raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {horizon} steps")
+    return max(segments, key=lambda se: se[1] - se[0])
+
+
+# ---- the fit: robust refinement, cap, bootstrap interval ------------------------------------
 
 # ---- the fit: robust refinement, cap, bootstrap interval ------------------------------------
 
@@ -667,6 +607,22 @@ def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
             d = a + phi * (b - a)
             fd = f(d)
     return (a + b) / 2
+
+
+def _fit_points(s, x) -> tuple[np.ndarray, np.ndarray]:
+    """fit_equilibrium's input checks -> the finite points (s, x), float arrays (n,) each."""
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if s.shape != x.shape:
+        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
+    ok = np.isfinite(s) & np.isfinite(x)
+    s, x = s[ok], x[ok]
+    if np.any((s < 0) | (s > 1)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
+        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
+                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
+    return s, x
 
 
 def cap_W(W: float, threshold: float, median_step: float) -> tuple[float, str]:
@@ -964,38 +920,168 @@ def closed_loop_pooled(env, policy, episodes: list[dict], W: float, pooled: np.n
     return calibrated_sigma(sigma_bar_cl, W), ""
 
 
-# ---- plumbing: units for reports, JSON, memory -----------------------------------------------
+# ---- input checks (a clear ValueError naming the bad value) -------------------------------------
 
-def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
-    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
+def _check_sampling(stride: int, n_samples: int) -> None:
+    if stride < 1 or n_samples < 1:
+        raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
+
+
+def _check_n_act(n_act: int, H: int) -> None:
+    if not 1 <= n_act <= H:
+        raise ValueError(f"n_act must be in 1..H = {H}, got {n_act}")
+
+
+def _check_found_labels(obs_rows: list, H: int, episodes: list[dict]) -> None:
+    if not obs_rows:
+        raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
+                         "open_loop_sigma needs expert segments of at least H steps")
+
+
+def _check_betas(betas: np.ndarray) -> None:
+    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
+        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
+
+
+def _check_nearest_error(rollouts: Rollouts) -> None:
+    if rollouts.nearest_error is None:
+        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
+
+
+def _check_s_and_r(s: np.ndarray, r) -> None:
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if not r > 0:
+        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+
+
+def _check_covariances(sigma_hat: np.ndarray) -> None:
+    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
+        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+
+
+def _check_covariance_list(sigma_hats: np.ndarray) -> None:
+    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
+        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+
+
+def _check_median_step(median_step: float) -> None:
     if not median_step > 0:
-        raise ValueError(f"median_step must be > 0, got {median_step}")
-    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
+        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
 
 
-def _calibration_fields(data: dict) -> dict:
-    """Calibration.from_dict's typing: JSON lists back to float, int and bool arrays (a dict written
-    before W_ci existed lacks it: the default None)."""
-    arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
-              "blend_beta", "sigma_per_joint"}
-    ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
-    kwargs = {}
-    for k, v in data.items():
-        if k in arrays and v is not None:
-            v = np.asarray(v, dtype=np.float64)
-        elif k in ints:
-            v = np.asarray(v, dtype=np.int64)
-        elif k == "blend_kept":
-            v = np.asarray(v, dtype=bool)
-        kwargs[k] = v
-    return kwargs
+def _check_workspace(env) -> None:
+    if env.dim not in (2, 3):
+        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
 
+
+# ---- figure plumbing ---------------------------------------------------------------------------
+
+def _pyplot():
+    """matplotlib.pyplot on the file-only Agg backend."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _ee_xy(env, q: np.ndarray) -> np.ndarray:
+    """(..., 2) end-effector positions: the planar env's plane, or a 3-D env's top view (x, y)."""
+    return env.ee(q)[..., :2]
+
+
+def _overview_open_loop(policy, episode: dict, n_samples: int, stride: int, n_act: int, generator):
+    """Fig. 2a's data on the episode's longest expert segment: Eq. (1) at every stride-th label step, as
+    in open_loop_sigma, keeping the samples to draw them -> ((start, end), steps (m,), samples
+    (m, n, H, dof), Sigma_hat (m, dof, dof))."""
+    H = policy_horizon(policy)
+    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
+    actions = np.asarray(episode["action"], dtype=np.float64)
+    starts = label_starts(episode, H)
+    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
+    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
+    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
+    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
+    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
+    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
+    return (start, end), steps, samples, sigma_hat
+
+
+def _overview_panels(env, axes, q_start: np.ndarray, expert_path: np.ndarray) -> None:
+    """Fig. 2's four panels before the data: a planar env's scene (env.render at the segment's first
+    state) or a 3-D env's goal (no 2-D drawing of a 3-D arm), the expert path, titles, axes."""
+    planar = env.dim == 2
+    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
+              r"(b) blended rollouts, partial denoising at $\beta$",
+              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
+              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
+    for ax, title in zip(axes, titles):
+        if planar:
+            env.render(ax, q=q_start, alpha=0.5)
+        else:
+            ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
+        ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
+        ax.set_title(title, fontsize=10)
+        if planar:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.set_aspect("equal")
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+
+
+def _finish_overview(fig, axes, env, episode: dict, calibration: Calibration, expert_path: np.ndarray,
+                     blend: BlendRollouts, path) -> None:
+    """Fig. 2's per-joint sigma, legends below panels (a)-(b), title, a common zoom on the intervention
+    (the scene around it stays in Fig. 5; a 3-D env's goal kept in view), and the file."""
+    planar = env.dim == 2
+    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
+    where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
+    axes[3].text(s=f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes, fontsize=8, **where)
+    for ax in axes[:2]:  # below the panel, outside the data
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07 if planar else -0.12), frameon=False)
+    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
+                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma"
+                 + ("" if planar else "; top view") + ")")
+    pts = np.concatenate([expert_path, *[_ee_xy(env, blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
+                          np.empty((0, 2)) if planar else env.goal[None, :2]])
+    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
+    for ax in axes:
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
+    _pyplot().close(fig)
+
+
+def _draw_W_interval(ax, W: float, lo: float, hi: float) -> None:
+    """Fig. 4's W with its 95 % bootstrap interval [lo, hi], an error bar at s = 1 (median steps)."""
+    ax.errorbar([1.0], [W], yerr=[[max(W - lo, 0.0)], [max(hi - W, 0.0)]],
+                fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
+                label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
+
+
+def _finish_blend_fit(fig, ax, path) -> None:
+    """Fig. 4's axes, title, legend (right of the data) and the file."""
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
+    ax.set_ylabel("settling error [median steps]")
+    ax.set_title("Blend fit for W (paper Fig. 4)")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    _pyplot().close(fig)
+
+
+# ---- memory ------------------------------------------------------------------------------------
 
 def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
     """policy.sample over rows of obs in slices of at most max_batch rows (a memory bound)."""
     parts = [policy.sample(obs[i:i + max_batch], generator=generator)
              for i in range(0, len(obs), max_batch)]
     return np.concatenate(parts, axis=0)                                    # (B, H, dof)
+
 
 # ----------------------------------------------------------------------------------------------
 # Demo
