@@ -1,4 +1,4 @@
-"""Where and when does a policy fail on the planar evaluation scenarios? (issue 13's failure table)
+"""Where and when does a policy fail on the planar evaluation scenarios? (the failure table)
 
 Rolls a saved policy out on the 100 evaluation scenarios (x repeats, the same lockstep rollout as
 dagger.evaluate) and sorts every episode into: success, collision with an obstacle, self-collision,

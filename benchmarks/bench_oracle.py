@@ -1,4 +1,4 @@
-"""Benchmark of the RRT oracle expert (issue 3) on the planar env's 100 evaluation scenarios.
+"""Benchmark of the RRT oracle expert on the planar env's 100 evaluation scenarios.
 
 For every scenario: Oracle.demonstrate (plan + execute with env.step). Reports
   expert success (target >= 98 %), median planning time, median demo length (steps),

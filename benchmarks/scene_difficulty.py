@@ -1,4 +1,4 @@
-"""How hard are the PlanarReacher scenes? (issue 2: "the task must need planning").
+"""How hard are the PlanarReacher scenes? (the task must need planning).
 
 For each of the 100 evaluation scenarios:
   straight line  -- from the start to the collision-free goal configuration closest to it in joint

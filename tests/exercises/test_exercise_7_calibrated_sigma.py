@@ -1,6 +1,6 @@
 """Exercise 7: DART's Eq. (2) with alpha = T ||W||^2 (Eq. 13), the per-step Sigma^alpha_t (Eq. 14) and
 the pooled Sigma_bar^alpha (Eqs. 15-16) (calibrate.dart_alpha, dart_sigma, calibrated_sigma,
-pooled_sigma; paper Sec. II-A and IV-D, Fig. 2c-d)."""
+pooled_sigma; paper Sec. III-A and IV-D, Fig. 2c-d)."""
 import numpy as np
 import pytest
 
