@@ -798,10 +798,7 @@ def plot_demonstration(env, episode, path, n_arms=8):
     env.render(ax)  # scene and the arm at the start
     for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)[1:], start=1):
         alpha = 0.15 + 0.6 * i / max(1, n_arms - 1)
-        try:
-            env.render(ax, q=q[t], alpha=alpha, color="tab:orange", show_scene=False)
-        except TypeError:  # an env whose render draws only the scene
-            ax.plot(pts[t, :, 0], pts[t, :, 1], "-o", color="tab:orange", ms=3, lw=2, alpha=alpha)
+        env.render(ax, q=q[t], alpha=alpha, color="tab:orange", show_scene=False)
     ax.plot(pts[:, -1, 0], pts[:, -1, 1], color="tab:red", lw=1.5, label="end-effector path")
     ax.set_aspect("equal")
     ax.set_title(f"expert demonstration, seed {episode['seed']} ({len(q)} steps; start in blue)")
