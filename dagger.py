@@ -19,7 +19,8 @@ Usage:
   python dagger.py --profile paper --report        # merge finished lineages into table and figures
 
 Every stage writes its result to runs/<name>/ before the next starts; running the same command
-again skips what is finished, so a stopped run resumes from its last finished stage.
+again skips what is finished, so a stopped run resumes from its last finished stage (the run folder's
+plumbing, `Run`, is behind the "Beyond the paper" banner, before the command line).
 """
 from __future__ import annotations
 
@@ -165,110 +166,6 @@ PROFILES = {
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
     "paper": Config(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
 }
-
-
-# ----------------------------------------------------------------------------------------------
-# Run folder: stages, atomic writes, log
-# ----------------------------------------------------------------------------------------------
-class ConfigMismatch(ValueError):
-    """A run folder holds a run with another config (stages could not be reused honestly)."""
-
-
-class RunFolderError(ValueError):
-    """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
-
-
-class Run:
-    """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
-
-    def __init__(self, root, cfg: Config):
-        self.root, self.cfg = root, cfg
-        try:
-            os.makedirs(root, exist_ok=True)
-            open(os.path.join(root, "log.txt"), "a").close()
-        except OSError as err:
-            raise RunFolderError(f"cannot use {root!r} as the run folder: {err.strerror or err}. Give --out a "
-                                 "folder you can create and write (default runs/<profile>).") from None
-        path = os.path.join(root, "config.json")
-        saved = asdict(cfg)
-        if os.path.exists(path):
-            old = read_json(path)
-            for key in ("methods", "down_dims"):  # JSON keeps tuples as lists
-                if key in old:
-                    old[key] = tuple(old[key])
-                saved[key] = tuple(saved[key])
-            # a field added after the run started counts as unchanged if it has its default value
-            defaults = {f.name: f.default for f in fields(Config)}
-            changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}
-            if changed:
-                raise ConfigMismatch(
-                    f"{root} holds a run made with another config: "
-                    + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
-                    + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
-                      "to start it afresh (its finished stages are lost).")
-        else:
-            write_json(path, asdict(cfg))
-        self._log = open(os.path.join(root, "log.txt"), "a")
-
-    def path(self, *parts):
-        p = os.path.join(self.root, *parts)
-        os.makedirs(os.path.dirname(p), exist_ok=True)
-        return p
-
-    def record_time(self, stage, seconds):
-        """Wall time of a finished stage, one file per stage (parallel lineages never write the same file)."""
-        write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
-
-    def log(self, msg):
-        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
-        print(line, flush=True)
-        self._log.write(line + "\n")
-        self._log.flush()
-
-
-def write_json(path, data):
-    tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=1)
-    os.replace(tmp, path)  # a stage is finished only when its file is complete
-
-
-def load_stage_file(path, loader, *args, **kwargs):
-    """loader(path) for a finished stage's file; a damaged file (truncated, not what it should be) is an error
-    that names it and says how to re-make it, never a raw EOFError or a silently reused stage."""
-    try:
-        return loader(path, *args, **kwargs)
-    except (FileNotFoundError, KeyboardInterrupt):
-        raise
-    except Exception as err:
-        raise RunFolderError(f"{path} is damaged ({type(err).__name__}: {err}). Delete it and run the same "
-                             "command again: that stage is made again, the other finished stages are kept.") from None
-
-
-def _read_json(path):
-    with open(path) as f:
-        return json.load(f)
-
-
-def read_json(path):
-    return load_stage_file(path, _read_json)
-
-
-def load_episodes(path):
-    return load_stage_file(path, envs.load_episodes)
-
-
-def load_policy(path, device):
-    return load_stage_file(path, diffusion.DiffusionPolicy.load, device=device)
-
-
-def stage_seed(cfg, *keys):
-    """A seed for one stage, derived from the master seed and the stage's name (stable across runs)."""
-    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
-
-
-def _key_int(key):
-    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1232,6 +1129,114 @@ def make_figures(run, demos, stats):
     partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
                                            fig("fig3_partial_denoising.png"), gen(),
                                            q=episode["q"][t])
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The run folder: every stage's result on disk before the next starts (atomic writes), so a stopped run
+# resumes; a folder remembers its config; a damaged stage file is named. Then the command line.
+
+# ----------------------------------------------------------------------------------------------
+# Run folder: stages, atomic writes, log
+# ----------------------------------------------------------------------------------------------
+class ConfigMismatch(ValueError):
+    """A run folder holds a run with another config (stages could not be reused honestly)."""
+
+
+class RunFolderError(ValueError):
+    """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
+
+
+class Run:
+    """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
+
+    def __init__(self, root, cfg: Config):
+        self.root, self.cfg = root, cfg
+        try:
+            os.makedirs(root, exist_ok=True)
+            open(os.path.join(root, "log.txt"), "a").close()
+        except OSError as err:
+            raise RunFolderError(f"cannot use {root!r} as the run folder: {err.strerror or err}. Give --out a "
+                                 "folder you can create and write (default runs/<profile>).") from None
+        path = os.path.join(root, "config.json")
+        saved = asdict(cfg)
+        if os.path.exists(path):
+            old = read_json(path)
+            for key in ("methods", "down_dims"):  # JSON keeps tuples as lists
+                if key in old:
+                    old[key] = tuple(old[key])
+                saved[key] = tuple(saved[key])
+            # a field added after the run started counts as unchanged if it has its default value
+            defaults = {f.name: f.default for f in fields(Config)}
+            changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}
+            if changed:
+                raise ConfigMismatch(
+                    f"{root} holds a run made with another config: "
+                    + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
+                    + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
+                      "to start it afresh (its finished stages are lost).")
+        else:
+            write_json(path, asdict(cfg))
+        self._log = open(os.path.join(root, "log.txt"), "a")
+
+    def path(self, *parts):
+        p = os.path.join(self.root, *parts)
+        os.makedirs(os.path.dirname(p), exist_ok=True)
+        return p
+
+    def record_time(self, stage, seconds):
+        """Wall time of a finished stage, one file per stage (parallel lineages never write the same file)."""
+        write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
+
+    def log(self, msg):
+        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
+        print(line, flush=True)
+        self._log.write(line + "\n")
+        self._log.flush()
+
+
+def write_json(path, data):
+    tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)  # a stage is finished only when its file is complete
+
+
+def load_stage_file(path, loader, *args, **kwargs):
+    """loader(path) for a finished stage's file; a damaged file (truncated, not what it should be) is an error
+    that names it and says how to re-make it, never a raw EOFError or a silently reused stage."""
+    try:
+        return loader(path, *args, **kwargs)
+    except (FileNotFoundError, KeyboardInterrupt):
+        raise
+    except Exception as err:
+        raise RunFolderError(f"{path} is damaged ({type(err).__name__}: {err}). Delete it and run the same "
+                             "command again: that stage is made again, the other finished stages are kept.") from None
+
+
+def _read_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def read_json(path):
+    return load_stage_file(path, _read_json)
+
+
+def load_episodes(path):
+    return load_stage_file(path, envs.load_episodes)
+
+
+def load_policy(path, device):
+    return load_stage_file(path, diffusion.DiffusionPolicy.load, device=device)
+
+
+def stage_seed(cfg, *keys):
+    """A seed for one stage, derived from the master seed and the stage's name (stable across runs)."""
+    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
+
+
+def _key_int(key):
+    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
 
 
 # ----------------------------------------------------------------------------------------------
