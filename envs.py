@@ -154,8 +154,25 @@ class EngineConfig:
     joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
     # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
-    dt: float = 0.1  # s per step
-    goal_tolerance: float = 0.04  # m, TCP within this distance of the goal = reached
+    dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
+    # m, TCP within this distance of the goal = reached. The authors' success rule: the EE within
+    # 3 cm AND 10 deg of one fixed pose (SS sim_robot_pybullet_small_engine.py, TaskConfig); the
+    # orientation part is not checked here (the oracle's IK is position-only; the lever's handle,
+    # just beyond the TCP, leaves only a band of tool orientations free at the goal).
+    goal_tolerance: float = 0.03
+    # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
+    # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
+    max_steps: int = 333  # steps
+    # The scene family. 'authors': their small-engine cell (benchmarks/README.md, "The UR5
+    # engine-lever task"): one engine with its lever at a fixed place, a table, a wall behind the
+    # robot, two boxes drawn per seed on the table. 'pipes': this project's earlier family (a
+    # housing whose bay, lever and pipes are drawn per seed around a reaching posture).
+    scene: str = "authors"
+    # Start of an episode ('authors' scene only). 'random' (theirs): all six joints uniform within
+    # the joint limits until the arm is clear of everything by start_clearance (SS
+    # splatsim/utils/trajectory_generation.py, _get_random_collision_free_q, used when the config's
+    # q_start is null); 'home': home_q plus a uniform jitter of +-home_jitter per joint.
+    start: str = "random"
     # The paper's policy sees images (Sec. V): True ends the observation with the camera image
     # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
     # it in info['image'].
@@ -167,9 +184,6 @@ class EngineConfig:
     tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
     finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
     #                                   they make joint 6 matter (all else is symmetric about z6)
-    # Episode step limit, ~3x a typical expert episode: the oracle's demos over the 100 eval scenes
-    # take 89 steps (median), 138 (90th pct), 188 (max) (benchmarks/bench_engine3d.py).
-    max_steps: int = 300  # steps
     # States checked for contact per step (the end state and evenly spaced states before it). At
     # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
     # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
@@ -177,7 +191,34 @@ class EngineConfig:
     # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
     n_substeps: int = 4  # states per step
     n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
-    # The scene generator (see EngineReach3D._draw_scene). The paper scans a real mockup; here the
+    # --- scene='authors' (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
+    #     DH base frame is their URDF base frame turned 180 deg about z, (x, y) -> (-x, -y); the
+    #     table top is our ground z = 0 ---
+    # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
+    # goal is its TCP, (0.151, -0.373, 0.206) m here, the tool pointing along +x at the engine.
+    goal_q: tuple = (1.223, -1.587, 2.082, -0.925, -0.496, -1.124)
+    # The small engine, fixed (theirs: randomize_pose=False at (-0.48, 0.36) m, a ~0.34 x 0.38 x
+    # 0.34 m splat): a block capsule and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
+    engine_parts: tuple = ((0.50, -0.46, 0.15, 0.50, -0.26, 0.15, 0.15),
+                           (0.47, -0.45, 0.36, 0.47, -0.28, 0.36, 0.06))
+    wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs:
+    #                        a 3.0 x 0.05 x 1.5 m cuboid at y = -0.225 in their frame)
+    # The two boxes on the table, drawn per seed (theirs: box1 x in [0.15, 0.5], y in [0.3, 0.5], turned
+    # 90 deg; box2 x in [-0.4, 0.3], y in [0.6, 0.8]; each scaled 0.9-1.1; their sizes are splat
+    # scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
+    # its axis ('x' or 'y'), length (m) and radius (m, = half its height), scaled by box_scale.
+    box_x: tuple = ((-0.50, -0.15), (-0.30, 0.40))  # m
+    box_y: tuple = ((-0.50, -0.30), (-0.80, -0.60))  # m
+    box_axis: tuple = ("y", "x")  # the two boxes stand at 90 deg to each other
+    box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
+    box_radius: tuple = (0.09, 0.09)  # m
+    box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
+    home_q: tuple = (-math.pi / 2, -2.2, 1.9, -1.3, -math.pi / 2, 0.0)  # rad, start='home' (not theirs)
+    home_jitter: float = 0.3  # rad, per joint, start='home'
+    # m, a start keeps this from everything: the authors' planning obstacle clearance
+    # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
+    start_clearance: float = 0.02
+    # --- scene='pipes' (EngineReach3D._draw_pipes_scene). The paper scans a real mockup; here the
     # scene is drawn per seed. The bay lies along -x, where the arm points at q1 = 0.
     bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
     bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
@@ -197,7 +238,7 @@ class EngineConfig:
     min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
     #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
     #   a needle's eye that no planner (or IK from random seeds) finds reliably
-    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal (both scenes)
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
 
@@ -778,6 +819,12 @@ UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  #
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
 # The fixed camera of image observations and figures: beside and above the robot, into the bay.
 ENGINE_CAMERA = dict(eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2), fov=55.0)  # m, m, deg
+# scene='authors': in front of the robot (the side away from the wall), above the table, looking at
+# the engine and the goal (the authors' debug camera looks from the same side, SS
+# sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
+ENGINE_CAMERA_AUTHORS = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
+ENGINE_SCENES = ("authors", "pipes")  # EngineConfig.scene
+ENGINE_STARTS = ("random", "home")  # EngineConfig.start
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
 # Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
@@ -797,12 +844,17 @@ class EngineReach3D(ArmEnv):
     """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
     The paper renders its mockup with Gaussian splats; this project has no scan, so the scene is
-    pybullet's own geometry: a housing (frame of beams), an engine block, a T-handle lever and
-    pipes, all capsules. Per seed, the scene is built around a collision-free reaching posture
-    (the witness): the lever sits at its tool tip, one pipe hugs its forearm or wrist a few
-    centimetres away (the narrow passage), others cross the bay's opening. Passing takes precise
-    motion of every joint; the straight joint-space line from the start to any goal posture
-    collides in most scenes (benchmarks/bench_engine3d.py).
+    pybullet's own geometry, capsules. Two scene families (EngineConfig.scene):
+      * 'authors' (the default): the authors' small-engine cell as their code sets it up
+        (benchmarks/README.md, "The UR5 engine-lever task"): one engine with its lever at a fixed
+        place, the goal the TCP of their goal posture (the witness), a wall behind the robot (a
+        half-space, not an obstacle row), the table (the ground), and two boxes lying on the table,
+        drawn per seed. Starts: uniform within the joint limits (theirs) or near a home pose.
+      * 'pipes': the earlier family, drawn per seed around a collision-free reaching posture (the
+        witness): a housing (frame of beams), an engine block, a T-handle lever at the witness's
+        tool tip, one pipe hugging its forearm or wrist a few centimetres away (the narrow
+        passage), others across the bay's opening. The straight joint-space line from the start
+        to any goal posture collides in most scenes (benchmarks/bench_engine3d.py --scene pipes).
 
     One geometry definition (capsules: segment + radius, in `self.obstacles` and `link_segments`)
     feeds both
@@ -835,6 +887,12 @@ class EngineReach3D(ArmEnv):
     def __init__(self, config: EngineConfig | None = None):
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
+        if cfg.scene not in ENGINE_SCENES:
+            raise ValueError(f"EngineConfig.scene must be one of {ENGINE_SCENES}, got {cfg.scene!r}")
+        if cfg.start not in ENGINE_STARTS:
+            raise ValueError(f"EngineConfig.start must be one of {ENGINE_STARTS}, got {cfg.start!r}")
+        # the wall of the authors' cell: a half-space y >= wall_y (None: no wall)
+        self._wall_y = float(cfg.wall_y) if cfg.scene == "authors" else None
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
         if self.link_radii.shape != (len(ENGINE_LINK_NAMES),) or np.any(self.link_radii <= 0):
             raise ValueError(f"link_radii must be {len(ENGINE_LINK_NAMES)} positive radii "
@@ -922,8 +980,9 @@ class EngineReach3D(ArmEnv):
         """Signed distance (B,) from the arm at q to everything it may not touch, in m.
 
         The minimum over: every arm capsule vs every obstacle capsule (segment distance minus the
-        two radii), the self-collision pairs ENGINE_SELF_PAIRS, and the forearm .. fingers vs the
-        ground plane z = 0. Negative = penetration.
+        two radii), the self-collision pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the
+        ground plane z = 0, and (scene='authors') every arm capsule vs the wall y = wall_y.
+        Negative = penetration.
         """
         q, single = _as_batch(q, self.dof)
         if not np.all(np.isfinite(q)):
@@ -945,6 +1004,14 @@ class EngineReach3D(ArmEnv):
         """
         return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
 
+    def _wall_clearance(self, a0, a1):
+        """(B,) distance from the arm's capsules to the wall's face y = wall_y (+inf: no wall).
+
+        A capsule's distance to a plane is smallest at one of its two end points."""
+        if self._wall_y is None:
+            return np.full(a0.shape[1], np.inf)
+        return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
+
     def _clearance(self, q):
         """clearance for a (B, dof) batch: every pair, no broad phase."""
         a0, a1 = self._arm_components(q)
@@ -952,6 +1019,7 @@ class EngineReach3D(ArmEnv):
         d = (segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
              - r[i] - r[j]).min(axis=1)  # (B,) self-collision pairs
         d = np.minimum(d, self._ground_clearance(a0, a1))
+        d = np.minimum(d, self._wall_clearance(a0, a1))
         if len(self.obstacles):
             g = self._geom
             dist = segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None],
@@ -984,6 +1052,7 @@ class EngineReach3D(ArmEnv):
     def _in_collision_chunk(self, q, margin):
         a0, a1 = self._arm_components(q)  # (3, B, 8) each
         hit = (self._ground_clearance(a0, a1) < margin) | (self._base_clearance < margin)  # (B,)
+        hit |= self._wall_clearance(a0, a1) < margin
         # broad phase: axis-aligned boxes around the capsules, grown by the margin; two capsules
         # whose boxes do not overlap cannot be closer than the margin
         lo = np.minimum(a0, a1) - self.link_radii - margin  # (3, B, 8)
@@ -1018,7 +1087,8 @@ class EngineReach3D(ArmEnv):
         """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
 
         reset() calls this with a generated scene; tests and figures may call it with a built one.
-        kinds: one of 'frame', 'engine', 'lever', 'pipe' per obstacle (colours only; default pipe).
+        kinds: one of 'frame', 'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default
+        pipe). The wall of scene='authors' is not an obstacle row: it belongs to the scene family.
         Derives everything both collision checks need from this one array.
         """
         self._set_obstacles(obstacles, kinds)
@@ -1040,7 +1110,7 @@ class EngineReach3D(ArmEnv):
         if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 6] <= 0):
             raise ValueError("set_scene: obstacles must be finite with radius > 0")
         kinds = ["pipe"] * len(obstacles) if kinds is None else list(kinds)
-        valid = ("frame", "engine", "lever", "pipe")
+        valid = ("frame", "engine", "lever", "pipe", "box")
         if len(kinds) != len(obstacles) or any(k not in valid for k in kinds):
             raise ValueError(f"set_scene: kinds must give one of {valid} per obstacle, got {kinds}")
         self.obstacles, self.obstacle_kinds = obstacles, kinds
@@ -1080,7 +1150,14 @@ class EngineReach3D(ArmEnv):
         for body in self._link_bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
             pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
         colors = {"frame": [0.45, 0.45, 0.48, 1], "engine": [0.25, 0.25, 0.28, 1],
-                  "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1]}
+                  "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1], "box": [0.62, 0.45, 0.3, 1]}
+        if self._wall_y is not None:  # a 0.5 m thick slab whose face is the plane y = wall_y
+            half = [1.5, 0.25, 0.75]
+            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+            visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1],
+                                          physicsClientId=cid)
+            pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]],
+                               physicsClientId=cid)
         for (x0, y0, z0, x1, y1, z1, radius), kind in zip(self.obstacles, self.obstacle_kinds):
             a, b = np.array([x0, y0, z0]), np.array([x1, y1, z1])
             body = self._capsule_body(float(np.linalg.norm(b - a)), float(radius), colors[kind], mass=0.0)
@@ -1182,7 +1259,39 @@ class EngineReach3D(ArmEnv):
         d = segment_distance_3d(witness_seg[:, 0].T, witness_seg[:, 1].T, pipe[:3, None], pipe[3:6, None])
         return bool(np.all(d - self.link_radii - pipe[6] >= min_gap))
 
-    def _draw_scene(self, rng):
+    def _draw_authors_scene(self, rng):
+        """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
+
+        Fixed: the engine (cfg.engine_parts), the goal posture cfg.goal_q and its TCP (the goal),
+        a T-handle lever just beyond the TCP along the tool axis with its shaft running on into
+        the engine (as in the pipes scene), and the wall (not a row: EngineReach3D._wall_y).
+        Drawn: the two boxes, each a capsule lying on the table, centre uniform in its box_x x box_y
+        range, length and radius scaled by one factor from box_scale. The scene is re-drawn by reset
+        if the goal posture collides.
+        """
+        cfg = self.cfg
+        q_goal = np.asarray(cfg.goal_q, dtype=np.float64)
+        frame6 = ur5_frames(q_goal[None])[0, 6]
+        tool_axis, handle_axis = frame6[:3, 2], frame6[:3, 1]
+        goal = self.ee(q_goal)
+        obstacles, kinds = [], []
+        for part in cfg.engine_parts:
+            obstacles.append(list(part))
+            kinds.append("engine")
+        handle = goal + cfg.lever_offset * tool_axis  # T-handle across the fingers' grasp
+        obstacles.append([*(handle - 0.05 * handle_axis), *(handle + 0.05 * handle_axis), 0.02])
+        obstacles.append([*handle, *(handle + 0.25 * tool_axis), 0.015])  # shaft, on into the engine
+        kinds += ["lever", "lever"]
+        for (x_lo, x_hi), (y_lo, y_hi), axis, length, radius in zip(
+                cfg.box_x, cfg.box_y, cfg.box_axis, cfg.box_length, cfg.box_radius):
+            scale = rng.uniform(*cfg.box_scale)
+            centre = np.array([rng.uniform(x_lo, x_hi), rng.uniform(y_lo, y_hi), radius * scale])
+            half = 0.5 * length * scale * (np.array([1.0, 0, 0]) if axis == "x" else np.array([0, 1.0, 0]))
+            obstacles.append([*(centre - half), *(centre + half), radius * scale])
+            kinds.append("box")
+        return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
+
+    def _draw_pipes_scene(self, rng):
         """One candidate scene: (obstacles (N, 7), kinds, goal (3,), witness (6,)) or None.
 
         Housing: four posts and four top rails around the bay, shifted by a few cm; an engine
@@ -1254,12 +1363,12 @@ class EngineReach3D(ArmEnv):
         return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
 
     def reset(self, seed=None):
-        """Draw the scenario of `seed` (housing, lever, pipes, start) and put the arm at the start.
+        """Draw the scenario of `seed` (the scene of cfg.scene, then the start) and put the arm there.
 
         Rejection sampling with one rng stream, so the scene is a deterministic function of seed.
         The goal always has a collision-free configuration (the witness posture the scene is built
-        around); scenes whose witness collides with the lever or pipes are re-drawn, and so are
-        start configurations in collision, with the TCP inside the housing or near the goal.
+        around); scenes whose witness collides, or whose goal has fewer than
+        min_goal_configurations free IK solutions, are re-drawn. Starts: see _draw_start.
         """
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
@@ -1268,7 +1377,7 @@ class EngineReach3D(ArmEnv):
         rng = np.random.default_rng(int(seed))
         cfg = self.cfg
         while True:
-            scene = self._draw_scene(rng)
+            scene = (self._draw_authors_scene if cfg.scene == "authors" else self._draw_pipes_scene)(rng)
             if scene is None:
                 continue
             obstacles, kinds, goal, self.witness = scene
@@ -1278,7 +1387,12 @@ class EngineReach3D(ArmEnv):
                 continue
             if len(self.goal_configurations()) < cfg.min_goal_configurations:
                 continue
-            # start: arm turned away from the bay, elbow up, wrist anywhere sensible
+            if cfg.scene == "authors":
+                start = self._draw_start(rng)
+                if start is None:
+                    continue
+                break
+            # pipes: arm turned away from the bay, elbow up, wrist anywhere sensible
             side = rng.choice([-1.0, 1.0])
             lo = np.array([0.9, -2.1, 0.6, -2.8, -2.6, -1.5])
             hi = np.array([2.4, -1.0, 2.4, -0.4, -0.6, 1.5])
@@ -1301,6 +1415,24 @@ class EngineReach3D(ArmEnv):
         if cfg.image_obs:
             info["image"] = self.obs_image(obs)
         return obs, info
+
+    def _draw_start(self, rng, n=256):
+        """A start for scene='authors': (6,) or None if none of n draws is acceptable.
+
+        start='random' (the authors'): all joints uniform within the joint limits; 'home': home_q
+        plus U(-home_jitter, home_jitter) per joint, clipped to the limits. The first draw that is
+        clear of everything by start_clearance with its TCP at least start_goal_min_dist from the
+        goal is taken.
+        """
+        cfg = self.cfg
+        if cfg.start == "random":
+            q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
+        else:
+            q = np.asarray(cfg.home_q) + rng.uniform(-cfg.home_jitter, cfg.home_jitter, size=(n, self.dof))
+            q = np.clip(q, self._lo, self._hi)
+        far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
+        ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
+        return q[np.argmax(ok)] if ok.any() else None
 
     # ---- observations, stepping --------------------------------------------------------------
     def make_obs(self, q, q_prev, image=None):
@@ -1376,7 +1508,7 @@ class EngineReach3D(ArmEnv):
         """
         q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
-        cam = ENGINE_CAMERA
+        cam = ENGINE_CAMERA_AUTHORS if self.cfg.scene == "authors" else ENGINE_CAMERA
         view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
         projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
         _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection,
@@ -1396,14 +1528,21 @@ class EngineReach3D(ArmEnv):
             ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
             ax.set_axis_off()
             return ax
-        widths = {"frame": 3, "engine": 14, "lever": 2, "pipe": 4}
-        colors = {"frame": "0.45", "engine": "0.2", "lever": "tab:red", "pipe": "tab:orange"}
+        widths = {"frame": 3, "engine": 14, "lever": 2, "pipe": 4, "box": 10}
+        colors = {"frame": "0.45", "engine": "0.2", "lever": "tab:red", "pipe": "tab:orange", "box": "tab:brown"}
         if show_scene:
             for (x0, y0, z0, x1, y1, z1, _), kind in zip(self.obstacles, self.obstacle_kinds):
                 ax.plot([x0, x1], [y0, y1], [z0, z1], color=colors[kind], linewidth=widths[kind])
             ax.scatter(*self._goal, color="tab:green", s=40)
-            ax.set_xlim(-1.0, 0.3)
-            ax.set_ylim(-0.65, 0.65)
+            if self._wall_y is not None:  # the wall's outline
+                x, z = [-0.7, 0.7, 0.7, -0.7, -0.7], [0, 0, 1.0, 1.0, 0]
+                ax.plot(x, [self._wall_y] * 5, z, color="0.6")
+            if self.cfg.scene == "authors":  # the cell lies toward +x (the engine) and -y (the boxes)
+                ax.set_xlim(-0.7, 0.6)
+                ax.set_ylim(-1.0, 0.3)
+            else:  # the bay lies along -x
+                ax.set_xlim(-1.0, 0.3)
+                ax.set_ylim(-0.65, 0.65)
             ax.set_zlim(0.0, 1.0)
             ax.set_box_aspect((1.3, 1.3, 1.0))
         for seg in self.link_segments(np.atleast_2d(q)):

@@ -9,6 +9,7 @@ Measures, over the evaluation scenes:
   * the oracle (oracle.py): expert success, planning CPU time and demo length over the scenes.
 
 Usage:  python benchmarks/bench_engine3d.py [--seconds 1.0] [--scenes 100] [--no-oracle] [--max-time S]
+                                           [--scene authors|pipes] [--start random|home] [--no-speed]
 Rates are given per wall-clock second and per CPU second of this process (what one core delivers
 when other jobs share the machine).
 """
@@ -65,18 +66,18 @@ def speed_rows(env, seconds, n_scenes, rng):
         rows.append((f"render_image {size}x{size} (TinyRenderer)",
                      rate(lambda: env.render_image(start, size), 1, seconds), "images/s",
                      "the image observation (32: EngineConfig.image_size's default)" if size == 32 else ""))
-    rows.append(("memory per env (its pybullet client)", [memory_per_env(20)], "MB",
+    rows.append(("memory per env (its pybullet client)", [memory_per_env(20, scene=env.cfg.scene)], "MB",
                  "why dagger.evaluate runs UR5 episodes in groups of 100"))
     return rows
 
 
-def memory_per_env(n):
+def memory_per_env(n, **config):
     """Resident memory added per EngineReach3D (reset to a scene), from /proc over n envs."""
     def rss_mb():
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
     before = rss_mb()
-    envs_ = [make_env("engine3d") for _ in range(n)]
+    envs_ = [make_env("engine3d", **config) for _ in range(n)]
     for i, e in enumerate(envs_):
         e.reset(seed=10_000 + i)
     per_env = (rss_mb() - before) / n
@@ -100,10 +101,11 @@ def oracle_rows(env, n_scenes, max_time=None):
     import oracle
 
     orc = oracle.Oracle() if max_time is None else oracle.Oracle(oracle.OracleConfig(max_time=max_time))
-    succ, cpu, length, straight, reasons = [], [], [], [], []
+    succ, cpu, length, straight, reasons, start_goal = [], [], [], [], [], []
     t_start = time.perf_counter()
     for k, seed in enumerate(env.eval_seeds()[:n_scenes]):
         env.reset(seed=seed)
+        start_goal.append(float(np.linalg.norm(env.ee(env.q) - env.goal)))
         straight.append(straight_line_collides(env, resolution=0.005))
         c0 = time.process_time()
         try:
@@ -124,7 +126,9 @@ def oracle_rows(env, n_scenes, max_time=None):
             ("oracle demonstrate CPU time, median / 90th pct / max",
              (np.median(cpu), np.percentile(cpu, 90), np.max(cpu)), "s", ""),
             ("demo length, median / 90th pct / max",
-             tuple(np.percentile(length, [50, 90, 100])) if length else (np.nan,), "steps", "")]
+             tuple(np.percentile(length, [50, 90, 100])) if length else (np.nan,), "steps", ""),
+            ("start TCP to goal, median / min / max",
+             (np.median(start_goal), np.min(start_goal), np.max(start_goal)), "m", "")]
     return rows, reasons
 
 
@@ -135,10 +139,15 @@ def main():
     parser.add_argument("--no-oracle", action="store_true", help="speed measurements only")
     parser.add_argument("--max-time", type=float, default=None,
                         help="OracleConfig.max_time (s per RRT attempt); default: the oracle's own")
+    parser.add_argument("--scene", default="authors", choices=["authors", "pipes"], help="EngineConfig.scene")
+    parser.add_argument("--start", default="random", choices=["random", "home"],
+                        help="EngineConfig.start (scene 'authors' only)")
+    parser.add_argument("--no-speed", action="store_true", help="skip the speed measurements")
     args = parser.parse_args()
-    env = make_env("engine3d")
+    env = make_env("engine3d", scene=args.scene, start=args.start)
+    print(f"EngineConfig(scene={args.scene!r}, start={args.start!r})")
     rng = np.random.default_rng(0)
-    rows = speed_rows(env, args.seconds, 3, rng)
+    rows = [] if args.no_speed else speed_rows(env, args.seconds, 3, rng)
     reasons = []
     if not args.no_oracle:
         more, reasons = oracle_rows(env, args.scenes, args.max_time)
