@@ -105,6 +105,7 @@ class Config:
     image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
     #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
     image_size: int = 32  # pixels of the square camera image (with image_obs)
+    start: str | None = None  # engine3d: 'random' (the authors', the env's default) or 'home' (near a home pose)
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
     episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
@@ -133,6 +134,9 @@ class Config:
         if self.image_obs and self.env != "engine3d":
             raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
                              f"got env={self.env!r}")
+        if self.start is not None and (self.env != "engine3d" or self.start not in envs.ENGINE_STARTS):
+            raise ValueError(f"start: {self.start!r} is an option of the engine3d env only, one of "
+                             f"{', '.join(envs.ENGINE_STARTS)} (got env={self.env!r})")
         if self.image_size < 8:
             raise ValueError(f"image_size must be >= 8 pixels, got {self.image_size}")
         if self.collect_on not in ("eval", "train"):
@@ -411,8 +415,11 @@ def tost(a, b, margin):
 # The stages of the loop (Sec. IV-A). Each one returns its result, or loads it if already on disk.
 # ----------------------------------------------------------------------------------------------
 def env_options(cfg):
-    """envs.make_env keyword arguments of this run (image observations are an env option)."""
-    return {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
+    """envs.make_env keyword arguments of this run (image observations and the UR5's starts are env options)."""
+    options = {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
+    if cfg.start is not None:
+        options["start"] = cfg.start
+    return options
 
 
 def make_run_env(cfg):
@@ -1252,6 +1259,8 @@ def parse_args(argv):
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
+    p.add_argument("--start", default=None, choices=envs.ENGINE_STARTS,
+                   help="engine3d: where episodes start, random (the authors', default) or home (near a home pose)")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
     p.add_argument("--collect-on", default=None, choices=("eval", "train"),
@@ -1289,6 +1298,8 @@ def parse_args(argv):
         over["methods"] = tuple(names)
     if args.image_obs:
         over["image_obs"] = True
+    if args.start:
+        over["start"] = args.start
     if args.collect_on:
         over["collect_on"] = args.collect_on
     for key in ("rounds", "lineages", "seed"):
@@ -1302,6 +1313,7 @@ def parse_args(argv):
         over["device"] = args.device
     name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
     name += "_images" if args.image_obs else ""
+    name += f"_{args.start}_start" if args.start else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder

@@ -81,6 +81,8 @@ def test_run_folder_refuses_a_different_config(full_run):
     (["--rounds", "0"], "rounds must be >= 1"),
     (["--device", "tpu"], "use cpu or cuda"),
     (["--image-obs"], "option of the engine3d env only"),
+    (["--start", "home"], "option of the engine3d env only"),
+    (["--env", "engine3d", "--start", "moon"], "invalid choice"),
 ])
 def test_bad_cli_arguments(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -122,6 +124,13 @@ def test_zero_noise_control_is_the_pipeline_without_noise():
     assert dagger.noise_model("zero_noise", None) == ("isotropic", 0.0)
     assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)
     assert "zero_noise" not in dagger.Config().methods  # the paper profile runs Table I's rows only
+
+
+def test_start_option_names_the_run_and_reaches_the_env():
+    _, cfg = dagger.parse_args(["--env", "engine3d", "--start", "home"])
+    assert cfg.name == "quick_engine3d_home_start" and dagger.make_run_env(cfg).cfg.start == "home"
+    _, cfg = dagger.parse_args(["--env", "engine3d"])
+    assert dagger.make_run_env(cfg).cfg.start == "random"  # the authors' starts by default
 
 
 def test_image_obs_flag_names_the_run_and_reaches_the_env():
