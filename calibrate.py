@@ -1088,17 +1088,19 @@ def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.nd
 # ----------------------------------------------------------------------------------------------
 
 if __name__ == "__main__":
-    # Calibrate a small policy trained on stand-in expert paths (envs.straight_line_episode; dagger.py
-    # does this on the oracle's interventions, once per round) and draw Figs. 2 and 4 into the
-    # current folder.
+    # Calibrate a small policy trained on 100 oracle demonstrations (the data dagger.py's loop uses; the
+    # loop calibrates on the oracle's interventions, once per round) and draw Figs. 2 and 4 into the
+    # current folder. The oracle is imported here only: the method itself needs no expert in the loop.
     import time
 
+    import oracle
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train
 
     env = envs.make_env("planar")
-    episodes = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(120)]
+    expert = oracle.Oracle(oracle.OracleConfig(seed=0, n_attempts=1))
+    episodes = [expert.demonstrate(env, seed) for seed in env.train_seeds(100)]
     unit = envs.median_step(episodes)
-    print(f"{len(episodes)} stand-in expert episodes, median step {unit:.4f} rad; training a small policy")
+    print(f"{len(episodes)} oracle demonstrations, median step {unit:.4f} rad; training a small policy")
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
           TrainConfig(steps=1000, warmup_steps=100, log_every=250))
