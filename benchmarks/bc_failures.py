@@ -1,12 +1,14 @@
-"""Where and when does a policy fail on the planar evaluation scenarios? (the failure table)
+"""Where and when does a policy fail on the evaluation scenarios? (the failure table)
 
 Rolls a saved policy out on the 100 evaluation scenarios (x repeats, the same lockstep rollout as
 dagger.evaluate) and sorts every episode into: success, collision with an obstacle, self-collision,
-or timeout (the step limit, env.max_steps). For collisions it names the arm part that touched first
-(link 1 .. 3, palm, a finger) and the step; for timeouts the end effector's final distance to the
+or timeout (the step limit, env.max_steps). For collisions it names what touched first and the step
+(planar: the arm part, link 1 .. 3, palm, a finger; engine3d: what was hit, the engine or lever, a
+box, the wall, the table, the arm itself); for timeouts the end effector's final distance to the
 target. Collisions are re-judged on the sub-steps of the last step with the env's own numpy check.
 
-Usage:  python benchmarks/bc_failures.py CHECKPOINT [--repeats 3] [--seed 123]
+Usage:  python benchmarks/bc_failures.py CHECKPOINT [--env planar|engine3d] [--start random|home]
+                                                   [--repeats 3] [--seed 123]
 """
 import argparse
 import os
@@ -48,9 +50,43 @@ def classify(env, episode):
     return "collision: other", "", T, dist
 
 
+def classify_engine3d(env, episode):
+    """classify for the UR5 cell: the collision's partner from the clearance terms of envs.EngineReach3D."""
+    T = len(episode["q"])
+    dist = float(np.linalg.norm(env.ee(episode["q"][-1]) - env.goal))
+    if episode["success"]:
+        return "success", "", T, dist
+    if T >= env.max_steps:
+        return "timeout", "", T, dist
+    q0 = episode["q"][-1]
+    q1 = env.clip_action(q0, episode["action"][-1])
+    sweep = q0 + np.linspace(0, 1, 4 * env.cfg.n_substeps + 1)[1:, None] * (q1 - q0)
+    hit = env.in_collision(sweep)
+    if not hit.any():
+        return "collision: other", "pybullet contact only", T, dist
+    q = sweep[np.argmax(hit)][None]
+    a0, a1 = env._arm_components(q)
+    r, (i, j) = env.link_radii, envs.ENGINE_SELF_PAIRS.T
+    terms = {"the arm itself": float((envs.segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
+                                      - r[i] - r[j]).min()),
+             "the table": float(env._ground_clearance(a0, a1)[0]),
+             "the wall": float(env._wall_clearance(a0, a1)[0])}
+    if len(env.obstacles):
+        g = env._geom
+        d = (envs.segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None], g["end"][:, None, None])
+             - g["contact"]).min(axis=(0, 1))  # (N,) per obstacle
+        for k, kind in enumerate(env.obstacle_kinds):
+            name = {"engine": "the engine", "lever": "the lever", "box": "a box"}.get(kind, kind)
+            terms[name] = min(terms.get(name, np.inf), float(d[k]))
+    partner = min(terms, key=terms.get)
+    return ("collision: self" if partner == "the arm itself" else "collision: obstacle"), partner, T, dist
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoint")
+    parser.add_argument("--env", default="planar", choices=sorted(envs.ENVIRONMENTS))
+    parser.add_argument("--start", default=None, choices=envs.ENGINE_STARTS, help="engine3d: the start rule")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=123)
     args = parser.parse_args()
@@ -60,7 +96,7 @@ def main():
     env_list = []
     for _ in range(args.repeats):
         for s in seeds:
-            e = envs.make_env("planar")
+            e = envs.make_env(args.env, **({"start": args.start} if args.start else {}))
             e.reset(seed=s)
             env_list.append(e)
     gen = torch.Generator().manual_seed(args.seed)
@@ -68,7 +104,7 @@ def main():
     rows = []
     for e, ep in zip(env_list, episodes):
         e.reset(seed=ep["seed"])
-        rows.append(classify(e, ep))
+        rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
     n = len(rows)
     outcomes = [r[0] for r in rows]
     print(f"{args.checkpoint}: {n} episodes ({len(seeds)} scenarios x {args.repeats})\n")
@@ -79,13 +115,14 @@ def main():
         if len(steps):
             print(f"| {outcome} | {len(steps)} | {len(steps) / n:.1%} | {np.median(steps):.0f} | "
                   f"{np.percentile(steps, 10):.0f}-{np.percentile(steps, 90):.0f} |")
-    print("\n| colliding part | episodes |\n|---|---|")
+    print("\n| " + ("colliding part" if args.env == "planar" else "hit") + " | episodes |\n|---|---|")
     parts = [r[1] for r in rows if r[0].startswith("collision")]
     for part in sorted(set(parts), key=parts.count, reverse=True):
         print(f"| {part} | {parts.count(part)} |")
     collided = np.array([r[2] for r in rows if r[0].startswith("collision")])
     if len(collided):
-        print(f"\ncollisions within the first 10 s (100 steps at 10 Hz): {np.mean(collided <= 100):.0%}")
+        print(f"\ncollisions within the first 10 s (100 steps at 10 Hz): {np.mean(collided <= 100):.0%}; "
+              f"within the first 3 s (30 steps): {np.mean(collided <= 30):.0%}")
     timeouts = np.array([r[3] for r in rows if r[0] == "timeout"])
     if len(timeouts):
         print(f"timeouts: final end-effector distance to the target median {np.median(timeouts):.3f} m "
