@@ -23,20 +23,27 @@ import diffusion  # noqa: E402
 import envs  # noqa: E402
 
 
-def classify(env, episode):
-    """(outcome, part, step, final distance) of one finished episode in env (reset to its seed)."""
+def ending(env, episode):
+    """(outcome or None, step, final distance, the last step's sub-states (S, dof), their collision flags):
+    outcome 'success' or 'timeout', None when the episode ended early without success (its last step
+    collided; the caller names what it hit)."""
     T = len(episode["q"])
     dist = float(np.linalg.norm(env.ee(episode["q"][-1]) - env.goal))
-    if episode["success"]:
-        return "success", "", T, dist
-    if T >= env.max_steps:
-        return "timeout", "", T, dist
-    # the episode ended early without success: its last step collided. Find the first colliding
-    # sub-state of that step and the part (and the kind of contact) behind it.
+    if episode["success"] or T >= env.max_steps:
+        return ("success" if episode["success"] else "timeout"), T, dist, None, None
     q0 = episode["q"][-1]
     q1 = env.clip_action(q0, episode["action"][-1])
     sweep = q0 + np.linspace(0, 1, 4 * env.cfg.n_substeps + 1)[1:, None] * (q1 - q0)
-    q = sweep[np.argmax(env.in_collision(sweep))]
+    return None, T, dist, sweep, env.in_collision(sweep)
+
+
+def classify(env, episode):
+    """(outcome, part, step, final distance) of one finished episode in env (reset to its seed)."""
+    outcome, T, dist, sweep, hit = ending(env, episode)
+    if outcome:
+        return outcome, "", T, dist
+    # the first colliding sub-state of the last step and the part (and the kind of contact) behind it
+    q = sweep[np.argmax(hit)]
     boxes = [x[:, 0] for x in env.part_boxes(q[None])]  # (n_parts,) each
     margin = env.contact_margin
     for p, name in enumerate(env.PART_NAMES):
@@ -52,16 +59,9 @@ def classify(env, episode):
 
 def classify_engine3d(env, episode):
     """classify for the UR5 cell: the collision's partner from the clearance terms of envs.EngineReach3D."""
-    T = len(episode["q"])
-    dist = float(np.linalg.norm(env.ee(episode["q"][-1]) - env.goal))
-    if episode["success"]:
-        return "success", "", T, dist
-    if T >= env.max_steps:
-        return "timeout", "", T, dist
-    q0 = episode["q"][-1]
-    q1 = env.clip_action(q0, episode["action"][-1])
-    sweep = q0 + np.linspace(0, 1, 4 * env.cfg.n_substeps + 1)[1:, None] * (q1 - q0)
-    hit = env.in_collision(sweep)
+    outcome, T, dist, sweep, hit = ending(env, episode)
+    if outcome:
+        return outcome, "", T, dist
     if not hit.any():
         return "collision: other", "pybullet contact only", T, dist
     q = sweep[np.argmax(hit)][None]
