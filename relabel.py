@@ -574,7 +574,10 @@ def _fig1_windows(axes, env, q: np.ndarray, start: int, end: int, mid: int, fan:
     near = xy(q[max(mid - horizon // 2, start):min(mid + horizon + 1, end)])
     jac = env.ee_jacobian(q[mid:mid + 1])[0, :2]  # (2, dof)
     radius = 2 * np.sqrt(max(np.linalg.eigvalsh(jac @ cov_mid @ jac.T).max(), 0))  # 2σ, m
-    _square_window(axes[1], np.concatenate([near, *fan]), radius)
+    pts = np.concatenate([near, *fan])
+    span = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
+    # a close-up stays a close-up: a wide ellipse (a briefly trained policy's noise) is cut at the frame
+    _square_window(axes[1], pts, min(radius, max(span, 0.05)))
     if getattr(env, "dim", 2) == 3:
         _square_window(axes[0], np.concatenate([xy(q[start:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]]), 0.05)
 
