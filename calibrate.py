@@ -1046,10 +1046,7 @@ def _finish_overview(fig, axes, env, episode: dict, calibration: Calibration, ex
                  + ("" if planar else "; top view") + ")")
     pts = np.concatenate([expert_path, *[_ee_xy(env, blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
                           np.empty((0, 2)) if planar else env.goal[None, :2]])
-    center, half = (pts.min(0) + pts.max(0)) / 2, 0.5 * float(np.max(pts.max(0) - pts.min(0))) + 0.08
-    for ax in axes:
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
+    env.square_view(list(axes), pts, 0.06)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
     _pyplot().close(fig)

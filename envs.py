@@ -388,6 +388,15 @@ class ArmEnv:
         minus = self.ee((q[:, None] - offsets).reshape(-1, dof)).reshape(B, dof, -1)
         return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                  # (B, dim, dof)
 
+    def square_view(self, axes, points, margin=0.0):
+        """Square limits around workspace points (N, 2) in m, plus `margin` m and 10 %, on one axis or a list
+        of them (square: the figures' equal aspect then fills the panel)."""
+        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+        center, half = (lo + hi) / 2, 1.1 * (0.5 * float(np.max(hi - lo)) + margin)
+        for ax in (axes if isinstance(axes, (list, tuple, np.ndarray)) else [axes]):
+            ax.set_xlim(center[0] - half, center[0] + half)
+            ax.set_ylim(center[1] - half, center[1] + half)
+
     def goal_reached(self, q):
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
         return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance

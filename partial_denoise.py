@@ -223,17 +223,9 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
             ax.set_title(rf"{name} ($k_{{sw}}$ = {switch_step(levels[i], policy.cfg.K)}, "
                          rf"$\sigma^2_{{k_{{sw}}}}$ = {sigma2[i]:.3f})", fontsize=10)
     all_xy = np.concatenate([paths.reshape(-1, 2), expert_xy])
-    lo, hi = all_xy.min(axis=0), all_xy.max(axis=0)
-    center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.05) * 1.15
-    for ax in axes[1:len(levels) + 1]:                         # the same close-up for every beta
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
+    env.square_view(list(axes[1:len(levels) + 1]), all_xy, 0.02)    # the same close-up for every beta
     if not planar:                                             # the scene panel: paths, start and goal
-        scene = np.concatenate([all_xy, env.goal[None, :2]])
-        lo, hi = scene.min(axis=0), scene.max(axis=0)
-        center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.05) * 1.15
-        axes[0].set_xlim(center[0] - half, center[0] + half)
-        axes[0].set_ylim(center[1] - half, center[1] + half)
+        env.square_view(axes[0], np.concatenate([all_xy, env.goal[None, :2]]), 0.02)
 
     # One legend for all panels, below them (outside the data).
     handles = [plt.Line2D([], [], color="tab:blue", marker="o", ms=3, lw=2.5, label="expert chunk"),

@@ -577,9 +577,9 @@ def _fig1_windows(axes, env, q: np.ndarray, start: int, end: int, mid: int, fan:
     pts = np.concatenate([near, *fan])
     span = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
     # a close-up stays a close-up: a wide ellipse (a briefly trained policy's noise) is cut at the frame
-    _square_window(axes[1], pts, min(radius, max(span, 0.05)))
+    env.square_view(axes[1], pts, min(radius, max(span, 0.05)))
     if getattr(env, "dim", 2) == 3:
-        _square_window(axes[0], np.concatenate([xy(q[start:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]]), 0.05)
+        env.square_view(axes[0], np.concatenate([xy(q[start:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]]), 0.05)
 
 
 def _fig1_finish(fig, axes, env, path: str) -> None:
@@ -600,14 +600,6 @@ def _pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
-
-
-def _square_window(ax, points: np.ndarray, margin: float) -> None:
-    """Square limits (so the equal aspect ratio fills the panel) around points (N, 2) plus a margin, m."""
-    lo, hi = points.min(0) - margin, points.max(0) + margin
-    half = 0.5 * max(hi - lo) * 1.1
-    ax.set_xlim((lo + hi)[0] / 2 - half, (lo + hi)[0] / 2 + half)
-    ax.set_ylim((lo + hi)[1] / 2 - half, (lo + hi)[1] / 2 + half)
 
 
 def _fig1_legend(fig, goal_marker: bool) -> None:

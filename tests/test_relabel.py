@@ -25,6 +25,7 @@ class FakeEnv:
     dof, obs_dim, max_step, max_steps, dt, dim = DOF, 2 * DOF + 2, 0.05, 200, 0.1, 2
     ee_jacobian = envs.PlanarReacher.ee_jacobian
     draw_noise_ellipses = envs.PlanarReacher.draw_noise_ellipses
+    square_view = envs.PlanarReacher.square_view
 
     def __init__(self, radius=0.1, center_fn=None):
         self.radius = radius
