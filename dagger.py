@@ -1216,7 +1216,9 @@ def load_stage_file(path, loader, *args, **kwargs):
     except (FileNotFoundError, KeyboardInterrupt):
         raise
     except Exception as err:
-        raise RunFolderError(f"{path} is damaged ({type(err).__name__}: {err}). Delete it and run the same "
+        why = ("truncated, or not a checkpoint" if isinstance(err, diffusion.CheckpointDamagedError)  # it says so
+               else f"{type(err).__name__}: {err}")
+        raise RunFolderError(f"{path} is damaged ({why}). Delete it and run the same "
                              "command again: that stage is made again, the other finished stages are kept.") from None
 
 
