@@ -166,6 +166,14 @@ PROFILES = {
                   K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000, finetune_steps=2_500,
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "per_step"),
                   eval_scenarios=100, eval_repeats=3),
+    # The Table II analogue for this machine: the mid recipe on the UR5 engine-lever env with Table II's rows
+    # (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 as a
+    # reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2 side by side, --report
+    # (the whole of it about 3 hours here; benchmarks/README.md, "Table II analogue").
+    "table2": Config(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
+                     K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
+                     finetune_steps=2_500, methods=("bc", "hg_dagger", "fixed_4", "pooled"),
+                     eval_scenarios=100, eval_repeats=3),
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
     "paper": Config(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
@@ -1257,7 +1265,8 @@ def parse_args(argv):
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
                    help="run size: smoke (CI, ~1 min), quick (default, ~11 min of one core), mid (BC ~45 min of "
-                        "one core, then 3 lineages), paper (Table I protocol at the authors' sizes)")
+                        "one core, then 3 lineages), table2 (the mid recipe on engine3d with Table II's rows), "
+                        "paper (Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
@@ -1313,7 +1322,8 @@ def parse_args(argv):
         if args.device.startswith("cuda") and not torch.cuda.is_available():
             p.error(f"--device {args.device}: no CUDA device is available here; use --device cpu")
         over["device"] = args.device
-    name = cfg.name + ("" if over.get("env", cfg.env) == "planar" else f"_{over['env']}")
+    env = over.get("env", cfg.env)
+    name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
     name += f"_{args.start}_start" if args.start else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""

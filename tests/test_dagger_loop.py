@@ -133,6 +133,17 @@ def test_start_option_names_the_run_and_reaches_the_env():
     assert dagger.make_run_env(cfg).cfg.start == "random"  # the authors' starts by default
 
 
+def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows():
+    _, cfg = dagger.parse_args(["--profile", "table2"])
+    assert cfg.env == "engine3d" and cfg.name == "table2"  # the profile's own env adds no suffix
+    assert {"bc", "hg_dagger", "pooled"} <= set(cfg.methods) and (cfg.rounds, cfg.lineages) == (2, 3)  # Table II
+    assert dagger.make_run_env(cfg).cfg.start == "random"
+    _, cfg = dagger.parse_args(["--profile", "table2", "--env", "planar"])
+    assert cfg.env == "planar" and cfg.name == "table2_planar"  # never the engine3d run's folder
+    _, cfg = dagger.parse_args(["--profile", "mid", "--env", "engine3d"])
+    assert cfg.name == "mid_engine3d"
+
+
 def test_image_obs_flag_names_the_run_and_reaches_the_env():
     _, cfg = dagger.parse_args(["--env", "engine3d", "--image-obs", "--profile", "smoke"])
     assert cfg.image_obs and cfg.name == "smoke_engine3d_images"
