@@ -473,3 +473,22 @@ def test_bad_input_raises_value_error(scene_env):
     closed.close()
     with pytest.raises(ValueError, match="before reset"):
         closed.step(closed.q)
+
+
+def test_failure_table_measures_the_tool_angle_to_the_goal_posture():
+    """benchmarks/bc_failures.py's check of the authors' 10 deg rule: the flange's rotation angle from the
+    goal posture's; turning joint 1 (about the base's vertical axis) or joint 6 (about the tool axis) by
+    delta rad turns the flange by exactly delta."""
+    import importlib.util
+    import os
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "bc_failures.py")
+    spec = importlib.util.spec_from_file_location("bc_failures", path)
+    bc_failures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bc_failures)
+    env = make_env("engine3d")
+    goal_q = np.array(env.cfg.goal_q)
+    assert bc_failures.tool_angle_to_goal(env, goal_q) == pytest.approx(0.0, abs=1e-5)
+    for joint, delta in ((0, 0.2), (5, 0.3), (5, -2.0)):
+        q = goal_q.copy()
+        q[joint] += delta
+        assert bc_failures.tool_angle_to_goal(env, q) == pytest.approx(math.degrees(abs(delta)), rel=1e-6)
