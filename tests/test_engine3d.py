@@ -492,3 +492,4 @@ def test_failure_table_measures_the_tool_angle_to_the_goal_posture():
         q = goal_q.copy()
         q[joint] += delta
         assert bc_failures.tool_angle_to_goal(env, q) == pytest.approx(math.degrees(abs(delta)), rel=1e-6)
+    env.close()
