@@ -106,6 +106,8 @@ class Config:
     #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
     image_size: int = 32  # pixels of the square camera image (with image_obs)
     start: str | None = None  # engine3d: 'random' (the authors', the env's default) or 'home' (near a home pose)
+    goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
+    #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
     episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
@@ -134,6 +136,9 @@ class Config:
         if self.image_obs and self.env != "engine3d":
             raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
                              f"got env={self.env!r}")
+        if self.goal_angle is not None and (self.env != "engine3d" or not 0.0 < self.goal_angle <= 180.0):
+            raise ValueError(f"goal_angle: {self.goal_angle!r} is an option of the engine3d env only, in degrees "
+                             f"within (0, 180] (the authors' 10), or None for position-only success")
         if self.start is not None and (self.env != "engine3d" or self.start not in envs.ENGINE_STARTS):
             raise ValueError(f"start: {self.start!r} is an option of the engine3d env only, one of "
                              f"{', '.join(envs.ENGINE_STARTS)} (got env={self.env!r})")
@@ -427,6 +432,8 @@ def env_options(cfg):
     options = {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
     if cfg.start is not None:
         options["start"] = cfg.start
+    if cfg.goal_angle is not None:
+        options["goal_angle_tolerance"] = cfg.goal_angle
     return options
 
 
@@ -1272,6 +1279,9 @@ def parse_args(argv):
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
     p.add_argument("--start", default=None, choices=envs.ENGINE_STARTS,
                    help="engine3d: where episodes start, random (the authors', default) or home (near a home pose)")
+    p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
+                   help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
+                        "orientation (the authors' rule: 10), and the oracle ends at that posture")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(ALL_METHODS)} (BC and HG-DAgger always run)")
     p.add_argument("--collect-on", default=None, choices=("eval", "train"),
@@ -1311,6 +1321,8 @@ def parse_args(argv):
         over["image_obs"] = True
     if args.start:
         over["start"] = args.start
+    if args.goal_angle is not None:
+        over["goal_angle"] = args.goal_angle
     if args.collect_on:
         over["collect_on"] = args.collect_on
     for key in ("rounds", "lineages", "seed"):
@@ -1326,6 +1338,7 @@ def parse_args(argv):
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
     name += f"_{args.start}_start" if args.start else ""
+    name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder

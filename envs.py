@@ -160,6 +160,11 @@ class EngineConfig:
     # orientation part is not checked here (the oracle's IK is position-only; the lever's handle,
     # just beyond the TCP, leaves only a band of tool orientations free at the goal).
     goal_tolerance: float = 0.03
+    # deg or None. The orientation part of the authors' rule: with a value (theirs: 10), success also
+    # needs the flange within this angle of goal_q's orientation, and goal_configurations (the oracle's
+    # goal set) becomes the IK branches of goal_q's own pose -- one goal posture, as their demos have.
+    # None (the default): position only, and the goal set spans every free tool orientation.
+    goal_angle_tolerance: float | None = None
     # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
     # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
     max_steps: int = 333  # steps
@@ -900,6 +905,11 @@ class EngineReach3D(ArmEnv):
             raise ValueError(f"EngineConfig.scene must be one of {ENGINE_SCENES}, got {cfg.scene!r}")
         if cfg.start not in ENGINE_STARTS:
             raise ValueError(f"EngineConfig.start must be one of {ENGINE_STARTS}, got {cfg.start!r}")
+        if cfg.goal_angle_tolerance is not None and not (0.0 < cfg.goal_angle_tolerance <= 180.0
+                                                         and cfg.scene == "authors"):
+            raise ValueError(f"EngineConfig.goal_angle_tolerance must be None (position only) or, with "
+                             f"scene='authors' (its goal posture goal_q), degrees in (0, 180] (the authors' 10); "
+                             f"got {cfg.goal_angle_tolerance!r} with scene={cfg.scene!r}")
         # the wall of the authors' cell: a half-space y >= wall_y (None: no wall)
         self._wall_y = float(cfg.wall_y) if cfg.scene == "authors" else None
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
@@ -1213,6 +1223,49 @@ class EngineReach3D(ArmEnv):
 
     # ---- scenarios ---------------------------------------------------------------------------
     def goal_configurations(self, goal=None, n_directions=None, n_rolls=None):
+        """Collision-free joint configurations that reach the goal. (M, 6).
+
+        Position-only success (goal_angle_tolerance None): every tool orientation
+        (tcp_goal_configurations); with the orientation rule: goal_q's own pose and that pose tilted
+        by half the tolerance about +-x, y, z of the flange (goal_pose_configurations).
+        """
+        if self.cfg.goal_angle_tolerance is None:
+            return self.tcp_goal_configurations(goal, n_directions, n_rolls)
+        return self.goal_pose_configurations()
+
+    def goal_pose_configurations(self):
+        """The closed-form IK branches of goal_q's flange pose and of 6 tilts of it by half the angle
+        tolerance, TCP on the goal; within the limits, collision-free and goal_reached. (M, 6)."""
+        frame = ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6]
+        tilt = math.radians(self.cfg.goal_angle_tolerance) / 2
+        turns = [np.eye(3)] + [axis_rotation(a, tilt) for a in np.vstack([np.eye(3), -np.eye(3)])]
+        flange = np.tile(np.eye(4), (len(turns), 1, 1))
+        flange[:, :3, :3] = frame[:3, :3] @ np.array(turns)
+        flange[:, :3, 3] = self._goal - self.cfg.tool_length * flange[:, :3, 2]  # TCP on the goal
+        q = ur5_ik(flange).reshape(-1, self.dof)
+        q = q[~np.isnan(q).any(axis=1)]
+        q = q[np.all((q >= self._lo) & (q <= self._hi), axis=1)]
+        q = q[~self.in_collision(q)] if len(q) else q
+        return q[self.goal_reached(q)] if len(q) else q
+
+    def tool_angle(self, q):
+        """Degrees between the flange's orientation at q and at the goal posture goal_q. (B,) or float."""
+        q = np.asarray(q, dtype=np.float64)
+        R = ur5_frames(q.reshape(-1, self.dof))[:, 6, :3, :3]
+        R_goal = ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6, :3, :3]
+        cos = (np.einsum("bij,ij->b", R, R_goal) - 1) / 2  # (trace(R^T R_goal) - 1) / 2
+        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        return angle.reshape(q.shape[:-1]) if q.ndim > 1 else float(angle[0])
+
+    def goal_reached(self, q):
+        """True where the TCP is within goal_tolerance of the goal and, with goal_angle_tolerance, the
+        flange within that angle of the goal posture's orientation (the authors' 3 cm and 10 deg). (B,)"""
+        near = super().goal_reached(q)
+        if self.cfg.goal_angle_tolerance is None:
+            return near
+        return near & (self.tool_angle(q) <= self.cfg.goal_angle_tolerance)
+
+    def tcp_goal_configurations(self, goal=None, n_directions=None, n_rolls=None):
         """Collision-free joint configurations with the TCP exactly at the goal. (M, 6).
 
         Closed-form IK (ur5_ik) for a fixed set of tool orientations: n_directions tool axes z6
@@ -1394,8 +1447,8 @@ class EngineReach3D(ArmEnv):
             self._goal = goal
             if self.in_collision(self.witness):
                 continue
-            if len(self.goal_configurations()) < cfg.min_goal_configurations:
-                continue
+            if len(self.tcp_goal_configurations()) < cfg.min_goal_configurations:  # either success rule:
+                continue  # the same scenes
             if cfg.scene == "authors":
                 start = self._draw_start(rng)
                 if start is None:
@@ -1768,6 +1821,13 @@ def ur5_ik(flange):
                 q[(rho < d4) | (np.abs(cos3) > 1.0)] = np.nan
                 out[:, i, j, k] = q
     return out.reshape(P, 8, 6)
+
+
+def axis_rotation(axis, angle):
+    """The 3 x 3 rotation by `angle` rad about the unit vector `axis` (Rodrigues' formula)."""
+    x, y, z = axis
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
 def fibonacci_sphere(n):

@@ -129,24 +129,31 @@ def solve_ik(env, goal, rng, q_start=None, n_seeds=512, iters=40, damping=0.05, 
 
     Damped least squares, batched over seeds: dq = J^T (J J^T + lambda^2 I)^-1 (goal - ee(q)),
     projected onto the joint limits. Seeds: q_start (if given) and uniform random configurations.
+    An env whose goal includes an orientation (engine3d's goal_angle_tolerance) gives its goal
+    configurations in closed form instead (env.goal_configurations).
     Kept: solutions within `tolerance` of the goal, accepted by env.goal_reached, collision-free
     (in_collision, default env.in_collision), and more than `dedup` rad (max-norm) from every
     solution kept before them.
     """
     in_collision = in_collision or env.in_collision
     goal = np.asarray(goal, dtype=np.float64)
-    lo, hi = env.joint_limits
-    q = rng.uniform(lo, hi, size=(n_seeds, env.dof))  # (S, dof)
-    if q_start is not None:
-        q[0] = q_start
-    for _ in range(iters):
-        err = goal - env.ee(q)  # (S, dim)
-        J = env.ee_jacobian(q)  # (S, dim, dof), central differences
-        JJt = J @ J.transpose(0, 2, 1) + damping ** 2 * np.eye(J.shape[1])  # (S, dim, dim)
-        dq = (J.transpose(0, 2, 1) @ np.linalg.solve(JJt, err[..., None]))[..., 0]  # (S, dof)
-        q = np.clip(q + dq, lo, hi)
-    close = np.linalg.norm(env.ee(q) - goal, axis=1) <= tolerance
-    q = q[close & env.goal_reached(q)]
+    if getattr(env.cfg, "goal_angle_tolerance", None) is not None:
+        # the goal is a pose (engine3d with the authors' orientation rule), which position-only DLS
+        # would miss: its configurations come in closed form from the env
+        q = env.goal_configurations()
+    else:
+        lo, hi = env.joint_limits
+        q = rng.uniform(lo, hi, size=(n_seeds, env.dof))  # (S, dof)
+        if q_start is not None:
+            q[0] = q_start
+        for _ in range(iters):
+            err = goal - env.ee(q)  # (S, dim)
+            J = env.ee_jacobian(q)  # (S, dim, dof), central differences
+            JJt = J @ J.transpose(0, 2, 1) + damping ** 2 * np.eye(J.shape[1])  # (S, dim, dim)
+            dq = (J.transpose(0, 2, 1) @ np.linalg.solve(JJt, err[..., None]))[..., 0]  # (S, dof)
+            q = np.clip(q + dq, lo, hi)
+        close = np.linalg.norm(env.ee(q) - goal, axis=1) <= tolerance
+        q = q[close & env.goal_reached(q)]
     q = q[~in_collision(q)] if len(q) else q
     if q_start is not None and len(q):
         q = q[np.argsort(np.linalg.norm(q - q_start, axis=1), kind="stable")]

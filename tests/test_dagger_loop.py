@@ -144,6 +144,14 @@ def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows():
     assert cfg.name == "mid_engine3d"
 
 
+def test_goal_angle_option_names_the_run_and_reaches_the_env():
+    _, cfg = dagger.parse_args(["--profile", "table2", "--goal-angle", "10"])
+    assert cfg.name == "table2_goal_angle10" and dagger.make_run_env(cfg).cfg.goal_angle_tolerance == 10.0
+    assert dagger.make_run_env(dagger.PROFILES["table2"]).cfg.goal_angle_tolerance is None  # default: position
+    with pytest.raises(SystemExit):
+        dagger.parse_args(["--goal-angle", "10"])  # the planar env has no orientation rule
+
+
 def test_image_obs_flag_names_the_run_and_reaches_the_env():
     _, cfg = dagger.parse_args(["--env", "engine3d", "--image-obs", "--profile", "smoke"])
     assert cfg.image_obs and cfg.name == "smoke_engine3d_images"
