@@ -39,6 +39,8 @@ Every environment in this file has the same interface (gymnasium conventions, no
     env.goal_reached(q)                       # (B,) bool, True = end effector within tolerance
     env.goal                                  # (dim,) goal of the current scenario
     env.goal_configurations()                 # (M, dof) collision-free closed-form IK of the goal
+    env.goal_is_pose                          # True: the goal includes an orientation, and
+                                              # goal_configurations is its whole set (the oracle's goals)
     env.render(ax, q=None, alpha=1.0)         # matplotlib drawing of the scene (and arm at q)
     env.draw_noise_ellipses(ax, q, cov, color)   # joint covariances drawn at the end effector
     env.eval_seeds(), env.train_seeds(n, start=0)
@@ -401,6 +403,8 @@ class ArmEnv:
         for ax in (axes if isinstance(axes, (list, tuple, np.ndarray)) else [axes]):
             ax.set_xlim(center[0] - half, center[0] + half)
             ax.set_ylim(center[1] - half, center[1] + half)
+
+    goal_is_pose = False  # the goal is a position (EngineReach3D: a pose with its orientation rule)
 
     def goal_reached(self, q):
         """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
@@ -912,6 +916,8 @@ class EngineReach3D(ArmEnv):
                              f"got {cfg.goal_angle_tolerance!r} with scene={cfg.scene!r}")
         # the wall of the authors' cell: a half-space y >= wall_y (None: no wall)
         self._wall_y = float(cfg.wall_y) if cfg.scene == "authors" else None
+        self.goal_is_pose = cfg.goal_angle_tolerance is not None
+        self._goal_frame = ur5_frames(np.asarray(cfg.goal_q, dtype=np.float64)[None])[0, 6]  # (4, 4) flange
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
         if self.link_radii.shape != (len(ENGINE_LINK_NAMES),) or np.any(self.link_radii <= 0):
             raise ValueError(f"link_radii must be {len(ENGINE_LINK_NAMES)} positive radii "
@@ -1229,14 +1235,14 @@ class EngineReach3D(ArmEnv):
         (tcp_goal_configurations); with the orientation rule: goal_q's own pose and that pose tilted
         by half the tolerance about +-x, y, z of the flange (goal_pose_configurations).
         """
-        if self.cfg.goal_angle_tolerance is None:
+        if not self.goal_is_pose:
             return self.tcp_goal_configurations(goal, n_directions, n_rolls)
         return self.goal_pose_configurations()
 
     def goal_pose_configurations(self):
         """The closed-form IK branches of goal_q's flange pose and of 6 tilts of it by half the angle
         tolerance, TCP on the goal; within the limits, collision-free and goal_reached. (M, 6)."""
-        frame = ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6]
+        frame = self._goal_frame
         tilt = math.radians(self.cfg.goal_angle_tolerance) / 2
         turns = [np.eye(3)] + [axis_rotation(a, tilt) for a in np.vstack([np.eye(3), -np.eye(3)])]
         flange = np.tile(np.eye(4), (len(turns), 1, 1))
@@ -1252,8 +1258,7 @@ class EngineReach3D(ArmEnv):
         """Degrees between the flange's orientation at q and at the goal posture goal_q. (B,) or float."""
         q = np.asarray(q, dtype=np.float64)
         R = ur5_frames(q.reshape(-1, self.dof))[:, 6, :3, :3]
-        R_goal = ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6, :3, :3]
-        cos = (np.einsum("bij,ij->b", R, R_goal) - 1) / 2  # (trace(R^T R_goal) - 1) / 2
+        cos = (np.einsum("bij,ij->b", R, self._goal_frame[:3, :3]) - 1) / 2  # (trace(R^T R_goal) - 1) / 2
         angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
         return angle.reshape(q.shape[:-1]) if q.ndim > 1 else float(angle[0])
 
@@ -1261,7 +1266,7 @@ class EngineReach3D(ArmEnv):
         """True where the TCP is within goal_tolerance of the goal and, with goal_angle_tolerance, the
         flange within that angle of the goal posture's orientation (the authors' 3 cm and 10 deg). (B,)"""
         near = super().goal_reached(q)
-        if self.cfg.goal_angle_tolerance is None:
+        if not self.goal_is_pose:
             return near
         return near & (self.tool_angle(q) <= self.cfg.goal_angle_tolerance)
 

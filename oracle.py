@@ -129,16 +129,16 @@ def solve_ik(env, goal, rng, q_start=None, n_seeds=512, iters=40, damping=0.05, 
 
     Damped least squares, batched over seeds: dq = J^T (J J^T + lambda^2 I)^-1 (goal - ee(q)),
     projected onto the joint limits. Seeds: q_start (if given) and uniform random configurations.
-    An env whose goal includes an orientation (engine3d's goal_angle_tolerance) gives its goal
-    configurations in closed form instead (env.goal_configurations).
+    An env whose goal includes an orientation (env.goal_is_pose: engine3d's goal_angle_tolerance) gives
+    its goal configurations in closed form instead (env.goal_configurations).
     Kept: solutions within `tolerance` of the goal, accepted by env.goal_reached, collision-free
     (in_collision, default env.in_collision), and more than `dedup` rad (max-norm) from every
     solution kept before them.
     """
     in_collision = in_collision or env.in_collision
     goal = np.asarray(goal, dtype=np.float64)
-    if getattr(env.cfg, "goal_angle_tolerance", None) is not None:
-        # the goal is a pose (engine3d with the authors' orientation rule), which position-only DLS
+    if env.goal_is_pose:
+        # the goal includes an orientation (engine3d with the authors' rule), which position-only DLS
         # would miss: its configurations come in closed form from the env
         q = env.goal_configurations()
     else:
