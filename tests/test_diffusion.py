@@ -612,3 +612,87 @@ def test_train_accepts_a_sampler_with_a_mask():
     bad = lambda n, rng: (obs[:n], chunks[:n], np.ones((n, 3), bool))
     with pytest.raises(ValueError, match="mask"):
         train(tiny_policy(), obs, chunks, cfg, sampler=bad)
+
+
+# ---------------------------------------------------------------------------------------------- the MLP option
+
+def test_mlp_network_shares_the_film_interface_and_output_shape():
+    """network='mlp': the same split FiLM (obs part + step table = every block's film of the concatenated
+    condition), a zero output before training, and chunks of the right shape (no divisibility rule on H)."""
+    policy = tiny_policy(obs_dim=4, joint_obs=True, horizon=7, K=20, network="mlp", mlp_width=32, mlp_blocks=2)
+    net = policy.net
+    assert type(net).__name__ == "ResidualMLP" and len(list(net.residual_blocks())) == 2
+    eps0 = policy.predict_eps(torch.randn(5, 7, 2), torch.randint(0, 20, (5,)), torch.randn(5, 4 + 2))
+    assert torch.equal(eps0, torch.zeros(5, 7, 2))
+    gen = torch.Generator().manual_seed(0)
+    for p in net.parameters():
+        p.data = torch.randn(p.shape, generator=gen) * 0.3
+    obs_norm = policy.normalize_obs(torch.randn(6, 4, generator=gen))
+    k = torch.tensor([0, 3, 19, 7, 7, 12])
+    obs_part, step_table = policy.condition(obs_norm, use_ema=False)
+    cond = torch.cat([net.step_features(k), net.obs_features(obs_norm)], dim=1)
+    direct = torch.cat([block.film(nn.functional.mish(cond)) for block in net.residual_blocks()], dim=1)
+    assert torch.allclose(obs_part + step_table[k], direct, atol=1e-5)
+    a = torch.randn(6, 7, 2, generator=gen)
+    eps = policy.predict_eps(a, k, obs_norm, use_ema=False)
+    assert eps.shape == (6, 7, 2) and torch.allclose(eps, net(a, direct), atol=1e-5)
+    # the step enters: the same chunk and observation at another step give another prediction
+    assert not torch.allclose(eps, policy.predict_eps(a, (k + 1) % 20, obs_norm, use_ema=False))
+
+
+def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
+    obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
+    policy = tiny_policy(network="mlp", mlp_width=64, mlp_blocks=2)
+    train(policy, obs, chunks, TrainConfig(steps=400, batch_size=128, lr=3e-3, warmup_steps=50, log_every=0))
+    last = policy.sample(np.zeros((300, 2), np.float32), generator=torch.Generator().manual_seed(0))[:, -1]
+    up = last.sum(axis=1) > 0
+    assert 0.2 < up.mean() < 0.8                                       # both modes kept
+    assert np.allclose(last[up].mean(0), [0.5, 0.5], atol=0.1) and np.allclose(last[~up].mean(0), [-0.5, -0.5], atol=0.1)
+    policy.save(str(tmp_path / "mlp.pt"))
+    loaded = DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
+    assert loaded.cfg.network == "mlp"
+    assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in policy.state_dict().items())
+
+
+@pytest.mark.parametrize("overrides,match", [(dict(network="transformer"), "network must be one of"),
+                                             (dict(network="mlp", mlp_width=0), "mlp_width must be a positive int")])
+def test_bad_mlp_configs_raise(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, **overrides)
+
+
+# ---------------------------------------------------------------------------------------------- continuation
+
+def test_schedule_steps_sets_where_the_cosine_ends():
+    cfg = TrainConfig(steps=600, schedule_steps=1100, lr=1e-3, warmup_steps=100)
+    assert lr_at(600, cfg) == pytest.approx(0.5e-3)                  # half way through the cosine
+    assert lr_at(1100, cfg) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="schedule_steps"):
+        TrainConfig(steps=600, schedule_steps=500)
+
+
+def test_continuing_a_schedule_equals_running_it_in_one_piece_with_the_same_stream(tmp_path):
+    """train(continue_from=pi_0) goes on from pi_0's weights, AdamW state and step along the one schedule: with
+    the same data and seed it is the uninterrupted run (which a fresh optimizer would not be); with its own
+    seed it is another run from the same point."""
+    obs, chunks = toy_two_mode_data(300, H=4, seed=1)
+    base = dict(batch_size=32, warmup_steps=5, log_every=0, seed=3, schedule_steps=60)
+    pi0 = train(tiny_policy(), obs, chunks, TrainConfig(steps=30, checkpoint_steps=(30,),
+                                                        checkpoint_path=str(tmp_path / "pi0_{step}.pt"), **base))
+    whole = train(tiny_policy(), obs, chunks, TrainConfig(steps=60, **base)).state_dict()
+    # continuing replays the numpy/torch streams from the run's seed, not from step 30: start them there
+    cont = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks, TrainConfig(steps=60, **base),
+                 continue_from=str(tmp_path / "pi0_30.pt")).state_dict()
+    restart = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks,
+                    TrainConfig(steps=30, **{**base, "schedule_steps": 0})).state_dict()
+    key = "net.down.0.0.conv1.0.weight"
+    assert not torch.equal(pi0.state_dict()[key], cont[key])          # it trained on
+    # same starting point and schedule: closer to the one-piece run than a restart with a fresh optimizer
+    d_cont = sum(float((cont[k] - whole[k]).abs().sum()) for k in whole if k.startswith("net."))
+    d_restart = sum(float((restart[k] - whole[k]).abs().sum()) for k in whole if k.startswith("net."))
+    assert d_cont < 0.5 * d_restart
+    with pytest.raises(ValueError, match="must be larger"):
+        train(tiny_policy(), obs, chunks, TrainConfig(steps=30, **base), continue_from=str(tmp_path / "pi0_30.pt"))
+    DiffusionPolicy(tiny_policy().cfg).save(str(tmp_path / "plain.pt"))
+    with pytest.raises(ValueError, match="no training state"):
+        train(tiny_policy(), obs, chunks, TrainConfig(steps=60, **base), continue_from=str(tmp_path / "plain.pt"))
