@@ -4,7 +4,8 @@ Where the paper is implemented in this file:
     Sec. V, Table I    the planar 3-link reacher ............... PlanarConfig, PlanarReacher
     Sec. V, Table II   the UR5 reaching an engine lever ........ EngineConfig, EngineReach3D
     Sec. V             100 fixed evaluation scenarios .......... eval_seeds (train_seeds: disjoint)
-    Sec. V, Fig. 4     the "median step" unit of noise levels .. median_step
+    Sec. V, Fig. 4     the "median step" unit of noise levels .. median_step (the paper's own unit:
+                                                                 PAPER_MEDIAN_STEP, paper_median_step)
     Fig. 5             the two scenes .......................... PlanarReacher.render, render_scene_image
 The two envs share ArmEnv (state, the motion rule, the episode step, the end effector).
 
@@ -43,7 +44,7 @@ Every environment in this file has the same interface (gymnasium conventions, no
                                               # goal_configurations is its whole set (the oracle's goals)
     env.render(ax, q=None, alpha=1.0)         # matplotlib drawing of the scene (and arm at q)
     env.draw_noise_ellipses(ax, q, cov, color)   # joint covariances drawn at the end effector
-    env.eval_seeds(), env.train_seeds(n, start=0)
+    env.eval_seeds(), env.train_seeds(n, start=0), env.unseen_seeds()
 PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; pymunk_in_collision(q)
 is the simulator's (slow) version of in_collision.
 
@@ -271,6 +272,19 @@ def train_seeds(n, start=0):
     return list(range(start, start + n))
 
 
+# Not in the paper: under the authors' protocol HG-DAgger collects on the evaluation scenarios
+# (dagger.Config.collect_on = 'eval'), so those are not held out. These 100 scenarios are: no stage of
+# any run collects, demonstrates or calibrates on them (dagger.py evaluates every policy on them too).
+UNSEEN_SEED_START = 20_000
+N_UNSEEN_SEEDS = 100
+
+
+def unseen_seeds():
+    """100 scenarios no policy ever trains on: seeds 20_000 .. 20_099 (disjoint from the training and
+    evaluation seeds)."""
+    return list(range(UNSEEN_SEED_START, UNSEEN_SEED_START + N_UNSEEN_SEEDS))
+
+
 # ----------------------------------------------------------------------------------------------
 # What every arm env shares: state, the motion rule, the episode step, the end effector
 # ----------------------------------------------------------------------------------------------
@@ -330,6 +344,11 @@ class ArmEnv:
     def train_seeds(n, start=0):
         """n training seeds from start (module function train_seeds)."""
         return train_seeds(n, start)
+
+    @staticmethod
+    def unseen_seeds():
+        """The 100 scenarios never trained on (module function unseen_seeds)."""
+        return unseen_seeds()
 
     def set_state(self, q, q_prev=None, step_count=0):
         """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
@@ -1662,6 +1681,24 @@ def median_step(episodes):
     if len(steps) == 0:
         raise ValueError("median_step: the episodes contain no joint motion")
     return float(np.median(steps))
+
+
+# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their
+# demonstration steps of the L2 norm over the joints of one 30 Hz step, in rad (PCD
+# paper/fig_noise_levels/plot.py: MED_PLANAR = 0.0176, MED_LEVER = 0.0166; the lever's is over the
+# UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
+# of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
+# 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
+PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by env name
+PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
+
+
+def paper_median_step(env):
+    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
+    paper has none (then only radians and our median steps can be given)."""
+    if not isinstance(env, str):
+        env = next((name for name, (env_class, _) in ENVIRONMENTS.items() if isinstance(env, env_class)), None)
+    return PAPER_MEDIAN_STEP.get(env)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -58,6 +58,23 @@ def test_seed_ranges_are_disjoint():
     with pytest.raises(ValueError, match="train_seeds"):
         e.train_seeds(10, start=9_995)
     assert envs.eval_seeds() == ev and envs.train_seeds(2) == [0, 1]
+
+
+@pytest.mark.parametrize("name", sorted(envs.ENVIRONMENTS))
+def test_unseen_seeds_are_disjoint_from_training_and_evaluation(name):
+    env_class = envs.ENVIRONMENTS[name][0]  # both envs' classes, no instance (a pybullet client) needed
+    unseen = env_class.unseen_seeds()
+    assert unseen == envs.unseen_seeds() and len(set(unseen)) == 100
+    assert not set(unseen) & set(env_class.eval_seeds())
+    assert not set(unseen) & set(env_class.train_seeds(envs.TRAIN_SEED_END))  # every training seed
+
+
+def test_paper_median_step_by_name_or_env():
+    # the authors' unit (PCD paper/fig_noise_levels/plot.py), not ours: 0.0176 planar, 0.0166 the UR5 lever
+    assert envs.paper_median_step("planar") == 0.0176 and envs.paper_median_step("engine3d") == 0.0166
+    assert envs.paper_median_step(make_env("planar")) == 0.0176
+    assert envs.paper_median_step("mars") is None and envs.paper_median_step(object()) is None
+    assert 1 / envs.PAPER_FRAME_DT == pytest.approx(30.0)
     assert make_env("planar", episode_seconds=0.7).max_steps == 7  # at dt = 0.1 s
 
 
