@@ -24,9 +24,12 @@ Table I's "closed-loop pooled" variant (`closed_loop_sigma`), the expert-data he
 `label_starts`, `expert_segments`: the label rule of diffusion.label_mask), input checks, figure plumbing.
 
 Units: joint deviations, W and covariances in radians (rad^2), so relabel.py draws states from them
-directly; step counts in env steps (0.1 s). `diverge_threshold`, reports and figures are in median
-steps, the median per-step joint displacement of the base demos (`envs.median_step`, the paper's
-"median step size"); functions that take the threshold in radians call it `diverge_rad`.
+directly; step counts in env steps (0.1 s). Reports and figures are in median steps, the median
+per-step joint displacement of the base demos (`envs.median_step`), and beside them in radians and in
+the paper's own median step (`envs.paper_median_step`, 0.0176 rad planar: the unit of every sigma and W
+the paper quotes; ours is 1.39x it on a planar D0, so compare with the paper only in its unit).
+`diverge_threshold` counts the paper's median steps (`diverge_radius`); functions that take the
+threshold in radians call it `diverge_rad`.
 """
 
 from __future__ import annotations
@@ -57,8 +60,8 @@ class CalibrationConfig:
     settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
     settle_start: int = 13               # steps: settling error = RMS over steps [settle_start, settle_end] of
     settle_end: int = 40                 # a rollout, after the transient (authors: frames 40-120)
-    diverge_threshold: float = 15.0      # median steps: a rollout whose nearest-state distance reaches this has
-                                         # diverged and is discarded (authors: 15; per step, so rate-independent)
+    diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout whose nearest-state
+                                         # distance reaches this has diverged and is discarded (`diverge_radius`)
     min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
     closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
     # not in the paper
@@ -70,6 +73,30 @@ class CalibrationConfig:
     bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
     closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
+
+
+def diverge_radius(threshold: float, median_step: float, paper_median_step: float | None) -> float:
+    """Radians: the discard threshold `diverge_threshold`, counted in the paper's median steps.
+
+    The authors discard a blended rollout once its joint-space distance (L2 over the joints) to the
+    nearest demo state reaches 15 of their median steps (PAPER_SETUP.md §5): 15 * 0.0176 = 0.264 rad on
+    the planar arm, 15 * 0.0166 = 0.249 rad on the UR5. It is a distance, so the control rate does not
+    enter: the same radians at our 10 Hz. In our planar unit (0.0245 rad) that is 10.8 median steps
+    (15 of ours would be 0.367 rad, 1.39x looser). An env without the paper's unit (paper_median_step
+    None): `threshold` of our median steps.
+    """
+    return threshold * (median_step if paper_median_step is None else paper_median_step)
+
+
+def other_units(rad, paper_median_step: float | None, digits: int = 2) -> str:
+    """A length in rad (a number, or one per joint) said in radians and, where the env has one, in the
+    paper's median steps: '0.141 rad = 8.00 paper median steps'. Printed beside our median steps wherever
+    a sigma or W is: the paper's numbers compare in its unit, never in ours (PAPER_SETUP.md §1)."""
+    values = np.atleast_1d(np.asarray(rad, dtype=np.float64))
+    text = ", ".join(f"{v:.3f}" for v in values) + " rad"
+    if paper_median_step is not None:
+        text += " = " + ", ".join(f"{v / paper_median_step:.{digits}f}" for v in values) + " paper median steps"
+    return text
 
 
 # ----------------------------------------------------------------------------------------------
@@ -143,9 +170,10 @@ def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationCo
 
     From the segment's first state (default: the episode's longest expert segment) every decision
     executes the first n_act actions of partial_denoise(policy, obs, expert chunk at the cursor, beta).
-    Rollouts whose nearest-state distance reaches diverge_rad (radians; 0.4 is about 15 median steps of
-    the planar oracle demos) or that record fewer than cfg.min_rollout_steps steps are not kept ("we
-    discard the blended trajectories that diverge"); contacts only with discard_collisions (`_closed_loop`).
+    Rollouts whose nearest-state distance reaches diverge_rad (radians; the authors' 15 median steps are
+    0.264 rad on the planar arm, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps
+    are not kept ("we discard the blended trajectories that diverge"); contacts only with
+    discard_collisions (`_closed_loop`).
     """
     H = policy_horizon(policy)
     if segment is None:
@@ -318,7 +346,8 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     cfg = cfg or CalibrationConfig()
     _check_median_step(median_step)
     H = policy_horizon(policy)
-    threshold = cfg.diverge_threshold * median_step                         # median steps -> radians
+    paper_unit = envs.paper_median_step(env)                                 # rad, or None
+    threshold = diverge_radius(cfg.diverge_threshold, median_step, paper_unit)   # the paper's 15 -> radians
     say = log or (lambda msg: None)
 
     # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
@@ -354,7 +383,8 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
                        episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
                        closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=s, blend_x=x, blend_kept=kept,
                        blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
-                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci)
+                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci,
+                       paper_median_step=paper_unit)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -366,7 +396,7 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
                          n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
                          generator: torch.Generator | None = None) -> None:
     """Fig. 2 (a)-(d) on the episode's longest expert segment, Sigma_hat_t at every `stride`-th label
-    step, blended rollouts at `betas` (diverge_threshold in median steps). Covariances are 2-sigma
+    step, blended rollouts at `betas` (diverge_threshold in the paper's median steps). Covariances are 2-sigma
     ellipses of J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y).
     """
     plt = _pyplot()
@@ -377,7 +407,8 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     (start, end), steps, samples, sigma_hat = _overview_open_loop(policy, episode, n_samples, stride, n_act,
                                                                   generator)
     blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
-                           diverge_threshold * calibration.median_step, (start, end))
+                           diverge_radius(diverge_threshold, calibration.median_step, calibration.paper_median_step),
+                           (start, end))
 
     expert_path = _ee_xy(env, q_exp[start:end])                              # (n, 2) end effector
     fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
@@ -413,7 +444,7 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
     plt = _pyplot()
     c = calibration
     unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(8.2, 3.8))
+    fig, ax = plt.subplots(figsize=(10.5, 3.8))
     kept = c.blend_kept
     ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
                label=f"blended rollouts ({int(kept.sum())})")
@@ -425,9 +456,11 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
         ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
                 label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
     ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
-               label=f"W = {c.W / unit:.2f} median steps" + ("" if c.r is not None else " (fallback)"))
+               label=f"W = {c.W / unit:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
+                     + ("" if c.r is not None else " (fallback)"))
     if c.W_ci is not None:
         _draw_W_interval(ax, c.W / unit, c.W_ci[0] / unit, c.W_ci[1] / unit)    # an error bar at s = 1
+    _second_error_axis(ax, unit, c.paper_median_step)                            # the paper's unit (or rad)
     _finish_blend_fit(fig, ax, path)                                             # axes, legend, save
 
 
@@ -459,6 +492,8 @@ class Calibration:
     blend_start: np.ndarray         # (B,) first step of that segment
     sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
     W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
+    paper_median_step: float | None = None   # the paper's median step of the env (rad, envs.paper_median_step);
+    #                                          None: the env has none (or written before it was recorded)
 
     def __post_init__(self):
         if self.sigma_per_joint is None:
@@ -476,7 +511,8 @@ class Calibration:
         return cls(**_calibration_fields(data))
 
     def report(self) -> str:
-        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V)."""
+        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V), then again in
+        radians and in the paper's median steps (its numbers compare only in its unit)."""
         ci = ("" if self.W_ci is None else
               f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
               f"{self.W_ci[1] / self.median_step:.2f}, ")
@@ -489,7 +525,21 @@ class Calibration:
             cl = sigma_in_median_steps(self.closed_loop_pooled, self.median_step)
             lines.append("closed-loop pooled per-joint sigma [median steps]: "
                          + ", ".join(f"{v:.2f}" for v in cl))
-        return "\n".join(lines)
+        return "\n".join(lines + self._report_other_units())
+
+    def _report_other_units(self) -> list[str]:
+        """report's lines in radians and the paper's median steps (where the env has one)."""
+        p = self.paper_median_step
+        lines = [f"units: our median step {self.median_step:.4f} rad (per joint, base demos); "
+                 + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {self.median_step / p:.2f}x theirs"
+                    if p is not None else "the paper gives none for this env: radians only")]
+        ci = "" if self.W_ci is None else f" (95 % interval {other_units(self.W_ci, p)})"
+        lines.append(f"W = {other_units(self.W, p)}{ci}")
+        lines.append(f"pooled Sigma_bar^alpha per-joint sigma = {other_units(np.sqrt(np.diag(self.pooled)), p)}")
+        if self.closed_loop_pooled is not None:
+            cl = np.sqrt(np.diag(self.closed_loop_pooled))                      # rad
+            lines.append(f"closed-loop pooled per-joint sigma = {other_units(cl, p)}")
+        return lines
 
 
 def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
@@ -1038,11 +1088,14 @@ def _finish_overview(fig, axes, env, episode: dict, calibration: Calibration, ex
     planar = env.dim == 2
     per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
     where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
-    axes[3].text(s=f"per-joint sigma: {per_joint} median steps", transform=axes[3].transAxes, fontsize=8, **where)
+    rad = np.sqrt(np.diag(calibration.pooled))                               # (dof,) per-joint sigma, rad
+    axes[3].text(s=f"per-joint sigma: {per_joint} median steps\n= {other_units(rad, calibration.paper_median_step, 1)}",
+                 transform=axes[3].transAxes, fontsize=8, **where)
     for ax in axes[:2]:  # below the panel, outside the data
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07 if planar else -0.12), frameon=False)
     fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
-                 f"{calibration.W / calibration.median_step:.2f} median steps; ellipses 2 sigma"
+                 f"{calibration.W / calibration.median_step:.2f} median steps = "
+                 f"{other_units(calibration.W, calibration.paper_median_step)}; ellipses 2 sigma"
                  + ("" if planar else "; top view") + ")")
     pts = np.concatenate([expert_path, *[_ee_xy(env, blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
                           np.empty((0, 2)) if planar else env.goal[None, :2]])
@@ -1059,13 +1112,21 @@ def _draw_W_interval(ax, W: float, lo: float, hi: float) -> None:
                 label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
 
 
+def _second_error_axis(ax, median_step: float, paper_median_step: float | None) -> None:
+    """Fig. 4's right axis: the settling error in the paper's median steps (the unit of its Fig. 4 and of
+    its W = 8.0), or in radians where the env has no paper unit."""
+    scale = median_step / (paper_median_step or 1.0)                        # ours -> theirs (or rad)
+    right = ax.secondary_yaxis("right", functions=(lambda y: y * scale, lambda y: y / scale))
+    right.set_ylabel("[the paper's median steps]" if paper_median_step else "[rad]")
+
+
 def _finish_blend_fit(fig, ax, path) -> None:
-    """Fig. 4's axes, title, legend (right of the data) and the file."""
+    """Fig. 4's axes, title, legend (right of the data and its second axis) and the file."""
     ax.set_xlim(0, 1)
     ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
-    ax.set_ylabel("settling error [median steps]")
+    ax.set_ylabel("settling error [our median steps]")
     ax.set_title("Blend fit for W (paper Fig. 4)")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.16, 1.0), frameon=False)  # outside the data
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     _pyplot().close(fig)

@@ -17,8 +17,10 @@ sampler's table, draws, redraws, observations, pool and resume, `covariance_fact
 
 Units: per control step: joints in rad, velocities rad/step, accelerations rad/step² (the env's
 `max_step` is directly the velocity clamp, no dt appears); noise levels and most RelabelConfig knobs in
-median steps m (the median per-step joint displacement of the demos). The small Gaussian observation
-noise of Sec. V (last paragraph) is not here: it is diffusion.TrainConfig.obs_noise, for every batch.
+median steps m (the median per-step joint displacement of the demos), except velocity_noise: the
+authors' number in their own median step per 30 Hz frame, converted by `velocity_noise_std` with the
+env's units in DemoStats. The small Gaussian observation noise of Sec. V (last paragraph) is not
+here: it is diffusion.TrainConfig.obs_noise, for every batch.
 
 The env is passed in and used only through the env interface of envs.py: env.dof, env.joint_limits,
 env.max_step, env.in_collision, env.make_obs, env.reset(seed=...), env.set_state, and for the figure
@@ -43,7 +45,8 @@ class RelabelConfig:
     # not in the paper: the authors' label (their code, PAPER_SETUP.md §6), their 30 Hz frames converted to
     #   our 10 Hz steps; m = median step (their m' per frame is m/3: the same joint speed)
     label: str = "servo"  # 'servo': `servo_return_chunk` (the authors'); 'pd': `pd_return_chunk` (the text's)
-    velocity_noise: float = 0.3  # median steps/step: std of a noised state's velocity noise (theirs 0.3 m'/frame)
+    velocity_noise: float = 0.3  # the paper's median steps per 30 Hz frame (theirs): std of a noised state's
+    #   per-joint velocity noise, converted to rad per env step by `velocity_noise_std` (0.0158 rad/step planar)
     a_clamp_scale: float = 0.9  # unit-free: a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
     accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame² = 0.2 · (m/3) / (1/3 step)²
     gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m' = 4/3 m
@@ -76,14 +79,20 @@ class DemoStats:
     accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD's acceleration
     max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the velocity
     acc_p95: float  # rad/step²: 95th percentile of ‖q[t+1] - 2 q[t] + q[t-1]‖₂, sets the servo's a_clamp
+    # the env's units, for knobs the authors set in their own (`velocity_noise_std`); None: not known
+    paper_median_step: float | None = None  # rad: the paper's median step of the env (envs.paper_median_step)
+    frames_per_step: float | None = None  # the authors' 30 Hz frames per env step: env.dt / envs.PAPER_FRAME_DT
 
 
-def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_percentile: float = 99.0) -> DemoStats:
+def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_percentile: float = 99.0,
+               paper_median_step: float | None = None, frames_per_step: float | None = None) -> DemoStats:
     """Statistics of the base demonstrations D0 that shape the corrective labels.
 
     `median_step` is `envs.median_step(episodes)`; `max_step` the env's per-step joint speed limit
-    (scalar or (dof,)). The acceleration clamp is the `accel_percentile` of |q[t+1] - 2 q[t] + q[t-1]|
-    per joint: a high percentile rather than the max, so one odd step does not set every label's clamp.
+    (scalar or (dof,)); `paper_median_step` (envs.paper_median_step) and `frames_per_step` (env.dt /
+    envs.PAPER_FRAME_DT, 3 at 10 Hz) convert the knobs the authors set in their unit (`velocity_noise_std`).
+    The acceleration clamp is the `accel_percentile` of |q[t+1] - 2 q[t] + q[t-1]| per joint: a high
+    percentile rather than the max, so one odd step does not set every label's clamp.
     """
     _check_demo_inputs(median_step, accel_percentile)
     steps, accels = [], []
@@ -100,7 +109,9 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
     accel_max = np.percentile(accels, accel_percentile, axis=0)  # (dof,)
     acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # the authors': norm over joints
     max_step = _check_clamps(accel_max, max_step)  # (dof,) rad/step
-    return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step, acc_p95)
+    return DemoStats(float(median_step), float(np.median(speed)), accel_max, max_step, acc_p95,
+                     None if paper_median_step is None else float(paper_median_step),
+                     None if frames_per_step is None else float(frames_per_step))
 
 
 # ---- 2. Noised states around the intervention data (Sec. IV-A step 3; Σ^α from calibrate.py)
@@ -307,6 +318,22 @@ def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray
 NOISE_KINDS = ("isotropic", "pooled", "per_step")
 
 
+def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
+    """rad per env step: the std of a noised state's per-joint velocity noise (PAPER_SETUP.md §6).
+
+    The authors add N(0, (0.3 m_p)²) per joint to the velocity per 30 Hz frame, m_p their median step:
+    0.3 · 0.0176 = 0.00528 rad/frame = 0.158 rad/s on the planar arm. The same rate over one of our
+    steps, which spans frames_per_step = dt / (1/30 s) of their frames, is
+        velocity_noise · m_p · frames_per_step  = 0.3 · 0.0176 · 3 = 0.0158 rad per 0.1 s step
+    (0.65 of our median step 0.0245; 0.3 of ours per step, 0.0074 rad, was 2.15x too little).
+    Without the env's units (stats.paper_median_step or frames_per_step None): velocity_noise of our
+    median step per step.
+    """
+    if stats.paper_median_step is None or stats.frames_per_step is None:
+        return cfg.velocity_noise * stats.median_step
+    return cfg.velocity_noise * stats.paper_median_step * stats.frames_per_step
+
+
 class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool):
     noised intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
@@ -317,7 +344,7 @@ class AugmentationSampler:
     make_env: a no-argument factory (e.g. `lambda: envs.make_env('planar')`); one env per scenario seed.
 
     A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free,
-    within limits); v = (q_t - q_{t-1}) + N(0, (velocity_noise · m)²); obs = env.make_obs(q̃, q̃ - v) in the
+    within limits); v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs(q̃, q̃ - v) in the
     episode's scenario (PAPER_SETUP.md §6); chunk, mask = `corrective_labels`. With image observations the
     noised state reuses the recorded image of state t, only the joints change (the paper's Sec. V).
     Pairs are made in batches into a pool that each call draws from (`_refresh_pool`, beyond the banner);
@@ -363,8 +390,8 @@ class AugmentationSampler:
             q_tilde[sel], kept[sel] = _draw_valid(self.center[rows[sel]], self.factors[rows[sel]], rng,
                                                   self._env(int(seed)), cfg.max_tries)
         r, q_tilde = rows[kept], q_tilde[kept]  # states still invalid after max_tries are dropped
-        # PAPER_SETUP.md §6: velocity = demo tangent + N(0, (velocity_noise · median_step)²) per joint
-        v = self.velocity[r] + cfg.velocity_noise * self.stats.median_step * rng.standard_normal(q_tilde.shape)
+        # PAPER_SETUP.md §6: velocity = demo tangent + N(0, (0.3 of the paper's median step per frame)²) per joint
+        v = self.velocity[r] + velocity_noise_std(cfg, self.stats) * rng.standard_normal(q_tilde.shape)
         t_proj = monotone_projection(q_tilde, self.trajectory, self.t_glob[r], window=cfg.projection_window,
                                      t_end=self.end_glob[r])
         ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
@@ -1022,7 +1049,8 @@ if __name__ == "__main__":
     env = envs.make_env("planar")
     rng = np.random.default_rng(0)
     episodes = [ep for ep in (envs.straight_line_episode(env, s) for s in range(40)) if len(ep["q"]) >= 40]
-    stats = demo_stats(episodes, envs.median_step(episodes), env.max_step)
+    stats = demo_stats(episodes, envs.median_step(episodes), env.max_step,
+                       paper_median_step=envs.paper_median_step(env), frames_per_step=env.dt / envs.PAPER_FRAME_DT)
     print(f"{len(episodes)} episodes; median step {stats.median_step:.4f} rad, median speed "
           f"{stats.median_speed:.4f} rad/step, accel clamp {np.round(stats.accel_max, 4)} rad/step²")
     sigma = np.diag([5.0, 3.0, 4.0]) ** 2 * stats.median_step ** 2  # a pooled Σ̄^α stand-in

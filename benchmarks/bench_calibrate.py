@@ -29,7 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import calibrate as cal  # noqa: E402
 import oracle  # noqa: E402
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train  # noqa: E402
-from envs import make_env, median_step  # noqa: E402
+from envs import make_env, median_step, paper_median_step  # noqa: E402
 
 
 def timed(fn):
@@ -79,7 +79,7 @@ def main():
     n_steps = sum(int(e["expert"].sum()) for e in interventions)
 
     cfg = cal.CalibrationConfig()
-    threshold = cfg.diverge_threshold * unit
+    threshold = cal.diverge_radius(cfg.diverge_threshold, unit, paper_median_step(env))  # as calibrate does
     gen = torch.Generator().manual_seed(0)
     H = policy.cfg.horizon
     segs = cal._segments_longest_first(interventions, H)

@@ -301,6 +301,29 @@ def _calibration():
         W_ci=(0.04, 0.062))
 
 
+def test_diverge_radius_is_the_authors_15_median_steps_in_radians():
+    # a distance: 15 of the paper's median steps whatever our unit or rate; 15 of ours only without theirs
+    assert cal.diverge_radius(15.0, 0.0245, 0.0176) == pytest.approx(0.264)
+    assert cal.diverge_radius(15.0, 0.0245, 0.0176) / 0.0245 == pytest.approx(10.78, abs=0.01)
+    assert cal.diverge_radius(15.0, 0.0245, 0.0166) == pytest.approx(0.249)          # the UR5 lever
+    assert cal.diverge_radius(15.0, 0.0245, None) == pytest.approx(15 * 0.0245)
+    assert cal.CalibrationConfig().diverge_threshold == 15.0
+
+
+def test_report_gives_sigma_and_W_in_radians_and_the_papers_unit():
+    c = _calibration()                                                       # median step 0.01 rad, W 0.05 rad
+    assert "paper median steps" not in c.report() and "W = 0.050 rad" in c.report()   # no paper unit: rad only
+    c.paper_median_step = 0.0176
+    text = c.report()
+    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in text           # ours, unchanged
+    assert f"W = 0.050 rad = {0.05 / 0.0176:.2f} paper median steps" in text
+    assert f"95 % interval 0.040, 0.062 rad = {0.04 / 0.0176:.2f}, {0.062 / 0.0176:.2f} paper median steps" in text
+    sigma = np.sqrt(np.diag(c.pooled))
+    assert ", ".join(f"{v / 0.0176:.2f}" for v in sigma) + " paper median steps" in text
+    back = cal.Calibration.from_dict(json.loads(json.dumps(c.to_dict())))
+    assert back.paper_median_step == 0.0176 and back.report() == text
+
+
 def test_calibration_json_round_trip(tmp_path):
     c = _calibration()
     path = tmp_path / "calibration.json"
@@ -452,6 +475,7 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     # deterministic: same seed, same calibration
     again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     assert again.to_dict() == c.to_dict()
+    assert c.paper_median_step == envs.PAPER_MEDIAN_STEP["planar"]           # recorded for the report
     json.dumps(c.to_dict())
     cal.plot_blend_fit(c, unit, tmp_path / "fig4.png")
     cal.plot_method_overview(env, episodes[0], c, policy, tmp_path / "fig2.png", n_samples=2,
@@ -481,7 +505,8 @@ def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, mo
     cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False)
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(1e5 * unit, 1e3, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
-    assert c.W == pytest.approx(cfg.diverge_threshold * unit)
+    assert c.W == pytest.approx(15 * 0.0176)             # the authors' 15 median steps of theirs, in rad
+    assert c.W == pytest.approx(cal.diverge_radius(cfg.diverge_threshold, unit, envs.PAPER_MEDIAN_STEP["planar"]))
     assert c.fit_note.startswith("fit, W capped") and "100000 median steps" in c.fit_note
     assert c.W_ci is None or c.W_ci == (pytest.approx(c.W), pytest.approx(c.W))   # capped like W
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)

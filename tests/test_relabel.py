@@ -752,6 +752,31 @@ def test_velocity_noise_has_the_configured_std_and_rebuilds_q_prev(stats):
     np.testing.assert_allclose(noise.std(0), 0.3 * stats.median_step, rtol=0.05)
 
 
+def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
+    """The authors' 0.3 of their median step per 30 Hz frame (0.3 * 0.0176 rad = 0.158 rad/s) over one of
+    our 0.1 s steps (3 of their frames) is 0.0158 rad, whatever our own median step; without the env's
+    units it stays 0.3 of our median step per step."""
+    from dataclasses import replace
+    cfg = RelabelConfig()
+    assert relabel.velocity_noise_std(cfg, stats) == pytest.approx(0.3 * stats.median_step)   # no units known
+    planar = replace(stats, paper_median_step=0.0176, frames_per_step=0.1 / envs.PAPER_FRAME_DT)
+    assert planar.frames_per_step == pytest.approx(3.0)
+    assert relabel.velocity_noise_std(cfg, planar) == pytest.approx(0.01584)
+    assert relabel.velocity_noise_std(cfg, planar) / 0.1 == pytest.approx(0.3 * 0.0176 * 30)  # rad/s, theirs
+    at_30hz = replace(planar, frames_per_step=1.0)                          # dt = 1/30 s: their own frame
+    assert relabel.velocity_noise_std(cfg, at_30hz) == pytest.approx(0.3 * 0.0176)
+    # the sampler draws it: q_prev = q - v with v = the demo tangent + that noise
+    step = np.array([0.02, -0.01, 0.015])
+    sampler = AugmentationSampler([line_episode()], FakeEnv, planar, "isotropic", 2.0,
+                                  small_cfg(pool_size=4096, refresh_size=4096))
+    sampler(0, np.random.default_rng(0))
+    obs = sampler._pool_obs[: sampler._filled].astype(np.float64)
+    noise = obs[:, :DOF] - obs[:, DOF:2 * DOF] - step
+    np.testing.assert_allclose(noise.std(0), 0.01584, rtol=0.05)
+    demo = demo_stats([oracle_like_demo(0)], 0.01, FakeEnv.max_step, paper_median_step=0.0176, frames_per_step=3)
+    assert (demo.paper_median_step, demo.frames_per_step) == (0.0176, 3.0)
+
+
 def test_planar_obs_of_a_noised_state_is_rebuilt_by_forward_kinematics(planar):
     envs, eps, st = planar
     env = envs.make_env("planar")
