@@ -88,6 +88,8 @@ import pymunk
 # ----------------------------------------------------------------------------------------------
 # Configuration
 # ----------------------------------------------------------------------------------------------
+PLANAR_STARTS = ("random", "fixed")  # PlanarConfig.start
+
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
@@ -109,14 +111,13 @@ class PlanarConfig:
     n_obstacles: int = 2  # obstacle blocks per scene
     target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
     obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    # The start. 'fixed': every scenario starts at fixed_start (the authors' demonstration config);
-    # 'random': all joints uniform within their limits until the arm is collision-free (the authors'
-    # env reset and evaluation config, q_start null; often folded). Chosen by measurement
-    # (benchmarks/README.md): BC on 500 demonstrations, 30k steps (41 min of one core), reaches
-    # 62.7 % with the fixed start and 54.0 % with random starts (100 scenarios x 3 each): the fixed
-    # start puts pi_0 in the paper's range (68 %), the random one just below it; 20 of the 100 random
-    # evaluation starts lie within 2.5 cm of contact.
-    start: str = "fixed"
+    # The start (PLANAR_STARTS). 'random': all joints uniform within their limits until the arm is
+    # collision-free (the authors' env reset and evaluation config, q_start null; often folded: "the robot
+    # must untangle its links"); 'fixed': every scenario starts at fixed_start (one demonstration config of
+    # theirs). BC reaches 62.7 % with the fixed start and 54.0 % with random starts (U-Net, 500 demos, 30k
+    # steps; benchmarks/README.md), but from the fixed start DAgger has little to fix: the Table I profiles
+    # use the authors' random starts (measured there, "Table I where DAgger has something to fix").
+    start: str = "random"
     fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
 
     # --- not in the paper ---
@@ -476,8 +477,8 @@ class PlanarReacher(ArmEnv):
         if len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3:
             raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}, "
                              f"link_widths={cfg.link_widths}")
-        if cfg.start not in ("random", "fixed"):
-            raise ValueError(f"PlanarConfig.start must be 'random' or 'fixed', got {cfg.start!r}")
+        if cfg.start not in PLANAR_STARTS:
+            raise ValueError(f"PlanarConfig.start must be one of {PLANAR_STARTS}, got {cfg.start!r}")
         if not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0):
             raise ValueError(f"PlanarConfig needs dt, speed_limit, episode_seconds > 0, got {cfg.dt}, "
                              f"{cfg.speed_limit}, {cfg.episode_seconds}")
