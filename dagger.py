@@ -46,7 +46,7 @@ import relabel
 # ----------------------------------------------------------------------------------------------
 # Configuration: one dataclass, three presets
 # ----------------------------------------------------------------------------------------------
-FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in median steps
+FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
                    "pooled", "per_step", "closed_loop")
 # Not in the paper: the pipeline with sigma = 0 (intervention states relabelled with the return labels, no
@@ -57,7 +57,7 @@ ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
 METHOD_LABELS = {
     "bc": "BC (no aggregation)",
     "hg_dagger": "HG-DAgger",
-    **{f"fixed_{s}": f"Fixed iso. noise (sigma={s})" for s in FIXED_SIGMAS},
+    **{f"fixed_{s}": f"Fixed iso. noise (sigma={s}, paper's unit)" for s in FIXED_SIGMAS},
     "pooled": "Pooled Sigma-bar^alpha (Ours)",
     "per_step": "Per-step Sigma^alpha (Ours)",
     "closed_loop": "Closed-loop pooled Sigma-bar^alpha (Ours)",
@@ -117,6 +117,9 @@ class Config:
     finetune_lr: float | None = None  # peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
     #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
     calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
+    # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
+    # collect_on='eval' the evaluation scenarios are not held out): a second table; eval_scenarios x eval_repeats
+    eval_unseen: bool = True
 
     def __post_init__(self):
         self.methods = tuple(self.methods)
@@ -593,11 +596,19 @@ def stage_calibrate(run, lineage, k, policy, episodes, median_step):
     return cal
 
 
-def noise_model(method, cal, episodes=None):
+def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
     """(noise kind, sigma) for relabel.AugmentationSampler. For 'per_step', `episodes` are the indices
-    (into the calibrated episode list) of the sampler's episodes, in order."""
+    (into the calibrated episode list) of the sampler's episodes, in order.
+
+    'fixed_<s>' is Table I's sigma = s in the paper's median steps (the authors' 0.0176 rad planar, L2 over
+    the joints at 30 Hz: envs.paper_median_step), per joint s * paper_median_step rad; the sampler counts
+    our median step (median_step, rad), so it gets s * paper_median_step / median_step (fixed_4 planar:
+    4 * 0.0176 / 0.0245 = 2.87 of ours = 0.070 rad). Without both units: s of our median steps."""
     if method.startswith("fixed_"):
-        return "isotropic", float(method.split("_")[1])  # Table I: sigma in median steps
+        sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps
+        if median_step is None or paper_median_step is None:
+            return "isotropic", sigma
+        return "isotropic", sigma * paper_median_step / median_step
     if method == "zero_noise":
         return "isotropic", 0.0  # the control: augmented pairs without noise
     if method == "pooled":
@@ -667,7 +678,8 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
         if method == "hg_dagger":
             samplers.append(ChunkSampler(D, cfg.horizon))
         else:
-            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)))
+            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
+                                      stats.paper_median_step)
             samplers.append(relabel.AugmentationSampler(
                 D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
         offset += len(D)
@@ -684,14 +696,32 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
 
 
 def stage_evaluate(run, path, policy, label):
-    """Step 5's numbers: success on the held-out scenarios (same draws for every method)."""
+    """Step 5's numbers: success (scenarios, repeats) bool on the evaluation scenarios (Sec. V; same draws
+    for every method), returned; with cfg.eval_unseen the policy is also evaluated on the unseen scenarios,
+    never trained on, into unseen_path(path) (not in the paper: under collect_on='eval' HG-DAgger collects on
+    the evaluation scenarios, so they are not held out)."""
+    ok = evaluate_on(run, path, policy, label, "eval")
+    if run.cfg.eval_unseen:
+        evaluate_on(run, unseen_path(path), policy, label + ", unseen scenarios", "unseen")
+    return ok
+
+
+def unseen_path(path):
+    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
+    return path[:-len(".json")] + "_unseen.json"
+
+
+def evaluate_on(run, path, policy, label, scenarios):
+    """stage_evaluate on one scenario set, 'eval' (env.eval_seeds) or 'unseen' (env.unseen_seeds): the first
+    eval_scenarios of it x eval_repeats, one sampling seed per set shared by every method (paired)."""
     cfg = run.cfg
     if os.path.exists(path):
         return np.asarray(read_json(path)["success"], bool)
     t0 = time.time()
-    seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
-    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act, stage_seed(cfg, "eval"), env_options(cfg),
-                  log=run.log)
+    env = make_run_env(cfg)
+    seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
+    ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act,
+                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), env_options(cfg), log=run.log)
     run.log(f"  eval {label}: success {100 * ok.mean():.1f}% "
             f"({ok.size} episodes, {time.time() - t0:.0f} s)")
     write_json(path, {"success": ok.tolist(), "seeds": list(map(int, seeds))})
@@ -728,11 +758,13 @@ def run_lineage(run, lineage, demos, stats):
 # ----------------------------------------------------------------------------------------------
 # Results: Table I layout, statistics, CSV/JSON, figures
 # ----------------------------------------------------------------------------------------------
-def collect_results(run):
-    """success[method][lineage][k-1] in percent, from every finished evaluation on disk."""
+def collect_results(run, scenarios="eval"):
+    """success[method][lineage][k-1] in percent, from every finished evaluation on disk; scenarios 'eval'
+    (the evaluation scenarios) or 'unseen' (the unseen ones, files <method>_unseen.json)."""
     cfg = run.cfg
     results = {}
-    bc_path = os.path.join(run.root, "eval", "bc.json")
+    suffix = "" if scenarios == "eval" else "_unseen"
+    bc_path = os.path.join(run.root, "eval", f"bc{suffix}.json")
     if os.path.exists(bc_path):
         results["bc"] = {"all": [100.0 * float(np.mean(read_json(bc_path)["success"]))]}
     for method in cfg.methods:
@@ -741,7 +773,7 @@ def collect_results(run):
         for lineage in range(cfg.lineages):
             row = []
             for k in range(1, cfg.rounds + 1):
-                p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json")
+                p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval", f"{method}{suffix}.json")
                 if not os.path.exists(p):
                     break
                 row.append(100.0 * float(np.mean(read_json(p)["success"])))
@@ -825,9 +857,20 @@ def summarize(cfg, results):
     return table, stats
 
 
+# The paper's calibrated numbers, in its median steps (envs.PAPER_MEDIAN_STEP), set beside ours in that unit: the
+# pooled Sigma_bar^alpha's per-joint sigma (paper Sec. VI: "3.9--5.1 median per-step joint displacement in 2D
+# planar reacher", "1.3--4.2 median steps in 3D engine lever-reaching") and W (PCD paper/fig_noise_levels/plot.py:
+# PLANAR_W = 8.0; LEVER_W 7.94-8.10 over rounds 1-4).
+PAPER_CALIBRATION = {"planar": {"sigma": "3.9–5.1", "W": "8.0"}, "engine3d": {"sigma": "1.3–4.2", "W": "7.9–8.1"}}
+
+
 def calibration_summary(run):
-    """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W (median steps), per lineage."""
+    """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W per lineage, in our median steps
+    ('sigma_per_joint', 'W', 'W_ci'), in radians ('..._rad') and in the paper's median steps ('..._paper';
+    None where the env has no paper unit)."""
     cfg, out = run.cfg, {}
+    paper = envs.paper_median_step(cfg.env)
+    in_paper = lambda rad: None if paper is None or rad is None else (np.asarray(rad) / paper).tolist()  # noqa: E731
     for k in range(1, cfg.rounds + 1):
         for lineage in range(cfg.lineages):
             p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "calibration.json")
@@ -835,10 +878,15 @@ def calibration_summary(run):
                 c = read_json(p)
                 m = c["median_step"]
                 ci = c.get("W_ci")
+                sigma_rad = np.sqrt(np.diag(np.asarray(c["pooled"], float))).tolist()  # per joint, rad
                 out.setdefault(str(k), {})[str(lineage)] = {
                     "sigma_per_joint": [float(v) for v in c["sigma_per_joint"]], "W": c["W"] / m,
                     "W_ci": None if ci is None else [ci[0] / m, ci[1] / m], "fit": c["fit_note"],
-                    "kept": int(np.sum(c["blend_kept"])), "rollouts": len(c["blend_kept"])}
+                    "kept": int(np.sum(c["blend_kept"])), "rollouts": len(c["blend_kept"]),
+                    "median_step": m, "paper_median_step": paper,
+                    "sigma_per_joint_rad": sigma_rad, "W_rad": c["W"], "W_ci_rad": ci,
+                    "sigma_per_joint_paper": in_paper(sigma_rad), "W_paper": in_paper(c["W"]),
+                    "W_ci_paper": in_paper(ci)}
     return out
 
 
@@ -866,8 +914,8 @@ def stat_words(s):
     return s["degenerate"] if s.get("degenerate") else f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}"
 
 
-def format_table(cfg, table, stats):
-    """Markdown in Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages)."""
+def table_rows(cfg, table):
+    """The markdown rows of Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages)."""
     cols = [f"K={k}" for k in range(1, cfg.rounds + 1)]
     lines = ["| Method | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
     for method in cfg.methods:
@@ -878,10 +926,48 @@ def format_table(cfg, table, stats):
             continue
         cells = [format_cell(c) for c in table[method]]
         lines.append(f"| {METHOD_LABELS[method]} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def scenario_words(cfg, scenarios="eval"):
+    """What the table's scenarios are: under collect_on='eval' the evaluation scenarios are the ones HG-DAgger
+    collected on (the authors' protocol), not held out; the unseen ones never enter any training data."""
+    if scenarios == "unseen":
+        return f"{cfg.eval_scenarios} unseen scenarios (never trained on)"
+    if cfg.collect_on == "eval":
+        return (f"the {cfg.eval_scenarios} evaluation scenarios, on which HG-DAgger collected "
+                f"(the authors' protocol)")
+    return f"{cfg.eval_scenarios} held-out evaluation scenarios (HG-DAgger collected on fresh training scenarios)"
+
+
+def format_table(cfg, table, stats, unseen=None):
+    """Markdown in Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages), with the
+    paired statistics; unseen: (table, stats) of the same policies on the unseen scenarios, a second table."""
+    lines = table_rows(cfg, table)
     lines.append("")
-    lines.append(f"Success rate in % on {cfg.eval_scenarios} held-out scenarios x {cfg.eval_repeats} "
+    lines.append(f"Success rate in % on {scenario_words(cfg)} x {cfg.eval_repeats} "
                  f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
                  f"its spread is not measured). BC is one pi_0 shared by every lineage.")
+    lines += paired_lines(cfg, stats)
+    if unseen is not None and unseen[0]:
+        lines += ["", f"**Unseen scenarios.** The same policies on {scenario_words(cfg, 'unseen')} x "
+                      f"{cfg.eval_repeats} evaluations (not in the paper; one sampling seed for every method):", ""]
+        lines += table_rows(cfg, unseen[0]) + paired_lines(cfg, unseen[1])
+    lines += calibration_lines(cfg, stats)
+    if stats.get("stage_times"):
+        lines.append("")
+        lines.append("Wall time of the stages (s; summed over lineages and rounds; processes ran in parallel):")
+        for kind, (n, total, mean) in stats["stage_times"].items():
+            lines.append(f"- {kind}: {n} x {mean:.0f} s = {total / 60:.1f} min")
+    if not stats["paired_vs_hg_dagger"]:
+        lines.append("")
+        lines.append("(Paired tests need at least 2 finished lineages.)")
+    return "\n".join(lines) + "\n"
+
+
+def paired_lines(cfg, stats):
+    """format_table's paired statistics: each method vs HG-DAgger, TOST vs the best fixed sigma, HG-DAgger vs BC."""
+    lines = []
     if stats["paired_vs_hg_dagger"]:
         lines.append("")
         lines.append("Paired t-test vs HG-DAgger (lineages, averaged over rounds):")
@@ -900,26 +986,38 @@ def format_table(cfg, table, stats):
         for k, s in stats["hg_dagger_vs_bc"].items():
             lines.append(f"- K={k}: {s['diff']:+.1f} points, above BC in {s['n_above']} of {s['n']} lineages, "
                          f"{stat_words(s)}")
-    if stats.get("calibration"):
-        lines.append("")
-        lines.append("Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
-                     "beside the best fixed sigma of the round in hindsight:")
-        for k, per in stats["calibration"].items():
-            sig = np.mean([v["sigma_per_joint"] for v in per.values()], axis=0)
-            W = [v["W"] for v in per.values()]
-            best = stats.get("best_fixed_per_round", {}).get(k)
-            lines.append(f"- K={k}: sigma = " + ", ".join(f"{x:.2f}" for x in sig)
-                         + f" (W = {np.mean(W):.2f} median steps, {len(W)} lineages); best fixed: "
-                         + (best.replace("fixed_", "sigma = ") if best else "–"))
-    if stats.get("stage_times"):
-        lines.append("")
-        lines.append("Wall time of the stages (s; summed over lineages and rounds; processes ran in parallel):")
-        for kind, (n, total, mean) in stats["stage_times"].items():
-            lines.append(f"- {kind}: {n} x {mean:.0f} s = {total / 60:.1f} min")
-    if not stats["paired_vs_hg_dagger"]:
-        lines.append("")
-        lines.append("(Paired tests need at least 2 finished lineages.)")
-    return "\n".join(lines) + "\n"
+    return lines
+
+
+def calibration_lines(cfg, stats):
+    """format_table's calibration: per round the pooled Sigma_bar^alpha's per-joint sigma and W (mean over
+    lineages) in our median steps, then in radians and the paper's median steps beside the paper's own
+    numbers (PAPER_CALIBRATION: they compare in its unit only), and the best fixed sigma in hindsight."""
+    if not stats.get("calibration"):
+        return []
+    paper = envs.paper_median_step(cfg.env)
+    quoted = PAPER_CALIBRATION.get(cfg.env) if paper is not None else None
+    lines = ["", "Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
+                 "beside the best fixed sigma of the round in hindsight"
+                 + (" (in the paper's unit)" if paper is not None else "") + "; below each, the "
+                 + ("same in radians and in the paper's median steps "
+                    f"({paper:.4f} rad, L2 over the joints at 30 Hz), beside the paper's numbers:" if paper is not None
+                    else "same in radians (the paper gives no median step for this env):")]
+    for k, per in stats["calibration"].items():
+        sig = np.mean([v["sigma_per_joint"] for v in per.values()], axis=0)
+        W = [v["W"] for v in per.values()]
+        best = stats.get("best_fixed_per_round", {}).get(k)
+        lines.append(f"- K={k}: sigma = " + ", ".join(f"{x:.2f}" for x in sig)
+                     + f" (W = {np.mean(W):.2f} median steps, {len(W)} lineages); best fixed: "
+                     + (best.replace("fixed_", "sigma = ") + (" (paper's unit)" if paper is not None else "")
+                        if best else "–"))
+        sig_rad = np.mean([v["sigma_per_joint_rad"] for v in per.values()], axis=0)  # each lineage's own unit
+        W_rad = np.mean([v["W_rad"] for v in per.values()])
+        lines.append(f"  - sigma = {calibrate.other_units(sig_rad, paper)}"
+                     + (f" (the paper: {quoted['sigma']})" if quoted else "")
+                     + f"; W = {calibrate.other_units(W_rad, paper)}"
+                     + (f" (the paper: {quoted['W']})" if quoted else ""))
+    return lines
 
 
 def write_report(run):
@@ -929,15 +1027,21 @@ def write_report(run):
     table, stats = summarize(cfg, results)
     stats["calibration"] = calibration_summary(run)
     stats["stage_times"] = stage_times(run)
-    write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats})
+    # the same policies on the unseen scenarios (cfg.eval_unseen), summarized the same way
+    results_unseen = collect_results(run, "unseen")
+    table_unseen, stats_unseen = summarize(cfg, results_unseen)
+    write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats,
+                                                        "success_unseen": results_unseen, "stats_unseen": stats_unseen})
     with open(os.path.join(run.root, "results.csv"), "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["method", "lineage", "round", "success_pct"])
+        w.writerow(["method", "lineage", "round", "success_pct", "unseen_success_pct"])
         for method, rows in results.items():
             for lineage, row in rows.items():
+                unseen = results_unseen.get(method, {}).get(lineage, [])
                 for k, v in enumerate(row, start=1):
-                    w.writerow([method, lineage, "all" if method == "bc" else k, f"{v:.2f}"])
-    text = format_table(cfg, table, stats)
+                    w.writerow([method, lineage, "all" if method == "bc" else k, f"{v:.2f}",
+                                f"{unseen[k - 1]:.2f}" if len(unseen) >= k else ""])
+    text = format_table(cfg, table, stats, (table_unseen, stats_unseen))
     with open(os.path.join(run.root, "table.md"), "w") as f:
         f.write(text)
     plot_success_vs_round(cfg, table, run.path("figures", "success_vs_round.png"))
@@ -1065,7 +1169,8 @@ FIGURE_CAPTIONS = {
     "fig3_partial_denoising.png": "Fig. 3: partial denoising at one state: the larger the blend ratio beta, "
                                   "the more the sampled chunks follow the policy instead of the expert.",
     "fig4_blend_fit.png": "Fig. 4: settling error of the blended rollouts against sigma^2_k_sw with the "
-                          "fitted equilibrium curve; its value at 1 is W, with a bootstrap interval.",
+                          "fitted equilibrium curve; its value at 1 is W, with a bootstrap interval (left axis: our "
+                          "median steps; right axis: the paper's, where its W = 8.0 planar reads).",
     "fig5_environment.png": "Fig. 5: a scenario of the environment with an oracle demonstration.",
     "fig5_policy_view.png": "What the image policy sees: its camera input at a few steps of a demonstration.",
 }
@@ -1090,7 +1195,28 @@ def write_markdown_report(run, text, stats):
              f"{cfg.lineages} lineage(s), fine-tuning {cfg.finetune_steps} steps per cell, interventions "
              f"collected on the {'evaluation' if cfg.collect_on == 'eval' else 'fresh training'} scenarios"
              + (" (the paper's protocol: the evaluation scenarios enter the training data)" if cfg.collect_on == "eval"
-                else "") + ".", "", "## Table", "", text.rstrip(), ""]
+                else "")
+             + (f"; every policy is also evaluated on {scenario_words(cfg, 'unseen')}" if cfg.eval_unseen else "")
+             + ".", "", "## Table", "", text.rstrip(), ""]
+    words = paired_words(stats)
+    if words:
+        lines += ["## The paired statistics in words", ""] + words + [""]
+    results_path = os.path.join(run.root, "results.json")
+    unseen = read_json(results_path).get("stats_unseen") if os.path.exists(results_path) else None
+    words = paired_words(unseen or {})
+    if words:
+        lines += [f"On {scenario_words(cfg, 'unseen')}:", ""] + words + [""]
+    figures = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
+    if figures:
+        lines += ["## Figures", ""]
+        for f in figures:
+            lines += [f"**{f}** — {figure_caption(f, cfg)}", "", f"![{f}](figures/{f})", ""]
+    with open(os.path.join(run.root, "report.md"), "w") as fh:
+        fh.write("\n".join(lines))
+
+
+def paired_words(stats):
+    """report.md's sentences for the paired statistics: each method vs HG-DAgger, TOST vs the best fixed sigma."""
     words = []
     for m, s in stats.get("paired_vs_hg_dagger", {}).items():
         words.append(f"- {METHOD_LABELS[m]} − HG-DAgger = {s['diff']:+.1f} points averaged over rounds, "
@@ -1100,15 +1226,7 @@ def write_markdown_report(run, text, stats):
                      f"{s['diff']:+.1f} points; " + (s["degenerate"] if s.get("degenerate") else
                      f"TOST at ±{s['margin']:g} points, p = {s['p']:.3g} "
                      + ("(equivalent at 5 %)" if s["p"] < 0.05 else "(equivalence not shown)")) + ".")
-    if words:
-        lines += ["## The paired statistics in words", ""] + words + [""]
-    figures = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
-    if figures:
-        lines += ["## Figures", ""]
-        for f in figures:
-            lines += [f"**{f}** — {figure_caption(f, cfg)}", "", f"![{f}](figures/{f})", ""]
-    with open(os.path.join(run.root, "report.md"), "w") as fh:
-        fh.write("\n".join(lines))
+    return words
 
 
 def make_figures(run, demos, stats):
@@ -1189,7 +1307,8 @@ class Run:
                 saved[key] = tuple(saved[key])
             # a field added after the run started counts as unchanged if it has its default value
             defaults = {f.name: f.default for f in fields(Config)}
-            changed = {k for k in saved if k not in ("device",) and old.get(k, defaults[k]) != saved[k]}
+            # device and eval_unseen change no stage's result (eval_unseen only adds evaluations, resumably)
+            changed = {k for k in saved if k not in ("device", "eval_unseen") and old.get(k, defaults[k]) != saved[k]}
             if changed:
                 raise ConfigMismatch(
                     f"{root} holds a run made with another config: "
@@ -1300,6 +1419,8 @@ def parse_args(argv):
                    help="torch CPU threads (default 1: the networks are small, and more threads than free "
                         "cores slow torch down many times on a shared machine)")
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
+    p.add_argument("--no-eval-unseen", action="store_true",
+                   help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
     args = p.parse_args(argv)
     cfg = PROFILES[args.profile]
     over = {}
@@ -1325,6 +1446,8 @@ def parse_args(argv):
         over["goal_angle"] = args.goal_angle
     if args.collect_on:
         over["collect_on"] = args.collect_on
+    if args.no_eval_unseen:
+        over["eval_unseen"] = False
     for key in ("rounds", "lineages", "seed"):
         if getattr(args, key) is not None:
             over[key] = getattr(args, key)
@@ -1380,8 +1503,12 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
 
 
 def demo_statistics(cfg, demos):
-    """The base demonstrations' median step (the unit of noise) and speed/acceleration limits."""
-    return relabel.demo_stats(demos, envs.median_step(demos), make_run_env(cfg).max_step)
+    """The base demonstrations' median step (the unit of noise) and speed/acceleration limits, with the env's
+    units for what the authors set in theirs (the paper's median step; their 30 Hz frames per env step)."""
+    env = make_run_env(cfg)
+    return relabel.demo_stats(demos, envs.median_step(demos), env.max_step,
+                              paper_median_step=envs.paper_median_step(cfg.env),
+                              frames_per_step=env.dt / envs.PAPER_FRAME_DT)
 
 
 def main(argv=None):

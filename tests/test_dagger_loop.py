@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 import dagger
+import envs
+import relabel
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
@@ -122,7 +124,8 @@ def test_summarize_paired_statistics():
 
 def test_zero_noise_control_is_the_pipeline_without_noise():
     assert dagger.noise_model("zero_noise", None) == ("isotropic", 0.0)
-    assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)
+    assert dagger.noise_model("zero_noise", None, None, 0.0245, 0.0176) == ("isotropic", 0.0)
+    assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)  # no units given: our median steps
     assert "zero_noise" not in dagger.Config().methods  # the paper profile runs Table I's rows only
 
 
@@ -431,3 +434,66 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
         root = dagger.main(argv + ["--profile", "smoke"])
         if "--prepare" not in argv:
             assert os.path.isfile(os.path.join(root, "report.md")), argv
+
+
+def test_fixed_sigma_is_in_the_papers_median_steps():
+    """Table I's sigma = 4 is 4 of the authors' median steps, 4 * 0.0176 = 0.070 rad per joint: in our
+    planar unit (0.0245 rad) 2.87 of ours; an env without the paper's unit keeps ours."""
+    kind, sigma = dagger.noise_model("fixed_4", None, None, 0.0245, envs.paper_median_step("planar"))
+    assert kind == "isotropic" and sigma == pytest.approx(4 * 0.0176 / 0.0245)
+    assert sigma * 0.0245 == pytest.approx(0.0704)                          # rad, what the sampler draws
+    assert dagger.noise_model("fixed_16", None, None, 0.0245, None) == ("isotropic", 16.0)
+    assert "paper's unit" in dagger.METHOD_LABELS["fixed_4"]
+
+
+def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
+    env = envs.make_env("planar")
+    demos = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(3)]
+    stats = dagger.demo_statistics(TINY, demos)
+    assert stats.paper_median_step == 0.0176 and stats.frames_per_step == pytest.approx(3.0)  # 10 Hz env
+    assert relabel.velocity_noise_std(relabel.RelabelConfig(), stats) == pytest.approx(0.3 * 0.0176 * 3)
+
+
+def test_every_policy_is_also_evaluated_on_unseen_scenarios(full_run):
+    unseen = envs.unseen_seeds()[:TINY.eval_scenarios]
+    paths = ["eval/bc_unseen.json", *[f"lineage_0/round_1/eval/{m}_unseen.json" for m in TINY.methods if m != "bc"]]
+    for path in paths:
+        saved = json.load(open(os.path.join(full_run, path)))
+        assert saved["seeds"] == unseen and np.shape(saved["success"]) == (TINY.eval_scenarios, TINY.eval_repeats)
+    results = json.load(open(os.path.join(full_run, "results.json")))
+    assert set(results["success_unseen"]) == set(TINY.methods) and "paired_vs_hg_dagger" in results["stats_unseen"]
+    table = open(os.path.join(full_run, "table.md")).read()
+    assert "the 3 evaluation scenarios, on which HG-DAgger collected (the authors' protocol)" in table
+    assert "held-out" not in table
+    assert "**Unseen scenarios.**" in table and "3 unseen scenarios (never trained on)" in table
+    assert table.count("| Method |") == 2                                    # the second table
+    bc_unseen = 100.0 * np.mean(json.load(open(os.path.join(full_run, "eval/bc_unseen.json")))["success"])
+    assert results["success_unseen"]["bc"]["all"] == [pytest.approx(bc_unseen)]
+    rows = open(os.path.join(full_run, "results.csv")).read().splitlines()
+    assert rows[0] == "method,lineage,round,success_pct,unseen_success_pct"
+    assert all(row.split(",")[-1] != "" for row in rows[1:])               # every cell has its unseen number
+    assert "unseen scenarios (never trained on)" in open(os.path.join(full_run, "report.md")).read()
+
+
+def test_calibration_is_reported_in_the_papers_unit_beside_ours(full_run):
+    results = json.load(open(os.path.join(full_run, "results.json")))
+    cal = results["stats"]["calibration"]["1"]["0"]
+    saved = json.load(open(os.path.join(full_run, "lineage_0/round_1/calibration.json")))
+    assert cal["W_rad"] == pytest.approx(saved["W"]) and cal["W"] == pytest.approx(saved["W"] / saved["median_step"])
+    assert cal["W_paper"] == pytest.approx(saved["W"] / 0.0176)
+    np.testing.assert_allclose(cal["sigma_per_joint_paper"], np.sqrt(np.diag(saved["pooled"])) / 0.0176)
+    table = open(os.path.join(full_run, "table.md")).read()
+    assert f"W = {saved['W']:.3f} rad = {saved['W'] / 0.0176:.2f} paper median steps (the paper: 8.0)" in table
+    assert "(the paper: 3.9–5.1)" in table
+    assert "W = " + f"{saved['W']:.3f} rad = {saved['W'] / 0.0176:.2f} paper median steps" in open(
+        os.path.join(full_run, "log.txt")).read()                          # the calibration's log
+
+
+def test_eval_unseen_switch():
+    _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
+    assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
+    assert dagger.unseen_path(os.path.join("run", "eval", "bc.json")) == os.path.join("run", "eval", "bc_unseen.json")
+
+
+def test_eval_unseen_can_change_on_an_existing_run_folder(full_run):
+    dagger.Run(full_run, replace(TINY, eval_unseen=False))                  # adds or skips evaluations only

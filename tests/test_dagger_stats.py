@@ -124,3 +124,36 @@ def test_summarize_pairs_hg_dagger_with_bc_per_round_and_finds_the_best_fixed_si
     assert stats["best_fixed"] == "fixed_2"  # averaged over rounds: 65.5 vs 63.5
     text = dagger.format_table(cfg, table, stats)
     assert "HG-DAgger vs BC at each round" in text and "K=1: +3.0 points, above BC in 3 of 3 lineages" in text
+
+
+def test_format_table_adds_the_unseen_scenarios_with_their_own_paired_statistics():
+    cfg = dagger.Config(name="t", rounds=1, lineages=3, methods=("bc", "hg_dagger", "pooled"))
+    results = {"bc": {"all": [60.0]}, "hg_dagger": {"0": [70.0], "1": [72.0], "2": [71.0]},
+               "pooled": {"0": [74.0], "1": [75.0], "2": [73.0]}}
+    unseen = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [55.0], "1": [57.0], "2": [54.0]},
+              "pooled": {"0": [58.0], "1": [61.0], "2": [59.0]}}
+    table, stats = dagger.summarize(cfg, results)
+    table_u, stats_u = dagger.summarize(cfg, unseen)
+    text = dagger.format_table(cfg, table, stats, (table_u, stats_u))
+    main, second = text.split("**Unseen scenarios.**")
+    assert "the 100 evaluation scenarios, on which HG-DAgger collected (the authors' protocol)" in main
+    assert "100 unseen scenarios (never trained on)" in second
+    assert "| HG-DAgger | 71.0 ± 0.6 (3) |" in main and "| HG-DAgger | 55.3 ± 0.9 (3) |" in second
+    t, df, p = dagger.paired_ttest([58.0, 61.0, 59.0], [55.0, 57.0, 54.0])  # the same paired test, unseen
+    assert f"+{np.mean([3.0, 4.0, 5.0]):.1f} points, t({df}) = {t:.2f}, p = {p:.3g}" in second
+    assert "K=1: -5.7 points" not in second and "K=1: +5.3 points, above BC in 3 of 3 lineages" in second
+    text = dagger.format_table(dagger.Config(name="t", collect_on="train"), table, stats)
+    assert "100 held-out evaluation scenarios" in text and "Unseen" not in text
+
+
+def test_calibration_lines_compare_with_the_paper_in_its_unit():
+    cfg = dagger.Config(name="t", rounds=1, lineages=1, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    m = 0.0245  # our planar median step; the paper's is 0.0176
+    sigma_rad = [4.0 * 0.0176, 4.5 * 0.0176, 5.0 * 0.0176]
+    per = {"0": {"sigma_per_joint": [v / m for v in sigma_rad], "W": 8.0 * 0.0176 / m, "median_step": m,
+                 "sigma_per_joint_rad": sigma_rad, "W_rad": 8.0 * 0.0176}}
+    stats = {"calibration": {"1": per}, "best_fixed_per_round": {"1": "fixed_4"}}
+    text = "\n".join(dagger.calibration_lines(cfg, stats))
+    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 1 lineages); best fixed: sigma = 4 (paper's unit)" in text
+    assert ("sigma = 0.070, 0.079, 0.088 rad = 4.00, 4.50, 5.00 paper median steps (the paper: 3.9–5.1); "
+            "W = 0.141 rad = 8.00 paper median steps (the paper: 8.0)") in text
