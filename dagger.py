@@ -92,6 +92,15 @@ class Config:
     # intervention frames, split equally over rounds 1..k; the noised methods noise every intervention frame
     # they draw (relabel.AugmentationSampler) and never D0.
     intervention_fraction: float = 0.3
+    # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
+    # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
+    # alone) continues BC's AdamW state along its tail; or 'restart', a fresh optimizer with its own warm-up
+    # and cosine over finetune_steps (the BC row is then pi_0 itself, with finetune_steps fewer steps).
+    finetune: str = "continue"
+    # The share of a noised arm's intervention rows taken as recorded (the expert's own chunks), the rest
+    # noised and relabelled. The authors' code: 0 (every drawn intervention frame noised; their raw_mix knob);
+    # the paper's text co-trains on the recorded interventions and their noised copies: 0.5.
+    raw_mix: float = 0.0
     # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
@@ -105,7 +114,10 @@ class Config:
     image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
     #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
     image_size: int = 32  # pixels of the square camera image (with image_obs)
-    start: str | None = None  # engine3d: 'random' (the authors', the env's default) or 'home' (near a home pose)
+    # Where episodes start (an env option; None: the env's default). planar: 'random' (the authors' evaluation
+    # starts: uniform over the joint limits, collision-free, often folded) or 'fixed' (their demonstration
+    # config's q); engine3d: 'random' (the authors') or 'home' (near a home pose)
+    start: str | None = None
     goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
     #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
@@ -114,7 +126,12 @@ class Config:
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
     #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
-    finetune_lr: float | None = None  # peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
+    # The epsilon network (diffusion.PolicyConfig.network): 'unet', the authors' (down_dims), or 'mlp', a residual
+    # MLP with the same FiLM conditioning (mlp_width, mlp_blocks), ~10x the training samples per CPU second
+    network: str = "unet"
+    mlp_width: int = 256
+    mlp_blocks: int = 3
+    finetune_lr: float | None = None  # finetune='restart': peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
     #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
     calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
@@ -142,9 +159,20 @@ class Config:
         if self.goal_angle is not None and (self.env != "engine3d" or not 0.0 < self.goal_angle <= 180.0):
             raise ValueError(f"goal_angle: {self.goal_angle!r} is an option of the engine3d env only, in degrees "
                              f"within (0, 180] (the authors' 10), or None for position-only success")
-        if self.start is not None and (self.env != "engine3d" or self.start not in envs.ENGINE_STARTS):
-            raise ValueError(f"start: {self.start!r} is an option of the engine3d env only, one of "
-                             f"{', '.join(envs.ENGINE_STARTS)} (got env={self.env!r})")
+        starts = envs.PLANAR_STARTS if self.env == "planar" else envs.ENGINE_STARTS
+        if self.start is not None and self.start not in starts:
+            raise ValueError(f"start: {self.start!r} is not a start of the {self.env} env; valid: "
+                             f"{', '.join(starts)}")
+        if self.finetune not in ("continue", "restart"):
+            raise ValueError(f"finetune must be 'continue' (the authors' run) or 'restart', got {self.finetune!r}")
+        if self.finetune == "continue" and self.finetune_lr is not None:
+            raise ValueError(f"finetune_lr={self.finetune_lr} is for finetune='restart'; 'continue' follows BC's "
+                             f"own schedule (lr)")
+        if not 0.0 <= self.raw_mix < 1.0:
+            raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
+                             f"arm), got {self.raw_mix}")
+        if self.network not in diffusion.NETWORKS:
+            raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {self.network!r}")
         if self.image_size < 8:
             raise ValueError(f"image_size must be >= 8 pixels, got {self.image_size}")
         if self.collect_on not in ("eval", "train"):
@@ -480,6 +508,7 @@ def stage_demos(run):
 def make_policy(cfg, env):
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
                                 K=cfg.K, down_dims=cfg.down_dims, joint_obs=cfg.joint_obs, image_shape=env.image_shape,
+                                network=cfg.network, mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks,
                                 seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
 
@@ -494,22 +523,37 @@ def observation_noise(cfg, policy_cfg):
     return std
 
 
-def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0, lr=None):
-    """diffusion.train with checkpoints at quarters of the run; a stopped run resumes from the last."""
+def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=None, aug_fraction=0.0, lr=None,
+                    continue_from=None, schedule_steps=0, keep_state=False):
+    """diffusion.train with checkpoints at quarters of the run; a stopped run resumes from the last.
+
+    steps: the step to train to. continue_from: a checkpoint with training state (pi_0 under
+    finetune='continue') whose optimizer and step count go on to `steps`; schedule_steps: where the cosine
+    ends (0: steps); keep_state: the final file keeps the optimizer state, for runs that continue from it.
+    """
     cfg = run.cfg
+    first = 0
+    if continue_from is not None:
+        first = int(load_stage_file(continue_from, torch.load, map_location="cpu",
+                                    weights_only=True)["train_state"]["step"])
     part = final_path.replace(".pt", "_step{step}.pt")
-    marks = tuple(sorted({max(1, steps * i // 4) for i in (1, 2, 3)}))
+    marks = tuple(sorted({first + max(1, (steps - first) * i // 4) for i in (1, 2, 3)} | ({steps} if keep_state else set())))
+    warmup = min(500, (schedule_steps or steps) // 10)
     tc = diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=lr or cfg.lr, seed=seed,
-                               warmup_steps=min(500, steps // 10), aug_fraction=aug_fraction,
-                               obs_noise=observation_noise(cfg, policy.cfg), log_every=max(1, steps // 5),
+                               warmup_steps=warmup, schedule_steps=schedule_steps, aug_fraction=aug_fraction,
+                               obs_noise=observation_noise(cfg, policy.cfg), log_every=max(1, (steps - first) // 5),
                                checkpoint_steps=marks, checkpoint_path=part)
-    resume = next((part.format(step=m) for m in reversed(marks) if os.path.exists(part.format(step=m))), None)
+    resume = next((part.format(step=m) for m in reversed(marks)
+                   if m < steps and os.path.exists(part.format(step=m))), None)
     if resume:
         load_stage_file(resume, torch.load, map_location="cpu", weights_only=True)  # a damaged one is named
         run.log(f"  resuming from {os.path.relpath(resume, run.root)}")
     diffusion.train(policy, obs, chunks, tc, sampler=sampler, resume_from=resume,
-                    log=lambda m: run.log("  " + m))
-    policy.save(final_path)
+                    continue_from=None if resume else continue_from, log=lambda m: run.log("  " + m))
+    if keep_state:  # the last checkpoint holds the weights and the optimizer: it is the final file
+        os.replace(part.format(step=steps), final_path)
+    else:
+        policy.save(final_path)
     for m in marks:  # the finished checkpoint supersedes the partial ones
         if os.path.exists(part.format(step=m)):
             os.remove(part.format(step=m))
@@ -517,7 +561,8 @@ def train_resumable(run, policy, obs, chunks, steps, seed, final_path, sampler=N
 
 
 def stage_bc(run, demos):
-    """Step 1: pi_0 = BC on D0."""
+    """Step 1: pi_0 = BC on D0. Under finetune='continue' it is the bc_steps point of a schedule of
+    bc_steps + finetune_steps, saved with its optimizer state for the arms to continue."""
     cfg, path = run.cfg, run.path("checkpoints", "bc.pt")
     if os.path.exists(path):
         return load_policy(path, device=cfg.device)
@@ -525,9 +570,52 @@ def stage_bc(run, demos):
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
     policy, t0 = make_policy(cfg, env), time.time()
-    policy = train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path)
+    continuing = cfg.finetune == "continue"
+    policy = train_resumable(run, policy, obs, chunks, cfg.bc_steps, stage_seed(cfg, "bc"), path,
+                             schedule_steps=cfg.bc_steps + cfg.finetune_steps if continuing else 0,
+                             keep_state=continuing)
     run.record_time("bc", time.time() - t0)  # of this process: a resumed run counts its last part only
     return policy
+
+
+def stage_bc_row(run, demos, pi0):
+    """The table's BC row: under finetune='continue' pi_0 continued on D0 alone to bc_steps + finetune_steps
+    (the authors' BC row: their schedule run to its end; every arm gets the same steps), else pi_0 itself.
+    Returns (policy, evaluation file)."""
+    cfg = run.cfg
+    if cfg.finetune != "continue":
+        return pi0, run.path("eval", "bc.json")
+    path = run.path("checkpoints", "bc_continued.pt")
+    if os.path.exists(path):
+        return load_policy(path, device=cfg.device), run.path("eval", "bc.json")
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    run.log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
+    policy, t0 = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
+    policy = train_resumable(run, policy, obs, chunks, cfg.bc_steps + cfg.finetune_steps,
+                             stage_seed(cfg, "train", "bc"), path, continue_from=run.path("checkpoints", "bc.pt"),
+                             schedule_steps=cfg.bc_steps + cfg.finetune_steps)
+    run.record_time("train_bc", time.time() - t0)
+    return policy, run.path("eval", "bc.json")
+
+
+def stage_bc_row_evaluated(run, demos, pi0):
+    """stage_bc_row and its evaluation."""
+    policy, path = stage_bc_row(run, demos, pi0)
+    stage_evaluate(run, path, policy, "bc (pi_0 continued on D0 alone)" if policy is not pi0 else "bc (pi_0)")
+
+
+def _bc_row_in_worker(root, cfg_fields):
+    """run_experiment's background job: the BC row beside the rounds (one torch thread)."""
+    torch.set_num_threads(1)
+    cfg = Config(**cfg_fields)
+    run = Run(root, cfg)
+    stage_bc_row_evaluated(run, load_episodes(run.path("data", "D0.npz")),
+                           load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device))
+
+
+def pi0_eval_path(run):
+    """pi_0's evaluation: the table's BC row under finetune='restart', its own file under 'continue'."""
+    return run.path("eval", "pi0.json" if run.cfg.finetune == "continue" else "bc.json")
 
 
 def stage_collect(run, lineage, k, policy, policy_success):
@@ -664,6 +752,25 @@ class MixtureSampler:
                 s.load_state_dict(state[str(i)])
 
 
+def intervention_sampler(cfg, method, rounds_data, calibration, stats):
+    """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares; HG-DAgger's as recorded, a
+    noised method's noised and relabelled (relabel.AugmentationSampler), raw_mix of each round's share as
+    recorded."""
+    samplers, weights, offset = [], [], 0
+    for D in rounds_data:  # equal shares per round; a noised arm takes raw_mix of its round's share as recorded
+        if method == "hg_dagger" or cfg.raw_mix > 0:
+            samplers.append(ChunkSampler(D, cfg.horizon))
+            weights.append(1.0 if method == "hg_dagger" else cfg.raw_mix)
+        if method != "hg_dagger":
+            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
+                                      stats.paper_median_step)
+            samplers.append(relabel.AugmentationSampler(
+                D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
+            weights.append(1.0 - cfg.raw_mix)
+        offset += len(D)
+    return MixtureSampler(samplers, weights)
+
+
 def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration, stats):
     """Steps 3-4 and 6 (PAPER_SETUP.md §2): fine-tune pi_0 on D0 and, in intervention_fraction of every
     batch, the interventions of rounds 1..k split equally over rounds -- as recorded (HG-DAgger) or every
@@ -673,24 +780,22 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
     if os.path.exists(path):
         return load_policy(path, device=cfg.device)
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-    samplers, offset = [], 0
-    for D in rounds_data:
-        if method == "hg_dagger":
-            samplers.append(ChunkSampler(D, cfg.horizon))
-        else:
-            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
-                                      stats.paper_median_step)
-            samplers.append(relabel.AugmentationSampler(
-                D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
-        offset += len(D)
-    sampler = MixtureSampler(samplers, [1.0] * len(samplers))
+    sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
     run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
             f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-            f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else ", noised and relabelled"))
-    policy, t0 = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
-    policy = train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
-                             stage_seed(cfg, "train", lineage, k, method), path, sampler, cfg.intervention_fraction,
-                             lr=cfg.finetune_lr)
+            f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
+                                              f", {1 - cfg.raw_mix:.0%} of them noised and relabelled")
+            + (" (continuing pi_0's optimizer and schedule)" if cfg.finetune == "continue" else ""))
+    pi0_path = run.path("checkpoints", "bc.pt")
+    policy, t0 = load_policy(pi0_path, device=cfg.device), time.time()
+    if cfg.finetune == "continue":
+        total = cfg.bc_steps + cfg.finetune_steps
+        policy = train_resumable(run, policy, obs, chunks, total, stage_seed(cfg, "train", lineage, k, method), path,
+                                 sampler, cfg.intervention_fraction, continue_from=pi0_path, schedule_steps=total)
+    else:
+        policy = train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
+                                 stage_seed(cfg, "train", lineage, k, method), path, sampler,
+                                 cfg.intervention_fraction, lr=cfg.finetune_lr)
     run.record_time(f"train_{method}/lineage_{lineage}/round_{k}", time.time() - t0)
     return policy
 
@@ -729,12 +834,13 @@ def evaluate_on(run, path, policy, label, scenarios):
     return ok
 
 
-def run_lineage(run, lineage, demos, stats):
+def run_lineage(run, lineage, demos, stats, workers=1):
     """HG-DAgger rounds of one lineage (PAPER_SETUP.md §4): collect with the lineage's current policy,
-    fine-tune HG-DAgger, calibrate with it, fine-tune every noised method, evaluate each (Alg. 2-6)."""
+    fine-tune HG-DAgger, calibrate with it, fine-tune every noised method, evaluate each (Alg. 2-6).
+    workers > 1: the noised methods of a round train side by side in that many processes (run_arms)."""
     cfg = run.cfg
     collector = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device)
-    collector_success = np.asarray(read_json(run.path("eval", "bc.json"))["success"], bool)
+    collector_success = np.asarray(read_json(pi0_eval_path(run))["success"], bool)
     rounds_data = []
     for k in range(1, cfg.rounds + 1):
         rounds_data.append(stage_collect(run, lineage, k, collector, collector_success))
@@ -746,13 +852,52 @@ def run_lineage(run, lineage, demos, stats):
         if noised:
             episodes = [ep for D in rounds_data for ep in D]
             calibration = stage_calibrate(run, lineage, k, hg, episodes, stats.median_step)
-        for method in noised:
-            policy = stage_train_method(run, lineage, k, method, demos, rounds_data, calibration, stats)
-            stage_evaluate(run, run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json"),
-                           policy, f"{method} (lineage {lineage}, K={k})")
+        run_arms(run, lineage, k, noised, workers,
+                 lambda method: train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats))
         # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
         # instead: one more policy per round; see benchmarks/README.md)
         collector, collector_success = hg, evals["hg_dagger"]
+
+
+def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats):
+    """One arm of round k: fine-tune `method` from pi_0 and evaluate it."""
+    policy = stage_train_method(run, lineage, k, method, demos, rounds_data, calibration, stats)
+    stage_evaluate(run, run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{method}.json"),
+                   policy, f"{method} (lineage {lineage}, K={k})")
+
+
+def run_arms(run, lineage, k, methods, workers, arm):
+    """arm(method) for every method, in this process, or (workers > 1) in that many worker processes. Every
+    stage has its own seed and file, so the numbers do not depend on how many workers ran them."""
+    todo = [m for m in methods
+            if not os.path.exists(run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{m}.json"))
+            or (run.cfg.eval_unseen and not os.path.exists(
+                run.path(f"lineage_{lineage}", f"round_{k}", "eval", f"{m}_unseen.json")))]
+    if workers <= 1 or len(todo) <= 1:
+        for method in methods:
+            arm(method)
+        return
+    import concurrent.futures
+    import multiprocessing
+    run.log(f"lineage {lineage} round {k}: {len(todo)} arms in {min(workers, len(todo))} worker processes")
+    with concurrent.futures.ProcessPoolExecutor(min(workers, len(todo)),
+                                                mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done in [pool.submit(_arm_in_worker, run.root, asdict(run.cfg), lineage, k, m) for m in todo]:
+            done.result()  # re-raises a worker's error here
+    for method in methods:  # every file is there now: this only reads them
+        arm(method)
+
+
+def _arm_in_worker(root, cfg_fields, lineage, k, method):
+    """run_arms' worker: rebuild what the arm needs from the run folder (one torch thread), then run it."""
+    torch.set_num_threads(1)
+    cfg = Config(**cfg_fields)
+    run = Run(root, cfg)
+    demos = load_episodes(run.path("data", "D0.npz"))
+    rounds_data = [load_episodes(run.path(f"lineage_{lineage}", f"round_{j}", "D.npz")) for j in range(1, k + 1)]
+    calibration = calibrate.Calibration.from_dict(read_json(run.path(f"lineage_{lineage}", f"round_{k}",
+                                                                     "calibration.json")))
+    train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1396,8 +1541,9 @@ def parse_args(argv):
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
-    p.add_argument("--start", default=None, choices=envs.ENGINE_STARTS,
-                   help="engine3d: where episodes start, random (the authors', default) or home (near a home pose)")
+    p.add_argument("--start", default=None, choices=sorted(set(envs.ENGINE_STARTS) | set(envs.PLANAR_STARTS)),
+                   help="where episodes start: random (the authors', uniform and collision-free), fixed (planar: "
+                        "their demonstration config's q) or home (engine3d: near a home pose)")
     p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
                    help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
                         "orientation (the authors' rule: 10), and the oracle ends at that posture")
@@ -1418,6 +1564,9 @@ def parse_args(argv):
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads (default 1: the networks are small, and more threads than free "
                         "cores slow torch down many times on a shared machine)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes for the arms of a round (and the BC row beside the rounds); default: 2 where "
+                        "the machine has 2 cores or more, 1 with --lineage (lineages side by side use the cores)")
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
@@ -1472,28 +1621,47 @@ def parse_args(argv):
         p.error(str(err))
     if args.threads < 1:
         p.error(f"--threads {args.threads}: must be >= 1")
+    if args.workers is None:
+        args.workers = 1 if args.lineage is not None else min(2, os.cpu_count() or 1)
+    if args.workers < 1:
+        p.error(f"--workers {args.workers}: must be >= 1")
     if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
         p.error(f"--lineage {args.lineage}: valid lineages are 0..{cfg.lineages - 1}")
     return args, cfg
 
 
-def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False):
+def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1):
     """The whole method for one config into run folder `root` (resuming whatever is already there).
 
     lineage: run only this lineage (the shared D0 and BC stages first, if missing);
-    prepare: only the shared stages (D0, BC and its evaluation); report_only: only the report.
+    prepare: only the shared stages (D0, BC, the BC row and their evaluations); report_only: only the report;
+    workers: processes for the arms of a round (and, under finetune='continue', the BC row beside the rounds).
     """
     run = Run(root, cfg)
     t0 = time.time()
     if not report_only:
-        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}")
+        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
         demos = stage_demos(run)
         bc = stage_bc(run, demos)
-        stage_evaluate(run, run.path("eval", "bc.json"), bc, "bc (pi_0)")
+        background = None
+        if cfg.finetune == "continue":  # pi_0's evaluation picks round 1's scenarios; the BC row continues pi_0
+            evaluate_on(run, pi0_eval_path(run), bc, "pi_0 (BC)", "eval")
+            if workers > 1 and not prepare:
+                import concurrent.futures
+                import multiprocessing
+                background = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+                bc_row_done = background.submit(_bc_row_in_worker, run.root, asdict(cfg))
+            else:
+                stage_bc_row_evaluated(run, demos, bc)
+        else:
+            stage_evaluate(run, run.path("eval", "bc.json"), bc, "bc (pi_0)")
         if not prepare:
             stats = demo_statistics(cfg, demos)
             for l in ([lineage] if lineage is not None else range(cfg.lineages)):
-                run_lineage(run, l, demos, stats)
+                run_lineage(run, l, demos, stats, workers)
+        if background is not None:
+            bc_row_done.result()
+            background.shutdown()
     demos = load_episodes(run.path("data", "D0.npz"))
     text = write_report(run)
     make_figures(run, demos, demo_statistics(cfg, demos))
@@ -1516,7 +1684,7 @@ def main(argv=None):
     torch.set_num_threads(args.threads)
     try:
         return run_experiment(cfg, args.out or os.path.join("runs", cfg.name), lineage=args.lineage,
-                              prepare=args.prepare, report_only=args.report)
+                              prepare=args.prepare, report_only=args.report, workers=args.workers)
     except KeyboardInterrupt:
         print("\nstopped; the finished stages are saved: run the same command again to resume", file=sys.stderr)
         sys.exit(130)
