@@ -189,18 +189,23 @@ PROFILES = {
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
-    # The default of `python dagger.py`: the whole loop on the planar env in about 11 minutes of one core.
-    "quick": Config(name="quick", n_demos=200, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
-                    K=20, down_dims=(32, 64, 128), batch_size=64, lr=1e-3, bc_steps=4000, finetune_steps=300,
+    # The default of `python dagger.py`: the whole loop on the planar env in minutes (benchmarks/README.md,
+    # "The quick profile"): the mid recipe at a student's scale, one lineage, one round.
+    "quick": Config(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
+                    network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
+                    start="random", finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
-    # Between quick and paper, for this 2-core machine (all of it in about 3 hours, benchmarks/README.md):
-    # 3 lineages for the paired statistics, 2 rounds, the fixed-sigma sweep where the paper finds the best
-    # level. Its BC recipe, measured: 62.7 % on 100 scenarios x 3 after 30k steps, 41 min of one core (the
-    # paper's pi_0: 68 %). Fine-tuning is 2.5k steps per cell (the authors: +100k at lr 1e-5, batch 32).
-    # Lineages run in parallel with --prepare, then --lineage i, then --report (README).
+    # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
+    # to fix"): 3 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's 2 / 4 / 8, the
+    # sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed demonstration
+    # start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along one cosine
+    # of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
+    # epsilon network, which trains ~10x more samples per CPU second than the (32, 64, 128) U-Net.
+    # Lineages run side by side: --prepare, then --lineage i, then --report (README).
     "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
-                  K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000, finetune_steps=2_500,
-                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "per_step"),
+                  network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
+                  start="random", finetune="continue",
+                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
                   eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the mid recipe on the UR5 engine-lever env with Table II's rows
     # (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 as a
@@ -209,7 +214,8 @@ PROFILES = {
     "table2": Config(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                      K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
                      finetune_steps=2_500, methods=("bc", "hg_dagger", "fixed_4", "pooled"),
-                     eval_scenarios=100, eval_repeats=3),
+                     finetune="restart", eval_scenarios=100, eval_repeats=3),  # measured so; not yet re-run
+    #                                                                   with the mid recipe
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
     "paper": Config(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
@@ -927,6 +933,37 @@ def collect_results(run, scenarios="eval"):
     return results
 
 
+def scenario_paired(run, scenarios="eval"):
+    """Differences paired over scenarios, in points: per round and lineage, HG-DAgger - BC and every other
+    method - HG-DAgger, each the mean over scenarios of the per-scenario success difference (its repeats
+    averaged) with the SE over scenarios. What one lineage can say: its scenarios, not its lineages, are the
+    repeats. {k: {lineage: {method: {"vs", "diff", "se", "n"}}}}."""
+    cfg, suffix = run.cfg, "" if scenarios == "eval" else "_unseen"
+
+    def per_scenario(path):
+        return np.asarray(read_json(path)["success"], float).mean(axis=1) if os.path.exists(path) else None
+
+    bc = per_scenario(os.path.join(run.root, "eval", f"bc{suffix}.json"))
+    out = {}
+    for k in range(1, cfg.rounds + 1):
+        for lineage in range(cfg.lineages):
+            folder = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval")
+            hg = per_scenario(os.path.join(folder, f"hg_dagger{suffix}.json"))
+            if hg is None:
+                continue
+            pairs = {"hg_dagger": (hg, bc, "bc")} if bc is not None else {}
+            for m in cfg.methods:
+                if m not in ("bc", "hg_dagger"):
+                    mine = per_scenario(os.path.join(folder, f"{m}{suffix}.json"))
+                    if mine is not None:
+                        pairs[m] = (mine, hg, "hg_dagger")
+            for m, (a, b, vs) in pairs.items():
+                d = 100.0 * (a - b)
+                out.setdefault(str(k), {}).setdefault(str(lineage), {})[m] = {
+                    "vs": vs, "diff": float(d.mean()), "se": float(d.std(ddof=1) / math.sqrt(len(d))), "n": len(d)}
+    return out
+
+
 def mean_se(values):
     v = np.asarray(values, float)
     se = v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else 0.0
@@ -1131,6 +1168,32 @@ def paired_lines(cfg, stats):
         for k, s in stats["hg_dagger_vs_bc"].items():
             lines.append(f"- K={k}: {s['diff']:+.1f} points, above BC in {s['n_above']} of {s['n']} lineages, "
                          f"{stat_words(s)}")
+    lines += scenario_paired_lines(cfg, stats.get("scenario_paired") or {})
+    return lines
+
+
+def scenario_paired_lines(cfg, paired):
+    """format_table's differences paired over scenarios (scenario_paired), one line per round: HG-DAgger - BC
+    and each arm - HG-DAgger per lineage (mean ± SE over the scenarios); for a single lineage, what it can show."""
+    if not paired:
+        return []
+    lines = ["", f"Paired over the {cfg.eval_scenarios} scenarios (per-scenario success difference, mean ± SE over "
+                 f"scenarios; per lineage):"]
+    ses = []
+    for k, per_lineage in paired.items():
+        parts = []
+        for m in ["hg_dagger"] + [m for m in cfg.methods if m not in ("bc", "hg_dagger")]:
+            cells = [(l, d[m]) for l, d in per_lineage.items() if m in d]
+            if not cells:
+                continue
+            name = "HG-DAgger − BC" if m == "hg_dagger" else f"{m} − HG-DAgger"
+            parts.append(name + ": " + ", ".join(f"{s['diff']:+.1f} ± {s['se']:.1f}" for _, s in cells))
+            ses += [s["se"] for _, s in cells]
+        lines.append(f"- K={k}: " + "; ".join(parts))
+    if cfg.lineages == 1 and ses:
+        lines.append(f"One lineage shows differences paired over its scenarios only: one beyond about twice its SE "
+                     f"(here ±{np.median(ses):.0f} points) is measured, a smaller one is not; the order of the "
+                     f"noise arms, a few points apart in the paper, needs lineages (the mid profile).")
     return lines
 
 
@@ -1172,9 +1235,11 @@ def write_report(run):
     table, stats = summarize(cfg, results)
     stats["calibration"] = calibration_summary(run)
     stats["stage_times"] = stage_times(run)
+    stats["scenario_paired"] = scenario_paired(run)
     # the same policies on the unseen scenarios (cfg.eval_unseen), summarized the same way
     results_unseen = collect_results(run, "unseen")
     table_unseen, stats_unseen = summarize(cfg, results_unseen)
+    stats_unseen["scenario_paired"] = scenario_paired(run, "unseen")
     write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats,
                                                         "success_unseen": results_unseen, "stats_unseen": stats_unseen})
     with open(os.path.join(run.root, "results.csv"), "w", newline="") as f:

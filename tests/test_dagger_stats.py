@@ -157,3 +157,28 @@ def test_calibration_lines_compare_with_the_paper_in_its_unit():
     assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 1 lineages); best fixed: sigma = 4 (paper's unit)" in text
     assert ("sigma = 0.070, 0.079, 0.088 rad = 4.00, 4.50, 5.00 paper median steps (the paper: 3.9–5.1); "
             "W = 0.141 rad = 8.00 paper median steps (the paper: 8.0)") in text
+
+
+def test_scenario_paired_differences_and_their_se(tmp_path):
+    """HG-DAgger - BC and arm - HG-DAgger paired over scenarios (repeats averaged): mean and SE of the
+    per-scenario differences, for each set of scenarios; the one-lineage sentence quotes the SE."""
+    cfg = dagger.Config(name="t", rounds=1, lineages=1, methods=("bc", "hg_dagger", "fixed_4"), eval_scenarios=4,
+                        eval_repeats=2)
+    run = dagger.Run(str(tmp_path), cfg)
+    bc = [[0, 0], [1, 1], [0, 1], [0, 0]]          # per scenario: 0, 1, 0.5, 0
+    hg = [[1, 1], [1, 1], [1, 0], [0, 0]]          # 1, 1, 0.5, 0      -> HG - BC: 100, 0, 0, 0
+    fx = [[1, 1], [0, 1], [1, 1], [1, 0]]          # 1, 0.5, 1, 0.5    -> fixed - HG: 0, -50, 50, 50
+    for path, success in [("eval/bc.json", bc), ("lineage_0/round_1/eval/hg_dagger.json", hg),
+                          ("lineage_0/round_1/eval/fixed_4.json", fx), ("eval/bc_unseen.json", hg),
+                          ("lineage_0/round_1/eval/hg_dagger_unseen.json", bc)]:
+        dagger.write_json(run.path(*path.split("/")), {"success": success})
+    p = dagger.scenario_paired(run)["1"]["0"]
+    assert p["hg_dagger"]["vs"] == "bc" and p["hg_dagger"]["diff"] == pytest.approx(25.0)
+    assert p["hg_dagger"]["se"] == pytest.approx(np.std([100, 0, 0, 0], ddof=1) / 2)
+    assert p["fixed_4"]["vs"] == "hg_dagger" and p["fixed_4"]["diff"] == pytest.approx(12.5)
+    assert p["fixed_4"]["se"] == pytest.approx(np.std([0, -50, 50, 50], ddof=1) / 2)
+    unseen = dagger.scenario_paired(run, "unseen")["1"]["0"]
+    assert set(unseen) == {"hg_dagger"} and unseen["hg_dagger"]["diff"] == pytest.approx(-25.0)
+    lines = dagger.scenario_paired_lines(cfg, {"1": {"0": p}})
+    assert "HG-DAgger − BC: +25.0 ± 25.0" in lines[2] and "fixed_4 − HG-DAgger: +12.5 ± 23.9" in lines[2]
+    assert "±24 points" in lines[3]
