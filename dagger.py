@@ -127,7 +127,7 @@ class Config:
     joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
     #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
     # The epsilon network (diffusion.PolicyConfig.network): 'unet', the authors' (down_dims), or 'mlp', a residual
-    # MLP with the same FiLM conditioning (mlp_width, mlp_blocks), ~10x the training samples per CPU second
+    # MLP with the same FiLM conditioning (mlp_width, mlp_blocks), ~8x the training samples per CPU second
     network: str = "unet"
     mlp_width: int = 256
     mlp_blocks: int = 3
@@ -200,7 +200,7 @@ PROFILES = {
     # sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed demonstration
     # start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along one cosine
     # of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
-    # epsilon network, which trains ~10x more samples per CPU second than the (32, 64, 128) U-Net.
+    # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
     # Lineages run side by side: --prepare, then --lineage i, then --report (README).
     "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,

@@ -53,7 +53,7 @@ class PolicyConfig:
     K: int = 100                 # diffusion steps (the authors': 100)
     schedule: str = "squaredcos" # 'squaredcos' (the authors'); 'linear' is a research option (behind the banner)
     # The epsilon network: 'unet', the authors' 1-D conv U-Net (ConditionalUnet1D); 'mlp', a residual MLP with
-    # the same FiLM interface (ResidualMLP; not the authors': ~17x the training samples per CPU second)
+    # the same FiLM interface (ResidualMLP; not the authors': ~8x the training samples per CPU second)
     network: str = "unet"
     down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512))
     mlp_width: int = 256         # network='mlp': width of the hidden layers
@@ -807,7 +807,8 @@ class ResidualMLP(FiLMNetwork):
     authors' network): Linear(H dof -> width), mlp_blocks MLPResidualBlocks with FiLM, LayerNorm, Mish,
     Linear(width -> H dof). The same conditioning and interface as ConditionalUnet1D (FiLMNetwork), so the
     policy, its sampler and partial denoising do not know which one they hold. On one CPU thread it trains
-    on ~17x more samples per second than the (32, 64, 128) U-Net (benchmarks/bench_diffusion.py): the
+    on ~8x more samples per CPU second than the (32, 64, 128) U-Net and samples ~10x faster
+    (benchmarks/bench_diffusion.py): the
     CPU profiles' choice, measured in benchmarks/README.md; the paper profile keeps the U-Net.
     """
 

@@ -1,15 +1,19 @@
-"""Cost of the diffusion policy's U-Net on a CPU: training step, one decision (full reverse process), size.
+"""Cost of the diffusion policy's epsilon network on a CPU: training step, one decision (full reverse process), size.
 
 The paper's network (Chi et al.'s 1-D conv U-Net; the authors' down_dims (128, 256, 512)) is the expensive
 part of this project: BC and every method's fine-tuning train it, and every decision of every evaluation
 episode runs all K = 100 reverse steps. This script measures, per U-Net width (PolicyConfig.down_dims):
   - one training step of diffusion.train at batch 64 and 256 (loss, backward, AdamW, EMA);
   - sampling 300 chunks (300 parallel episodes, one decision) with all K reverse steps;
-  - the number of weights (one copy; the EMA copy doubles it in memory).
+  - the number of weights (one copy; the EMA copy doubles it in memory);
+and the same for the residual MLP (PolicyConfig.network='mlp', the CPU profiles' network) per --mlp width x
+blocks, whose row shows how many training samples per CPU second each network buys.
 Defaults: the planar task's observation (obs_dim 14), dof 3, H = 20 (10 Hz, 2 s chunks) and H = 16.
 
 Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [--threads 1]
                                             [--down-dims 32,64,128 64,128,256 128,256,512] [--full-sample]
+        python benchmarks/bench_diffusion.py --horizons 20 --mlp 256x3 --down-dims 32,64,128 --full-sample
+            (the quick and mid profiles' MLP beside the U-Net they replace)
         python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
             (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN)
 Times are CPU seconds of this process (time.process_time): with one torch thread that is the cost itself,
@@ -36,12 +40,13 @@ def cost(fn):
     return time.process_time() - c0, time.perf_counter() - w0
 
 
-def per_unit(fn, min_seconds):
+def per_unit(fn, min_seconds, max_n=None):
     """fn(n) does n units of work after a fixed setup. Returns (CPU, wall) seconds per unit: the difference
-    between n units and one unit over n - 1, with n grown until n units take min_seconds of CPU."""
+    between n units and one unit over n - 1, with n grown until n units take min_seconds of CPU (at most max_n)."""
     fn(1)                                                        # warm-up (allocator, oneDNN kernels)
     one = cost(lambda: fn(1))
     n = max(2, int(min_seconds / max(one[0], 1e-4)) + 1)
+    n = min(n, max_n) if max_n else n
     many = cost(lambda: fn(n))
     return tuple(max(m - o, 1e-9) / (n - 1) for m, o in zip(many, one))
 
@@ -74,7 +79,7 @@ def measure(cfg, args):
             def reverse_steps(n):                                      # n reverse steps: levels n - 1 .. 0
                 k_start = torch.full((args.episodes,), n - 1)
                 policy.reverse_process(noise[:, 0], k_start, obs_norm, noise[:, 1:])
-            step = per_unit(reverse_steps, args.seconds)
+            step = per_unit(reverse_steps, args.seconds, max_n=cfg.K)   # at most K levels
             first = cost(lambda: reverse_steps(1))                    # the FiLM terms and one step
             draw = cost(lambda: policy.draw_noise(args.episodes, gen))
         row["sample"] = tuple(d + f + (cfg.K - 1) * s for d, f, s in zip(draw, first, step))
@@ -87,6 +92,8 @@ def main():
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--down-dims", nargs="+", default=["32,64,128", "64,128,256", "128,256,512"],
                         help="U-Net widths to measure, comma-separated per U-Net")
+    parser.add_argument("--mlp", nargs="*", default=["256x3"],
+                        help="residual-MLP networks to measure, WIDTHxBLOCKS each (none: --mlp with no value)")
     parser.add_argument("--horizons", type=int, nargs="+", default=[20, 16], help="chunk lengths H")
     parser.add_argument("--obs-dim", type=int, default=14, help="observation length (planar env: 14)")
     parser.add_argument("--dof", type=int, default=3)
@@ -99,26 +106,30 @@ def main():
 
     print(f"torch threads: {args.threads}, K = {PolicyConfig.K}, dof = {args.dof}, "
           f"{args.episodes} chunks per decision; CPU ms (wall / CPU)")
-    print("| down_dims | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
-          f"sample {args.episodes} chunks, K = {PolicyConfig.K} | wall / CPU |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| network | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
+          f"samples / CPU s at 256 | sample {args.episodes} chunks, K = {PolicyConfig.K} | wall / CPU |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    networks = [("unet", {"down_dims": tuple(int(d) for d in dims.split(","))}) for dims in args.down_dims]
+    networks += [("mlp", {"mlp_width": int(spec.split("x")[0]), "mlp_blocks": int(spec.split("x")[1])})
+                 for spec in args.mlp]
     for horizon in args.horizons:
-        for dims in args.down_dims:
-            down_dims = tuple(int(d) for d in dims.split(","))
+        for network, shape in networks:
             if args.image_size:
                 S = args.image_size
                 cfg = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof, horizon=horizon,
-                                   n_act=horizon // 2, down_dims=down_dims, image_shape=(3, S, S))
+                                   n_act=horizon // 2, network=network, image_shape=(3, S, S), **shape)
                 obs_name = f"image {S}x{S}"
             else:
                 cfg = PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, horizon=horizon, n_act=horizon // 2,
-                                   down_dims=down_dims)
+                                   network=network, **shape)
                 obs_name = f"{args.obs_dim} numbers"
+            name = (f"U-Net {cfg.down_dims}" if network == "unet"
+                    else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks} blocks")
             row = measure(cfg, args)
             cpu = [row[key][0] for key in ("train 64", "train 256", "sample")]
             wall = [row[key][1] for key in ("train 64", "train 256", "sample")]
-            print(f"| {down_dims} | {horizon} | {obs_name} | {row['parameters'] / 1e6:.2f} M | "
-                  f"{cpu[0] * 1e3:.0f} ms | {cpu[1] * 1e3:.0f} ms | {cpu[2]:.1f} s | "
+            print(f"| {name} | {horizon} | {obs_name} | {row['parameters'] / 1e6:.2f} M | "
+                  f"{cpu[0] * 1e3:.0f} ms | {cpu[1] * 1e3:.0f} ms | {256 / cpu[1]:,.0f} | {cpu[2]:.1f} s | "
                   f"{sum(wall) / sum(cpu):.2f} |", flush=True)
 
 
