@@ -808,8 +808,8 @@ class ResidualMLP(FiLMNetwork):
     Linear(width -> H dof). The same conditioning and interface as ConditionalUnet1D (FiLMNetwork), so the
     policy, its sampler and partial denoising do not know which one they hold. On one CPU thread it trains
     on ~8x more samples per CPU second than the (32, 64, 128) U-Net and samples ~10x faster
-    (benchmarks/bench_diffusion.py): the
-    CPU profiles' choice, measured in benchmarks/README.md; the paper profile keeps the U-Net.
+    (benchmarks/bench_diffusion.py): the CPU profiles' choice, measured in benchmarks/README.md; the paper
+    profile keeps the U-Net.
     """
 
     def __init__(self, cfg):
