@@ -194,7 +194,7 @@ PROFILES = {
     "quick": Config(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
                     start="random", finetune="continue",
-                    methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=1),
+                    methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
     # to fix"): 3 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's 2 / 4 / 8, the
     # sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed demonstration
