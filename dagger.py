@@ -189,8 +189,9 @@ PROFILES = {
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
-    # The default of `python dagger.py`: the whole loop on the planar env in minutes (benchmarks/README.md,
-    # "The quick profile"): the mid recipe at a student's scale, one lineage, one round.
+    # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
+    # (one lineage, one round): 9 min 14 s wall on the 2-core development machine with --workers 2
+    # (benchmarks/README.md, "The quick profile on the new recipe").
     "quick": Config(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
                     start="random", finetune="continue",
@@ -1600,9 +1601,10 @@ def parse_args(argv):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
-                   help="run size: smoke (CI, ~1 min), quick (default, ~11 min of one core), mid (BC ~45 min of "
-                        "one core, then 3 lineages), table2 (the mid recipe on engine3d with Table II's rows), "
-                        "paper (Table I protocol at the authors' sizes)")
+                   help="run size: smoke (CI, ~1 min), quick (default: 9 min 14 s wall measured on a 2-core CPU "
+                        "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 3 lineages x 2 "
+                        "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
+                        "(Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
