@@ -785,8 +785,9 @@ def _refresh_pool(sampler: AugmentationSampler, rng: np.random.Generator) -> int
 def _sampler_state(sampler: AugmentationSampler) -> dict:
     copy = lambda a: None if a is None else a.copy()
     return {"pool_obs": copy(sampler._pool_obs), "pool_chunks": copy(sampler._pool_chunks),
-            "pool_mask": copy(sampler._pool_mask), "filled": sampler._filled,
-            "write": sampler._write, "served": sampler._served, "n_drawn": sampler.n_drawn, "n_kept": sampler.n_kept}
+            "pool_mask": copy(sampler._pool_mask), "filled": int(sampler._filled),  # plain ints: a numpy scalar
+            "write": int(sampler._write), "served": int(sampler._served),             # is refused by the
+            "n_drawn": int(sampler.n_drawn), "n_kept": int(sampler.n_kept)}           # checkpoint's safe loader
 
 
 def _load_sampler_state(sampler: AugmentationSampler, state: dict) -> None:

@@ -6,6 +6,8 @@ obstacles, planar 3-link forward kinematics), so they run in milliseconds and th
 is known exactly. The tests at the end run against the real envs.PlanarReacher and EngineReach3D.
 """
 import numpy as np
+
+import diffusion
 import pytest
 
 import envs
@@ -664,11 +666,18 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     a, _ = make_sampler(stats)
     rng = np.random.default_rng(9)
     for _ in range(3):
-        a(32, rng)
+        a(np.int64(32), rng)  # dagger.MixtureSampler passes its multinomial counts: numpy ints
     state, rng_state = a.state_dict(), rng.bit_generator.state
     expect = [a(32, rng) for _ in range(4)]
     b, _ = make_sampler(stats)
-    b.load_state_dict(state)
+    # the state goes through a checkpoint file, read back as train() reads it (torch's safe loader, which
+    # refuses numpy scalars: a stopped co-training run could not resume)
+    import io
+    import torch
+    buffer = io.BytesIO()
+    torch.save({"sampler": diffusion._as_torch(state)}, buffer)
+    buffer.seek(0)
+    b.load_state_dict(diffusion._as_numpy(torch.load(buffer, weights_only=True)["sampler"]))
     rng2 = np.random.default_rng()
     rng2.bit_generator.state = rng_state
     for first, second in zip(expect, [b(32, rng2) for _ in range(4)]):
