@@ -25,9 +25,11 @@ plumbing, `Run`, is behind the "Beyond the paper" banner, before the command lin
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import csv
 import json
 import math
+import multiprocessing
 import os
 import sys
 import time
@@ -885,8 +887,6 @@ def run_arms(run, lineage, k, methods, workers, arm):
         for method in methods:
             arm(method)
         return
-    import concurrent.futures
-    import multiprocessing
     run.log(f"lineage {lineage} round {k}: {len(todo)} arms in {min(workers, len(todo))} worker processes")
     with concurrent.futures.ProcessPoolExecutor(min(workers, len(todo)),
                                                 mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -1715,8 +1715,6 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, wo
         if cfg.finetune == "continue":  # pi_0's evaluation picks round 1's scenarios; the BC row continues pi_0
             evaluate_on(run, pi0_eval_path(run), bc, "pi_0 (BC)", "eval")
             if workers > 1 and not prepare:
-                import concurrent.futures
-                import multiprocessing
                 background = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
                 bc_row_done = background.submit(_bc_row_in_worker, run.root, asdict(cfg))
             else:
