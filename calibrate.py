@@ -1122,7 +1122,7 @@ def _second_error_axis(ax, median_step: float, paper_median_step: float | None) 
 
 def _finish_blend_fit(fig, ax, path) -> None:
     """Fig. 4's axes, title, legend (right of the data and its second axis) and the file."""
-    ax.set_xlim(0, 1)
+    ax.set_xlim(0, 1.04)  # room for W's error bar at s = 1, clear of the right-hand axis
     ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
     ax.set_ylabel("settling error [our median steps]")
     ax.set_title("Blend fit for W (paper Fig. 4)")

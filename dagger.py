@@ -588,6 +588,20 @@ def stage_bc(run, demos):
     return policy
 
 
+def finetune_from_pi0(run, obs, chunks, seed, path, sampler=None, aug_fraction=0.0):
+    """Fine-tune pi_0 (checkpoints/bc.pt) into `path` by cfg.finetune: 'continue' goes on with pi_0's AdamW
+    state along its cosine to bc_steps + finetune_steps (the authors' run); 'restart' runs finetune_steps more
+    with a fresh optimizer, warm-up and cosine (peak finetune_lr or lr)."""
+    cfg, pi0_path = run.cfg, run.path("checkpoints", "bc.pt")
+    policy = load_policy(pi0_path, device=cfg.device)
+    if cfg.finetune == "continue":
+        total = cfg.bc_steps + cfg.finetune_steps
+        return train_resumable(run, policy, obs, chunks, total, seed, path, sampler, aug_fraction,
+                               continue_from=pi0_path, schedule_steps=total)
+    return train_resumable(run, policy, obs, chunks, cfg.finetune_steps, seed, path, sampler, aug_fraction,
+                           lr=cfg.finetune_lr)
+
+
 def stage_bc_row(run, demos, pi0):
     """The table's BC row: under finetune='continue' pi_0 continued on D0 alone to bc_steps + finetune_steps
     (the authors' BC row: their schedule run to its end; every arm gets the same steps), else pi_0 itself.
@@ -600,10 +614,8 @@ def stage_bc_row(run, demos, pi0):
         return load_policy(path, device=cfg.device), run.path("eval", "bc.json")
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     run.log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
-    policy, t0 = load_policy(run.path("checkpoints", "bc.pt"), device=cfg.device), time.time()
-    policy = train_resumable(run, policy, obs, chunks, cfg.bc_steps + cfg.finetune_steps,
-                             stage_seed(cfg, "train", "bc"), path, continue_from=run.path("checkpoints", "bc.pt"),
-                             schedule_steps=cfg.bc_steps + cfg.finetune_steps)
+    t0 = time.time()
+    policy = finetune_from_pi0(run, obs, chunks, stage_seed(cfg, "train", "bc"), path)
     run.record_time("train_bc", time.time() - t0)
     return policy, run.path("eval", "bc.json")
 
@@ -796,16 +808,9 @@ def stage_train_method(run, lineage, k, method, demos, rounds_data, calibration,
             f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
                                               f", {1 - cfg.raw_mix:.0%} of them noised and relabelled")
             + (" (continuing pi_0's optimizer and schedule)" if cfg.finetune == "continue" else ""))
-    pi0_path = run.path("checkpoints", "bc.pt")
-    policy, t0 = load_policy(pi0_path, device=cfg.device), time.time()
-    if cfg.finetune == "continue":
-        total = cfg.bc_steps + cfg.finetune_steps
-        policy = train_resumable(run, policy, obs, chunks, total, stage_seed(cfg, "train", lineage, k, method), path,
-                                 sampler, cfg.intervention_fraction, continue_from=pi0_path, schedule_steps=total)
-    else:
-        policy = train_resumable(run, policy, obs, chunks, cfg.finetune_steps,
-                                 stage_seed(cfg, "train", lineage, k, method), path, sampler,
-                                 cfg.intervention_fraction, lr=cfg.finetune_lr)
+    t0 = time.time()
+    policy = finetune_from_pi0(run, obs, chunks, stage_seed(cfg, "train", lineage, k, method), path, sampler,
+                               cfg.intervention_fraction)
     run.record_time(f"train_{method}/lineage_{lineage}/round_{k}", time.time() - t0)
     return policy
 
@@ -1712,15 +1717,13 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, wo
         demos = stage_demos(run)
         bc = stage_bc(run, demos)
         background = None
-        if cfg.finetune == "continue":  # pi_0's evaluation picks round 1's scenarios; the BC row continues pi_0
+        if cfg.finetune == "continue":  # pi_0's own evaluation picks round 1's scenarios (the BC row's, else)
             evaluate_on(run, pi0_eval_path(run), bc, "pi_0 (BC)", "eval")
-            if workers > 1 and not prepare:
-                background = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-                bc_row_done = background.submit(_bc_row_in_worker, run.root, asdict(cfg))
-            else:
-                stage_bc_row_evaluated(run, demos, bc)
+        if cfg.finetune == "continue" and workers > 1 and not prepare:  # the BC row trains beside the rounds
+            background = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            bc_row_done = background.submit(_bc_row_in_worker, run.root, asdict(cfg))
         else:
-            stage_evaluate(run, run.path("eval", "bc.json"), bc, "bc (pi_0)")
+            stage_bc_row_evaluated(run, demos, bc)
         if not prepare:
             stats = demo_statistics(cfg, demos)
             for l in ([lineage] if lineage is not None else range(cfg.lineages)):

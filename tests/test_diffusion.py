@@ -680,7 +680,7 @@ def test_continuing_a_schedule_equals_running_it_in_one_piece_with_the_same_stre
     pi0 = train(tiny_policy(), obs, chunks, TrainConfig(steps=30, checkpoint_steps=(30,),
                                                         checkpoint_path=str(tmp_path / "pi0_{step}.pt"), **base))
     whole = train(tiny_policy(), obs, chunks, TrainConfig(steps=60, **base)).state_dict()
-    # continuing replays the numpy/torch streams from the run's seed, not from step 30: start them there
+    # the continued run draws its batches from its own seed's streams, so it is close to, not equal to, the one-piece run
     cont = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks, TrainConfig(steps=60, **base),
                  continue_from=str(tmp_path / "pi0_30.pt")).state_dict()
     restart = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks,
