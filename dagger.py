@@ -213,12 +213,12 @@ PROFILES = {
                   eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the mid recipe (residual-MLP epsilon network, batch 256, lr 1e-3,
     # BC 10k steps, every arm continuing pi_0's optimizer +10k) on the UR5 engine-lever env with Table II's rows
-    # (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3 lineages), fixed sigma = 4 as a
-    # reference and the sigma = 0 control. --prepare, --lineage 0/1/2 side by side, --report
+    # (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 as a
+    # reference. --prepare, --lineage 0/1/2 side by side, --report
     # (benchmarks/README.md, "table2 on the mid recipe"; the earlier U-Net recipe's table is there too).
     "table2": Config(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                     finetune="continue", methods=("bc", "hg_dagger", "fixed_4", "pooled", "zero_noise"),
+                     finetune="continue", methods=("bc", "hg_dagger", "fixed_4", "pooled"),
                      eval_scenarios=100, eval_repeats=3),
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
