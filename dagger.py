@@ -205,7 +205,8 @@ PROFILES = {
     # of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
     # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
     # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured: prepare 14 min,
-    # the lineages 96 min with four of round 2's six arms (benchmarks/README.md, "The mid run on the new recipe").
+    # the lineages 96 min with four of round 2's six arms, the other two 20 min more (benchmarks/README.md, "The mid
+    # run on the new recipe").
     "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                   start="random", finetune="continue",
