@@ -491,6 +491,17 @@ def test_calibration_is_reported_in_the_papers_unit_beside_ours(full_run):
         os.path.join(full_run, "log.txt")).read()                          # the calibration's log
 
 
+def test_more_lineages_can_join_an_existing_run_folder(tmp_path):
+    root = str(tmp_path / "run")
+    dagger.Run(root, TINY)
+    dagger.Run(root, replace(TINY, lineages=TINY.lineages + 2))  # adds lineage folders only: no mismatch
+    assert dagger.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2  # the record
+    dagger.Run(root, TINY)  # a report over fewer lineages reads the same folder
+    assert dagger.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2
+    with pytest.raises(dagger.ConfigMismatch, match="rounds"):
+        dagger.Run(root, replace(TINY, lineages=TINY.lineages + 2, rounds=TINY.rounds + 1))
+
+
 def test_eval_unseen_switch():
     _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
     assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
