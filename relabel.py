@@ -48,6 +48,8 @@ class RelabelConfig:
     velocity_noise: float = 0.3  # the paper's median steps per 30 Hz frame (theirs): std of a noised state's
     #   per-joint velocity noise, converted to rad per env step by `velocity_noise_std` (0.0158 rad/step planar)
     a_clamp_scale: float = 0.9  # unit-free: a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
+    # (m' = m/3 assumes their frame moves a third of our step; in the paper's unit m' is 0.0176 rad, ~2.2x m/3:
+    #  accel_floor, gain_floor and speed_cap converted through it measured no better, benchmarks/README.md)
     accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame² = 0.2 · (m/3) / (1/3 step)²
     gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m' = 4/3 m
     jerk_slew: float = 1.5  # unit-free: |a_k - a_{k-1}| <= 1.5 a_clamp per step (theirs 0.5 per frame, 3 frames)
