@@ -200,15 +200,15 @@ PROFILES = {
                     start="random", finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
-    # to fix"): 3 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's 2 / 4 / 8, the
-    # sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed demonstration
-    # start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along one cosine
-    # of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
+    # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's
+    # 2 / 4 / 8, the sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed
+    # demonstration start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along
+    # one cosine of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
     # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
     # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured: prepare 14 min,
-    # the lineages 96 min with four of round 2's six arms, the other two 20 min more (benchmarks/README.md, "The mid
-    # run on the new recipe").
-    "mid": Config(name="mid", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
+    # lineages 0-2 side by side 116 min, 3-4 side by side 74 min, the cores shared with probes for about half of
+    # it (benchmarks/README.md, "The mid run on the new recipe").
+    "mid": Config(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                   start="random", finetune="continue",
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
@@ -1615,7 +1615,7 @@ def parse_args(argv):
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(PROFILES),
                    help="run size: smoke (CI, ~1 min), quick (default: 9 min 14 s wall measured on a 2-core CPU "
-                        "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 3 lineages x 2 "
+                        "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 5 lineages x 2 "
                         "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
