@@ -1506,6 +1506,12 @@ class RunFolderError(ValueError):
     """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
 
 
+# Config fields a run folder lets differ from the config it was made with: they change no stage's result
+# (device: where it computes; eval_unseen only adds evaluations; more lineages only add lineage folders, and no
+# seed depends on their number). Any other difference is refused (ConfigMismatch).
+FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
+
+
 class Run:
     """runs/<name>/: config.json, log.txt, data/, checkpoints/, lineage_<l>/round_<k>/, figures/."""
 
@@ -1527,10 +1533,7 @@ class Run:
                 saved[key] = tuple(saved[key])
             # a field added after the run started counts as unchanged if it has its default value
             defaults = {f.name: f.default for f in fields(Config)}
-            # device, eval_unseen and lineages change no stage's result (eval_unseen only adds evaluations, more
-            # lineages only add lineage folders: no seed depends on their number), so they may differ
-            changed = {k for k in saved if k not in ("device", "eval_unseen", "lineages")
-                       and old.get(k, defaults[k]) != saved[k]}
+            changed = {k for k in saved if k not in FOLDER_FREE_FIELDS and old.get(k, defaults[k]) != saved[k]}
             if changed:
                 raise ConfigMismatch(
                     f"{root} holds a run made with another config: "
