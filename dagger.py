@@ -214,10 +214,10 @@ PROFILES = {
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
                   eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the earlier mid recipe (U-Net, fine-tuning restarted) on the UR5
-    # engine-lever env with Table II's rows
-    # (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 as a
-    # reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2 side by side (~50 min), --report
-    # (measured: 1 h 45 min end to end on 2 cores; benchmarks/README.md, "The Table II analogue").
+    # engine-lever env with Table II's rows (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3
+    # lineages) and fixed sigma = 4 as a reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2
+    # side by side (~50 min), --report (measured: 1 h 45 min end to end on 2 cores; benchmarks/README.md, "The
+    # Table II analogue").
     "table2": Config(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                      K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
                      finetune_steps=2_500, methods=("bc", "hg_dagger", "fixed_4", "pooled"),
