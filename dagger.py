@@ -1541,7 +1541,7 @@ class Run:
                     + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
                       "to start it afresh (its finished stages are lost).")
             if cfg.lineages > old.get("lineages", 1):  # the folder now holds (or will hold) this many lineages
-                write_json(path, {**read_json(path), "lineages": cfg.lineages})
+                write_json(path, {**old, "lineages": cfg.lineages})
         else:
             write_json(path, asdict(cfg))
         self._log = open(os.path.join(root, "log.txt"), "a")

@@ -5,11 +5,13 @@ Most tests use FakeEnv, a small test double of the env interface of envs.py (joi
 obstacles, planar 3-link forward kinematics), so they run in milliseconds and the collision region
 is known exactly. The tests at the end run against the real envs.PlanarReacher and EngineReach3D.
 """
+import io
+
 import numpy as np
+import pytest
+import torch
 
 import diffusion
-import pytest
-
 import envs
 import relabel
 from relabel import (AugmentationSampler, RelabelConfig, corrective_labels, covariance_factor,
@@ -672,8 +674,6 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     b, _ = make_sampler(stats)
     # the state goes through a checkpoint file, read back as train() reads it (torch's safe loader, which
     # refuses numpy scalars: a stopped co-training run could not resume)
-    import io
-    import torch
     buffer = io.BytesIO()
     torch.save({"sampler": diffusion._as_torch(state)}, buffer)
     buffer.seek(0)
