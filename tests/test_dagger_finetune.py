@@ -2,7 +2,8 @@
 the recorded share of a noised arm (raw_mix), the arms in worker processes, the planar start option."""
 import json
 import os
-from dataclasses import replace
+import shutil
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import calibrate
 import dagger
 import diffusion
 import relabel
+from experiment import run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
@@ -48,23 +50,29 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
         wa = diffusion.DiffusionPolicy.load(os.path.join(two_workers, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         wb = diffusion.DiffusionPolicy.load(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         assert all(torch.equal(v, wb.state_dict()[k]) for k, v in wa.state_dict().items())
-    assert "2 arms in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
+    assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
 
 
-def test_restart_keeps_pi0_as_the_bc_row(tmp_path):
-    run = dagger.Run(str(tmp_path / "r"), replace(TINY, finetune="restart"))
-    assert dagger.pi0_eval_path(run).endswith(os.path.join("eval", "bc.json"))
-    sentinel = object()
-    assert dagger.stage_bc_row(run, [], sentinel) == (sentinel, run.path("eval", "bc.json"))
-    cont = dagger.Run(str(tmp_path / "c"), TINY)
-    assert dagger.pi0_eval_path(cont).endswith(os.path.join("eval", "pi0.json"))
+def test_restart_keeps_pi0_as_the_bc_row(two_workers, tmp_path):
+    """Under finetune='restart' the table's BC row is pi_0 itself (no continued checkpoint), evaluated with the
+    same draws as pi_0's own evaluation of the 'continue' run; under 'continue' pi_0 has a file of its own."""
+    restart = replace(TINY, finetune="restart")
+    assert dagger.pi0_eval_name(restart) == "eval/bc.json" and dagger.pi0_eval_name(TINY) == "eval/pi0.json"
+    root = tmp_path / "restart"
+    for name in ("data/D0.npz", "checkpoints/bc.pt"):  # the same D0 and pi_0
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(os.path.join(two_workers, name), root / name)
+    dagger.bc_row_arm(str(root), asdict(restart))
+    assert not (root / "checkpoints" / "bc_continued.pt").exists()
+    row = json.load(open(root / "eval" / "bc.json"))["success"]
+    assert row == json.load(open(os.path.join(two_workers, "eval", "pi0.json")))["success"]
 
 
 def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
-    D = dagger.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
-    demos = dagger.load_episodes(os.path.join(two_workers, "data/D0.npz"))
+    D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
+    demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
     stats = dagger.demo_statistics(TINY, demos)
-    cal = calibrate.Calibration.from_dict(dagger.read_json(os.path.join(two_workers,
+    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(two_workers,
                                                                        "lineage_0/round_1/calibration.json")))
     kinds = lambda s: [type(x).__name__ for x in s.samplers]
     hg = dagger.intervention_sampler(TINY, "hg_dagger", [D, D], None, stats)

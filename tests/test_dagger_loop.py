@@ -1,4 +1,5 @@
 """dagger.py end to end on a tiny config: every output file, resume after an interruption, CLI errors."""
+import dataclasses
 import json
 import os
 from dataclasses import replace
@@ -9,6 +10,7 @@ import pytest
 import dagger
 import envs
 import relabel
+from experiment import report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
@@ -36,7 +38,7 @@ def test_every_output_file(full_run):
     assert not missing
     table = open(os.path.join(full_run, "table.md")).read()
     for method in TINY.methods:
-        assert dagger.METHOD_LABELS[method] in table
+        assert report.method_label(method) in table
     results = json.load(open(os.path.join(full_run, "results.json")))
     assert set(results["success"]) == set(TINY.methods)
     for method, rows in results["success"].items():
@@ -46,20 +48,20 @@ def test_every_output_file(full_run):
 
 def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeypatch):
     root = str(tmp_path / "interrupted")
-    real = dagger.stage_train_method
+    real = dagger.fine_tune
 
     def crash_on_pooled(run, lineage, k, method, *args):
         if method == "pooled":
             raise KeyboardInterrupt("stopped by the test")
         return real(run, lineage, k, method, *args)
 
-    monkeypatch.setattr(dagger, "stage_train_method", crash_on_pooled)
+    monkeypatch.setattr(dagger, "fine_tune", crash_on_pooled)
     with pytest.raises(KeyboardInterrupt):
         dagger.run_experiment(TINY, root)
     # what finished before the stop is on disk, what did not is not
     assert os.path.isfile(os.path.join(root, "lineage_0/round_1/eval/fixed_4.json"))
     assert not os.path.exists(os.path.join(root, "lineage_0/round_1/eval/pooled.json"))
-    monkeypatch.setattr(dagger, "stage_train_method", real)
+    monkeypatch.setattr(dagger, "fine_tune", real)
     dagger.run_experiment(TINY, root)
     a = json.load(open(os.path.join(full_run, "results.json")))["success"]
     b = json.load(open(os.path.join(root, "results.json")))["success"]
@@ -72,7 +74,7 @@ def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeyp
 
 def test_run_folder_refuses_a_different_config(full_run):
     with pytest.raises(ValueError, match="made with another config"):
-        dagger.Run(full_run, replace(TINY, bc_steps=31))
+        run_folder.Run(full_run, replace(TINY, bc_steps=31))
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -112,7 +114,7 @@ def test_summarize_paired_statistics():
         np.mean([74.5 - 71, 74.5 - 72, 75 - 71.5]))
     assert stats["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     assert stats["tost_vs_best_fixed"]["pooled"]["vs"] == "fixed_2"
-    text = dagger.format_table(cfg, table, stats)
+    text = report.format_table(cfg, table, stats)
     assert "| HG-DAgger | 70.0 ± 0.6 (3) | 73.0 ± 0.6 (3) |" in text
     # the sigma = 0 control is paired with HG-DAgger but never the "best fixed noise"
     cfg = replace(cfg, methods=cfg.methods + ("zero_noise",))
@@ -188,9 +190,9 @@ def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_pa
     root = tmp_path / "older"
     root.mkdir()
     json.dump(old, open(root / "config.json", "w"))
-    dagger.Run(str(root), TINY)  # no error: the new fields have their defaults
+    run_folder.Run(str(root), TINY)  # no error: the new fields have their defaults
     with pytest.raises(ValueError, match="image_size"):
-        dagger.Run(str(root), replace(TINY, image_size=48))
+        run_folder.Run(str(root), replace(TINY, image_size=48))
 
 
 def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
@@ -295,9 +297,9 @@ def test_another_set_of_methods_gets_its_own_folder():
 
 def test_a_config_mismatch_names_the_fields_and_exits_without_a_traceback(tmp_path, capsys):
     root = str(tmp_path / "run")
-    dagger.Run(root, TINY)
-    with pytest.raises(dagger.ConfigMismatch, match=r"bc_steps = 30 there, 31 now"):
-        dagger.Run(root, replace(TINY, bc_steps=31))
+    run_folder.Run(root, TINY)
+    with pytest.raises(run_folder.ConfigMismatch, match=r"bc_steps = 30 there, 31 now"):
+        run_folder.Run(root, replace(TINY, bc_steps=31))
     with pytest.raises(SystemExit) as exit_info:
         dagger.main(["--profile", "smoke", "--out", root])
     err = capsys.readouterr().err
@@ -310,9 +312,9 @@ def test_degenerate_statistics_say_why_instead_of_a_p_value():
     results = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [60.0], "1": [61.0], "2": [62.0]},
                "fixed_4": {"0": [60.0], "1": [61.0], "2": [62.0]}, "pooled": {"0": [60.0], "1": [61.0], "2": [62.0]}}
     table, stats = dagger.summarize(cfg, results)
-    text = dagger.format_table(cfg, table, stats)
+    text = report.format_table(cfg, table, stats)
     assert "no spread" in text and "p = 0 " not in text and "p = 1 " not in text
-    assert dagger.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and dagger.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
+    assert report.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and report.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
 
 
 def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path):
@@ -365,8 +367,8 @@ def test_every_readme_command_parses_and_none_is_refused_by_another_commands_fol
         args, cfg = dagger.parse_args(argv)
         folder = args.out or os.path.join("runs", cfg.name)
         seen = folders.setdefault(folder, cfg)
-        changed = [f.name for f in dagger.fields(dagger.Config) if getattr(seen, f.name) != getattr(cfg, f.name)
-                   and f.name not in dagger.FOLDER_FREE_FIELDS]
+        changed = [f.name for f in dataclasses.fields(dagger.Config) if getattr(seen, f.name) != getattr(cfg, f.name)
+                   and f.name not in run_folder.FOLDER_FREE_FIELDS]
         assert not changed, f"{argv} would be refused in {folder}: {changed} differ"
 
 
@@ -381,7 +383,7 @@ def test_a_damaged_stage_file_is_named_and_never_reused(full_run, tmp_path, stag
     data = open(path, "rb").read()
     with open(path, "wb") as f:
         f.write(data[: len(data) // 2])
-    with pytest.raises(dagger.RunFolderError, match="damaged") as err:
+    with pytest.raises(run_folder.RunFolderError, match="damaged") as err:
         dagger.run_experiment(TINY, root)
     assert path in str(err.value) and "Delete it and run the same command again" in str(err.value)
     os.remove(path)  # the way forward works: the stage is made again
@@ -446,7 +448,7 @@ def test_fixed_sigma_is_in_the_papers_median_steps():
     assert kind == "isotropic" and sigma == pytest.approx(4 * 0.0176 / 0.0245)
     assert sigma * 0.0245 == pytest.approx(0.0704)                          # rad, what the sampler draws
     assert dagger.noise_model("fixed_16", None, None, 0.0245, None) == ("isotropic", 16.0)
-    assert "paper's unit" in dagger.METHOD_LABELS["fixed_4"]
+    assert "paper's unit" in report.method_label("fixed_4")
 
 
 def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
@@ -494,20 +496,20 @@ def test_calibration_is_reported_in_the_papers_unit_beside_ours(full_run):
 
 def test_more_lineages_can_join_an_existing_run_folder(tmp_path):
     root = str(tmp_path / "run")
-    dagger.Run(root, TINY)
-    dagger.Run(root, replace(TINY, lineages=TINY.lineages + 2))  # adds lineage folders only: no mismatch
-    assert dagger.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2  # the record
-    dagger.Run(root, TINY)  # a report over fewer lineages reads the same folder
-    assert dagger.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2
-    with pytest.raises(dagger.ConfigMismatch, match="rounds"):
-        dagger.Run(root, replace(TINY, lineages=TINY.lineages + 2, rounds=TINY.rounds + 1))
+    run_folder.Run(root, TINY)
+    run_folder.Run(root, replace(TINY, lineages=TINY.lineages + 2))  # adds lineage folders only: no mismatch
+    assert run_folder.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2  # the record
+    run_folder.Run(root, TINY)  # a report over fewer lineages reads the same folder
+    assert run_folder.read_json(os.path.join(root, "config.json"))["lineages"] == TINY.lineages + 2
+    with pytest.raises(run_folder.ConfigMismatch, match="rounds"):
+        run_folder.Run(root, replace(TINY, lineages=TINY.lineages + 2, rounds=TINY.rounds + 1))
 
 
 def test_eval_unseen_switch():
     _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
     assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
-    assert dagger.unseen_path(os.path.join("run", "eval", "bc.json")) == os.path.join("run", "eval", "bc_unseen.json")
+    assert dagger.unseen_name("eval/bc.json") == "eval/bc_unseen.json"
 
 
 def test_eval_unseen_can_change_on_an_existing_run_folder(full_run):
-    dagger.Run(full_run, replace(TINY, eval_unseen=False))                  # adds or skips evaluations only
+    run_folder.Run(full_run, replace(TINY, eval_unseen=False))                  # adds or skips evaluations only

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import dagger
+from experiment import report, run_folder
 
 
 def t_pdf(x, df):
@@ -122,7 +123,7 @@ def test_summarize_pairs_hg_dagger_with_bc_per_round_and_finds_the_best_fixed_si
     assert r2["diff"] == pytest.approx(4.0) and r2["n_above"] == 3
     assert stats["best_fixed_per_round"] == {"1": "fixed_4", "2": "fixed_2"}  # per round, in hindsight
     assert stats["best_fixed"] == "fixed_2"  # averaged over rounds: 65.5 vs 63.5
-    text = dagger.format_table(cfg, table, stats)
+    text = report.format_table(cfg, table, stats)
     assert "HG-DAgger vs BC at each round" in text and "K=1: +3.0 points, above BC in 3 of 3 lineages" in text
 
 
@@ -134,7 +135,7 @@ def test_format_table_adds_the_unseen_scenarios_with_their_own_paired_statistics
               "pooled": {"0": [58.0], "1": [61.0], "2": [59.0]}}
     table, stats = dagger.summarize(cfg, results)
     table_u, stats_u = dagger.summarize(cfg, unseen)
-    text = dagger.format_table(cfg, table, stats, (table_u, stats_u))
+    text = report.format_table(cfg, table, stats, (table_u, stats_u))
     main, second = text.split("**Unseen scenarios.**")
     assert "the 100 evaluation scenarios, on which HG-DAgger collected (the authors' protocol)" in main
     assert "100 unseen scenarios (never trained on)" in second
@@ -142,7 +143,7 @@ def test_format_table_adds_the_unseen_scenarios_with_their_own_paired_statistics
     t, df, p = dagger.paired_ttest([58.0, 61.0, 59.0], [55.0, 57.0, 54.0])  # the same paired test, unseen
     assert f"+{np.mean([3.0, 4.0, 5.0]):.1f} points, t({df}) = {t:.2f}, p = {p:.3g}" in second
     assert "K=1: -5.7 points" not in second and "K=1: +5.3 points, above BC in 3 of 3 lineages" in second
-    text = dagger.format_table(dagger.Config(name="t", collect_on="train"), table, stats)
+    text = report.format_table(dagger.Config(name="t", collect_on="train"), table, stats)
     assert "100 held-out evaluation scenarios" in text and "Unseen" not in text
 
 
@@ -153,8 +154,8 @@ def test_calibration_lines_compare_with_the_paper_in_its_unit():
     per = {"0": {"sigma_per_joint": [v / m for v in sigma_rad], "W": 8.0 * 0.0176 / m, "median_step": m,
                  "sigma_per_joint_rad": sigma_rad, "W_rad": 8.0 * 0.0176}}
     stats = {"calibration": {"1": per}, "best_fixed_per_round": {"1": "fixed_4"}}
-    text = "\n".join(dagger.calibration_lines(cfg, stats))
-    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 1 lineages); best fixed: sigma = 4 (paper's unit)" in text
+    text = "\n".join(report.calibration_lines(cfg, stats))
+    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 1 lineage); best fixed: sigma = 4 (paper's unit)" in text
     assert ("sigma = 0.070, 0.079, 0.088 rad = 4.00, 4.50, 5.00 paper median steps (the paper: 3.9–5.1); "
             "W = 0.141 rad = 8.00 paper median steps (the paper: 8.0)") in text
 
@@ -164,21 +165,21 @@ def test_scenario_paired_differences_and_their_se(tmp_path):
     per-scenario differences, for each set of scenarios; the one-lineage sentence quotes the SE."""
     cfg = dagger.Config(name="t", rounds=1, lineages=1, methods=("bc", "hg_dagger", "fixed_4"), eval_scenarios=4,
                         eval_repeats=2)
-    run = dagger.Run(str(tmp_path), cfg)
+    run = run_folder.Run(str(tmp_path), cfg)
     bc = [[0, 0], [1, 1], [0, 1], [0, 0]]          # per scenario: 0, 1, 0.5, 0
     hg = [[1, 1], [1, 1], [1, 0], [0, 0]]          # 1, 1, 0.5, 0      -> HG - BC: 100, 0, 0, 0
     fx = [[1, 1], [0, 1], [1, 1], [1, 0]]          # 1, 0.5, 1, 0.5    -> fixed - HG: 0, -50, 50, 50
     for path, success in [("eval/bc.json", bc), ("lineage_0/round_1/eval/hg_dagger.json", hg),
                           ("lineage_0/round_1/eval/fixed_4.json", fx), ("eval/bc_unseen.json", hg),
                           ("lineage_0/round_1/eval/hg_dagger_unseen.json", bc)]:
-        dagger.write_json(run.path(*path.split("/")), {"success": success})
-    p = dagger.scenario_paired(run)["1"]["0"]
+        run_folder.write_json(run.path(*path.split("/")), {"success": success})
+    p = report.scenario_paired(run)["1"]["0"]
     assert p["hg_dagger"]["vs"] == "bc" and p["hg_dagger"]["diff"] == pytest.approx(25.0)
     assert p["hg_dagger"]["se"] == pytest.approx(np.std([100, 0, 0, 0], ddof=1) / 2)
     assert p["fixed_4"]["vs"] == "hg_dagger" and p["fixed_4"]["diff"] == pytest.approx(12.5)
     assert p["fixed_4"]["se"] == pytest.approx(np.std([0, -50, 50, 50], ddof=1) / 2)
-    unseen = dagger.scenario_paired(run, "unseen")["1"]["0"]
+    unseen = report.scenario_paired(run, "unseen")["1"]["0"]
     assert set(unseen) == {"hg_dagger"} and unseen["hg_dagger"]["diff"] == pytest.approx(-25.0)
-    lines = dagger.scenario_paired_lines(cfg, {"1": {"0": p}})
+    lines = report.scenario_paired_lines(cfg, {"1": {"0": p}})
     assert "HG-DAgger − BC: +25.0 ± 25.0" in lines[2] and "fixed_4 − HG-DAgger: +12.5 ± 23.9" in lines[2]
     assert "±24 points" in lines[3]

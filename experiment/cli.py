@@ -1,0 +1,145 @@
+"""The command line of `python dagger.py`: profiles, overrides, the run folder's name, and the modes.
+
+Modes: the whole run (default); --prepare (the shared stages: D0, BC and its evaluation, the BC row);
+--lineage i (one lineage, e.g. one task of a cluster job array); --report (merge finished lineages into
+the table and figures). dagger.main passes in its profiles and method names: this module never imports it.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import replace
+
+import torch
+
+import envs
+from experiment.run_folder import ConfigMismatch, RunFolderError
+
+
+def parse_args(argv, profiles, methods):
+    """(args, cfg): the profile's config with the command line's overrides and a run-folder name that says
+    what differs from the profile. methods: every valid method name."""
+    p = argparse.ArgumentParser(
+        prog="dagger.py",
+        description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
+                    "calibration, augmentation, every method of Table I, evaluation, table and figures.")
+    p.add_argument("--profile", default="quick", choices=sorted(profiles),
+                   help="run size: smoke (CI, ~1 min), quick (default: 9 min 14 s wall measured on a 2-core CPU "
+                        "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 5 lineages x 2 "
+                        "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
+                        "(Table I protocol at the authors' sizes)")
+    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
+    p.add_argument("--image-obs", action="store_true",
+                   help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
+    p.add_argument("--start", default=None, choices=sorted(set(envs.ENGINE_STARTS) | set(envs.PLANAR_STARTS)),
+                   help="where episodes start: random (the authors', uniform and collision-free), fixed (planar: "
+                        "their demonstration config's q) or home (engine3d: near a home pose)")
+    p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
+                   help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
+                        "orientation (the authors' rule: 10), and the oracle ends at that posture")
+    p.add_argument("--methods", default=None,
+                   help=f"comma-separated subset of: {','.join(methods)} (BC and HG-DAgger always run)")
+    p.add_argument("--collect-on", default=None, choices=("eval", "train"),
+                   help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
+                        "the policy does not solve, so they enter the training data) or train (fresh training "
+                        "scenarios, the stricter variant)")
+    p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
+    p.add_argument("--lineages", type=int, default=None, help="number of lineages")
+    p.add_argument("--lineage", type=int, default=None,
+                   help="run only this lineage (0-based), e.g. as one task of a cluster job array")
+    p.add_argument("--prepare", action="store_true", help="only the shared stages: D0, BC and its evaluation")
+    p.add_argument("--seed", type=int, default=None, help="master seed")
+    p.add_argument("--device", default=None, help="torch device: cpu (default) or cuda")
+    p.add_argument("--out", default=None, help="run folder (default runs/<profile>[_<env>])")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1: the networks are small, and more threads than free "
+                        "cores slow torch down many times on a shared machine)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes for the arms of a round (and the BC row beside the rounds); default: 2 where "
+                        "the machine has 2 cores or more, 1 with --lineage (lineages side by side use the cores)")
+    p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
+    p.add_argument("--no-eval-unseen", action="store_true",
+                   help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
+    args = p.parse_args(argv)
+    cfg = profiles[args.profile]
+    over = {}
+    if args.env:
+        over["env"] = args.env
+    if args.methods:
+        over["methods"] = parse_methods(p, args.methods, methods)
+    if args.image_obs:
+        over["image_obs"] = True
+    if args.start:
+        over["start"] = args.start
+    if args.goal_angle is not None:
+        over["goal_angle"] = args.goal_angle
+    if args.collect_on:
+        over["collect_on"] = args.collect_on
+    if args.no_eval_unseen:
+        over["eval_unseen"] = False
+    for key in ("rounds", "lineages", "seed"):
+        if getattr(args, key) is not None:
+            over[key] = getattr(args, key)
+    if args.device:
+        if args.device not in ("cpu", "cuda") and not args.device.startswith("cuda:"):
+            p.error(f"--device: {args.device!r} is not valid; use cpu or cuda")
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            p.error(f"--device {args.device}: no CUDA device is available here; use --device cpu")
+        over["device"] = args.device
+    over["name"] = folder_name(cfg, over, args)
+    try:
+        cfg = replace(cfg, **over)
+    except ValueError as err:
+        p.error(str(err))
+    if args.threads < 1:
+        p.error(f"--threads {args.threads}: must be >= 1")
+    if args.workers is None:
+        args.workers = 1 if args.lineage is not None else min(2, os.cpu_count() or 1)
+    if args.workers < 1:
+        p.error(f"--workers {args.workers}: must be >= 1")
+    if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
+        p.error(f"--lineage {args.lineage}: valid lineages are 0..{cfg.lineages - 1}")
+    return args, cfg
+
+
+def parse_methods(parser, text, methods):
+    """--methods 'a,b,c' as a tuple of valid, distinct names (a clear error otherwise)."""
+    names = [m.strip() for m in text.split(",")]
+    if not all(names):
+        parser.error(f"--methods {text!r}: an empty item; give comma-separated names, e.g. "
+                     f"hg_dagger,fixed_4,pooled (valid: {', '.join(methods)})")
+    dup = sorted({m for m in names if names.count(m) > 1})
+    if dup:
+        parser.error(f"--methods {text!r}: {', '.join(dup)} listed twice; name each method once")
+    bad = [m for m in names if m not in methods]
+    if bad:
+        parser.error(f"--methods: unknown {bad}; valid choices: {', '.join(methods)}")
+    return tuple(names)
+
+
+def folder_name(cfg, over, args):
+    """The run folder's name: the profile's, plus whatever the command line changed that changes results
+    (another env, image observations, start, goal angle, collection scenarios, set of methods)."""
+    env = over.get("env", cfg.env)
+    name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
+    name += "_images" if args.image_obs else ""
+    name += f"_{args.start}_start" if args.start else ""
+    name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
+    name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
+    if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
+        name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
+    return name
+
+
+def run_command(fn, *args):
+    """fn(*args), with a stop (Ctrl-C) or a run-folder problem said in one line and an exit status instead
+    of a traceback."""
+    try:
+        return fn(*args)
+    except KeyboardInterrupt:
+        print("\nstopped; the finished stages are saved: run the same command again to resume", file=sys.stderr)
+        sys.exit(130)
+    except (ConfigMismatch, RunFolderError) as err:
+        print(f"dagger.py: {err}", file=sys.stderr)
+        sys.exit(2)

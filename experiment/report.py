@@ -1,0 +1,466 @@
+"""Results on disk into Table I's layout: results.json, results.csv, table.md, report.md, the table figures.
+
+dagger.write_report reads the finished evaluations with collect_results / scenario_paired, computes the
+paper's statistics (dagger.summarize: mean ± SE over lineages, paired t-tests, TOST) and hands them here to
+be written. Nothing here computes a statistic of the paper; it formats, collects and draws.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+
+import numpy as np
+
+import calibrate
+import envs
+from experiment.run_folder import read_json, write_json
+
+# Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
+METHOD_LABELS = {
+    "bc": "BC (no aggregation)",
+    "hg_dagger": "HG-DAgger",
+    "pooled": "Pooled Sigma-bar^alpha (Ours)",
+    "per_step": "Per-step Sigma^alpha (Ours)",
+    "closed_loop": "Closed-loop pooled Sigma-bar^alpha (Ours)",
+    "zero_noise": "Co-training control (sigma=0; not in the paper)",
+}
+
+
+def method_label(method):
+    """The table's name of a method: METHOD_LABELS, or 'Fixed iso. noise (sigma=s, ...)' for fixed_<s>."""
+    if method.startswith("fixed_"):
+        return f"Fixed iso. noise (sigma={method.split('_', 1)[1]}, paper's unit)"
+    return METHOD_LABELS[method]
+
+
+def collect_results(run, scenarios="eval"):
+    """success[method][lineage][k-1] in percent, from every finished evaluation on disk; scenarios 'eval'
+    (the evaluation scenarios) or 'unseen' (the unseen ones, files <method>_unseen.json)."""
+    cfg = run.cfg
+    results = {}
+    suffix = "" if scenarios == "eval" else "_unseen"
+    bc_path = os.path.join(run.root, "eval", f"bc{suffix}.json")
+    if os.path.exists(bc_path):
+        results["bc"] = {"all": [100.0 * float(np.mean(read_json(bc_path)["success"]))]}
+    for method in cfg.methods:
+        if method == "bc":
+            continue
+        for lineage in range(cfg.lineages):
+            row = []
+            for k in range(1, cfg.rounds + 1):
+                p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval", f"{method}{suffix}.json")
+                if not os.path.exists(p):
+                    break
+                row.append(100.0 * float(np.mean(read_json(p)["success"])))
+            if row:
+                results.setdefault(method, {})[str(lineage)] = row
+    return results
+
+
+def scenario_paired(run, scenarios="eval"):
+    """Differences paired over scenarios, in points: per round and lineage, HG-DAgger - BC and every other
+    method - HG-DAgger, each the mean over scenarios of the per-scenario success difference (its repeats
+    averaged) with the SE over scenarios. What one lineage can say: its scenarios, not its lineages, are the
+    repeats. {k: {lineage: {method: {"vs", "diff", "se", "n"}}}}."""
+    cfg, suffix = run.cfg, "" if scenarios == "eval" else "_unseen"
+
+    def per_scenario(path):
+        return np.asarray(read_json(path)["success"], float).mean(axis=1) if os.path.exists(path) else None
+
+    bc = per_scenario(os.path.join(run.root, "eval", f"bc{suffix}.json"))
+    out = {}
+    for k in range(1, cfg.rounds + 1):
+        for lineage in range(cfg.lineages):
+            folder = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval")
+            hg = per_scenario(os.path.join(folder, f"hg_dagger{suffix}.json"))
+            if hg is None:
+                continue
+            pairs = {"hg_dagger": (hg, bc, "bc")} if bc is not None else {}
+            for m in cfg.methods:
+                if m not in ("bc", "hg_dagger"):
+                    mine = per_scenario(os.path.join(folder, f"{m}{suffix}.json"))
+                    if mine is not None:
+                        pairs[m] = (mine, hg, "hg_dagger")
+            for m, (a, b, vs) in pairs.items():
+                d = 100.0 * (a - b)
+                out.setdefault(str(k), {}).setdefault(str(lineage), {})[m] = {
+                    "vs": vs, "diff": float(d.mean()), "se": float(d.std(ddof=1) / math.sqrt(len(d))), "n": len(d)}
+    return out
+
+
+# The paper's calibrated numbers, in its median steps (envs.PAPER_MEDIAN_STEP), set beside ours in that unit: the
+# pooled Sigma_bar^alpha's per-joint sigma (paper Sec. VI: "3.9--5.1 median per-step joint displacement in 2D
+# planar reacher", "1.3--4.2 median steps in 3D engine lever-reaching") and W (PCD paper/fig_noise_levels/plot.py:
+# PLANAR_W = 8.0; LEVER_W 7.94-8.10 over rounds 1-4).
+PAPER_CALIBRATION = {"planar": {"sigma": "3.9–5.1", "W": "8.0"}, "engine3d": {"sigma": "1.3–4.2", "W": "7.9–8.1"}}
+
+
+def calibration_summary(run):
+    """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W per lineage, in our median steps
+    ('sigma_per_joint', 'W', 'W_ci'), in radians ('..._rad') and in the paper's median steps ('..._paper';
+    None where the env has no paper unit)."""
+    cfg, out = run.cfg, {}
+    paper = envs.paper_median_step(cfg.env)
+    in_paper = lambda rad: None if paper is None or rad is None else (np.asarray(rad) / paper).tolist()  # noqa: E731
+    for k in range(1, cfg.rounds + 1):
+        for lineage in range(cfg.lineages):
+            p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "calibration.json")
+            if os.path.exists(p):
+                c = read_json(p)
+                m = c["median_step"]
+                ci = c.get("W_ci")
+                sigma_rad = np.sqrt(np.diag(np.asarray(c["pooled"], float))).tolist()  # per joint, rad
+                out.setdefault(str(k), {})[str(lineage)] = {
+                    "sigma_per_joint": [float(v) for v in c["sigma_per_joint"]], "W": c["W"] / m,
+                    "W_ci": None if ci is None else [ci[0] / m, ci[1] / m], "fit": c["fit_note"],
+                    "kept": int(np.sum(c["blend_kept"])), "rollouts": len(c["blend_kept"]),
+                    "median_step": m, "paper_median_step": paper,
+                    "sigma_per_joint_rad": sigma_rad, "W_rad": c["W"], "W_ci_rad": ci,
+                    "sigma_per_joint_paper": in_paper(sigma_rad), "W_paper": in_paper(c["W"]),
+                    "W_ci_paper": in_paper(ci)}
+    return out
+
+
+def stage_times(run):
+    """{stage kind: (count, total seconds, mean seconds)} from timings/ (demos, bc, collect, calibrate,
+    train_<method>, evaluate)."""
+    folder = os.path.join(run.root, "timings")
+    kinds = {}
+    for name in sorted(os.listdir(folder)) if os.path.isdir(folder) else []:
+        t = read_json(os.path.join(folder, name))
+        kinds.setdefault(t["stage"].split("/")[0], []).append(t["seconds"])
+    return {k: (len(v), float(np.sum(v)), float(np.mean(v))) for k, v in kinds.items()}
+
+
+def format_cell(cell):
+    """'mean ± SE (n)'; a single lineage has no measured spread: 'mean (1)'."""
+    if cell is None:
+        return "–"
+    m, se, n = cell
+    return f"{m:.1f} ({n})" if n == 1 else f"{m:.1f} ± {se:.1f} ({n})"
+
+
+def stat_words(s):
+    """t(df) = .., p = .. -- or why there is no p-value."""
+    return s["degenerate"] if s.get("degenerate") else f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}"
+
+
+def table_rows(cfg, table):
+    """The markdown rows of Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages)."""
+    cols = [f"K={k}" for k in range(1, cfg.rounds + 1)]
+    lines = ["| Method | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for method in cfg.methods:
+        if method not in table:
+            continue
+        if method == "bc":
+            lines.append(f"| {method_label('bc')} | {format_cell(table['bc'][0])}, all K |" + " |" * (len(cols) - 1))
+            continue
+        cells = [format_cell(c) for c in table[method]]
+        lines.append(f"| {method_label(method)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def scenario_words(cfg, scenarios="eval"):
+    """What the table's scenarios are: under collect_on='eval' the evaluation scenarios are the ones HG-DAgger
+    collected on (the authors' protocol), not held out; the unseen ones never enter any training data."""
+    if scenarios == "unseen":
+        return f"{cfg.eval_scenarios} unseen scenarios (never trained on)"
+    if cfg.collect_on == "eval":
+        return (f"the {cfg.eval_scenarios} evaluation scenarios, on which HG-DAgger collected "
+                f"(the authors' protocol)")
+    return f"{cfg.eval_scenarios} held-out evaluation scenarios (HG-DAgger collected on fresh training scenarios)"
+
+
+def format_table(cfg, table, stats, unseen=None):
+    """Markdown in Table I's layout: rows = methods, columns = rounds K, mean +- SE (lineages), with the
+    paired statistics; unseen: (table, stats) of the same policies on the unseen scenarios, a second table."""
+    lines = table_rows(cfg, table)
+    lines.append("")
+    lines.append(f"Success rate in % on {scenario_words(cfg)} x {cfg.eval_repeats} "
+                 f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
+                 f"its spread is not measured). BC is one pi_0 shared by every lineage.")
+    lines += paired_lines(cfg, stats)
+    if unseen is not None and unseen[0]:
+        lines += ["", f"**Unseen scenarios.** The same policies on {scenario_words(cfg, 'unseen')} x "
+                      f"{cfg.eval_repeats} evaluations (not in the paper; one sampling seed for every method):", ""]
+        lines += table_rows(cfg, unseen[0]) + paired_lines(cfg, unseen[1])
+    lines += calibration_lines(cfg, stats)
+    if stats.get("stage_times"):
+        lines.append("")
+        lines.append("Wall time of the stages (s; summed over lineages and rounds; processes ran in parallel):")
+        for kind, (n, total, mean) in stats["stage_times"].items():
+            lines.append(f"- {kind}: {n} x {mean:.0f} s = {total / 60:.1f} min")
+    if not stats["paired_vs_hg_dagger"]:
+        lines.append("")
+        lines.append("(Paired tests need at least 2 finished lineages.)")
+    return "\n".join(lines) + "\n"
+
+
+def paired_lines(cfg, stats):
+    """format_table's paired statistics: each method vs HG-DAgger, TOST vs the best fixed sigma, HG-DAgger vs BC."""
+    lines = []
+    if stats["paired_vs_hg_dagger"]:
+        lines.append("")
+        lines.append("Paired t-test vs HG-DAgger (lineages, averaged over rounds):")
+        for m, s in stats["paired_vs_hg_dagger"].items():
+            lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, {stat_words(s)}")
+    if stats["tost_vs_best_fixed"]:
+        lines.append("")
+        lines.append(f"TOST equivalence (±{cfg.tost_margin:g} points) vs the best fixed noise in hindsight "
+                     f"({stats['best_fixed']}):")
+        for m, s in stats["tost_vs_best_fixed"].items():
+            lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, "
+                         + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.3g}"))
+    if stats.get("hg_dagger_vs_bc"):
+        lines.append("")
+        lines.append("HG-DAgger vs BC at each round (paired over lineages; one pi_0):")
+        for k, s in stats["hg_dagger_vs_bc"].items():
+            lines.append(f"- K={k}: {s['diff']:+.1f} points, above BC in {s['n_above']} of {s['n']} lineages, "
+                         f"{stat_words(s)}")
+    lines += scenario_paired_lines(cfg, stats.get("scenario_paired") or {})
+    return lines
+
+
+def scenario_paired_lines(cfg, paired):
+    """format_table's differences paired over scenarios (scenario_paired), one line per round: HG-DAgger - BC
+    and each arm - HG-DAgger per lineage (mean ± SE over the scenarios); for a single lineage, what it can show."""
+    if not paired:
+        return []
+    lines = ["", f"Paired over the {cfg.eval_scenarios} scenarios (per-scenario success difference, mean ± SE over "
+                 f"scenarios; per lineage):"]
+    ses = []
+    for k, per_lineage in paired.items():
+        parts = []
+        for m in ["hg_dagger"] + [m for m in cfg.methods if m not in ("bc", "hg_dagger")]:
+            cells = [(l, d[m]) for l, d in per_lineage.items() if m in d]
+            if not cells:
+                continue
+            name = "HG-DAgger − BC" if m == "hg_dagger" else f"{m} − HG-DAgger"
+            parts.append(name + ": " + ", ".join(f"{s['diff']:+.1f} ± {s['se']:.1f}" for _, s in cells))
+            ses += [s["se"] for _, s in cells]
+        lines.append(f"- K={k}: " + "; ".join(parts))
+    if cfg.lineages == 1 and ses:
+        lines.append(f"One lineage shows differences paired over its scenarios only: one beyond about twice its SE "
+                     f"(here ±{np.median(ses):.0f} points) is measured, a smaller one is not; the order of the "
+                     f"noise arms, a few points apart in the paper, needs lineages (the mid profile).")
+    return lines
+
+
+def calibration_lines(cfg, stats):
+    """format_table's calibration: per round the pooled Sigma_bar^alpha's per-joint sigma and W (mean over
+    lineages) in our median steps, then in radians and the paper's median steps beside the paper's own
+    numbers (PAPER_CALIBRATION: they compare in its unit only), and the best fixed sigma in hindsight."""
+    if not stats.get("calibration"):
+        return []
+    paper = envs.paper_median_step(cfg.env)
+    quoted = PAPER_CALIBRATION.get(cfg.env) if paper is not None else None
+    lines = ["", "Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
+                 "beside the best fixed sigma of the round in hindsight"
+                 + (" (in the paper's unit)" if paper is not None else "") + "; below each, the "
+                 + ("same in radians and in the paper's median steps "
+                    f"({paper:.4f} rad, L2 over the joints at 30 Hz), beside the paper's numbers:" if paper is not None
+                    else "same in radians (the paper gives no median step for this env):")]
+    for k, per in stats["calibration"].items():
+        sig = np.mean([v["sigma_per_joint"] for v in per.values()], axis=0)
+        W = [v["W"] for v in per.values()]
+        best = stats.get("best_fixed_per_round", {}).get(k)
+        lines.append(f"- K={k}: sigma = " + ", ".join(f"{x:.2f}" for x in sig)
+                     + f" (W = {np.mean(W):.2f} median steps, {len(W)} lineage{'s' if len(W) > 1 else ''}); best fixed: "
+                     + (best.replace("fixed_", "sigma = ") + (" (paper's unit)" if paper is not None else "")
+                        if best else "–"))
+        sig_rad = np.mean([v["sigma_per_joint_rad"] for v in per.values()], axis=0)  # each lineage's own unit
+        W_rad = np.mean([v["W_rad"] for v in per.values()])
+        lines.append(f"  - sigma = {calibrate.other_units(sig_rad, paper)}"
+                     + (f" (the paper: {quoted['sigma']})" if quoted else "")
+                     + f"; W = {calibrate.other_units(W_rad, paper)}"
+                     + (f" (the paper: {quoted['W']})" if quoted else ""))
+    return lines
+
+
+def write_tables(run, tables):
+    """results.json, results.csv, table.md and the table figures. tables: {'eval': (success, table, stats),
+    'unseen': (...)} -- success[method][lineage][k-1] in percent (collect_results), the table and stats of
+    dagger.summarize. The evaluation scenarios' stats gain the calibration and the stage times. Returns
+    table.md's text."""
+    cfg = run.cfg
+    results, table, stats = tables["eval"]
+    results_unseen, table_unseen, stats_unseen = tables["unseen"]
+    stats["calibration"] = calibration_summary(run)
+    stats["stage_times"] = stage_times(run)
+    write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats,
+                                                        "success_unseen": results_unseen, "stats_unseen": stats_unseen})
+    with open(os.path.join(run.root, "results.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["method", "lineage", "round", "success_pct", "unseen_success_pct"])
+        for method, rows in results.items():
+            for lineage, row in rows.items():
+                unseen = results_unseen.get(method, {}).get(lineage, [])
+                for k, v in enumerate(row, start=1):
+                    w.writerow([method, lineage, "all" if method == "bc" else k, f"{v:.2f}",
+                                f"{unseen[k - 1]:.2f}" if len(unseen) >= k else ""])
+    text = format_table(cfg, table, stats, (table_unseen, stats_unseen))
+    with open(os.path.join(run.root, "table.md"), "w") as f:
+        f.write(text)
+    plot_success_vs_round(cfg, table, run.path("figures", "success_vs_round.png"))
+    plot_table(cfg, table, run.path("figures", "table_i.png"))
+    return text
+
+
+def plot_success_vs_round(cfg, table, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.5, 4))
+    ks = np.arange(1, cfg.rounds + 1)
+    for method in cfg.methods:
+        if method not in table:
+            continue
+        if method == "bc":
+            ax.axhline(table["bc"][0][0], color="k", ls=":", label=method_label("bc"))
+            continue
+        cells = table[method]
+        xs = [k for k, c in zip(ks, cells) if c]
+        if not xs:
+            continue
+        m = np.array([c[0] for c in cells if c])
+        se = np.array([c[1] for c in cells if c])
+        i = list(cfg.methods).index(method)
+        xs = np.array(xs, float) + 0.04 * (i - len(cfg.methods) / 2)  # side by side, not on top of each other
+        style = "-o" if method in ("pooled", "per_step", "closed_loop") else ("-s" if method == "hg_dagger" else "--.")
+        ax.errorbar(xs, m, yerr=se, fmt=style, capsize=3, label=method_label(method))
+    ax.set_xlabel("DAgger round K")
+    ax.set_ylabel("success rate [%]")
+    ax.set_xticks(ks)
+    ax.set_xlim(0.6, cfg.rounds + 0.4)
+    ax.set_title(f"Success vs round ({cfg.env}, the data of Table I)")
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)  # outside the data
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def plot_table(cfg, table, path):
+    """Table I (II for engine3d) as the paper draws it: rows = methods, columns = rounds, each cell shaded
+    by its mean success ("darker colors denote higher success") and labelled mean ± SE (n); the best
+    cell of each round is boxed and bold."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    rows = [m for m in cfg.methods if m in table]
+    R, C = len(rows), cfg.rounds
+    means = np.full((R, C), np.nan)
+    for i, m in enumerate(rows):
+        for k in range(C):
+            cell = table[m][0] if m == "bc" else table[m][k]
+            if cell is not None:
+                means[i, k] = cell[0]
+    width, height = 3.7 + 1.9 * C, 1.0 + 0.42 * R  # inches: method labels, one column per round
+    fig, ax = plt.subplots(figsize=(width, height))
+    lo, hi = np.nanmin(means) if np.isfinite(means).any() else 0, np.nanmax(means) if np.isfinite(means).any() else 1
+    shade = lambda v: plt.cm.Blues(0.15 + 0.7 * (v - lo) / max(hi - lo, 1e-9))  # noqa: E731
+    best = [int(np.nanargmax(means[:, k])) if np.isfinite(means[:, k]).any() else -1 for k in range(C)]
+    for i, m in enumerate(rows):
+        for k in range(C):
+            v = means[i, k]
+            if m == "bc" and k > 0:
+                continue  # one pi_0 for every round: one cell across the row
+            span = C if m == "bc" else 1
+            color = shade(v) if np.isfinite(v) else (1, 1, 1, 1)
+            ax.add_patch(Rectangle((k, R - 1 - i), span, 1, facecolor=color, edgecolor="white", lw=2))
+            cell = table[m][0] if m == "bc" else table[m][k]
+            text = format_cell(cell) + (", all K" if m == "bc" else "")
+            dark = np.isfinite(v) and (v - lo) / max(hi - lo, 1e-9) > 0.6
+            is_best = m != "bc" and best[k] == i
+            ax.text(k + span / 2, R - 0.5 - i, text, ha="center", va="center", fontsize=9,
+                    color="white" if dark else "black", fontweight="bold" if is_best else "normal")
+            if is_best:
+                ax.add_patch(Rectangle((k + 0.03, R - 1 - i + 0.06), 0.94, 0.88, fill=False, edgecolor="#d55e00", lw=2))
+    ax.set_xlim(0, C)
+    ax.set_ylim(0, R)
+    ax.set_xticks(np.arange(C) + 0.5, [f"K = {k}" for k in range(1, C + 1)])
+    ax.xaxis.tick_top()
+    ax.set_yticks(R - 0.5 - np.arange(R), [method_label(m) for m in rows])
+    ax.tick_params(length=0)
+    for side in ax.spines.values():
+        side.set_visible(False)
+    name = "Table II" if cfg.env == "engine3d" else "Table I"
+    fig.text(0.5, 1 - 0.1 / height, f"{name} analogue: success rate [%], mean ± SE (n lineages)\n"
+             f"darker = higher; boxed = the best of its round", ha="center", va="top", fontsize=9)
+    fig.subplots_adjust(left=3.5 / width, right=1 - 0.1 / width, top=1 - 0.85 / height, bottom=0.05 / height)
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+FIGURE_CAPTIONS = {
+    "table_i.png": "Table I as the paper draws it: rows are methods, columns DAgger rounds, cells shaded by "
+                   "mean success; the boxed cell is the best of its round.",
+    "success_vs_round.png": "The same numbers as lines: does each method improve with more rounds of "
+                            "interventions, and where does it sit against BC (dotted)?",
+    "fig1_recovery.png": "Fig. 1: the expert path (blue), the calibrated noise Sigma^alpha at a few states "
+                         "(ellipses), and recovery chunks from noised states back to the path (orange).",
+    "fig2_method_overview.png": "Fig. 2: (a) open-loop Sigma_hat along expert data, (b) blended rollouts, "
+                                "(c) per-step Sigma^alpha, (d) pooled Sigma_bar^alpha.",
+    "fig3_partial_denoising.png": "Fig. 3: partial denoising at one state: the larger the blend ratio beta, "
+                                  "the more the sampled chunks follow the policy instead of the expert.",
+    "fig4_blend_fit.png": "Fig. 4: settling error of the blended rollouts against sigma^2_k_sw with the "
+                          "fitted equilibrium curve; its value at 1 is W, with a bootstrap interval (left axis: our "
+                          "median steps; right axis: the paper's, where its W = 8.0 planar reads).",
+    "fig5_environment.png": "Fig. 5: a scenario of the environment with an oracle demonstration.",
+    "fig5_policy_view.png": "What the image policy sees: its camera input at a few steps of a demonstration.",
+}
+
+
+def figure_caption(name, cfg):
+    """FIGURE_CAPTIONS[name], said for the run's env (Table II and the top view for the UR5)."""
+    caption = FIGURE_CAPTIONS[name]
+    if cfg.env == "engine3d":
+        caption = caption.replace("Table I as", "Table II as")
+        if name[:4] in ("fig1", "fig2", "fig3"):
+            caption += " The UR5's end effector is drawn in the top view (x, y in m)."
+    return caption
+
+
+def write_markdown_report(run, text, stats, stats_unseen):
+    """report.md: the run folder readable on its own -- the table, the statistics in words, every figure
+    with a one-line caption of what to see."""
+    cfg = run.cfg
+    lines = [f"# {cfg.name}: Policy-Calibrated DAgger on the {cfg.env} env", "",
+             f"Profile settings: {cfg.n_demos} demonstrations, BC {cfg.bc_steps} steps, {cfg.rounds} round(s), "
+             f"{cfg.lineages} lineage(s), fine-tuning {cfg.finetune_steps} steps per cell, interventions "
+             f"collected on the {'evaluation' if cfg.collect_on == 'eval' else 'fresh training'} scenarios"
+             + (" (the paper's protocol: the evaluation scenarios enter the training data)" if cfg.collect_on == "eval"
+                else "")
+             + (f"; every policy is also evaluated on {scenario_words(cfg, 'unseen')}" if cfg.eval_unseen else "")
+             + ".", "", "## Table", "", text.rstrip(), ""]
+    words = paired_words(stats)
+    if words:
+        lines += ["## The paired statistics in words", ""] + words + [""]
+    words = paired_words(stats_unseen or {})
+    if words:
+        lines += [f"On {scenario_words(cfg, 'unseen')}:", ""] + words + [""]
+    figures = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
+    if figures:
+        lines += ["## Figures", ""]
+        for f in figures:
+            lines += [f"**{f}** — {figure_caption(f, cfg)}", "", f"![{f}](figures/{f})", ""]
+    with open(os.path.join(run.root, "report.md"), "w") as fh:
+        fh.write("\n".join(lines))
+
+
+def paired_words(stats):
+    """report.md's sentences for the paired statistics: each method vs HG-DAgger, TOST vs the best fixed sigma."""
+    words = []
+    for m, s in stats.get("paired_vs_hg_dagger", {}).items():
+        words.append(f"- {method_label(m)} − HG-DAgger = {s['diff']:+.1f} points averaged over rounds, "
+                     + stat_words(s) + ".")
+    for m, s in stats.get("tost_vs_best_fixed", {}).items():
+        words.append(f"- {method_label(m)} against the best fixed noise in hindsight ({s['vs']}): "
+                     f"{s['diff']:+.1f} points; " + (s["degenerate"] if s.get("degenerate") else
+                     f"TOST at ±{s['margin']:g} points, p = {s['p']:.3g} "
+                     + ("(equivalent at 5 %)" if s["p"] < 0.05 else "(equivalence not shown)")) + ".")
+    return words
+

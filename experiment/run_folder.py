@@ -1,0 +1,213 @@
+"""The run folder: every stage's result on disk before the next starts, so a stopped run resumes.
+
+runs/<name>/ holds config.json, log.txt, data/D0.npz, checkpoints/, eval/, lineage_<l>/round_<k>/{D.npz,
+calibration.json, checkpoints/<method>.pt, eval/<method>.json}, timings/ and figures/. dagger.py's steps
+each wrap their work in one `run.stage(...)` (or `run.train(...)` for a policy): load the file if the
+stage finished, else compute it, write it atomically, log and time it. Nothing here is the paper's method.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, fields, replace
+
+import numpy as np
+import torch
+
+import diffusion
+import envs
+
+
+class ConfigMismatch(ValueError):
+    """A run folder holds a run with another config (stages could not be reused honestly)."""
+
+
+class RunFolderError(ValueError):
+    """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
+
+
+# Config fields a run folder lets differ from the config it was made with: they change no stage's result
+# (device: where it computes; eval_unseen only adds evaluations; more lineages only add lineage folders, and no
+# seed depends on their number). Any other difference is refused (ConfigMismatch).
+FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
+
+
+class Run:
+    """One run folder and the config it was made with (any dataclass config: this module never imports it)."""
+
+    def __init__(self, root, cfg):
+        self.root, self.cfg = root, cfg
+        try:
+            os.makedirs(root, exist_ok=True)
+            open(os.path.join(root, "log.txt"), "a").close()
+        except OSError as err:
+            raise RunFolderError(f"cannot use {root!r} as the run folder: {err.strerror or err}. Give --out a "
+                                 "folder you can create and write (default runs/<profile>).") from None
+        path = os.path.join(root, "config.json")
+        if os.path.exists(path):
+            old = read_json(path)
+            check_same_config(root, old, cfg)
+            if cfg.lineages > old.get("lineages", 1):  # the folder now holds (or will hold) this many lineages
+                write_json(path, {**old, "lineages": cfg.lineages})
+        else:
+            write_json(path, asdict(cfg))
+        self._log = open(os.path.join(root, "log.txt"), "a")
+
+    def path(self, *parts):
+        """root/parts..., its folder made."""
+        p = os.path.join(self.root, *parts)
+        os.makedirs(os.path.dirname(p), exist_ok=True)
+        return p
+
+    def log(self, msg):
+        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
+        print(line, flush=True)
+        self._log.write(line + "\n")
+        self._log.flush()
+
+    def stage(self, name, compute):
+        """Load stage `name` (a path under the run folder, '/'-separated) if it finished, else compute() it,
+        write it atomically and record its wall time. By the file's kind: .npz a list of episodes
+        (envs.save_episodes), .json a JSON dict, .pt a policy (compute writes it: Run.train)."""
+        path = self.path(*name.split("/"))
+        if os.path.exists(path):
+            return self.load(name)
+        t0 = time.time()
+        value = compute()
+        if not name.endswith(".pt"):
+            (save_episodes if name.endswith(".npz") else write_json)(path, value)
+        self.record_time(timing_name(name), time.time() - t0)  # of this process: a resumed run counts its last part
+        return value
+
+    def load(self, name):
+        """A finished stage's result (a damaged file is named: RunFolderError)."""
+        path = os.path.join(self.root, *name.split("/"))
+        if name.endswith(".pt"):
+            return load_policy(path, self.cfg.device)
+        return load_episodes(path) if name.endswith(".npz") else read_json(path)
+
+    def train(self, name, policy, obs, chunks, train_cfg, sampler=None, continue_from=None, keep_state=False):
+        """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
+        run (a stopped run resumes from the last one), then the final file.
+
+        continue_from: the name of a finished policy with training state (pi_0 under finetune='continue')
+        whose optimizer and step count go on to train_cfg.steps; keep_state: the final file keeps the
+        optimizer state, for runs that continue from it.
+        """
+        final_path = self.path(*name.split("/"))
+        first = 0
+        if continue_from is not None:
+            continue_from = os.path.join(self.root, *continue_from.split("/"))
+            first = int(load_stage_file(continue_from, torch.load, map_location="cpu",
+                                        weights_only=True)["train_state"]["step"])
+        steps = train_cfg.steps
+        part = final_path.replace(".pt", "_step{step}.pt")
+        marks = tuple(sorted({first + max(1, (steps - first) * i // 4) for i in (1, 2, 3)}
+                             | ({steps} if keep_state else set())))
+        train_cfg = replace(train_cfg, log_every=max(1, (steps - first) // 5), checkpoint_steps=marks,
+                            checkpoint_path=part)
+        resume = next((part.format(step=m) for m in reversed(marks)
+                       if m < steps and os.path.exists(part.format(step=m))), None)
+        if resume:
+            load_stage_file(resume, torch.load, map_location="cpu", weights_only=True)  # a damaged one is named
+            self.log(f"  resuming from {os.path.relpath(resume, self.root)}")
+        diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, resume_from=resume,
+                        continue_from=None if resume else continue_from, log=lambda m: self.log("  " + m))
+        if keep_state:  # the last checkpoint holds the weights and the optimizer: it is the final file
+            os.replace(part.format(step=steps), final_path)
+        else:
+            policy.save(final_path)
+        for m in marks:  # the finished checkpoint supersedes the partial ones
+            if os.path.exists(part.format(step=m)):
+                os.remove(part.format(step=m))
+        return policy
+
+    def record_time(self, stage, seconds):
+        """Wall time of a finished stage, one file per stage (parallel lineages never write the same file)."""
+        write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
+
+
+def check_same_config(root, old, cfg):
+    """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside)."""
+    saved = asdict(cfg)
+    for key, value in saved.items():  # JSON keeps tuples as lists
+        if isinstance(value, tuple):
+            saved[key] = tuple(value)
+            if isinstance(old.get(key), list):
+                old[key] = tuple(old[key])
+    # a field added after the run started counts as unchanged if it has its default value
+    defaults = {f.name: f.default for f in fields(cfg)}
+    changed = {k for k in saved if k not in FOLDER_FREE_FIELDS and old.get(k, defaults[k]) != saved[k]}
+    if changed:
+        raise ConfigMismatch(
+            f"{root} holds a run made with another config: "
+            + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
+            + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
+              "to start it afresh (its finished stages are lost).")
+
+
+def timing_name(name):
+    """The timings/ name of a stage file: its kind (demos, bc, train_bc, collect, calibrate, train_<method>,
+    evaluate), then its lineage and round."""
+    parts = name[:-len(os.path.splitext(name)[1])].split("/")
+    where = "/" + "/".join(parts[:2]) if parts[0].startswith("lineage_") else ""
+    if parts[-2] == "eval":
+        return "evaluate/" + "/".join(parts)
+    kind = {"D0": "demos", "bc": "bc", "bc_continued": "train_bc", "D": "collect",
+            "calibration": "calibrate"}.get(parts[-1], "train_" + parts[-1])
+    return kind + where
+
+
+def stage_seed(cfg, *keys):
+    """A seed for one stage, derived from the master seed and the stage's name (stable across runs)."""
+    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
+
+
+def _key_int(key):
+    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
+
+
+def write_json(path, data):
+    tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)  # a stage is finished only when its file is complete
+
+
+def save_episodes(path, episodes):
+    tmp = f"{path}.{os.getpid()}.tmp.npz"
+    envs.save_episodes(tmp, episodes)
+    os.replace(tmp, path)
+
+
+def load_stage_file(path, loader, *args, **kwargs):
+    """loader(path) for a finished stage's file; a damaged file (truncated, not what it should be) is an error
+    that names it and says how to re-make it, never a raw EOFError or a silently reused stage."""
+    try:
+        return loader(path, *args, **kwargs)
+    except (FileNotFoundError, KeyboardInterrupt):
+        raise
+    except Exception as err:
+        why = ("truncated, or not a checkpoint" if isinstance(err, diffusion.CheckpointDamagedError)  # it says so
+               else f"{type(err).__name__}: {err}")
+        raise RunFolderError(f"{path} is damaged ({why}). Delete it and run the same "
+                             "command again: that stage is made again, the other finished stages are kept.") from None
+
+
+def _read_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def read_json(path):
+    return load_stage_file(path, _read_json)
+
+
+def load_episodes(path):
+    return load_stage_file(path, envs.load_episodes)
+
+
+def load_policy(path, device):
+    return load_stage_file(path, diffusion.DiffusionPolicy.load, device=device)
+

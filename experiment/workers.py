@@ -1,0 +1,51 @@
+"""Worker processes: the arms of a round side by side, the BC row beside the rounds.
+
+Each job is a module-level function and plain arguments (the run folder's path, the config as a dict): a
+worker rebuilds what it needs from the run folder. Every stage has its own seed and file, so the numbers do
+not depend on how many workers ran them. Workers are spawned (not forked: torch's threads do not survive a
+fork) and run one torch thread each, so two workers use two cores.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+
+import torch
+
+
+def in_parallel(fn, jobs, workers, log=None):
+    """fn(*job) for every job: here, one after the other, or (workers > 1 and more than one job) in that many
+    worker processes. A worker's error is raised here."""
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            fn(*job)
+        return
+    if log is not None:
+        log(f"{len(jobs)} jobs ({fn.__name__}) in {min(workers, len(jobs))} worker processes")
+    with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)),
+                                                mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done in [pool.submit(_one_thread, fn, *job) for job in jobs]:
+            done.result()
+
+
+class InBackground:
+    """fn(*args) in one worker process while this one goes on (enabled), else here and now; wait() for it."""
+
+    def __init__(self, fn, args, enabled=True):
+        self._pool = self._done = None
+        if enabled:
+            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._done = self._pool.submit(_one_thread, fn, *args)
+        else:
+            fn(*args)
+
+    def wait(self):
+        if self._pool is not None:
+            self._done.result()  # re-raises the worker's error here
+            self._pool.shutdown()
+            self._pool = None
+
+
+def _one_thread(fn, *args):
+    torch.set_num_threads(1)
+    return fn(*args)
