@@ -12,19 +12,15 @@ Paper map (paper.tex):
   Sec. IV-D ................ calibrate_noise -> calibrate.calibrate, once per round with the HG-DAgger policy
   Sec. IV-A steps 3-4, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler:
                              D0 plus the interventions, noised and relabelled on the fly (the noised arms)
-  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), summarize, paired_ttest, tost
+  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost, summarize
 
 The experiment's plumbing -- the run folder (stages, resume, atomic writes), worker processes, the command
 line, the result files and report.md -- is in experiment/; a student may skip it. Every step below wraps
 its work in one `run.stage(name, compute)`: if the stage's file is in runs/<name>/, it is loaded, else it
 is computed and written, so a stopped run resumes from its last finished stage.
 
-Usage:
-  python dagger.py                          # the 'quick' profile: the whole loop on the planar env
-  python dagger.py --profile smoke          # about a minute; what CI runs
-  python dagger.py --profile mid            # Table I's analogue on 2 cores (hours; resumable)
-  python dagger.py --profile paper --lineage 2     # one lineage alone (e.g. a Slurm array task)
-  python dagger.py --profile paper --report        # merge finished lineages into table and figures
+Usage: `python dagger.py` (the quick profile: the whole loop on the planar env in minutes), `--profile smoke`
+(what CI runs), `--profile mid` (Table I's analogue on 2 cores), `--help`; README.md, "Profiles and options".
 """
 from __future__ import annotations
 
@@ -43,7 +39,7 @@ import envs
 import oracle as oracle_mod
 import partial_denoise
 import relabel
-from experiment import cli, report
+from experiment import cli, profiles, report
 from experiment.run_folder import Run, stage_seed
 from experiment.workers import InBackground, in_parallel
 
@@ -52,35 +48,37 @@ from experiment.workers import InBackground, in_parallel
 # The loop: Sec. IV-A, steps 1-6
 # ----------------------------------------------------------------------------------------------
 def policy_calibrated_dagger(run, lineages, workers=1):
-    """Sec. IV-A for the given lineages (an empty list: the shared steps only). PAPER_SETUP.md §2 and §4 say
-    how the authors ran it. workers > 1: a round's noised arms, and the BC row, run in worker processes."""
+    """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only); PAPER_SETUP.md
+    §2 and §4 say how the authors ran them. workers > 1: a round's noised arms, and the BC row, run in worker
+    processes. Each call loads its result from the run folder if that step already finished."""
     cfg = run.cfg
-    # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert)
+    # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
     demos = oracle_demonstrations(run)
     stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
-    # Step 1: pi_0 = BC on D0 -- every method of every round is fine-tuned from this checkpoint
+    # ... and pi_0 = BC on D0: every method of every round is fine-tuned from this checkpoint (step 6)
     pi0 = behavior_cloning(run, demos)
     pi0_success = evaluate_policy(run, pi0_eval_name(cfg), pi0, "pi_0 (BC)", unseen=False)
     # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds)
     bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg)), enabled=workers > 1 and bool(lineages))
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger")]
-    for lineage in lineages:
+    for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data = pi0, pi0_success, []
-        for k in range(1, cfg.rounds + 1):
-            # Step 2: HG-DAgger -- the lineage's policy drives, the oracle intervenes when the gate says so;
-            # D_k = the interventions of at least H steps (Sec. IV-C)
+        for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
+            # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
+            # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
             rounds_data.append(collect_interventions(run, lineage, k, collector, collector_success))
-            # Step 4 without noise: HG-DAgger, pi_0 fine-tuned on D0 + the recorded D_1..D_k
+            # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
             hg = fine_tune(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
             hg_success = evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/hg_dagger.json", hg,
                                          f"hg_dagger (lineage {lineage}, K={k})")
             if noised:
-                # Step 3 (Sec. IV-D): the noise measured from the HG-DAgger policy -- Sigma_hat along the
+                # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
                 calibrate_noise(run, lineage, k, hg, rounds_data, stats)
-                # Steps 3-5 for every noised arm: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
-                # co-trained with D0, fine-tuned from pi_0, evaluated
-                in_parallel(noised_arm, [(run.root, asdict(cfg), lineage, k, m) for m in noised], workers, run.log)
+                # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
+                # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
+                arms = [(run.root, asdict(cfg), lineage, k, method) for method in noised]
+                in_parallel(noised_arm, arms, workers, run.log)
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
             # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
@@ -88,7 +86,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
 
 
 # ----------------------------------------------------------------------------------------------
-# Configuration: one dataclass; the profiles (run sizes) are below the banner
+# Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py
 # ----------------------------------------------------------------------------------------------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
@@ -175,7 +173,11 @@ class Config:
     eval_unseen: bool = True
 
     def __post_init__(self):
-        check_config(self)  # below the banner: every field's valid values, with a clear error
+        profiles.check_config(self, ALL_METHODS)  # every field's valid values, with a clear error
+
+
+# The run sizes (smoke, quick, mid, table2, paper): overrides of the defaults above, in experiment/profiles.py
+PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -466,45 +468,6 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
     raise ValueError(f"method {method!r} adds no noise")
 
 
-class ChunkSampler:
-    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
-
-    def __init__(self, episodes, H):
-        self.obs, self.chunks = diffusion.chunk_dataset(episodes, H)
-
-    def __call__(self, n, rng):
-        pick = rng.integers(len(self.obs), size=n)
-        return self.obs[pick], self.chunks[pick]
-
-
-class MixtureSampler:
-    """Rows from several rounds' samplers in fixed proportions (the authors: equal). Samplers may return
-    (obs, chunks) or (obs, chunks, mask); the mixture returns a mask (all True where a sampler gave none)
-    as soon as one of them does."""
-
-    def __init__(self, samplers, weights):
-        self.samplers = samplers
-        self.p = np.asarray(weights, float) / np.sum(weights)
-
-    def __call__(self, n, rng):
-        counts = rng.multinomial(n, self.p)
-        parts = [s(c, rng) for s, c in zip(self.samplers, counts) if c > 0]
-        obs = np.concatenate([p[0] for p in parts])
-        chunks = np.concatenate([p[1] for p in parts])
-        if not any(len(p) == 3 for p in parts):
-            return obs, chunks
-        masks = [p[2] if len(p) == 3 else np.ones(p[1].shape[:2], bool) for p in parts]
-        return obs, chunks, np.concatenate(masks)
-
-    def state_dict(self):
-        return {str(i): s.state_dict() for i, s in enumerate(self.samplers) if hasattr(s, "state_dict")}
-
-    def load_state_dict(self, state):
-        for i, s in enumerate(self.samplers):
-            if hasattr(s, "load_state_dict") and str(i) in state:
-                s.load_state_dict(state[str(i)])
-
-
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares; HG-DAgger's as recorded, a
     noised method's noised and relabelled (relabel.AugmentationSampler), raw_mix of each round's share as
@@ -512,7 +475,7 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     samplers, weights, offset = [], [], 0
     for D in rounds_data:  # equal shares per round; a noised arm takes raw_mix of its round's share as recorded
         if method == "hg_dagger" or cfg.raw_mix > 0:
-            samplers.append(ChunkSampler(D, cfg.horizon))
+            samplers.append(relabel.ChunkSampler(D, cfg.horizon))
             weights.append(1.0 if method == "hg_dagger" else cfg.raw_mix)
         if method != "hg_dagger":
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
@@ -521,7 +484,7 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
                 D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
             weights.append(1.0 - cfg.raw_mix)
         offset += len(D)
-    return MixtureSampler(samplers, weights)
+    return relabel.MixtureSampler(samplers, weights)
 
 
 def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
@@ -657,8 +620,8 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, ma
 
 
 # ----------------------------------------------------------------------------------------------
-# Table I's statistics (Sec. V): mean ± SE over lineages, paired t-test vs HG-DAgger, TOST vs the best
-# fixed sigma. Self-written, no scipy (the Student-t CDF is below the banner).
+# Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma, over lineages.
+# Self-written, no scipy; summarize (below the banner) applies them to the table, with the Student-t CDF.
 # ----------------------------------------------------------------------------------------------
 def paired_ttest(a, b):
     """Two-sided paired t-test of mean(a - b) = 0. Returns (t, df, p). Needs >= 2 pairs."""
@@ -698,6 +661,50 @@ def tost(a, b, margin):
     p_upper = student_t_cdf(t_upper, n - 1)
     return max(p_lower, p_upper), t_lower, t_upper
     # <<< exercise 13
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The config's checks and profiles, the env/oracle/policy factories, the Student-t CDF, the report and the
+# entry point. The run folder, workers and command line themselves are in experiment/.
+
+def make_figures(run, demos, stats):
+    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
+    cfg = run.cfg
+    fig = lambda name: run.path("figures", name)  # noqa: E731
+    env = make_run_env(cfg)
+    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
+        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
+    else:
+        env.reset(seed=int(demos[0]["seed"]))
+        envs.render_scene_image(env, fig("fig5_environment.png"))
+        if cfg.image_obs:
+            plot_policy_view(env, demos[0], fig("fig5_policy_view.png"))
+    if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
+        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
+        return
+    D1 = run.load("lineage_0/round_1/D.npz")
+    cal = calibrate.Calibration.from_dict(run.load("lineage_0/round_1/calibration.json"))
+    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
+    calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
+    policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
+    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
+    # the episode with the longest intervention shows the method best
+    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
+    episode = D1[e]
+    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
+    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
+    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
+                                   generator=gen())
+    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
+                          np.random.default_rng(stage_seed(cfg, "fig1")), stats)
+    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
+    end = min(t + cfg.horizon, len(episode["action"]))
+    chunk = episode["action"][t:end]
+    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
+    env.reset(seed=int(episode["seed"]))
+    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
+                                           fig("fig3_partial_denoising.png"), gen(),
+                                           q=episode["q"][t])
 
 
 def summarize(cfg, results):
@@ -773,143 +780,6 @@ def degenerate(a, b):
         return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
                 "so t and p are undefined")
     return None
-
-
-# ----------------------------------------------------------------------------------------------
-# The paper's figures from a run's lineage 0, round 1
-# ----------------------------------------------------------------------------------------------
-def make_figures(run, demos, stats):
-    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
-    cfg = run.cfg
-    fig = lambda name: run.path("figures", name)  # noqa: E731
-    env = make_run_env(cfg)
-    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
-        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
-    else:
-        env.reset(seed=int(demos[0]["seed"]))
-        envs.render_scene_image(env, fig("fig5_environment.png"))
-        if cfg.image_obs:
-            plot_policy_view(env, demos[0], fig("fig5_policy_view.png"))
-    if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
-        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
-        return
-    D1 = run.load("lineage_0/round_1/D.npz")
-    cal = calibrate.Calibration.from_dict(run.load("lineage_0/round_1/calibration.json"))
-    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
-    calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
-    policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
-    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
-    # the episode with the longest intervention shows the method best
-    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
-    episode = D1[e]
-    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
-    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
-    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
-                                   generator=gen())
-    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
-                          np.random.default_rng(stage_seed(cfg, "fig1")), stats)
-    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
-    end = min(t + cfg.horizon, len(episode["action"]))
-    chunk = episode["action"][t:end]
-    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
-    env.reset(seed=int(episode["seed"]))
-    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
-                                           fig("fig3_partial_denoising.png"), gen(),
-                                           q=episode["q"][t])
-
-
-# ==== Beyond the paper (safe to skip) ====================================================
-# The config's checks and profiles, the env/oracle/policy factories, the Student-t CDF, the report and the
-# entry point. The run folder, workers and command line themselves are in experiment/.
-
-def check_config(cfg):
-    """Config.__post_init__: BC and HG-DAgger first in methods, tuples where JSON gives lists, and a clear
-    ValueError for a field outside its valid values."""
-    cfg.methods = tuple(cfg.methods)
-    bad = [m for m in cfg.methods if m not in ALL_METHODS]
-    if bad:
-        raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(ALL_METHODS)}")
-    # BC and HG-DAgger anchor every comparison (paired design): always present, listed first.
-    cfg.methods = ("bc", "hg_dagger") + tuple(m for m in cfg.methods if m not in ("bc", "hg_dagger"))
-    if cfg.env not in envs.ENVIRONMENTS:
-        raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
-    cfg.down_dims = tuple(int(d) for d in cfg.down_dims)
-    for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
-                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
-                "calib_rollouts_per_beta"):
-        if getattr(cfg, key) < 1:
-            raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
-    if cfg.image_obs and cfg.env != "engine3d":
-        raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
-                         f"got env={cfg.env!r}")
-    if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
-        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
-                         f"within (0, 180] (the authors' 10), or None for position-only success")
-    starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
-    if cfg.start is not None and cfg.start not in starts:
-        raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
-                         f"{', '.join(starts)}")
-    if cfg.finetune not in ("continue", "restart"):
-        raise ValueError(f"finetune must be 'continue' (the authors' run) or 'restart', got {cfg.finetune!r}")
-    if cfg.finetune == "continue" and cfg.finetune_lr is not None:
-        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart'; 'continue' follows BC's "
-                         f"own schedule (lr)")
-    if not 0.0 <= cfg.raw_mix < 1.0:
-        raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
-                         f"arm), got {cfg.raw_mix}")
-    if cfg.network not in diffusion.NETWORKS:
-        raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
-    if cfg.image_size < 8:
-        raise ValueError(f"image_size must be >= 8 pixels, got {cfg.image_size}")
-    if cfg.collect_on not in ("eval", "train"):
-        raise ValueError(f"collect_on must be 'eval' (the paper's protocol) or 'train', got {cfg.collect_on!r}")
-    if not 0.0 < cfg.intervention_fraction < 1.0:
-        raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
-    if cfg.eval_scenarios > 100:
-        raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {cfg.eval_scenarios}")
-
-
-PROFILES = {
-    # CI: every stage and every output file, tiny sizes (about a minute).
-    "smoke": Config(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=10,
-                    down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
-                    methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                    calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
-    # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
-    # (one lineage, one round): 9 min 14 s wall on the 2-core development machine with --workers 2
-    # (benchmarks/README.md, "The quick profile on the new recipe").
-    "quick": Config(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
-                    network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
-                    start="random", finetune="continue",
-                    methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
-    # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
-    # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's
-    # 2 / 4 / 8, the sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed
-    # demonstration start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along
-    # one cosine of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
-    # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
-    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured: prepare 14 min,
-    # lineages 0-2 side by side 116 min, 3-4 side by side 74 min, the cores shared with probes for about half of
-    # it (benchmarks/README.md, "The mid run on the new recipe").
-    "mid": Config(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
-                  network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                  start="random", finetune="continue",
-                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
-                  eval_scenarios=100, eval_repeats=3),
-    # The Table II analogue for this machine: the earlier mid recipe (U-Net, fine-tuning restarted) on the UR5
-    # engine-lever env with Table II's rows (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3
-    # lineages) and fixed sigma = 4 as a reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2
-    # side by side (~50 min), --report (measured: 1 h 45 min end to end on 2 cores; benchmarks/README.md, "The
-    # Table II analogue").
-    "table2": Config(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
-                     K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
-                     finetune_steps=2_500, methods=("bc", "hg_dagger", "fixed_4", "pooled"),
-                     finetune="restart", eval_scenarios=100, eval_repeats=3),  # measured so; the mid recipe
-    #   (residual MLP, batch 256, BC 10k + 10k continued) gave pi_0 15.0 % and the BC row 20.0 % here: not used
-    # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
-    # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
-    "paper": Config(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
-}
 
 
 def env_options(cfg):

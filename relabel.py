@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from diffusion import expert_runs, label_mask  # the paper's label rule, one place
+from diffusion import chunk_dataset, expert_runs, label_mask  # the paper's label rule, one place
 
 
 @dataclass
@@ -1038,6 +1038,47 @@ def _episode_sigma(noise: str, sigma, e: int, dof: int):
     if not isinstance(per_ep, tuple):
         raise ValueError(f"noise='per_step': sigma[{e}] must be a pair (timesteps, covs)")
     return per_ep
+
+
+# ---- samplers of a fine-tuning batch's intervention rows (dagger.intervention_sampler) -------------
+
+class ChunkSampler:
+    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
+
+    def __init__(self, episodes, H):
+        self.obs, self.chunks = chunk_dataset(episodes, H)
+
+    def __call__(self, n, rng):
+        pick = rng.integers(len(self.obs), size=n)
+        return self.obs[pick], self.chunks[pick]
+
+
+class MixtureSampler:
+    """Rows from several rounds' samplers in fixed proportions (the authors: equal). Samplers may return
+    (obs, chunks) or (obs, chunks, mask); the mixture returns a mask (all True where a sampler gave none)
+    as soon as one of them does."""
+
+    def __init__(self, samplers, weights):
+        self.samplers = samplers
+        self.p = np.asarray(weights, float) / np.sum(weights)
+
+    def __call__(self, n, rng):
+        counts = rng.multinomial(n, self.p)
+        parts = [s(c, rng) for s, c in zip(self.samplers, counts) if c > 0]
+        obs = np.concatenate([p[0] for p in parts])
+        chunks = np.concatenate([p[1] for p in parts])
+        if not any(len(p) == 3 for p in parts):
+            return obs, chunks
+        masks = [p[2] if len(p) == 3 else np.ones(p[1].shape[:2], bool) for p in parts]
+        return obs, chunks, np.concatenate(masks)
+
+    def state_dict(self):
+        return {str(i): s.state_dict() for i, s in enumerate(self.samplers) if hasattr(s, "state_dict")}
+
+    def load_state_dict(self, state):
+        for i, s in enumerate(self.samplers):
+            if hasattr(s, "load_state_dict") and str(i) in state:
+                s.load_state_dict(state[str(i)])
 
 
 if __name__ == "__main__":

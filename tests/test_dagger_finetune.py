@@ -84,7 +84,7 @@ def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
     third = dagger.intervention_sampler(replace(TINY, raw_mix=0.25), "fixed_4", [D], cal, stats)
     assert np.allclose(third.p, [0.25, 0.75])
     obs, chunks, mask = third(400, np.random.default_rng(0))
-    recorded = dagger.ChunkSampler(D, TINY.horizon)
+    recorded = relabel.ChunkSampler(D, TINY.horizon)
     is_recorded = np.array([any(np.array_equal(o, r) for r in recorded.obs) for o in obs])
     assert 0.15 < is_recorded.mean() < 0.35 and mask[is_recorded].all()            # recorded rows: whole chunks
 

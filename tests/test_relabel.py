@@ -668,7 +668,7 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     a, _ = make_sampler(stats)
     rng = np.random.default_rng(9)
     for _ in range(3):
-        a(np.int64(32), rng)  # dagger.MixtureSampler passes its multinomial counts: numpy ints
+        a(np.int64(32), rng)  # relabel.MixtureSampler passes its multinomial counts: numpy ints
     state, rng_state = a.state_dict(), rng.bit_generator.state
     expect = [a(32, rng) for _ in range(4)]
     b, _ = make_sampler(stats)

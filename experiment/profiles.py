@@ -1,0 +1,98 @@
+"""The run sizes of `python dagger.py --profile NAME`, and the config's valid values.
+
+Each profile is a set of overrides of dagger.Config's defaults (which are the paper's protocol), as
+nanoGPT keeps its run configurations beside train.py. dagger.PROFILES builds the Configs.
+"""
+from __future__ import annotations
+
+import diffusion
+import envs
+
+PROFILES = {
+    # CI: every stage and every output file, tiny sizes (about a minute).
+    "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=10,
+                    down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
+                    methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
+                    calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
+    # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
+    # (one lineage, one round): 9 min 14 s wall on the 2-core development machine with --workers 2
+    # (benchmarks/README.md, "The quick profile on the new recipe").
+    "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
+                    network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
+                    start="random", finetune="continue",
+                    methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
+    # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
+    # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's
+    # 2 / 4 / 8, the sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed
+    # demonstration start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along
+    # one cosine of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
+    # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
+    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured: prepare 14 min,
+    # lineages 0-2 side by side 116 min, 3-4 side by side 74 min, the cores shared with probes for about half of
+    # it (benchmarks/README.md, "The mid run on the new recipe").
+    "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
+                  network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
+                  start="random", finetune="continue",
+                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
+                  eval_scenarios=100, eval_repeats=3),
+    # The Table II analogue for this machine: the earlier mid recipe (U-Net, fine-tuning restarted) on the UR5
+    # engine-lever env with Table II's rows (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3
+    # lineages) and fixed sigma = 4 as a reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2
+    # side by side (~50 min), --report (measured: 1 h 45 min end to end on 2 cores; benchmarks/README.md, "The
+    # Table II analogue").
+    "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
+                     K=20, down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
+                     finetune_steps=2_500, methods=("bc", "hg_dagger", "fixed_4", "pooled"),
+                     finetune="restart", eval_scenarios=100, eval_repeats=3),  # measured so; the mid recipe
+    #   (residual MLP, batch 256, BC 10k + 10k continued) gave pi_0 15.0 % and the BC row 20.0 % here: not used
+    # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
+    # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
+    "paper": dict(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
+}
+
+
+def check_config(cfg, methods):
+    """dagger.Config.__post_init__: BC and HG-DAgger first in methods, tuples where JSON gives lists, and a
+    clear ValueError for a field outside its valid values. methods: every valid method name."""
+    cfg.methods = tuple(cfg.methods)
+    bad = [m for m in cfg.methods if m not in methods]
+    if bad:
+        raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(methods)}")
+    # BC and HG-DAgger anchor every comparison (paired design): always present, listed first.
+    cfg.methods = ("bc", "hg_dagger") + tuple(m for m in cfg.methods if m not in ("bc", "hg_dagger"))
+    if cfg.env not in envs.ENVIRONMENTS:
+        raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
+    cfg.down_dims = tuple(int(d) for d in cfg.down_dims)
+    for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
+                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
+                "calib_rollouts_per_beta"):
+        if getattr(cfg, key) < 1:
+            raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
+    if cfg.image_obs and cfg.env != "engine3d":
+        raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
+                         f"got env={cfg.env!r}")
+    if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
+        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
+                         f"within (0, 180] (the authors' 10), or None for position-only success")
+    starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
+    if cfg.start is not None and cfg.start not in starts:
+        raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
+                         f"{', '.join(starts)}")
+    if cfg.finetune not in ("continue", "restart"):
+        raise ValueError(f"finetune must be 'continue' (the authors' run) or 'restart', got {cfg.finetune!r}")
+    if cfg.finetune == "continue" and cfg.finetune_lr is not None:
+        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart'; 'continue' follows BC's "
+                         f"own schedule (lr)")
+    if not 0.0 <= cfg.raw_mix < 1.0:
+        raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
+                         f"arm), got {cfg.raw_mix}")
+    if cfg.network not in diffusion.NETWORKS:
+        raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
+    if cfg.image_size < 8:
+        raise ValueError(f"image_size must be >= 8 pixels, got {cfg.image_size}")
+    if cfg.collect_on not in ("eval", "train"):
+        raise ValueError(f"collect_on must be 'eval' (the paper's protocol) or 'train', got {cfg.collect_on!r}")
+    if not 0.0 < cfg.intervention_fraction < 1.0:
+        raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
+    if cfg.eval_scenarios > 100:
+        raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {cfg.eval_scenarios}")
