@@ -1,13 +1,18 @@
 """dagger.py end to end on a tiny config: every output file, resume after an interruption, CLI errors."""
+import csv
 import dataclasses
 import json
 import os
 from dataclasses import replace
 
+import matplotlib.image
 import numpy as np
 import pytest
+import torch
 
+import calibrate
 import dagger
+import diffusion
 import envs
 import relabel
 from experiment import report, run_folder
@@ -34,16 +39,45 @@ def full_run(tmp_path_factory):
 
 
 def test_every_output_file(full_run):
+    """Every output file is there and holds what it should: the config, D0, pi_0 with its optimizer state, the
+    evaluations on the right scenarios, interventions >= H, a usable calibration, results that agree with the
+    evaluation files, table.md's cells, CSV rows, figures that are images, a report that shows them."""
     missing = [f for f in OUTPUTS if not os.path.isfile(os.path.join(full_run, f))]
     assert not missing
-    table = open(os.path.join(full_run, "table.md")).read()
+    at = lambda name: os.path.join(full_run, name)  # noqa: E731
+    saved = json.load(open(at("config.json")))
+    assert {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()} == dataclasses.asdict(TINY)
+    demos = envs.load_episodes(at("data/D0.npz"))
+    assert len(demos) == TINY.n_demos and all(ep["expert"].all() and len(ep["obs"]) == len(ep["q"]) for ep in demos)
+    pi0 = torch.load(at("checkpoints/bc.pt"), weights_only=True)
+    assert pi0["train_state"]["step"] == TINY.bc_steps  # 'continue': the arms go on from pi_0's optimizer
+    eval_seeds = envs.eval_seeds()[:TINY.eval_scenarios]
+    success = {}
     for method in TINY.methods:
-        assert report.method_label(method) in table
-    results = json.load(open(os.path.join(full_run, "results.json")))
-    assert set(results["success"]) == set(TINY.methods)
-    for method, rows in results["success"].items():
-        for row in rows.values():
-            assert all(0.0 <= v <= 100.0 for v in row)
+        name = "eval/bc.json" if method == "bc" else f"lineage_0/round_1/eval/{method}.json"
+        e = json.load(open(at(name)))
+        assert e["seeds"] == eval_seeds and np.shape(e["success"]) == (TINY.eval_scenarios, TINY.eval_repeats)
+        success[method] = 100.0 * np.mean(e["success"])
+    results = json.load(open(at("results.json")))
+    assert results["success"]["bc"]["all"] == [pytest.approx(success["bc"])]
+    assert {m: rows["0"] for m, rows in results["success"].items() if m != "bc"} == \
+        {m: [pytest.approx(v)] for m, v in success.items() if m != "bc"}
+    for ep in envs.load_episodes(at("lineage_0/round_1/D.npz")):  # every kept episode teaches: a run >= H
+        assert any(end - start >= TINY.horizon for start, end in diffusion.expert_runs(ep["expert"], 1))
+    cal = calibrate.Calibration.from_dict(json.load(open(at("lineage_0/round_1/calibration.json"))))
+    assert cal.W > 0 and np.allclose(cal.pooled, cal.pooled.T) and np.all(np.linalg.eigvalsh(cal.pooled) >= 0)
+    table = open(at("table.md")).read()
+    for method in TINY.methods:
+        cell = f"{success[method]:.1f} (1)" + (", all K" if method == "bc" else "")
+        assert f"| {report.method_label(method)} | {cell} |" in table
+    rows = list(csv.DictReader(open(at("results.csv"))))
+    assert {r["method"]: float(r["success_pct"]) for r in rows} == pytest.approx(success)
+    report_md = open(at("report.md")).read()
+    for name in [f for f in OUTPUTS if f.startswith("figures/")] + ["figures/table_i.png"]:
+        image = matplotlib.image.imread(at(name))
+        assert image.ndim == 3 and min(image.shape[:2]) > 100 and image.std() > 0  # a drawing, not a blank
+        assert f"![{os.path.basename(name)}]({name})" in report_md
+    assert "done in" in open(at("log.txt")).read()
 
 
 def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeypatch):
@@ -442,11 +476,18 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
 
 
 def test_fixed_sigma_is_in_the_papers_median_steps():
-    """Table I's sigma = 4 is 4 of the authors' median steps, 4 * 0.0176 = 0.070 rad per joint: in our
-    planar unit (0.0245 rad) 2.87 of ours; an env without the paper's unit keeps ours."""
-    kind, sigma = dagger.noise_model("fixed_4", None, None, 0.0245, envs.paper_median_step("planar"))
-    assert kind == "isotropic" and sigma == pytest.approx(4 * 0.0176 / 0.0245)
-    assert sigma * 0.0245 == pytest.approx(0.0704)                          # rad, what the sampler draws
+    """Table I's sigma = 4 is 4 of the authors' median steps (envs.paper_median_step, rad) per joint, whatever
+    our own unit: the noise the sampler draws (relabel.noise_factors) has the same std in radians for two runs
+    whose median steps differ 2x, and that is not 4 of our steps. An env without the paper's unit keeps ours."""
+    paper = envs.paper_median_step("planar")
+    drawn = []
+    for ours in (0.02, 0.04):  # two runs' own median steps, rad
+        kind, sigma = dagger.noise_model("fixed_4", None, None, ours, paper)
+        L = relabel.noise_factors(sigma, np.array([0]), 3, median_step=ours)[0]  # (dof, dof), L L^T = Sigma
+        drawn.append(np.sqrt(np.diag(L @ L.T)))                                  # per-joint std, rad
+        assert kind == "isotropic" and not np.allclose(drawn[-1], 4 * ours)
+    np.testing.assert_allclose(drawn[0], drawn[1])
+    np.testing.assert_allclose(drawn[0], 4 * paper)
     assert dagger.noise_model("fixed_16", None, None, 0.0245, None) == ("isotropic", 16.0)
     assert "paper's unit" in report.method_label("fixed_4")
 
@@ -511,5 +552,22 @@ def test_eval_unseen_switch():
     assert dagger.unseen_name("eval/bc.json") == "eval/bc_unseen.json"
 
 
-def test_eval_unseen_can_change_on_an_existing_run_folder(full_run):
-    run_folder.Run(full_run, replace(TINY, eval_unseen=False))                  # adds or skips evaluations only
+def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
+    """eval_unseen may differ from the folder's config: off, the run re-makes no stage and adds no unseen
+    evaluation; on again, it adds exactly the unseen evaluations, equal to the ones made in the first place."""
+    import shutil
+    root = str(tmp_path / "copy")
+    shutil.copytree(full_run, root)
+    unseen = sorted(os.path.relpath(os.path.join(d, f), root) for d, _, fs in os.walk(root) for f in fs
+                    if f.endswith("_unseen.json") and os.path.basename(d) == "eval")
+    assert len(unseen) == len(TINY.methods)
+    for name in unseen:
+        os.remove(os.path.join(root, name))
+    stages = {os.path.join(d, f): os.stat(os.path.join(d, f)).st_mtime_ns for d, _, fs in os.walk(root) for f in fs
+              if f.endswith((".pt", ".npz")) or (f.endswith(".json") and os.sep + "eval" + os.sep in os.path.join(d, f))}
+    dagger.run_experiment(replace(TINY, eval_unseen=False), root)
+    assert not [n for n in unseen if os.path.exists(os.path.join(root, n))]
+    dagger.run_experiment(TINY, root)
+    for name in unseen:
+        assert json.load(open(os.path.join(root, name))) == json.load(open(os.path.join(full_run, name)))
+    assert {p: os.stat(p).st_mtime_ns for p in stages} == stages  # nothing else was made again
