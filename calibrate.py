@@ -63,11 +63,17 @@ class CalibrationConfig:
     diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout whose nearest-state
                                          # distance reaches this has diverged and is discarded (`diverge_radius`)
     min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
+    # The authors roll out one blended rollout per source intervention episode at every ratio, average the
+    # settling errors of each ratio's kept rollouts (RMS), and fit only ratios with >= min_survivors of them
+    # (PCD measure_w_lever.py); their fit bounds W to [1, 60] of their median steps and R to [0.001, 100].
+    blend_segments: int = 0              # 0: every expert segment long enough to be kept (>= min_rollout_steps)
+                                         # starts one rollout per ratio; n > 0: the n longest of them
+    min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
+    W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
+    r_bounds: tuple = (1e-3, 1e2)        # the gain ratio r = K*/K_theta's range (authors' bounds on R)
     closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
     # not in the paper
-    rollouts_per_beta: int = 1           # rollouts per ratio (paper: 1); more keep a weak policy's W steady
-    blend_segments: int = 4              # blend rollouts start from the n longest expert segments (long: they
-                                         # settle; several: W is not one intervention's idiosyncrasy)
+    rollouts_per_beta: int = 1           # rollouts per ratio and segment (the authors: 1)
     discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop)
     bootstrap: int = 200                 # resamples of the kept (s, x) for W's 95 % interval (authors' code)
     bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
@@ -184,16 +190,21 @@ def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationCo
 
 
 def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_rad: float,
-           discard_collisions: bool = False, cfg: CalibrationConfig | None = None) -> BlendRollouts:
-    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians)."""
+           discard_collisions: bool = False, cfg: CalibrationConfig | None = None,
+           record_contacts: bool = True) -> BlendRollouts:
+    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians);
+    record_contacts=False skips the contact check where no contact decides anything (`_closed_loop`)."""
     cfg = cfg or CalibrationConfig()
     _check_betas(betas)
 
     def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
 
+    # every rollout runs its segment's full length, as the authors' blended episodes do: one that crossed
+    # the divergence radius is discarded, but its settling error is still measured (Fig. 4 shows it)
     roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_rad,
-                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps)
+                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps, stop_on_divergence=False,
+                        record_contacts=record_contacts or discard_collisions)
     # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
     # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
@@ -217,6 +228,30 @@ def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.set
         if len(e):
             x[b] = math.sqrt(float(np.mean(e ** 2)))
     return x
+
+
+@dataclass
+class RatioCells:
+    """The fit's points: per blend ratio, the RMS settling error of its kept rollouts (the authors' cells)."""
+    betas: np.ndarray           # (R,) the distinct blend ratios
+    s: np.ndarray               # (R,) their sigma^2_{k_sw}
+    x: np.ndarray               # (R,) RMS of the kept rollouts' settling errors (radians; NaN: none kept)
+    n: np.ndarray               # (R,) kept rollouts
+    spread: np.ndarray          # (R,) SD of the kept settling errors (radians; 0 with fewer than 2)
+    fitted: np.ndarray          # (R,) bool: n >= min_survivors, the ratios the fit uses
+
+
+def ratio_cells(betas, s, x, kept, min_survivors: int = CalibrationConfig.min_survivors) -> RatioCells:
+    """Average the blended rollouts per ratio, as the authors do: x_beta = sqrt(mean x_i^2) over the kept
+    rollouts i at ratio beta; a ratio with fewer than min_survivors kept rollouts is not fitted."""
+    betas, s, x, kept = (np.asarray(a) for a in (betas, s, x, kept))
+    unique = np.unique(betas)
+    cells = [(s[betas == b][0], x[(betas == b) & kept]) for b in unique]
+    rms = np.array([math.sqrt(float(np.mean(v ** 2))) if len(v) else math.nan for _, v in cells])
+    n = np.array([len(v) for _, v in cells], dtype=np.int64)
+    spread = np.array([float(np.std(v, ddof=1)) if len(v) > 1 else 0.0 for _, v in cells])
+    return RatioCells(unique.astype(np.float64), np.array([c[0] for c in cells], dtype=np.float64), rms, n,
+                      spread, n >= min_survivors)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -340,8 +375,9 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
 
     episodes: the round's intervention episodes D_k (demonstrations work too); median_step in
     radians; log: an optional callable(str) told when each step is done. If the fit is impossible
-    (e.g. fewer than 3 blend rollouts kept), W falls back to the open-loop error, ||W||^2 =
-    tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says why; never NaN.
+    (fewer than 3 ratios with min_survivors kept rollouts), W falls back to the open-loop error,
+    ||W||^2 = tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note starts with
+    "FALLBACK" (the run's log and table say so); never NaN.
     """
     cfg = cfg or CalibrationConfig()
     _check_median_step(median_step)
@@ -354,22 +390,29 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
     say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
 
-    # Step 2 (Fig. 2b): blended rollouts, ratio i from the (i mod n)-th longest segment, all batched
+    # Step 2 (Fig. 2b): blended rollouts, one per ratio from every long enough segment, all batched,
+    # averaged per ratio (the authors' cells)
     blend_beta, chosen = blend_schedule(episodes, H, cfg)
     blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold, cfg.discard_collisions, cfg)
+                   generator, threshold, cfg.discard_collisions, cfg, record_contacts=False)
     s, x, kept = blend.s, blend.x, blend.kept
-    say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; fitting W")
+    cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
+    say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
+        f"ratios with >= {cfg.min_survivors} of them; fitting W")
 
-    # Step 3 (Fig. 4): fit Eq. (12) on the kept rollouts
+    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages, W within the authors' bounds
+    unit = median_step if paper_unit is None else paper_unit
+    W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)               # radians
     try:
-        fit = fit_equilibrium(s[kept], x[kept])
+        # the cells are averages: plain least squares (n_iter=1), as the authors' curve_fit
+        fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
         r = fit.r
-        W, note = cap_W(fit.W, threshold, median_step)                      # beyond the paper
-        W_ci = W_interval(s[kept], x[kept], threshold, cfg)                 # beyond the paper
+        W, note = bound_W(fit.W, W_range, unit)                              # beyond the paper
+        W_ci = W_interval(blend_beta, s, x, kept, W_range, cfg)             # beyond the paper
     except ValueError as err:
         W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
-        r, note, W_ci = None, f"fallback: W from the open-loop error ({err})", None
+        r, note, W_ci = None, f"FALLBACK: no fit, W from the open-loop error ({err})", None
+        say(f"!! {note}")
 
     # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
     sigma_alpha = calibrated_sigma(steps.sigma, W)
@@ -675,26 +718,38 @@ def _fit_points(s, x) -> tuple[np.ndarray, np.ndarray]:
     return s, x
 
 
-def cap_W(W: float, threshold: float, median_step: float) -> tuple[float, str]:
-    """(W, fit note): a fitted W above the divergence threshold (radians) is capped at it.
-
-    W is Eq. (12)'s x extrapolated to s = 1. When the kept rollouts all sit at small s (a weak
-    policy's rollouts at larger beta diverge and are discarded), the extrapolation is unsupported
-    and can run to thousands of median steps (measured: 135,000 and 179,000 for two of five seeds of
-    the mid run's pi_0, against 22 and 27 for two others). A settling error beyond the divergence
-    threshold is what the discarding rule calls divergence, so the data say only "W >= threshold".
-    """
-    if W > threshold:
-        return threshold, (f"fit, W capped at the divergence threshold (the fit extrapolated to "
-                           f"{W / median_step:.0f} median steps)")
+def bound_W(W: float, W_range: tuple, unit: float) -> tuple[float, str]:
+    """(W, fit note): the fitted W held within W_range (radians; the authors' curve_fit bounds, [1, 60] of
+    their median steps, `unit` rad each). W is Eq. (12)'s x extrapolated to s = 1: when the ratios that
+    survive all sit at small s, the extrapolation is weakly supported, and the bound says so in the note."""
+    lo, hi = W_range
+    if W > hi or W < lo:
+        edge = hi if W > hi else lo
+        return edge, (f"fit, W at the fit's bound {edge / unit:.0f} (the fit extrapolated to "
+                      f"{W / unit:.1f}; units: the paper's median steps)")
     return W, "fit"
 
 
-def W_interval(s, x, threshold: float, cfg: CalibrationConfig) -> tuple[float, float] | None:
-    """W's 95 % bootstrap interval (`bootstrap_W`, cfg.bootstrap resamples), capped like W at the
-    divergence threshold (radians): beyond it the data say only ">=". None if it cannot be fitted."""
-    ci = bootstrap_W(s, x, cfg.bootstrap, cfg.bootstrap_seed)
-    return None if ci is None else (min(ci[0], threshold), min(ci[1], threshold))
+def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tuple[float, float] | None:
+    """W's 95 % bootstrap interval: cfg.bootstrap resamples of the kept rollouts within each ratio (with
+    replacement), each averaged per ratio (`ratio_cells`) and fitted like W, held within W_range (radians).
+    How much W moves with the rollouts drawn (a calibration seed's effect). None if nothing could be fitted."""
+    betas, s, x, kept = (np.asarray(a) for a in (betas, s, x, kept))
+    rng = np.random.default_rng(cfg.bootstrap_seed)
+    groups = [np.flatnonzero((betas == b) & kept) for b in np.unique(betas)]
+    Ws = []
+    for _ in range(cfg.bootstrap):
+        idx = np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups if len(g)] or [np.zeros(0, int)])
+        cells = ratio_cells(betas[idx], s[idx], x[idx], np.ones(len(idx), dtype=bool), cfg.min_survivors)
+        try:
+            fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
+        except ValueError:
+            continue
+        Ws.append(min(max(fit.W, W_range[0]), W_range[1]))
+    if not Ws:
+        return None
+    lo, hi = np.percentile(Ws, [2.5, 97.5])
+    return float(lo), float(hi)
 
 
 def bootstrap_W(s, x, n_resamples: int = CalibrationConfig.bootstrap,
@@ -732,13 +787,22 @@ def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[in
 
 
 def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
-    """The blend ratios (B,) = cfg.betas, cfg.rollouts_per_beta times, and for ratio i the (i mod n)-th
-    of the n = cfg.blend_segments longest expert segments, as (episode index, segment)."""
-    segs = _segments_longest_first(episodes, horizon)[:max(1, cfg.blend_segments)]
+    """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
+    cfg.rollouts_per_beta rollouts from each expert segment long enough to be kept (>= min_rollout_steps;
+    the n = cfg.blend_segments longest if n > 0); if none is that long, from the longest segment (its
+    rollouts are then too short: the fit falls back, and says so)."""
     if not isinstance(cfg.rollouts_per_beta, (int, np.integer)) or cfg.rollouts_per_beta < 1:
         raise ValueError(f"CalibrationConfig.rollouts_per_beta must be an int >= 1, got {cfg.rollouts_per_beta!r}")
-    blend_beta = np.tile(np.asarray(cfg.betas, dtype=np.float64), cfg.rollouts_per_beta)
-    return blend_beta, [segs[i % len(segs)] for i in range(len(blend_beta))]
+    if not isinstance(cfg.blend_segments, (int, np.integer)) or cfg.blend_segments < 0:
+        raise ValueError(f"CalibrationConfig.blend_segments must be an int >= 0 (0: every long enough segment), "
+                         f"got {cfg.blend_segments!r}")
+    segs = _segments_longest_first(episodes, horizon)
+    if not segs:
+        raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
+    long_enough = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
+    segs = long_enough[:cfg.blend_segments] if cfg.blend_segments else long_enough
+    jobs = [(beta, seg) for beta in cfg.betas for seg in segs for _ in range(cfg.rollouts_per_beta)]
+    return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
 
 
 # ---- the batched closed-loop simulator behind blend_rollouts and closed_loop_sigma -----------------
@@ -804,7 +868,8 @@ class Rollouts:
 
 def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
                  diverge_rad: float, stop_on_collision: bool = False,
-                 window: int = CalibrationConfig.settle_window, min_steps: int = 0) -> Rollouts:
+                 window: int = CalibrationConfig.settle_window, min_steps: int = 0,
+                 stop_on_divergence: bool = True, record_contacts: bool = True) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
     Rollout b starts at the segment's first recorded state and runs for the segment's length. After
@@ -816,7 +881,10 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
     is put back with set_state, and the scenario is switched with reset(seed) only when the seed
     changes (rollouts grouped by seed).
     A rollout stops at the first step whose nearest-state distance reaches diverge_rad
-    (radians) - it has left the expert's route - and, if stop_on_collision, at its first contact.
+    (radians) - it has left the expert's route - unless stop_on_divergence is False (it is then only
+    marked diverged and runs on), and, if stop_on_collision, at its first contact. record_contacts=False
+    (only where contacts decide nothing) moves the arm by the env's motion rule without its contact check,
+    the costliest part of a step: the same trajectories, `collided` all False.
     By default a contact is only recorded: the env's state is kinematic (env.step moves the arm
     whether or not it touches), so the deviation from the expert stays well defined, and in these
     cluttered scenes the oracle's paths pass obstacles so closely that a deviation of a few median
@@ -882,15 +950,18 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     continue
                 env.set_state(q[b], q_prev[b])
                 for j in range(min(n_act, n_steps[b] - t)):
-                    _, _, _, _, info = env.step(chunk[j])     # runs the segment's length: success,
-                    i = t + j + 1                             # like contact, does not end the rollout
+                    if record_contacts:
+                        _, _, _, _, info = env.step(chunk[j])  # runs the segment's length: success,
+                        collided[b] |= bool(info["collision"])  # like contact, does not end the rollout
+                    else:                                       # the same motion rule, no contact check
+                        env.set_state(env.clip_action(env.q, chunk[j]), env.q)
+                    i = t + j + 1
                     traj[b, i:] = env.q
                     n_recorded[b] = i
-                    collided[b] |= bool(info["collision"])
                     c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
                     cursor[b, i:], nearest_error[b, i:] = c, err
-                    diverged[b] = err >= diverge_rad
-                    if diverged[b] or (collided[b] and stop_on_collision):
+                    diverged[b] |= err >= diverge_rad
+                    if (diverged[b] and stop_on_divergence) or (collided[b] and stop_on_collision):
                         live[b] = False
                         break
                 q[b], q_prev[b] = env.q, env.q_prev

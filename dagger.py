@@ -167,7 +167,8 @@ class Config:
     mlp_blocks: int = 3
     finetune_lr: float | None = None  # finetune='restart': peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
     #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
-    calib_blend_episodes: int = 4  # intervention episodes that get the 13 blended rollouts
+    calib_blend_segments: int = 0  # 0: every intervention segment long enough to be kept starts one blended rollout
+    #                                per ratio (the authors: one per source intervention); n: the n longest
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
     # collect_on='eval' the evaluation scenarios are not held out): a second table; eval_scenarios x eval_repeats
     eval_unseen: bool = True
@@ -422,18 +423,22 @@ def calibrate_noise(run, lineage, k, policy, rounds_data, stats):
 
     def measure():
         episodes = [ep for D in rounds_data for ep in D]
-        ccfg = calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                           blend_segments=cfg.calib_blend_episodes,
-                                           rollouts_per_beta=cfg.calib_rollouts_per_beta)
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
         t0 = time.time()
-        cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, ccfg, gen,
-                                  log=lambda msg: run.log("  calibration: " + msg))
+        cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
+                                  gen, log=lambda msg: run.log("  calibration: " + msg))
         run.log(f"lineage {lineage} round {k}: calibration on {len(episodes)} intervention episodes "
                 f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
         return cal.to_dict()
 
     return calibrate.Calibration.from_dict(run.stage(f"lineage_{lineage}/round_{k}/calibration.json", measure))
+
+
+def calibration_config(cfg):
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
+    return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
+                                       blend_segments=cfg.calib_blend_segments,
+                                       rollouts_per_beta=cfg.calib_rollouts_per_beta)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -12,7 +12,13 @@ on the demos (or loaded with --policy):
 
 Usage:  python benchmarks/bench_calibrate.py [--demos 12] [--train-steps 1000] [--policy PATH]
                                              [--threads N] [--segment 48]
-Prints a markdown table (wall and CPU seconds). Numbers depend on machine load (the team shares 2
+Prints a markdown table (wall and CPU seconds).
+
+How steady W is:  python benchmarks/bench_calibrate.py --run runs/quick --seeds 5 [--lineage 0] [--round 1]
+calibrates the round's HG-DAgger policy on the interventions of rounds 1..k of a finished run folder, with
+the run's own calibration settings (dagger.calibration_config), once per calibration seed (seed 0 is the
+run's own), and ends with one line: W spread: mean M, SD S, SD/mean P %, T s per calibration (M and S in
+the paper's median steps). Numbers depend on machine load (the team shares 2
 cores); --threads sets torch.set_num_threads for this process only (default: torch's default).
 Small-batch torch calls are much slower with 2 threads than with 1 when other processes load the
 cores; compare both.
@@ -45,9 +51,17 @@ def main():
     parser.add_argument("--policy", default="", help="a DiffusionPolicy checkpoint instead of training")
     parser.add_argument("--threads", type=int, default=0, help="torch.set_num_threads (0: leave default)")
     parser.add_argument("--segment", type=int, default=48, help="expert window kept per demo (steps)")
+    parser.add_argument("--run", default="", help="a finished run folder: measure how steady its W is")
+    parser.add_argument("--seeds", type=int, default=5, help="--run: calibration seeds (the first is the run's)")
+    parser.add_argument("--lineage", type=int, default=0, help="--run: the lineage")
+    parser.add_argument("--round", type=int, default=1, help="--run: the round k (its HG-DAgger policy, D_1..D_k)")
+    parser.add_argument("--blend-segments", type=int, default=None,
+                        help="--run: override the profile's calib_blend_segments (0: every long enough segment)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.run:
+        return w_spread(args.run, args.seeds, args.lineage, args.round, args.blend_segments)
 
     env = make_env("planar")
     expert, seed = oracle.Oracle(), 0
@@ -103,6 +117,51 @@ def main():
     for name, work, wall, cpu in rows:
         print(f"| {name} | {work} | {wall:.2f} | {cpu:.2f} |")
     print("\n" + calib.report())
+
+
+def w_spread(root, n_seeds, lineage, k, blend_segments=None):
+    """W of one round recalibrated with n_seeds calibration seeds: a table per seed and the spread line."""
+    import dataclasses
+    import dagger
+    from experiment.run_folder import Run, read_json, stage_seed
+    if n_seeds < 2:
+        raise SystemExit(f"--seeds {n_seeds}: a spread needs at least 2 seeds")
+    saved = read_json(os.path.join(root, "config.json"))
+    known = {f.name for f in dataclasses.fields(dagger.Config)}
+    cfg = dagger.Config(**{key: value for key, value in saved.items() if key in known})
+    run = Run(root, cfg)  # reads the folder's stages; the settings below change only this measurement
+    profile = dagger.PROFILES.get(cfg.name)
+    if profile is not None:  # today's calibration settings of the run's profile (the folder may predate them)
+        cfg = dataclasses.replace(cfg, **{f: getattr(profile, f) for f in known if f.startswith("calib_")})
+    if blend_segments is not None:
+        cfg = dataclasses.replace(cfg, calib_blend_segments=blend_segments)
+    where = f"lineage_{lineage}/round_{k}"
+    if not os.path.exists(os.path.join(root, where, "checkpoints", "hg_dagger.pt")):
+        raise SystemExit(f"{root}: {where}/checkpoints/hg_dagger.pt is not there; finish that round first")
+    policy = run.load(f"{where}/checkpoints/hg_dagger.pt")
+    episodes = [ep for j in range(1, k + 1) for ep in run.load(f"lineage_{lineage}/round_{j}/D.npz")]
+    demos = run.load("data/D0.npz")
+    stats = dagger.demo_statistics(cfg, demos)
+    ccfg = dagger.calibration_config(cfg)
+    paper = paper_median_step(cfg.env) or stats.median_step
+    seeds = [stage_seed(cfg, "calibrate", lineage, k)] + list(range(1, n_seeds))
+    print(f"{root}, {where}: {len(episodes)} intervention episodes, unit {paper:.4f} rad (paper median step); "
+          f"calibration settings of {'the ' + cfg.name + ' profile' if profile else 'the run folder'}: {ccfg}")
+    print("| calibration seed | W (paper steps) | 95 % interval | rollouts kept | ratios fitted | fit | wall s |")
+    print("|---|---|---|---|---|---|---|")
+    Ws, walls = [], []
+    for seed in seeds:
+        gen = torch.Generator(device=policy.device).manual_seed(seed)
+        c, wall, _ = timed(lambda: cal.calibrate(dagger.make_run_env(cfg), policy, episodes, stats.median_step,
+                                                 ccfg, gen))
+        Ws.append(c.W / paper)
+        walls.append(wall)
+        ci = "–" if c.W_ci is None else f"{c.W_ci[0] / paper:.2f}–{c.W_ci[1] / paper:.2f}"
+        cells = cal.ratio_cells(c.blend_beta, c.blend_s, c.blend_x, c.blend_kept, ccfg.min_survivors)
+        print(f"| {seed} | {c.W / paper:.2f} | {ci} | {int(c.blend_kept.sum())}/{len(c.blend_kept)} | "
+              f"{int(cells.fitted.sum())}/{len(cells.s)} | {c.fit_note} | {wall:.1f} |")
+    m, sd = float(np.mean(Ws)), float(np.std(Ws, ddof=1))
+    print(f"\nW spread: mean {m:.2f}, SD {sd:.2f}, SD/mean {100 * sd / m:.0f} %, {np.mean(walls):.1f} s per calibration")
 
 
 if __name__ == "__main__":

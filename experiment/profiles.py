@@ -13,7 +13,7 @@ PROFILES = {
     "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=10,
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                    calib_blend_episodes=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
+                    calib_blend_segments=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 9 min 14 s wall on the 2-core development machine with --workers 2
     # (benchmarks/README.md, "The quick profile on the new recipe").

@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -422,7 +423,16 @@ def test_blend_rollouts_mark_divergence(planar):
     out = cal.blend_rollouts(env, policy, episodes[0], [0.9], generator=torch.Generator().manual_seed(0),
                              diverge_rad=1e-6)
     assert out.rollouts.diverged[0] and not out.kept[0]
-    assert out.rollouts.n_recorded[0] < len(episodes[0]["q"]) - 1             # stopped at divergence
+    # discarded, but run to the segment's full length (the authors' blended episodes): its settling error is
+    # the RMS over the whole settling window, as for a kept rollout, not cut where it crossed the radius
+    start, end = cal._longest_segment(episodes[0], policy.cfg.horizon)
+    assert out.rollouts.n_recorded[0] == min(end, len(episodes[0]["q"]) - 1) - start
+    e = out.rollouts.nearest_error[0, cal.CalibrationConfig.settle_start:cal.CalibrationConfig.settle_end + 1]
+    assert out.x[0] == pytest.approx(np.sqrt(np.mean(e ** 2))) and out.x[0] > 0
+    # a stopping closed loop (closed_loop_sigma's) still stops at the first diverged step
+    job = [(episodes[0], (start, end))]
+    stopped = cal._closed_loop(env, job, lambda obs, expert, rows: expert + 0.05, policy.cfg.horizon, 10, 1e-6)
+    assert stopped.diverged[0] and stopped.n_recorded[0] < out.rollouts.n_recorded[0]
 
 
 def _line_into_an_obstacle(env, seeds, past=3, speed=0.8):
@@ -464,11 +474,17 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
-    assert len(c.blend_beta) == 13 and set(c.blend_episode) <= set(range(4))
+    segments = cal.blend_schedule(episodes, policy.cfg.horizon, cfg)[1]
+    long_enough = {e for e, (a, b) in cal._segments_longest_first(episodes, policy.cfg.horizon)
+                   if b - a >= cfg.min_rollout_steps}
+    assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
+    assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
+    assert all(np.sum(c.blend_beta == b) == len(long_enough) for b in cfg.betas)
     for value in (c.W, *c.pooled.ravel(), *c.closed_loop_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
         assert math.isfinite(value)
     np.testing.assert_allclose(np.trace(c.sigma_alpha, axis1=1, axis2=2), c.W ** 2, rtol=1e-9)
-    assert (c.W_ci is None) == (c.r is None or int(c.blend_kept.sum()) < 3)   # an interval with every fit
+    assert (c.W_ci is None) == (c.r is None)                                 # an interval with every fit
+    assert c.r is not None or c.fit_note.startswith("FALLBACK")                # a fallback says so
     assert c.W_ci is None or c.W_ci[0] <= c.W_ci[1]
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
     assert np.trace(c.closed_loop_pooled) == pytest.approx(c.W ** 2)
@@ -489,7 +505,7 @@ def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=2, diverge_threshold=1e-9)
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert not c.blend_kept.any()
-    assert c.r is None and c.fit_note.startswith("fallback")
+    assert c.r is None and c.fit_note.startswith("FALLBACK")
     assert c.W_ci is None                                                     # no fit, no interval
     assert c.W ** 2 == pytest.approx(np.trace(c.sigma_hat.mean(axis=0)))       # ||W||^2 = tr(Sigma_bar)
     np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
@@ -497,32 +513,75 @@ def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     assert "closed loop" in c.fit_note
 
 
-def test_calibrate_caps_an_extrapolated_W_at_the_divergence_threshold(planar, monkeypatch):
-    """Kept rollouts only at small s can make the Eq. (12) fit extrapolate W to thousands of median
-    steps; calibrate caps W at the divergence threshold and says so."""
+def test_calibrate_holds_W_within_the_authors_fit_bounds(planar, monkeypatch):
+    """When the surviving ratios all sit at small s the Eq. (12) fit can extrapolate W far beyond the data;
+    W is held within the authors' curve_fit bounds, [1, 60] of the paper's median steps, and the note says so."""
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False)
-    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(1e5 * unit, 1e3, len(s), 0.0))
+    paper = envs.PAPER_MEDIAN_STEP["planar"]
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, diverge_threshold=1e3, bootstrap=5)
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(1e5 * unit, 1e2, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
-    assert c.W == pytest.approx(15 * 0.0176)             # the authors' 15 median steps of theirs, in rad
-    assert c.W == pytest.approx(cal.diverge_radius(cfg.diverge_threshold, unit, envs.PAPER_MEDIAN_STEP["planar"]))
-    assert c.fit_note.startswith("fit, W capped") and "100000 median steps" in c.fit_note
-    assert c.W_ci is None or c.W_ci == (pytest.approx(c.W), pytest.approx(c.W))   # capped like W
+    assert c.W == pytest.approx(60 * paper)                                  # in rad: the bound in their unit
+    assert c.fit_note.startswith("fit, W at the fit's bound 60") and "extrapolated to" in c.fit_note
+    assert c.W_ci == (pytest.approx(c.W), pytest.approx(c.W))                # bounded like W
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
-    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x: cal.EquilibriumFit(5 * unit, 0.1, len(s), 0.0))
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(0.01 * unit, 0.1, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
-    assert c.W == pytest.approx(5 * unit) and c.fit_note == "fit"             # below the threshold: as fitted
+    assert c.W == pytest.approx(1 * paper) and "bound 1 " in c.fit_note       # the lower bound
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(5 * paper, 0.1, len(s), 0.0))
+    c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
+    assert c.W == pytest.approx(5 * paper) and c.fit_note == "fit"           # inside the bounds: as fitted
 
 
-def test_rollouts_per_beta_repeats_every_ratio_on_other_segments(planar):
+def test_ratio_cells_average_the_kept_rollouts_per_ratio_and_need_three():
+    """The authors' cells: per ratio the RMS of the kept rollouts' settling errors; a ratio with fewer than
+    min_survivors kept rollouts is not fitted (and its discarded rollouts never enter a mean)."""
+    betas = np.array([0.1, 0.1, 0.1, 0.1, 0.5, 0.5, 0.5, 0.9])
+    s = np.array([0.01] * 4 + [0.3] * 3 + [0.9])
+    x = np.array([1.0, 2.0, 2.0, 100.0, 3.0, 4.0, 5.0, 7.0])
+    kept = np.array([True, True, True, False, True, True, False, True])
+    cells = cal.ratio_cells(betas, s, x, kept, min_survivors=3)
+    np.testing.assert_allclose(cells.betas, [0.1, 0.5, 0.9])
+    np.testing.assert_allclose(cells.s, [0.01, 0.3, 0.9])
+    np.testing.assert_allclose(cells.x, [np.sqrt((1 + 4 + 4) / 3), np.sqrt((9 + 16) / 2), 7.0])  # RMS, not mean
+    assert cells.n.tolist() == [3, 2, 1] and cells.fitted.tolist() == [True, False, False]
+    assert cells.spread[0] == pytest.approx(np.std([1.0, 2.0, 2.0], ddof=1)) and cells.spread[2] == 0.0
+    assert np.isnan(cal.ratio_cells(betas, s, x, np.zeros(8, bool)).x).all()  # nothing kept: no value
+
+
+def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
+    """One rollout per ratio from each expert segment the settling window can use (>= min_rollout_steps),
+    longest first; blend_segments=n keeps the n longest; rollouts_per_beta repeats each."""
+    def episode(lengths):
+        expert = np.concatenate([np.r_[np.ones(n, bool), np.zeros(5, bool)] for n in lengths])
+        return {"expert": expert}
+    episodes = [episode([30, 12]), episode([25, 40])]                        # segments of >= H = 10 steps
+    cfg = cal.CalibrationConfig(min_rollout_steps=20)
+    beta, jobs = cal.blend_schedule(episodes, 10, cfg)
+    lengths = sorted({(e, b - a) for e, (a, b) in jobs}, key=lambda item: -item[1])
+    assert [n for _, n in lengths] == [40, 30, 25]                           # the 12-step one is too short
+    assert len(beta) == 13 * 3 and all(np.sum(beta == b) == 3 for b in cfg.betas)
+    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=20, blend_segments=2))
+    assert {b - a for _, (a, b) in jobs} == {40, 30} and len(beta) == 26
+    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=20, rollouts_per_beta=2))
+    assert len(beta) == 13 * 3 * 2
+    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=50))
+    assert {b - a for _, (a, b) in jobs} == {40} and len(beta) == 13          # none long enough: the longest
+    with pytest.raises(ValueError, match="blend_segments must be an int >= 0"):
+        cal.blend_schedule(episodes, 10, cal.CalibrationConfig(blend_segments=-1))
+
+
+def test_rollouts_per_beta_repeats_every_ratio_on_every_segment(planar):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
     cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, rollouts_per_beta=2, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
-    assert len(c.blend_beta) == 26
-    np.testing.assert_array_equal(c.blend_beta[:13], c.blend_beta[13:])
-    assert np.any(c.blend_episode[:13] != c.blend_episode[13:])              # the repeat starts elsewhere
+    once = cal.calibrate(env, policy, episodes, unit, replace(cfg, rollouts_per_beta=1),
+                         torch.Generator().manual_seed(0))
+    assert len(c.blend_beta) == 2 * len(once.blend_beta)
+    pairs = list(zip(c.blend_beta.tolist(), c.blend_episode.tolist(), c.blend_start.tolist()))
+    assert all(pairs.count(p) == 2 for p in pairs)                           # each (ratio, segment) twice
     with pytest.raises(ValueError, match="rollouts_per_beta must be an int >= 1"):
         cal.calibrate(env, policy, episodes, unit, cal.CalibrationConfig(rollouts_per_beta=0))
 
