@@ -481,26 +481,37 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     _finish_overview(fig, axes, env, episode, calibration, expert_path, blend, path)  # legends, zoom, save
 
 
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps, the fitted Eq. (12), W and its
-    95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
+                   min_survivors: int = CalibrationConfig.min_survivors) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps: every blended rollout (kept: dots;
+    discarded: crosses, at the settling error it reached running its full length), the per-ratio RMS of the
+    kept ones with their spread (the points fitted: filled; too few kept: open), the fitted Eq. (12), W and
+    its 95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
     plt = _pyplot()
     c = calibration
     unit = c.median_step if median_step is None else median_step
     fig, ax = plt.subplots(figsize=(10.5, 3.8))
     kept = c.blend_kept
-    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, color="C0", zorder=3,
-               label=f"blended rollouts ({int(kept.sum())})")
+    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, s=9, color="C0", alpha=0.35, zorder=2,
+               label=f"kept rollouts ({int(kept.sum())})")
     if np.any(~kept):
-        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, marker="x", color="C3", zorder=3,
-                   label=f"discarded: diverged or too short ({int((~kept).sum())})")
+        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, s=12, marker="x", color="C3", alpha=0.5, zorder=2,
+                   label=f"discarded: crossed {CalibrationConfig.diverge_threshold:g} paper steps, or too short "
+                         f"({int((~kept).sum())})")
+    cells = ratio_cells(c.blend_beta, c.blend_s, c.blend_x, kept, min_survivors)
+    for fitted, face in ((cells.fitted, "C0"), (~cells.fitted & (cells.n > 0), "white")):
+        if fitted.any():
+            ax.errorbar(cells.s[fitted], cells.x[fitted] / unit, yerr=cells.spread[fitted] / unit, fmt="o",
+                        ms=7, mfc=face, mec="C0", ecolor="C0", capsize=3, zorder=3,
+                        label="per-ratio RMS of the kept ± SD" + (" (fitted)" if face == "C0" else
+                                                                 f" (< {min_survivors} kept: not fitted)"))
     if c.r is not None:
         s = np.linspace(0.0, 1.0, 201)
         ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
                 label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
     ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
                label=f"W = {c.W / unit:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
-                     + ("" if c.r is not None else " (fallback)"))
+                     + ("" if c.r is not None else " (FALLBACK: no fit)"))
     if c.W_ci is not None:
         _draw_W_interval(ax, c.W / unit, c.W_ci[0] / unit, c.W_ci[1] / unit)    # an error bar at s = 1
     _second_error_axis(ax, unit, c.paper_median_step)                            # the paper's unit (or rad)
@@ -561,7 +572,10 @@ class Calibration:
               f"{self.W_ci[1] / self.median_step:.2f}, ")
         lines = [f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
                  + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
-                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)}",
+                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)} over "
+                 f"{len(np.unique(self.blend_beta))} ratios, "
+                 f"{int(ratio_cells(self.blend_beta, self.blend_s, self.blend_x, self.blend_kept).fitted.sum())} "
+                 f"with >= {CalibrationConfig.min_survivors} kept (fitted)",
                  "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
                  + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
         if self.closed_loop_pooled is not None:

@@ -22,18 +22,20 @@ PROFILES = {
                     start="random", finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
-    # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, the fixed sweep at the paper's
-    # 2 / 4 / 8, the sigma = 0 control. The authors' evaluation starts (random, often folded: from their fixed
+    # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, Table I's whole fixed sweep
+    # (2 / 4 / 8 / 12 / 16: the paper's sweep, so that its best lies inside it; the sigma = 0 control, measured
+    # before, is left out). The authors' evaluation starts (random, often folded: from their fixed
     # demonstration start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along
     # one cosine of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
     # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
-    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured: prepare 14 min,
-    # lineages 0-2 side by side 116 min, 3-4 side by side 74 min, the cores shared with probes for about half of
-    # it (benchmarks/README.md, "The mid run on the new recipe").
+    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured with 2 / 4 / 8 and
+    # the control (the same count of arms less one): prepare 14 min, lineages 0-2 side by side 116 min, 3-4 side
+    # by side 74 min, the cores shared with probes for about half of it (benchmarks/README.md, "The mid run on
+    # the new recipe").
     "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                   start="random", finetune="continue",
-                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "pooled", "zero_noise"),
+                  methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
                   eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the earlier mid recipe (U-Net, fine-tuning restarted) on the UR5
     # engine-lever env with Table II's rows (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3

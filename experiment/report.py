@@ -275,7 +275,19 @@ def calibration_lines(cfg, stats):
                      + (f" (the paper: {quoted['sigma']})" if quoted else "")
                      + f"; W = {calibrate.other_units(W_rad, paper)}"
                      + (f" (the paper: {quoted['W']})" if quoted else ""))
+        lines.append("  - per lineage" + (" (the paper's median steps)" if paper is not None else " (rad)") + ": "
+                     + "; ".join(lineage_calibration(l, v, paper is not None) for l, v in per.items()))
     return lines
+
+
+def lineage_calibration(lineage, v, in_paper_unit):
+    """One lineage's W with its bootstrap interval and per-joint sigma (the paper's unit, else rad); a
+    calibration that fell back to the open-loop W says so in capitals."""
+    key = "_paper" if in_paper_unit else "_rad"
+    ci = v.get("W_ci" + key)
+    text = (f"{lineage}: W {v['W' + key]:.2f}" + (f" [{ci[0]:.2f}–{ci[1]:.2f}]" if ci else "")
+            + ", sigma " + "/".join(f"{x:.2f}" for x in v["sigma_per_joint" + key]))
+    return text + (" FALLBACK (no fit: W from the open-loop error)" if v["fit"].startswith("FALLBACK") else "")
 
 
 def write_tables(run, tables):

@@ -1,5 +1,6 @@
 """Statistics of dagger.py (self-written, no scipy) against closed forms and known table values."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -152,12 +153,21 @@ def test_calibration_lines_compare_with_the_paper_in_its_unit():
     m = 0.0245  # our planar median step; the paper's is 0.0176
     sigma_rad = [4.0 * 0.0176, 4.5 * 0.0176, 5.0 * 0.0176]
     per = {"0": {"sigma_per_joint": [v / m for v in sigma_rad], "W": 8.0 * 0.0176 / m, "median_step": m,
-                 "sigma_per_joint_rad": sigma_rad, "W_rad": 8.0 * 0.0176}}
+                 "sigma_per_joint_rad": sigma_rad, "W_rad": 8.0 * 0.0176, "fit": "fit",
+                 "W_paper": 8.0, "W_ci_paper": [7.5, 8.6], "sigma_per_joint_paper": [4.0, 4.5, 5.0]},
+           "1": {"sigma_per_joint": [v / m for v in sigma_rad], "W": 8.0 * 0.0176 / m, "median_step": m,
+                 "sigma_per_joint_rad": sigma_rad, "W_rad": 8.0 * 0.0176, "fit": "FALLBACK: no fit, ...",
+                 "W_paper": 8.0, "W_ci_paper": None, "sigma_per_joint_paper": [4.0, 4.5, 5.0]}}
     stats = {"calibration": {"1": per}, "best_fixed_per_round": {"1": "fixed_4"}}
-    text = "\n".join(report.calibration_lines(cfg, stats))
-    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 1 lineage); best fixed: sigma = 4 (paper's unit)" in text
+    text = "\n".join(report.calibration_lines(replace(cfg, lineages=2), stats))
+    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 2 lineages); best fixed: sigma = 4 (paper's unit)" in text
     assert ("sigma = 0.070, 0.079, 0.088 rad = 4.00, 4.50, 5.00 paper median steps (the paper: 3.9–5.1); "
             "W = 0.141 rad = 8.00 paper median steps (the paper: 8.0)") in text
+    # each lineage in the paper's unit, with its interval; a fallback is said in capitals
+    assert ("per lineage (the paper's median steps): 0: W 8.00 [7.50–8.60], sigma 4.00/4.50/5.00; "
+            "1: W 8.00, sigma 4.00/4.50/5.00 FALLBACK") in text
+    one = "\n".join(report.calibration_lines(cfg, {"calibration": {"1": {"0": per["0"]}}}))
+    assert "(W = 5.75 median steps, 1 lineage)" in one and "FALLBACK" not in one
 
 
 def test_scenario_paired_differences_and_their_se(tmp_path):
