@@ -762,26 +762,46 @@ def test_velocity_noise_has_the_configured_std_and_rebuilds_q_prev(stats):
 
 
 def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
-    """The authors' 0.3 of their median step per 30 Hz frame (0.3 * 0.0176 rad = 0.158 rad/s) over one of
-    our 0.1 s steps (3 of their frames) is 0.0158 rad, whatever our own median step; without the env's
-    units it stays 0.3 of our median step per step."""
+    """The authors add N(0, (0.3 m_p)²) per joint to a noised state's velocity, in rad per 30 Hz frame (m_p
+    their median step, PAPER_SETUP.md §6). Per env step that must be the same speed in rad/s at any control
+    period. With the stats built as the project builds them (frames_per_step = env.dt / PAPER_FRAME_DT, as
+    dagger's demo statistics do) for one motion sampled at our 10 Hz and at the authors' 30 Hz (where a step
+    is their frame, so their 0.3 m_p unconverted), the std over env.dt is one number; one 10 Hz step spans as
+    many of their frames as the data say. A missing conversion (3x too little at 10 Hz), a random walk's
+    sqrt(3), or the inverse (9x) each break one of these."""
     from dataclasses import replace
     cfg = RelabelConfig()
     assert relabel.velocity_noise_std(cfg, stats) == pytest.approx(0.3 * stats.median_step)   # no units known
-    planar = replace(stats, paper_median_step=0.0176, frames_per_step=0.1 / envs.PAPER_FRAME_DT)
-    assert planar.frames_per_step == pytest.approx(3.0)
-    assert relabel.velocity_noise_std(cfg, planar) == pytest.approx(0.01584)
-    assert relabel.velocity_noise_std(cfg, planar) / 0.1 == pytest.approx(0.3 * 0.0176 * 30)  # rad/s, theirs
-    at_30hz = replace(planar, frames_per_step=1.0)                          # dt = 1/30 s: their own frame
-    assert relabel.velocity_noise_std(cfg, at_30hz) == pytest.approx(0.3 * 0.0176)
+    speeds = np.array([0.1, -0.2, 0.26])  # rad/s: one motion, joints at different constant speeds
+
+    def project_stats(dt):
+        env = envs.make_env("planar", dt=dt)
+        q = np.array([0.3, -1.0, 2.0]) + np.arange(round(3.0 / dt) + 1)[:, None] * dt * speeds  # 3 s
+        demos = [{"q": q}]
+        return env, q, demo_stats(demos, envs.median_step(demos), env.max_step,
+                                  paper_median_step=envs.paper_median_step(env),
+                                  frames_per_step=env.dt / envs.PAPER_FRAME_DT)
+
+    env10, q10, at_10hz = project_stats(0.1)
+    env30, q30, at_30hz = project_stats(1 / 30)  # the authors' rate (PAPER_SETUP.md §1), not PAPER_FRAME_DT
+    # frames per step, from the data: how much further one 10 Hz step moves than one 30 Hz step
+    assert at_10hz.frames_per_step == pytest.approx(np.abs(np.diff(q10, axis=0)).max() / np.abs(np.diff(q30, axis=0)).max())
+    assert at_30hz.frames_per_step == pytest.approx(1.0)
+    noise_30hz = relabel.velocity_noise_std(cfg, at_30hz)
+    assert noise_30hz == pytest.approx(cfg.velocity_noise * envs.paper_median_step("planar"))  # theirs, as set
+    noise_10hz = relabel.velocity_noise_std(cfg, at_10hz)
+    assert noise_10hz / env10.dt == pytest.approx(noise_30hz / env30.dt)  # the same rad/s at either rate
+    assert noise_10hz != pytest.approx(cfg.velocity_noise * at_10hz.median_step, rel=0.2)  # not 0.3 of ours
     # the sampler draws it: q_prev = q - v with v = the demo tangent + that noise
     step = np.array([0.02, -0.01, 0.015])
+    planar = replace(stats, paper_median_step=at_10hz.paper_median_step, frames_per_step=at_10hz.frames_per_step)
     sampler = AugmentationSampler([line_episode()], FakeEnv, planar, "isotropic", 2.0,
                                   small_cfg(pool_size=4096, refresh_size=4096))
     sampler(0, np.random.default_rng(0))
     obs = sampler._pool_obs[: sampler._filled].astype(np.float64)
     noise = obs[:, :DOF] - obs[:, DOF:2 * DOF] - step
-    np.testing.assert_allclose(noise.std(0), 0.01584, rtol=0.05)
+    np.testing.assert_allclose(noise.std(0), noise_10hz, rtol=0.05)
+    assert noise_10hz != pytest.approx(0.3 * stats.median_step, rel=0.2)  # FakeEnv's own unit would differ
     demo = demo_stats([oracle_like_demo(0)], 0.01, FakeEnv.max_step, paper_median_step=0.0176, frames_per_step=3)
     assert (demo.paper_median_step, demo.frames_per_step) == (0.0176, 3.0)
 

@@ -23,15 +23,22 @@ def within(x, limit):
     return np.all(np.abs(x) <= limit * (1 + 1e-6))
 
 
-def test_kernel_is_two_moving_averages_that_bound_acceleration_and_jerk():
-    k = filter_kernel(V, A, J, DT)
-    n_acc = math.ceil(np.max(V / (A * DT)) - 1e-9)                  # 4 steps from 0 to v_max
-    n_jerk = math.ceil(np.max(A / (J * DT)) - 1e-9)                 # 2 steps from 0 to a_max
-    assert len(k) == n_acc + n_jerk - 1 and k.sum() == pytest.approx(1.0) and np.all(k > 0)
-    w = np.concatenate([np.zeros((5, 3)), np.tile(V, (20, 1)), np.zeros((20, 3))])   # a full-speed pulse
+# Joints whose limits need ramps of different, non-whole numbers of steps (v / (a dt) = 3.57, 3, 3 and
+# a / (j dt) = 2.8, 2.2, 2.2): a kernel sized for the wrong joint, or truncated instead of rounded up, breaks
+# a limit here (V, A, J above give whole numbers of steps, the same for every joint).
+UNEVEN = (np.array([0.5, 0.3, 0.6]), np.array([1.4, 1.0, 2.0]), np.array([5.0, 4.5, 9.0]))
+
+
+@pytest.mark.parametrize("v_max, a_max, j_max", [(V, A, J), UNEVEN], ids=["even", "uneven"])
+def test_kernel_is_two_moving_averages_that_bound_acceleration_and_jerk(v_max, a_max, j_max):
+    k = filter_kernel(v_max, a_max, j_max, DT)
+    w = np.concatenate([np.zeros((5, 3)), np.tile(v_max, (20, 1)), np.zeros((20, 3))])   # a full-speed pulse
     y = np.stack([np.convolve(w[:, j], k) for j in range(3)], axis=1)
     a = np.diff(y, axis=0) / DT
-    assert within(y, V) and within(a, A) and within(np.diff(a, axis=0) / DT, J)
+    assert within(y, v_max) and within(a, a_max) and within(np.diff(a, axis=0) / DT, j_max)
+    n_acc = math.ceil(np.max(v_max / (a_max * DT)) - 1e-9)          # even: 4 steps from 0 to v_max
+    n_jerk = math.ceil(np.max(a_max / (j_max * DT)) - 1e-9)         # even: 2 steps from 0 to a_max
+    assert len(k) == n_acc + n_jerk - 1 and k.sum() == pytest.approx(1.0) and np.all(k > 0)   # and no longer
 
 
 def test_straight_rest_to_rest_move_is_an_s_curve():

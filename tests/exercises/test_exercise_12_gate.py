@@ -49,6 +49,13 @@ def test_rollout_chunk_applies_the_contract_step_rule(env):
         assert np.allclose(states[k + 1], q, atol=1e-15)
     other = env.q + 0.1
     assert np.array_equal(rollout_chunk(env, chunk, q=other)[0], other)
+    # at the joint limits: joint 0 just below its upper limit, joint 2 just above its lower one, both driven
+    # at full speed into them; they stop at the limits (the contract's outer clip), joint 1 does not move
+    edge = np.array([hi[0] - 0.02, 0.3, lo[2] + 0.07])
+    states = rollout_chunk(env, edge + np.array([[1.0, 0.0, -1.0]] * 3), q=edge)
+    assert np.all(states >= lo) and np.all(states <= hi)
+    np.testing.assert_allclose(states[1], [hi[0], 0.3, lo[2] + 0.07 - env.max_step])   # 0.05 rad/step
+    np.testing.assert_allclose(states[-1], [hi[0], 0.3, lo[2]])
 
 
 def test_stalled_compares_the_last_window_with_the_best_before():
