@@ -683,7 +683,7 @@ def make_figures(run, demos, stats):
         env.reset(seed=int(demos[0]["seed"]))
         envs.render_scene_image(env, fig("fig5_environment.png"))
         if cfg.image_obs:
-            plot_policy_view(env, demos[0], fig("fig5_policy_view.png"))
+            envs.plot_policy_view(env, demos[0], fig("fig5_policy_view.png"))
     if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")
         return
@@ -865,26 +865,6 @@ def student_t_cdf(t, df):
         return 1.0 if t > 0 else 0.0
     tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
     return 1.0 - tail if t > 0 else tail
-
-
-def plot_policy_view(env, episode, path, n_frames=4):
-    """What an image policy sees: the camera image inside the observations of one demonstration, at a few
-    steps from start to goal, beside the same camera at full resolution (engine3d with image_obs)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    steps = np.linspace(0, len(episode["obs"]) - 1, n_frames).round().astype(int)
-    fig, axes = plt.subplots(1, n_frames + 1, figsize=(2.6 * (n_frames + 1), 2.8))
-    axes[0].imshow(env.camera_image(episode["q"][0], 320, 320))
-    axes[0].set_title("camera, 320 x 320")
-    size = env.image_shape[1]
-    for ax, t in zip(axes[1:], steps):
-        ax.imshow(env.obs_image(episode["obs"][t]), interpolation="nearest")
-        ax.set_title(f"policy input, step {t}\n{size} x {size}")
-    for ax in axes:
-        ax.axis("off")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 def write_report(run):

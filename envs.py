@@ -72,21 +72,23 @@ The two agree (tests/test_envs.py): on 12,000 random configurations in 4 scenes,
 either side of contact-boundary points found by bisection. Known exception, of measure zero: a box
 centred exactly across a link, for which pymunk reports a contact of depth 0 (counted as contact).
 
-Beyond the paper (after the banner): the vectorized geometry kernels (box and capsule distances),
-the UR5's DH frames and closed-form IK, episode files (save_episodes / load_episodes: one .npz,
-ragged arrays concatenated with offsets) and straight_line_episode, a stand-in expert for tests
-and demos.
+The file reads in that order: the planar env first (its config, the scenario seeds, ArmEnv, PlanarReacher,
+make_env, the median step), which is all Table I needs; then, under a banner of its own, the UR5 env of
+Table II (EngineConfig, EngineReach3D, its DH frames and closed-form IK, its figure). pybullet is imported
+only when the first EngineReach3D is made: `import envs` and the planar env never load it. Beyond the paper
+(after the last banner): the vectorized box geometry behind the planar in_collision, episode files
+(save_episodes / load_episodes: one .npz, ragged arrays concatenated with offsets) and
+straight_line_episode, a stand-in expert for tests and demos.
 """
 import math
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
 import pymunk
 
 
 # ----------------------------------------------------------------------------------------------
-# Configuration
+# The planar reacher's configuration (Table I)
 # ----------------------------------------------------------------------------------------------
 PLANAR_STARTS = ("random", "fixed")  # PlanarConfig.start
 
@@ -143,113 +145,6 @@ class PlanarConfig:
     # A scene is kept only if at least this many of the 2 n_goal_angles closed-form IK candidates
     # of the target centre are collision-free (the solvability check; see goal_configurations).
     min_goal_configurations: int = 8  # configurations
-
-
-@dataclass
-class EngineConfig:
-    # --- the UR5 of Sec. V (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and
-    #     upper arm housings, ~0.10 m forearm, ~0.09 m wrists) ---
-    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
-    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
-    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
-    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
-    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
-    joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
-    joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
-    # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
-    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
-    dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
-    # m, TCP within this distance of the goal = reached. The authors' success rule: the EE within
-    # 3 cm AND 10 deg of one fixed pose (SS sim_robot_pybullet_small_engine.py, TaskConfig); the
-    # orientation part is the option below, off by default: with it BC at the table2 recipe reaches 88 %
-    # (one end posture), without it 49 %, inside the paper's range (benchmarks/README.md, "The 10° rule").
-    goal_tolerance: float = 0.03
-    # deg or None. The orientation part of the authors' rule: with a value (theirs: 10), success also
-    # needs the flange within this angle of goal_q's orientation, and goal_configurations (the oracle's
-    # goal set) becomes the IK branches of goal_q's own pose -- one goal posture, as their demos have.
-    # None (the default): position only, and the goal set spans every free tool orientation.
-    goal_angle_tolerance: float | None = None
-    # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
-    # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
-    max_steps: int = 333  # steps
-    # The scene family. 'authors': their small-engine cell (benchmarks/README.md, "The UR5
-    # engine-lever task"): one engine with its lever at a fixed place, a table, a wall behind the
-    # robot, two boxes drawn per seed on the table. 'pipes': this project's earlier family (a
-    # housing whose bay, lever and pipes are drawn per seed around a reaching posture).
-    scene: str = "authors"
-    # Start of an episode ('authors' scene only). 'random' (theirs): all six joints uniform within
-    # the joint limits until the arm is clear of everything by start_clearance (SS
-    # splatsim/utils/trajectory_generation.py, _get_random_collision_free_q, used when the config's
-    # q_start is null); 'home': home_q plus a uniform jitter of +-home_jitter per joint.
-    start: str = "random"
-    # The paper's policy sees images (Sec. V): True ends the observation with the camera image
-    # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
-    # it in info['image'].
-    image_obs: bool = False
-    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
-    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
-
-    # --- not in the paper ---
-    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
-    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
-    #                                   they make joint 6 matter (all else is symmetric about z6)
-    # States checked for contact per step (the end state and evenly spaced states before it). At
-    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
-    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
-    # between checks -- less than the thinnest band a centre line must cross to pass through an
-    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
-    n_substeps: int = 4  # states per step
-    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
-    # --- scene='authors' (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
-    #     DH base frame is their URDF base frame turned 180 deg about z, (x, y) -> (-x, -y); the
-    #     table top is our ground z = 0 ---
-    # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
-    # goal is its TCP, (0.151, -0.373, 0.206) m here, the tool pointing along +x at the engine.
-    goal_q: tuple = (1.223, -1.587, 2.082, -0.925, -0.496, -1.124)
-    # The small engine, fixed (theirs: randomize_pose=False at (-0.48, 0.36) m, a ~0.34 x 0.38 x
-    # 0.34 m splat): a block capsule and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
-    engine_parts: tuple = ((0.50, -0.46, 0.15, 0.50, -0.26, 0.15, 0.15),
-                           (0.47, -0.45, 0.36, 0.47, -0.28, 0.36, 0.06))
-    wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs:
-    #                        a 3.0 x 0.05 x 1.5 m cuboid at y = -0.225 in their frame)
-    # The two boxes on the table, drawn per seed (theirs: box1 x in [0.15, 0.5], y in [0.3, 0.5], turned
-    # 90 deg; box2 x in [-0.4, 0.3], y in [0.6, 0.8]; each scaled 0.9-1.1; their sizes are splat
-    # scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
-    # its axis ('x' or 'y'), length (m) and radius (m, = half its height), scaled by box_scale.
-    box_x: tuple = ((-0.50, -0.15), (-0.30, 0.40))  # m
-    box_y: tuple = ((-0.50, -0.30), (-0.80, -0.60))  # m
-    box_axis: tuple = ("y", "x")  # the two boxes stand at 90 deg to each other
-    box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
-    box_radius: tuple = (0.09, 0.09)  # m
-    box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
-    home_q: tuple = (-math.pi / 2, -2.2, 1.9, -1.3, -math.pi / 2, 0.0)  # rad, start='home' (not theirs)
-    home_jitter: float = 0.3  # rad, per joint, start='home'
-    # m, a start keeps this from everything: the authors' planning obstacle clearance
-    # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
-    start_clearance: float = 0.02
-    # --- scene='pipes' (EngineReach3D._draw_pipes_scene). The paper scans a real mockup; here the
-    # scene is drawn per seed. The bay lies along -x, where the arm points at q1 = 0.
-    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
-    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
-    bay_height: float = 0.50  # m, top rails of the housing
-    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
-    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
-    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
-    # Pipes. With these defaults the oracle solves 99 of the 100 eval scenes (median 4.4 CPU s per
-    # demo) and the straight line from the start to every free goal configuration collides in 76
-    # (bench_engine3d.py). Tighter pipes (two passage pipes 0.04-0.09 m away, 1-3 clutter pipes)
-    # made planning ~1.6x slower on 8 scenes; no pipes at all ~2.3x faster.
-    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
-    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
-    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
-    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
-    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
-    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
-    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
-    #   a needle's eye that no planner (or IK from random seeds) finds reliably
-    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal (both scenes)
-    n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
-    n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -843,6 +738,179 @@ class PlanarReacher(ArmEnv):
 
 
 # ----------------------------------------------------------------------------------------------
+# Environments by name
+# ----------------------------------------------------------------------------------------------
+# name -> (env class, its config); the UR5 env registers itself after its class ("engine3d")
+ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}
+
+
+def make_env(name="planar", **config):
+    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
+    if name not in ENVIRONMENTS:
+        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
+    env_class, config_class = ENVIRONMENTS[name]
+    return env_class(config_class(**config))
+
+
+# ----------------------------------------------------------------------------------------------
+# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
+# ----------------------------------------------------------------------------------------------
+def median_step(episodes):
+    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
+
+    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
+    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
+    """
+    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    steps = steps[steps > 0]
+    if len(steps) == 0:
+        raise ValueError("median_step: the episodes contain no joint motion")
+    return float(np.median(steps))
+
+
+# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their
+# demonstration steps of the L2 norm over the joints of one 30 Hz step, in rad (PCD
+# paper/fig_noise_levels/plot.py: MED_PLANAR = 0.0176, MED_LEVER = 0.0166; the lever's is over the
+# UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
+# of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
+# 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
+PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by env name
+PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
+
+
+def paper_median_step(env):
+    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
+    paper has none (then only radians and our median steps can be given)."""
+    if not isinstance(env, str):
+        env = next((name for name, (env_class, _) in ENVIRONMENTS.items() if isinstance(env, env_class)), None)
+    return PAPER_MEDIAN_STEP.get(env)
+
+
+# ==== The UR5 engine lever (Table II) =====================================================
+# The second environment: the UR5 reaching an engine lever, simulated with pybullet. Table I's planar
+# profiles never make it, and pybullet is imported only when they do (`_import_pybullet`).
+
+pb = None  # the pybullet module, once the first EngineReach3D has imported it
+
+
+def _import_pybullet():
+    """pybullet, imported on first use into this module's `pb` (the planar env never needs it)."""
+    global pb
+    if pb is None:
+        import pybullet
+        pb = pybullet
+    return pb
+
+
+@dataclass
+class EngineConfig:
+    # --- the UR5 of Sec. V (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and
+    #     upper arm housings, ~0.10 m forearm, ~0.09 m wrists) ---
+    link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
+    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
+    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
+    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
+    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
+    joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
+    joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
+    # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
+    max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
+    dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
+    # m, TCP within this distance of the goal = reached. The authors' success rule: the EE within
+    # 3 cm AND 10 deg of one fixed pose (SS sim_robot_pybullet_small_engine.py, TaskConfig); the
+    # orientation part is the option below, off by default: with it BC at the table2 recipe reaches 88 %
+    # (one end posture), without it 49 %, inside the paper's range (benchmarks/README.md, "The 10° rule").
+    goal_tolerance: float = 0.03
+    # deg or None. The orientation part of the authors' rule: with a value (theirs: 10), success also
+    # needs the flange within this angle of goal_q's orientation, and goal_configurations (the oracle's
+    # goal set) becomes the IK branches of goal_q's own pose -- one goal posture, as their demos have.
+    # None (the default): position only, and the goal set spans every free tool orientation.
+    goal_angle_tolerance: float | None = None
+    # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
+    # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
+    max_steps: int = 333  # steps
+    # The scene family. 'authors': their small-engine cell (benchmarks/README.md, "The UR5
+    # engine-lever task"): one engine with its lever at a fixed place, a table, a wall behind the
+    # robot, two boxes drawn per seed on the table. 'pipes': this project's earlier family (a
+    # housing whose bay, lever and pipes are drawn per seed around a reaching posture).
+    scene: str = "authors"
+    # Start of an episode ('authors' scene only). 'random' (theirs): all six joints uniform within
+    # the joint limits until the arm is clear of everything by start_clearance (SS
+    # splatsim/utils/trajectory_generation.py, _get_random_collision_free_q, used when the config's
+    # q_start is null); 'home': home_q plus a uniform jitter of +-home_jitter per joint.
+    start: str = "random"
+    # The paper's policy sees images (Sec. V): True ends the observation with the camera image
+    # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
+    # it in info['image'].
+    image_obs: bool = False
+    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
+    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
+
+    # --- not in the paper ---
+    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
+    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
+    #                                   they make joint 6 matter (all else is symmetric about z6)
+    # States checked for contact per step (the end state and evenly spaced states before it). At
+    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
+    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
+    # between checks -- less than the thinnest band a centre line must cross to pass through an
+    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
+    n_substeps: int = 4  # states per step
+    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
+    # --- scene='authors' (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
+    #     DH base frame is their URDF base frame turned 180 deg about z, (x, y) -> (-x, -y); the
+    #     table top is our ground z = 0 ---
+    # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
+    # goal is its TCP, (0.151, -0.373, 0.206) m here, the tool pointing along +x at the engine.
+    goal_q: tuple = (1.223, -1.587, 2.082, -0.925, -0.496, -1.124)
+    # The small engine, fixed (theirs: randomize_pose=False at (-0.48, 0.36) m, a ~0.34 x 0.38 x
+    # 0.34 m splat): a block capsule and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
+    engine_parts: tuple = ((0.50, -0.46, 0.15, 0.50, -0.26, 0.15, 0.15),
+                           (0.47, -0.45, 0.36, 0.47, -0.28, 0.36, 0.06))
+    wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs:
+    #                        a 3.0 x 0.05 x 1.5 m cuboid at y = -0.225 in their frame)
+    # The two boxes on the table, drawn per seed (theirs: box1 x in [0.15, 0.5], y in [0.3, 0.5], turned
+    # 90 deg; box2 x in [-0.4, 0.3], y in [0.6, 0.8]; each scaled 0.9-1.1; their sizes are splat
+    # scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
+    # its axis ('x' or 'y'), length (m) and radius (m, = half its height), scaled by box_scale.
+    box_x: tuple = ((-0.50, -0.15), (-0.30, 0.40))  # m
+    box_y: tuple = ((-0.50, -0.30), (-0.80, -0.60))  # m
+    box_axis: tuple = ("y", "x")  # the two boxes stand at 90 deg to each other
+    box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
+    box_radius: tuple = (0.09, 0.09)  # m
+    box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
+    home_q: tuple = (-math.pi / 2, -2.2, 1.9, -1.3, -math.pi / 2, 0.0)  # rad, start='home' (not theirs)
+    home_jitter: float = 0.3  # rad, per joint, start='home'
+    # m, a start keeps this from everything: the authors' planning obstacle clearance
+    # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
+    start_clearance: float = 0.02
+    # --- scene='pipes' (EngineReach3D._draw_pipes_scene). The paper scans a real mockup; here the
+    # scene is drawn per seed. The bay lies along -x, where the arm points at q1 = 0.
+    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
+    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
+    bay_height: float = 0.50  # m, top rails of the housing
+    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
+    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
+    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
+    # Pipes. With these defaults the oracle solves 99 of the 100 eval scenes (median 4.4 CPU s per
+    # demo) and the straight line from the start to every free goal configuration collides in 76
+    # (bench_engine3d.py). Tighter pipes (two passage pipes 0.04-0.09 m away, 1-3 clutter pipes)
+    # made planning ~1.6x slower on 8 scenes; no pipes at all ~2.3x faster.
+    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
+    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
+    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
+    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
+    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
+    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
+    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
+    #   a needle's eye that no planner (or IK from random seeds) finds reliably
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal (both scenes)
+    n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
+    n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
+
+
+# ----------------------------------------------------------------------------------------------
 # UR5 engine-lever reaching (Sec. V, Table II)
 # ----------------------------------------------------------------------------------------------
 # UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
@@ -923,6 +991,7 @@ class EngineReach3D(ArmEnv):
     dim = 3  # workspace dimension
 
     def __init__(self, config: EngineConfig | None = None):
+        _import_pybullet()  # the simulator, loaded with the first UR5 env
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
         if cfg.scene not in ENGINE_SCENES:
@@ -1652,54 +1721,7 @@ class EngineReach3D(ArmEnv):
             pass
 
 
-# ----------------------------------------------------------------------------------------------
-# Environments by name
-# ----------------------------------------------------------------------------------------------
-ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig),  # name -> (env class, its config)
-                "engine3d": (EngineReach3D, EngineConfig)}
-
-
-def make_env(name="planar", **config):
-    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
-    if name not in ENVIRONMENTS:
-        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
-    env_class, config_class = ENVIRONMENTS[name]
-    return env_class(config_class(**config))
-
-
-# ----------------------------------------------------------------------------------------------
-# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
-# ----------------------------------------------------------------------------------------------
-def median_step(episodes):
-    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
-
-    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
-    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
-    """
-    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
-    steps = np.concatenate(steps) if steps else np.zeros(0)
-    steps = steps[steps > 0]
-    if len(steps) == 0:
-        raise ValueError("median_step: the episodes contain no joint motion")
-    return float(np.median(steps))
-
-
-# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their
-# demonstration steps of the L2 norm over the joints of one 30 Hz step, in rad (PCD
-# paper/fig_noise_levels/plot.py: MED_PLANAR = 0.0176, MED_LEVER = 0.0166; the lever's is over the
-# UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
-# of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
-# 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
-PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by env name
-PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
-
-
-def paper_median_step(env):
-    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
-    paper has none (then only radians and our median steps can be given)."""
-    if not isinstance(env, str):
-        env = next((name for name, (env_class, _) in ENVIRONMENTS.items() if isinstance(env, env_class)), None)
-    return PAPER_MEDIAN_STEP.get(env)
+ENVIRONMENTS["engine3d"] = (EngineReach3D, EngineConfig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1714,53 +1736,24 @@ def render_scene_image(env, path, q=None, width=640, height=480):
     return image
 
 
-# ==== Beyond the paper (safe to skip) ====================================================
-# The vectorized numpy geometry behind in_collision (the simulators' contact checks, fast enough
-# for the millions of checks of planning and relabeling), the UR5's kinematics helpers, episode
-# files and a stand-in expert for tests and demos.
-
-# ----------------------------------------------------------------------------------------------
-# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
-# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
-# ----------------------------------------------------------------------------------------------
-def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
-    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
-    dx, dy = px - cx, py - cy
-    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
-    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
-    return np.sqrt(lx * lx + ly * ly)
-
-
-def box_corners(cx, cy, cos, sin, hx, hy):
-    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
-    xs, ys = [], []
-    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
-        xs.append(cx + sx * hx * cos - sy * hy * sin)
-        ys.append(cy + sx * hx * sin + sy * hy * cos)
-    return xs, ys
-
-
-def box_distance(a, b):
-    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
-
-    Two facts of 2-D convex geometry make this short and exact:
-      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
-      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
-        smallest of the 8 corner-to-box distances.
-    """
-    acx, acy, ac, as_, ahx, ahy = a
-    bcx, bcy, bc, bs, bhx, bhy = b
-    dx, dy = bcx - acx, bcy - acy
-    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
-    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
-        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
-        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
-        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
-    d = np.full(overlap.shape, np.inf)
-    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
-        for x, y in zip(xs, ys):
-            d = np.minimum(d, point_box_distance(x, y, *box))
-    return np.where(overlap, 0.0, d)
+def plot_policy_view(env, episode, path, n_frames=4):
+    """What an image policy sees: the camera image inside the observations of one demonstration, at a few
+    steps from start to goal, beside the same camera at full resolution (engine3d with image_obs)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    steps = np.linspace(0, len(episode["obs"]) - 1, n_frames).round().astype(int)
+    fig, axes = plt.subplots(1, n_frames + 1, figsize=(2.6 * (n_frames + 1), 2.8))
+    axes[0].imshow(env.camera_image(episode["q"][0], 320, 320))
+    axes[0].set_title("camera, 320 x 320")
+    size = env.image_shape[1]
+    for ax, t in zip(axes[1:], steps):
+        ax.imshow(env.obs_image(episode["obs"][t]), interpolation="nearest")
+        ax.set_title(f"policy input, step {t}\n{size} x {size}")
+    for ax in axes:
+        ax.axis("off")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1889,6 +1882,55 @@ def _quaternion_z_to(direction):
     flipped = 1.0 + z < 1e-9  # d = -z: any half turn about a horizontal axis
     quat[flipped] = (1.0, 0.0, 0.0, 0.0)
     return quat / np.linalg.norm(quat, axis=1, keepdims=True)
+
+
+# ==== Beyond the paper (safe to skip) ====================================================
+# The vectorized numpy geometry behind the planar in_collision (the simulator's contact checks, fast
+# enough for the millions of checks of planning and relabeling), episode files and a stand-in expert for
+# tests and demos.
+
+# ----------------------------------------------------------------------------------------------
+# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
+# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
+# ----------------------------------------------------------------------------------------------
+def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
+    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
+    dx, dy = px - cx, py - cy
+    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
+    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
+    return np.sqrt(lx * lx + ly * ly)
+
+
+def box_corners(cx, cy, cos, sin, hx, hy):
+    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
+    xs, ys = [], []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        xs.append(cx + sx * hx * cos - sy * hy * sin)
+        ys.append(cy + sx * hx * sin + sy * hy * cos)
+    return xs, ys
+
+
+def box_distance(a, b):
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
+
+    Two facts of 2-D convex geometry make this short and exact:
+      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
+      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
+        smallest of the 8 corner-to-box distances.
+    """
+    acx, acy, ac, as_, ahx, ahy = a
+    bcx, bcy, bc, bs, bhx, bhy = b
+    dx, dy = bcx - acx, bcy - acy
+    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
+    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
+        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
+        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
+        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
+    d = np.full(overlap.shape, np.inf)
+    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
+        for x, y in zip(xs, ys):
+            d = np.minimum(d, point_box_distance(x, y, *box))
+    return np.where(overlap, 0.0, d)
 
 
 # ----------------------------------------------------------------------------------------------

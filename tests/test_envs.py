@@ -1,5 +1,6 @@
 """Tests of envs.py: scenarios, collision truth, kinematics, step semantics, episode files."""
 import math
+import os
 
 import numpy as np
 import pytest
@@ -570,3 +571,19 @@ def test_both_envs_share_the_arm_env_machinery():
             assert getattr(cls, name) is getattr(ArmEnv, name), (cls.__name__, name)
     assert PlanarReacher.step is ArmEnv.step  # EngineReach3D.step adds the camera image to info
     assert PlanarReacher.goal_reached is ArmEnv.goal_reached  # EngineReach3D's adds the orientation rule
+
+
+def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
+    """`import envs` and a planar episode load no pybullet (Table I's profiles never need the simulator);
+    making the UR5 env imports it. Checked in a fresh interpreter, where nothing else imported it first."""
+    import subprocess
+    import sys
+    code = ("import sys, envs\n"
+            "env = envs.make_env('planar'); env.reset(seed=0); env.step(env.q + 0.01)\n"
+            "print('after planar:', 'pybullet' in sys.modules)\n"
+            "envs.make_env('engine3d').reset(seed=0)\n"
+            "print('after engine3d:', 'pybullet' in sys.modules)\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "after planar: False" in out.stdout and "after engine3d: True" in out.stdout
