@@ -15,8 +15,8 @@ PROFILES = {
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     calib_blend_segments=1, calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
-    # (one lineage, one round): 9 min 14 s wall on the 2-core development machine with --workers 2
-    # (benchmarks/README.md, "The quick profile on the new recipe").
+    # (one lineage, one round): 6 min 55 s - 9 min 5 s wall over three seeds on the 2-core machine, --workers 2
+    # (benchmarks/README.md, "The quick profile today").
     "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
                     start="random", finetune="continue",
