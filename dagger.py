@@ -244,11 +244,6 @@ def bc_row_arm(root, cfg_fields):
     evaluate_policy(run, "eval/bc.json", policy, "bc (pi_0 continued on D0 alone)")
 
 
-def pi0_eval_name(cfg):
-    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'restart'."""
-    return "eval/pi0.json" if cfg.finetune == "continue" else "eval/bc.json"
-
-
 def demo_statistics(cfg, demos):
     """The base demonstrations' median step (the unit of noise) and speed/acceleration limits, with the env's
     units for what the authors set in theirs (the paper's median step; their 30 Hz frames per env step)."""
@@ -434,13 +429,6 @@ def calibrate_noise(run, lineage, k, policy, rounds_data, stats):
     return calibrate.Calibration.from_dict(run.stage(f"lineage_{lineage}/round_{k}/calibration.json", measure))
 
 
-def calibration_config(cfg):
-    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
-    return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                       blend_segments=cfg.calib_blend_segments,
-                                       rollouts_per_beta=cfg.calib_rollouts_per_beta)
-
-
 # ----------------------------------------------------------------------------------------------
 # Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0
 # ----------------------------------------------------------------------------------------------
@@ -571,11 +559,6 @@ def evaluate_policy(run, name, policy, label, unseen=None):
     return np.asarray(ok["success"], bool)
 
 
-def unseen_name(name):
-    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
-    return name[:-len(".json")] + "_unseen.json"
-
-
 def evaluation(run, policy, label, scenarios):
     """evaluate on one scenario set, 'eval' (env.eval_seeds) or 'unseen' (env.unseen_seeds): its first
     eval_scenarios x eval_repeats, one sampling seed per set shared by every method (paired)."""
@@ -669,8 +652,9 @@ def tost(a, b, margin):
 
 
 # ==== Beyond the paper (safe to skip) ====================================================
-# The config's checks and profiles, the env/oracle/policy factories, the Student-t CDF, the report and the
-# entry point. The run folder, workers and command line themselves are in experiment/.
+# The paper's figures from a finished round (make_figures), the table's statistics over lineages (summarize),
+# the env/oracle/policy factories and file names, the Student-t CDF, the report and the entry point. The run
+# folder, workers, command line and profiles themselves are in experiment/.
 
 def make_figures(run, demos, stats):
     """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
@@ -785,6 +769,23 @@ def degenerate(a, b):
         return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
                 "so t and p are undefined")
     return None
+
+
+def pi0_eval_name(cfg):
+    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'restart'."""
+    return "eval/pi0.json" if cfg.finetune == "continue" else "eval/bc.json"
+
+
+def unseen_name(name):
+    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
+    return name[:-len(".json")] + "_unseen.json"
+
+
+def calibration_config(cfg):
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
+    return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
+                                       blend_segments=cfg.calib_blend_segments,
+                                       rollouts_per_beta=cfg.calib_rollouts_per_beta)
 
 
 def env_options(cfg):
