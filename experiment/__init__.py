@@ -1,0 +1,12 @@
+"""The experiment harness of `python dagger.py`: everything a run needs that is not the paper's method.
+
+    run_folder.py  runs/<name>/: stages loaded if finished, else computed and written atomically; resume,
+                   config mismatch, damaged files named, the seed of every stage, resumable training
+    workers.py     the arms of a round in worker processes, the BC row beside the rounds
+    cli.py         the command line: profiles, overrides, the run folder's name, Ctrl-C and errors
+    profiles.py    the run sizes (smoke, quick, mid, table2, paper) and the config's valid values
+    report.py      results.json, results.csv, table.md, report.md and the table figures
+
+It imports the concept modules (envs, diffusion, calibrate) but never dagger.py; dagger.py passes in what it
+needs (its profiles, its statistics' results, its worker functions). A student may skip this folder.
+"""
