@@ -871,6 +871,7 @@ def student_t_cdf(t, df):
 def write_report(run):
     """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
     table figures, the paper's figures and report.md (experiment/report.py writes them). Returns the table."""
+    run.check_lineages()  # a lineage folder copied in from elsewhere joins only if made like this one
     tables = {}
     for scenarios in ("eval", "unseen"):
         success = report.collect_results(run, scenarios)

@@ -7,8 +7,10 @@ stage finished, else compute it, write it atomically, log and time it. Nothing h
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 import time
 from dataclasses import asdict, fields, replace
 
@@ -53,6 +55,7 @@ class Run:
         else:
             write_json(path, asdict(cfg))
         self._log = open(os.path.join(root, "log.txt"), "a")
+        self._claimed = set()
 
     def path(self, *parts):
         """root/parts..., its folder made."""
@@ -71,6 +74,9 @@ class Run:
         write it atomically and record its wall time. By the file's kind: .npz a list of episodes
         (envs.save_episodes), .json a JSON dict, .pt a policy (compute writes it: Run.train)."""
         path = self.path(*name.split("/"))
+        lineage = re.match(r"lineage_(\d+)/", name)
+        if lineage:
+            self.claim_lineage(int(lineage.group(1)))
         if os.path.exists(path):
             return self.load(name)
         t0 = time.time()
@@ -123,12 +129,46 @@ class Run:
                 os.remove(part.format(step=m))
         return policy
 
+    def claim_lineage(self, lineage):
+        """lineage_<l>/lineage.json: the config and the pi_0 (the SHA-256 of its weights) the lineage is made
+        with, written at its first stage. A lineage folder copied in from another run folder -- run on another
+        day or machine, from a copy of this folder's shared stages -- is checked instead: another config
+        (FOLDER_FREE_FIELDS aside) or another pi_0 is refused (ConfigMismatch), naming what differs."""
+        if lineage in self._claimed:
+            return
+        pi0_path = os.path.join(self.root, "checkpoints", "bc.pt")
+        if not os.path.exists(pi0_path):
+            return  # no pi_0 yet: nothing a lineage could have been made from
+        path = self.path(f"lineage_{lineage}", "lineage.json")
+        pi0 = weights_sha256(pi0_path)
+        if os.path.exists(path):
+            record = read_json(path)
+            where = f"{self.root}/lineage_{lineage}"
+            check_same_config(where, record["config"], self.cfg,
+                              advice=f"A lineage joins a run folder only if it was made with the folder's config: "
+                                     f"delete {where} to run it again here, or report it in a folder of its config.")
+            if record["pi0_sha256"] != pi0:
+                raise ConfigMismatch(
+                    f"{where} was made from another pi_0 (the SHA-256 of its weights {record['pi0_sha256'][:12]}... "
+                    f"there, {pi0[:12]}... here). A lineage joins a run folder only with the shared stages it was "
+                    "made from: run it from a copy of this folder's data/ and checkpoints/, or run it here.")
+        else:
+            write_json(path, {"config": asdict(self.cfg), "pi0_sha256": pi0})
+        self._claimed.add(lineage)
+
+    def check_lineages(self):
+        """claim_lineage for every lineage folder in the run folder (the report's check before it merges them)."""
+        for name in sorted(os.listdir(self.root)):
+            match = re.fullmatch(r"lineage_(\d+)", name)
+            if match and os.path.isdir(os.path.join(self.root, name)):
+                self.claim_lineage(int(match.group(1)))
+
     def record_time(self, stage, seconds):
         """Wall time of a finished stage, one file per stage (parallel lineages never write the same file)."""
         write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
 
 
-def check_same_config(root, old, cfg):
+def check_same_config(root, old, cfg, advice=None):
     """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside)."""
     saved = asdict(cfg)
     for key, value in saved.items():  # JSON keeps tuples as lists
@@ -143,8 +183,8 @@ def check_same_config(root, old, cfg):
         raise ConfigMismatch(
             f"{root} holds a run made with another config: "
             + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
-            + f".\nEither give this run its own folder (--out runs/<new name>), or delete {root} "
-              "to start it afresh (its finished stages are lost).")
+            + ".\n" + (advice or f"Either give this run its own folder (--out runs/<new name>), or delete {root} "
+                                    "to start it afresh (its finished stages are lost)."))
 
 
 def timing_name(name):
@@ -166,6 +206,17 @@ def stage_seed(cfg, *keys):
 
 def _key_int(key):
     return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
+
+
+def weights_sha256(path):
+    """The SHA-256 (hex) of a policy checkpoint's weights, name by name: which pi_0 a lineage was made from
+    (the same weights give the same digest however the file was written)."""
+    state = load_stage_file(path, torch.load, map_location="cpu", weights_only=True)["state_dict"]
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        digest.update(name.encode())
+        digest.update(state[name].contiguous().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def write_json(path, data):

@@ -571,3 +571,28 @@ def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
     for name in unseen:
         assert json.load(open(os.path.join(root, name))) == json.load(open(os.path.join(full_run, name)))
     assert {p: os.stat(p).st_mtime_ns for p in stages} == stages  # nothing else was made again
+
+
+def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_path):
+    """A lineage records the config and the pi_0 it was made with (lineage_<l>/lineage.json); a lineage folder
+    copied in from another run folder with the same shared stages joins the report (--lineages N), and one made
+    with another config or from another pi_0 is refused, naming what differs."""
+    import shutil
+    record = json.load(open(os.path.join(full_run, "lineage_0", "lineage.json")))
+    assert record["pi0_sha256"] == run_folder.weights_sha256(os.path.join(full_run, "checkpoints", "bc.pt"))
+    assert {k: tuple(v) if isinstance(v, list) else v for k, v in record["config"].items()} == dataclasses.asdict(TINY)
+    root = str(tmp_path / "joined")
+    shutil.copytree(full_run, root)
+    shutil.copytree(os.path.join(full_run, "lineage_0"), os.path.join(root, "lineage_1"))  # "run on another machine"
+    dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+    results = json.load(open(os.path.join(root, "results.json")))
+    assert set(results["success"]["hg_dagger"]) == {"0", "1"}
+    assert "| HG-DAgger | " in open(os.path.join(root, "table.md")).read() and "(2) |" in open(
+        os.path.join(root, "table.md")).read()
+    other = os.path.join(root, "lineage_1", "lineage.json")
+    json.dump({**record, "config": {**record["config"], "bc_steps": 31}}, open(other, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match=r"lineage_1 holds a run made with another config: bc_steps = 31"):
+        dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+    json.dump({**record, "pi0_sha256": "0" * 64}, open(other, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match="lineage_1 was made from another pi_0"):
+        dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
