@@ -1,7 +1,8 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
 Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, each step's
-function in the loop's order, then Table I's statistics and the paper's figures.
+function in the loop's order and Table I's paired tests; after the banner, the paper's figures, the table's
+summary over lineages and the entry point.
 
 Paper map (paper.tex):
   Sec. IV-A, steps 1-6 ..... policy_calibrated_dagger: D0 from the oracle, BC pi_0, HG-DAgger rounds,
@@ -10,7 +11,7 @@ Paper map (paper.tex):
   Sec. IV-A step 2, Sec. V . collect_interventions / rollout: expert-gated (HG-DAgger) collection with the
                              RRT oracle (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
   Sec. IV-D ................ calibrate_noise -> calibrate.calibrate, once per round with the HG-DAgger policy
-  Sec. IV-A steps 3-4, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler:
+  Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler:
                              D0 plus the interventions, noised and relabelled on the fly (the noised arms)
   Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost, summarize
 
