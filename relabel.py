@@ -51,7 +51,7 @@ class RelabelConfig:
     velocity_noise: float = 0.3  # the paper's median steps per 30 Hz frame (theirs): std of a noised state's
     #   per-joint velocity noise, converted to rad per env step by `velocity_noise_std` (0.0158 rad/step planar)
     a_clamp_scale: float = 0.9  # unit-free: a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
-    # (accel_floor, gain_floor and speed_cap converted through the measured m' instead -- 1.34, 2.97, 3.74 of our
+    # (accel_floor, gain_floor and speed_cap converted through the paper's m' instead -- 1.34, 2.97, 3.74 of our
     #  median steps on mid's D0 -- were probed on mid's round 1: fixed sigma = 8 -0.7, pooled -2.0 points over
     #  3 lineages, p >= 0.39, no gain; the m' = m/3 values below stay the defaults)
     accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame², taken as 0.2 · (m/3) / (1/3 step)²
@@ -61,7 +61,7 @@ class RelabelConfig:
     #   taken as 1.68 (m/3) per frame = 1.68 m per step)
     speed_cap_v0: float = 1.05  # unit-free: the 1.05 · |v0| part
     cursor_advance: int = 3  # steps (trajectory indices) per step: theirs 3 m' of arc per frame, 3 m per step if
-    #   m' = m/3 (not probed through the measured m')
+    #   m' = m/3 (not probed through the paper's m')
     hold_tol: float = 0.02  # median steps/step: slower chunk steps at the segment end are "held" (out of the loss)
     min_moving_steps: int = 3  # steps: fewer unmasked steps and the state is redrawn (theirs 8 frames = 2.7 steps)
     near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
