@@ -43,20 +43,25 @@ class RelabelConfig:
     horizon: int = 16  # steps: H, the length of a label chunk (the policy's action chunk)
     settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (H/2), label='pd'
     # not in the paper: the authors' label (their code, PAPER_SETUP.md §6), their 30 Hz frames converted to
-    #   our 10 Hz steps; m = our median step. Three floors below read their median step per frame, m', as m/3
-    #   (the same joint speed at a third of the period); that reading is not theirs: their m' is the paper's
-    #   unit, 0.0176 rad L2 over the joints, ~2.2x m/3 on a planar D0 (benchmarks/README.md, "The relabel
-    #   servo's floors in the authors' unit": converted through it they measured no better, so they stay)
+    #   our 10 Hz steps; m = our median step, m' = theirs per frame. The servo's floors below take m' = m/3
+    #   (the same joint speed, a third of our step per frame); it is not: their median step m' is 0.0176 rad
+    #   (envs.PAPER_MEDIAN_STEP, L2 over the joints), while m/3 = 0.0079 rad on mid's D0 (m = 0.0237 rad), so
+    #   m' ~2.2x m/3 (benchmarks/README.md, "The relabel servo's floors in the authors' unit")
     label: str = "servo"  # 'servo': `servo_return_chunk` (the authors'); 'pd': `pd_return_chunk` (the text's)
     velocity_noise: float = 0.3  # the paper's median steps per 30 Hz frame (theirs): std of a noised state's
     #   per-joint velocity noise, converted to rad per env step by `velocity_noise_std` (0.0158 rad/step planar)
     a_clamp_scale: float = 0.9  # unit-free: a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
-    accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame², read as 0.2 · (m/3) / (1/3 step)²
-    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m', read as 4/3 m
+    # (accel_floor, gain_floor and speed_cap converted through the paper's m' instead -- 1.34, 2.97, 3.74 of our
+    #  median steps on mid's D0 -- were probed on mid's round 1: fixed sigma = 8 -0.7, pooled -2.0 points over
+    #  3 lineages, p >= 0.39, no gain; the m' = m/3 values below stay the defaults)
+    accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame², taken as 0.2 · (m/3) / (1/3 step)²
+    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m', taken as 4/3 m
     jerk_slew: float = 1.5  # unit-free: |a_k - a_{k-1}| <= 1.5 a_clamp per step (theirs 0.5 per frame, 3 frames)
-    speed_cap: float = 1.68  # median steps/step: |v| <= max(1.68 m, speed_cap_v0 · |v0|) (theirs 1.4 · 1.2 m'/frame, read as m/3)
+    speed_cap: float = 1.68  # median steps/step: |v| <= max(1.68 m, speed_cap_v0 · |v0|) (theirs 1.4 · 1.2 m'/frame,
+    #   taken as 1.68 (m/3) per frame = 1.68 m per step)
     speed_cap_v0: float = 1.05  # unit-free: the 1.05 · |v0| part
-    cursor_advance: int = 3  # steps (trajectory indices) per step: theirs 3 indices a frame, read as 3 per step
+    cursor_advance: int = 3  # steps (trajectory indices) per step: theirs 3 m' of arc per frame, 3 m per step if
+    #   m' = m/3 (not probed through the paper's m')
     hold_tol: float = 0.02  # median steps/step: slower chunk steps at the segment end are "held" (out of the loss)
     min_moving_steps: int = 3  # steps: fewer unmasked steps and the state is redrawn (theirs 8 frames = 2.7 steps)
     near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
