@@ -708,35 +708,15 @@ def summarize(cfg, results):
         for k in range(cfg.rounds):
             vals = [row[k] for row in per_lineage.values() if len(row) > k]
             table[method].append(mean_se(vals) if vals else None)
-    # Paired statistics over lineages that finished every round, each lineage averaged over rounds.
+    # Paired statistics over lineages that finished every round, each lineage averaged over rounds; and the same
+    # per round, over the lineages that finished that round
     def round_avg(method):
         rows = results.get(method, {})
         return {l: float(np.mean(r)) for l, r in rows.items() if len(r) == cfg.rounds}
 
-    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}}
-    hg = round_avg("hg_dagger")
-    fixed = [m for m in cfg.methods if m.startswith("fixed_") and round_avg(m)]
-    best_fixed = max(fixed, key=lambda m: np.mean(list(round_avg(m).values()))) if fixed else None
-    stats["best_fixed"] = best_fixed
-    for method in cfg.methods:
-        if method in ("bc", "hg_dagger"):
-            continue
-        mine = round_avg(method)
-        common = sorted(set(mine) & set(hg))
-        if len(common) >= 2:
-            t, df, p = paired_ttest([mine[l] for l in common], [hg[l] for l in common])
-            stats["paired_vs_hg_dagger"][method] = {
-                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p,
-                "degenerate": degenerate([mine[l] for l in common], [hg[l] for l in common])}
-        if best_fixed and method in ("pooled", "per_step", "closed_loop"):
-            ref = round_avg(best_fixed)
-            common = sorted(set(mine) & set(ref))
-            if len(common) >= 2:
-                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], cfg.tost_margin)
-                stats["tost_vs_best_fixed"][method] = {
-                    "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
-                    "p": p, "margin": cfg.tost_margin,
-                    "degenerate": degenerate([mine[l] for l in common], [ref[l] for l in common])}
+    stats = paired_statistics(cfg, round_avg)
+    stats["per_round"] = {str(k + 1): paired_statistics(cfg, lambda m, k=k: {
+        l: r[k] for l, r in results.get(m, {}).items() if len(r) > k}) for k in range(cfg.rounds)}
     # HG-DAgger against BC at every round: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
     stats["hg_dagger_vs_bc"] = {}
     bc_all = results.get("bc", {}).get("all")
@@ -755,6 +735,36 @@ def summarize(cfg, results):
         if cells:
             stats["best_fixed_per_round"][str(k + 1)] = max(cells, key=cells.get)
     return table, stats
+
+
+def paired_statistics(cfg, values):
+    """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
+    sigma (TOST, cfg.tost_margin); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
+    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}}
+    hg = values("hg_dagger")
+    fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
+    best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
+    stats["best_fixed"] = best_fixed
+    for method in cfg.methods:
+        if method in ("bc", "hg_dagger"):
+            continue
+        mine = values(method)
+        common = sorted(set(mine) & set(hg))
+        if len(common) >= 2:
+            t, df, p = paired_ttest([mine[l] for l in common], [hg[l] for l in common])
+            stats["paired_vs_hg_dagger"][method] = {
+                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p,
+                "degenerate": degenerate([mine[l] for l in common], [hg[l] for l in common])}
+        if best_fixed and method in ("pooled", "per_step", "closed_loop"):
+            ref = values(best_fixed)
+            common = sorted(set(mine) & set(ref))
+            if len(common) >= 2:
+                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], cfg.tost_margin)
+                stats["tost_vs_best_fixed"][method] = {
+                    "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
+                    "p": p, "margin": cfg.tost_margin,
+                    "degenerate": degenerate([mine[l] for l in common], [ref[l] for l in common])}
+    return stats
 
 
 def mean_se(values):

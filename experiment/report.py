@@ -212,6 +212,18 @@ def paired_lines(cfg, stats):
         for m, s in stats["tost_vs_best_fixed"].items():
             lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, "
                          + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.3g}"))
+    per_round = {k: r for k, r in (stats.get("per_round") or {}).items() if r["paired_vs_hg_dagger"]}
+    if per_round:
+        lines.append("")
+        lines.append(f"Per round (paired over the lineages that finished it): each method vs HG-DAgger; the "
+                     f"calibrated ones vs that round's best fixed noise, TOST ±{cfg.tost_margin:g}:")
+        for k, r in per_round.items():
+            parts = [f"{m} {s['diff']:+.1f} (" + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.2g}")
+                     + ")" for m, s in r["paired_vs_hg_dagger"].items()]
+            parts += [f"{m} vs {s['vs']} {s['diff']:+.1f} (TOST " + ("no spread" if s.get("degenerate") else
+                                                                   f"p = {s['p']:.2g}") + ")"
+                      for m, s in r["tost_vs_best_fixed"].items()]
+            lines.append(f"- K={k}: " + "; ".join(parts))
     if stats.get("hg_dagger_vs_bc"):
         lines.append("")
         lines.append("HG-DAgger vs BC at each round (paired over lineages; one pi_0):")

@@ -150,6 +150,22 @@ def test_summarize_paired_statistics():
     assert stats["tost_vs_best_fixed"]["pooled"]["vs"] == "fixed_2"
     text = report.format_table(cfg, table, stats)
     assert "| HG-DAgger | 70.0 ± 0.6 (3) | 73.0 ± 0.6 (3) |" in text
+    # per round: K=1 pairs each lineage's first cells only (pooled 73, 74, 73 vs 70, 71, 69), and the round's
+    # best fixed sigma (fixed_2 at K=1: 73.0 vs fixed_8 70.3); K=2 its second cells
+    k1, k2 = stats["per_round"]["1"], stats["per_round"]["2"]
+    assert k1["paired_vs_hg_dagger"]["pooled"]["diff"] == pytest.approx(np.mean([73 - 70, 74 - 71, 73 - 69]))
+    assert k2["paired_vs_hg_dagger"]["pooled"]["diff"] == pytest.approx(np.mean([76 - 72, 75 - 73, 77 - 74]))
+    assert k1["best_fixed"] == "fixed_2" and k1["tost_vs_best_fixed"]["pooled"]["diff"] == pytest.approx(
+        np.mean([73 - 73, 74 - 74, 73 - 72]))
+    t, df, p = dagger.paired_ttest([73, 74, 73], [70, 71, 69])
+    assert k1["paired_vs_hg_dagger"]["pooled"]["p"] == pytest.approx(p) and df == 2
+    assert "Per round (paired over the lineages that finished it)" in text and "- K=2: " in text
+    # a lineage that finished round 1 only counts in round 1's pairs, not in the average over rounds
+    partial = {m: {**rows, "3": rows["0"][:1]} for m, rows in results.items() if m != "bc"} | {"bc": results["bc"]}
+    _, partial_stats = dagger.summarize(cfg, partial)
+    assert partial_stats["per_round"]["1"]["paired_vs_hg_dagger"]["pooled"]["df"] == 3
+    assert partial_stats["per_round"]["2"]["paired_vs_hg_dagger"]["pooled"]["df"] == 2
+    assert partial_stats["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     # the sigma = 0 control is paired with HG-DAgger but never the "best fixed noise"
     cfg = replace(cfg, methods=cfg.methods + ("zero_noise",))
     results["zero_noise"] = {"0": [90, 90], "1": [91, 91], "2": [92, 92]}
