@@ -494,10 +494,17 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
     kept = c.blend_kept
     ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, s=9, color="C0", alpha=0.35, zorder=2,
                label=f"kept rollouts ({int(kept.sum())})")
+    # the axis ends a little above the divergence radius, so that the fit and W are what one sees; a discarded
+    # rollout whose error runs past the top is drawn at the top edge
+    radius = diverge_radius(CalibrationConfig.diverge_threshold, c.median_step, c.paper_median_step) / unit
+    top = 1.25 * max(radius, float(np.max(c.blend_x[kept], initial=0.0)) / unit, c.W / unit)
+    ax.axhline(radius, color="C3", linestyle=":", linewidth=1,
+               label=f"divergence radius ({CalibrationConfig.diverge_threshold:g} paper median steps)")
     if np.any(~kept):
-        ax.scatter(c.blend_s[~kept], c.blend_x[~kept] / unit, s=12, marker="x", color="C3", alpha=0.5, zorder=2,
-                   label=f"discarded: crossed {CalibrationConfig.diverge_threshold:g} paper steps, or too short "
-                         f"({int((~kept).sum())})")
+        ax.scatter(c.blend_s[~kept], np.minimum(c.blend_x[~kept] / unit, top * 0.98), s=12, marker="x",
+                   color="C3", alpha=0.5, zorder=2,
+                   label=f"discarded: crossed the radius, or too short ({int((~kept).sum())}; "
+                         f"beyond the axis: at its top)")
     cells = ratio_cells(c.blend_beta, c.blend_s, c.blend_x, kept, min_survivors)
     for fitted, face in ((cells.fitted, "C0"), (~cells.fitted & (cells.n > 0), "white")):
         if fitted.any():
@@ -514,6 +521,7 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
                      + ("" if c.r is not None else " (FALLBACK: no fit)"))
     if c.W_ci is not None:
         _draw_W_interval(ax, c.W / unit, c.W_ci[0] / unit, c.W_ci[1] / unit)    # an error bar at s = 1
+    ax.set_ylim(0, top)
     _second_error_axis(ax, unit, c.paper_median_step)                            # the paper's unit (or rad)
     _finish_blend_fit(fig, ax, path)                                             # axes, legend, save
 
