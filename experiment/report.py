@@ -2,7 +2,8 @@
 
 dagger.write_report reads the finished evaluations with collect_results / scenario_paired, computes the
 paper's statistics (dagger.summarize: mean ± SE over lineages, paired t-tests, TOST) and hands them here to
-be written. Nothing here computes a statistic of the paper; it formats, collects and draws.
+be written. The paper's tests (paired t, TOST) stay in dagger.py; here are the run's own summaries (the
+differences paired over scenarios, the calibration in the paper's unit), the formatting and the drawing.
 """
 from __future__ import annotations
 
