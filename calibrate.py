@@ -298,7 +298,7 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
     r_bounds, the grid's best refined by `refine_fit_robust` (beyond the paper). x is the *norm* of
     the joint deviation: with isotropic gains (Eqs. 9-10) every joint follows x_j = W_j g(s), so
     ||x|| = ||W|| g(s) is Eq. (12) again and Eq. (14) needs only ||W||^2 (signed per-joint deviations
-    would partly cancel). W is x extrapolated to s = 1: r_bounds keep it finite (see `cap_W`). Needs
+    would partly cancel). W is x extrapolated to s = 1: r_bounds keep it finite (see `bound_W`). Needs
     >= 3 finite points with >= 2 distinct s > 0 (else ValueError). Every x = 0: W = 0, r = 1 (unidentifiable).
     """
     s, x = _fit_points(s, x)                       # the finite points, checked
