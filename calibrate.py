@@ -20,7 +20,8 @@ The paper measures both offline, without an expert in the loop (Sec. IV-D). In t
 
 Beyond the paper (after the banner): the fit's robust refinement, W's bootstrap interval and cap,
 the batched closed-loop simulator behind the rollouts (with the authors' monotone time matching),
-Table I's "closed-loop pooled" variant (`closed_loop_sigma`), the expert-data helpers (`expert_chunk`,
+Sigma_bar from unguided closed-loop rollouts (`unguided_sigma`: a control, not Table I's closed-loop row,
+which is a chain of rounds in dagger.py), the expert-data helpers (`expert_chunk`,
 `label_starts`, `expert_segments`: the label rule of diffusion.label_mask), input checks, figure plumbing.
 
 Units: joint deviations, W and covariances in radians (rad^2), so relabel.py draws states from them
@@ -71,13 +72,13 @@ class CalibrationConfig:
     min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
     W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
     r_bounds: tuple = (1e-3, 1e2)        # the gain ratio r = K*/K_theta's range (authors' bounds on R)
-    closed_loop: bool = True             # also compute Table I's "closed-loop pooled" Sigma_bar^alpha
     # not in the paper
+    unguided: bool = False               # also Sigma_bar from unguided closed-loop rollouts (`unguided_pooled`)
     rollouts_per_beta: int = 1           # rollouts per ratio and segment (the authors: 1)
     discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop)
     bootstrap: int = 200                 # resamples of the kept (s, x) for W's 95 % interval (authors' code)
     bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
-    closed_loop_segments: int = 8        # intervention segments rolled out unguided for it (longest first)
+    unguided_segments: int = 8           # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
 
 
@@ -418,13 +419,13 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     sigma_alpha = calibrated_sigma(steps.sigma, W)
     pooled = pooled_sigma(steps.sigma, W)
 
-    # Table I's closed-loop pooled variant, scaled the same way (beyond Sec. IV-D: closed_loop_pooled)
-    closed, closed_note = closed_loop_pooled(env, policy, episodes, W, pooled, cfg, generator, threshold, say)
+    # not in the paper: Sigma_bar from unguided closed-loop rollouts, scaled the same way (unguided_pooled)
+    closed, closed_note = unguided_pooled(env, policy, episodes, W, pooled, cfg, generator, threshold, say)
     note += closed_note
     return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
                        sigma_hat=steps.sigma, sigma_alpha=sigma_alpha,
                        episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
-                       closed_loop_pooled=closed, blend_beta=blend_beta, blend_s=s, blend_x=x, blend_kept=kept,
+                       unguided_pooled=closed, blend_beta=blend_beta, blend_s=s, blend_x=x, blend_kept=kept,
                        blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
                        blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci,
                        paper_median_step=paper_unit)
@@ -528,8 +529,8 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
 
 # ==== Beyond the paper (safe to skip) ====================================================
 # The calibration record; the expert-data helpers; the fit's robust refinement, W's cap and interval;
-# how the blend rollouts are dealt; the batched closed-loop simulator behind every rollout; Table I's
-# closed-loop pooled variant; input checks; figure plumbing.
+# how the blend rollouts are dealt; the batched closed-loop simulator behind every rollout; Sigma_bar from
+# unguided closed-loop rollouts (a control); input checks; figure plumbing.
 
 # ---- the record `calibrate` returns: its report and JSON ---------------------------------------
 
@@ -545,7 +546,7 @@ class Calibration:
     episode_index: np.ndarray       # (M,) episode of each step
     timestep: np.ndarray            # (M,) step inside that episode
     pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
-    closed_loop_pooled: np.ndarray | None   # (dof, dof) Table I's closed-loop pooled Sigma_bar^alpha
+    unguided_pooled: np.ndarray | None   # (dof, dof) Sigma_bar from unguided rollouts, scaled (a control)
     blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
     blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
     blend_x: np.ndarray             # (B,) their settling errors (radians)
@@ -586,9 +587,9 @@ class Calibration:
                  f"with >= {CalibrationConfig.min_survivors} kept (fitted)",
                  "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
                  + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
-        if self.closed_loop_pooled is not None:
-            cl = sigma_in_median_steps(self.closed_loop_pooled, self.median_step)
-            lines.append("closed-loop pooled per-joint sigma [median steps]: "
+        if self.unguided_pooled is not None:
+            cl = sigma_in_median_steps(self.unguided_pooled, self.median_step)
+            lines.append("unguided closed-loop pooled per-joint sigma [median steps]: "
                          + ", ".join(f"{v:.2f}" for v in cl))
         return "\n".join(lines + self._report_other_units())
 
@@ -601,9 +602,9 @@ class Calibration:
         ci = "" if self.W_ci is None else f" (95 % interval {other_units(self.W_ci, p)})"
         lines.append(f"W = {other_units(self.W, p)}{ci}")
         lines.append(f"pooled Sigma_bar^alpha per-joint sigma = {other_units(np.sqrt(np.diag(self.pooled)), p)}")
-        if self.closed_loop_pooled is not None:
-            cl = np.sqrt(np.diag(self.closed_loop_pooled))                      # rad
-            lines.append(f"closed-loop pooled per-joint sigma = {other_units(cl, p)}")
+        if self.unguided_pooled is not None:
+            cl = np.sqrt(np.diag(self.unguided_pooled))                      # rad
+            lines.append(f"unguided closed-loop pooled per-joint sigma = {other_units(cl, p)}")
         return lines
 
 
@@ -617,10 +618,11 @@ def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
 def _calibration_fields(data: dict) -> dict:
     """Calibration.from_dict's typing: JSON lists back to float, int and bool arrays (a dict written
     before W_ci existed lacks it: the default None)."""
-    arrays = {"sigma_hat", "sigma_alpha", "pooled", "closed_loop_pooled", "blend_s", "blend_x",
+    arrays = {"sigma_hat", "sigma_alpha", "pooled", "unguided_pooled", "blend_s", "blend_x",
               "blend_beta", "sigma_per_joint"}
     ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
     kwargs = {}
+    data = {("unguided_pooled" if k == "closed_loop_pooled" else k): v for k, v in data.items()}  # older name
     for k, v in data.items():
         if k in arrays and v is not None:
             v = np.asarray(v, dtype=np.float64)
@@ -827,7 +829,7 @@ def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -
     return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
 
 
-# ---- the batched closed-loop simulator behind blend_rollouts and closed_loop_sigma -----------------
+# ---- the batched closed-loop simulator behind blend_rollouts and unguided_sigma -----------------
 
 def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
     """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of
@@ -1007,16 +1009,17 @@ def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: in
 
 
 
-# ---- Table I's closed-loop pooled variant ----------------------------------------------------
+# ---- a control: Sigma_bar from unguided closed-loop rollouts ------------------------------------
 
-def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
+def unguided_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
                       generator: torch.Generator | None = None, diverge_rad: float = 0.4,
                       max_segments: int | None = None, discard_collisions: bool = False) -> np.ndarray | None:
     """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
 
-    Our reading of Table I's "closed-loop pooled" row: from the first state of each intervention
-    segment (longest first, at most max_segments), the *unguided* policy (beta = 1, plain
-    policy.sample) runs in closed loop in the simulator for the segment's length; every executed
+    Not the paper's "closed-loop pooled" row (that is a chain of rounds collected by the calibrated policy,
+    dagger.closed_loop_chain); an earlier reading of it, kept as a control (dagger's 'unguided_pooled'):
+    from the first state of each intervention segment (longest first, at most max_segments), the
+    *unguided* policy (beta = 1, plain policy.sample) runs in closed loop in the simulator for the segment's length; every executed
     step contributes the outer product of its state deviation from the time-matched expert state,
     d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
     first diverged step (nearest-state distance at diverge_rad, radians, as in `blend_rollouts`;
@@ -1048,16 +1051,16 @@ def closed_loop_sigma(env, policy, episodes: list[dict], n_act: int = Calibratio
 
 
 
-def closed_loop_pooled(env, policy, episodes: list[dict], W: float, pooled: np.ndarray, cfg: CalibrationConfig,
+def unguided_pooled(env, policy, episodes: list[dict], W: float, pooled: np.ndarray, cfg: CalibrationConfig,
                        generator, threshold: float, say) -> tuple[np.ndarray | None, str]:
-    """calibrate's Table I variant: (closed-loop pooled Sigma_bar^alpha scaled by Eq. (16), or None
-    without cfg.closed_loop; a note for fit_note). threshold in radians. If every closed-loop rollout
+    """calibrate's control: (Sigma_bar from unguided closed-loop rollouts scaled by Eq. (16), or None
+    without cfg.unguided; a note for fit_note). threshold in radians. If every closed-loop rollout
     fails on its first step, the open-loop pooled Sigma_bar^alpha stands in (and the note says so)."""
-    if not cfg.closed_loop:
+    if not cfg.unguided:
         return None, ""
-    say("closed-loop rollouts for the closed-loop pooled variant")
-    sigma_bar_cl = closed_loop_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
-                                     cfg.closed_loop_segments, cfg.discard_collisions)
+    say("unguided closed-loop rollouts for the unguided_pooled control")
+    sigma_bar_cl = unguided_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
+                                     cfg.unguided_segments, cfg.discard_collisions)
     if sigma_bar_cl is None:                      # documented fallback: no usable closed-loop step
         return pooled.copy(), "; closed loop: every rollout failed at once, open-loop pooled used"
     return calibrated_sigma(sigma_bar_cl, W), ""

@@ -61,9 +61,9 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     pi0_success = evaluate_policy(run, pi0_eval_name(cfg), pi0, "pi_0 (BC)", unseen=False)
     # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds)
     bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg)), enabled=workers > 1 and bool(lineages))
-    noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger")]
+    noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
-        collector, collector_success, rounds_data = pi0, pi0_success, []
+        collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
@@ -72,10 +72,10 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             hg = fine_tune(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
             hg_success = evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/hg_dagger.json", hg,
                                          f"hg_dagger (lineage {lineage}, K={k})")
-            if noised:
+            if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
-                calibrate_noise(run, lineage, k, hg, rounds_data, stats)
+                calibrations.append(calibrate_noise(run, lineage, k, hg, rounds_data, stats))
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
                 arms = [(run.root, asdict(cfg), lineage, k, method) for method in noised]
@@ -83,6 +83,10 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
             # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
+        if "closed_loop" in cfg.methods:
+            # Table I's closed-loop pooled row: steps 2-5 read literally, the round's noised (calibrated)
+            # policy collects the next round and is measured again; its own chain of rounds from round 1's data
+            closed_loop_chain(run, lineage, demos, stats, rounds_data[0], calibrations[0])
     bc_row.wait()
 
 
@@ -92,10 +96,11 @@ def policy_calibrated_dagger(run, lineages, workers=1):
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
                    "pooled", "per_step", "closed_loop")
-# Not in the paper: the pipeline with sigma = 0 (intervention states relabelled with the return labels, no
-# noise). It separates the effect of the noise from the effect of relabelling (a noised method never sees the
-# recorded intervention chunks, HG-DAgger sees nothing else).
-CONTROL_METHODS = ("zero_noise",)
+# Not in the paper: 'zero_noise', the pipeline with sigma = 0 (intervention states relabelled with the return
+# labels, no noise), separates the effect of the noise from the effect of relabelling (a noised method never sees
+# the recorded intervention chunks, HG-DAgger sees nothing else); 'unguided_pooled', Sigma_bar measured from
+# unguided closed-loop rollouts instead of open-loop samples, scaled to W (calibrate.unguided_sigma).
+CONTROL_METHODS = ("zero_noise", "unguided_pooled")
 ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
 
 
@@ -257,35 +262,39 @@ def demo_statistics(cfg, demos):
 # ----------------------------------------------------------------------------------------------
 # Step 2: HG-DAgger data collection, many episodes in lockstep
 # ----------------------------------------------------------------------------------------------
-def collect_interventions(run, lineage, k, policy, policy_success):
+def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     """D_k, HG-DAgger rollouts of the lineage's current policy (PAPER_SETUP.md §4).
 
     collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
     evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
     scenarios. Interventions shorter than H are dropped (Sec. IV-C); episodes without any are not kept.
+    chain: None, or 'closed_loop' for that row's own chain of rounds (its folder and seeds).
     """
     cfg = run.cfg
+    where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
+    keys = (lineage, k) + ((chain,) if chain else ())
+    label = f"lineage {lineage} round {k}" + (f" ({chain} chain)" if chain else "")
 
     def collect():
         env = make_run_env(cfg)
         if cfg.collect_on == "eval":
             seeds = env.eval_seeds()[: cfg.eval_scenarios]
             solved = np.asarray(policy_success, bool).all(axis=1)
-            run.log(f"lineage {lineage} round {k}: HG-DAgger collection on the evaluation scenarios the policy "
+            run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
                     f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
             seeds = np.asarray(seeds)[~solved]
         else:  # fresh scenarios for every (lineage, round), after D0's seed range
             start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
             seeds = env.train_seeds(cfg.episodes_per_round, start=start)
-            run.log(f"lineage {lineage} round {k}: HG-DAgger collection on {len(seeds)} fresh training scenarios")
+            run.log(f"{label}: HG-DAgger collection on {len(seeds)} fresh training scenarios")
         t0, env_list = time.time(), []
         for s in seeds:
             e = make_run_env(cfg)
             e.reset(seed=int(s))
             env_list.append(e)
-        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", lineage, k))
-        episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", lineage, k),
-                           log=run.log, seed=stage_seed(cfg, "gate", lineage, k)) if env_list else []
+        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
+        episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
+                           log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
         for ep in episodes:
             ep["expert"] = drop_short_interventions(ep["expert"], cfg.horizon)
         kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon).any()]
@@ -295,11 +304,11 @@ def collect_interventions(run, lineage, k, policy, policy_success):
                 f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions "
                 f">= H, {sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
         if not kept:
-            raise RuntimeError(f"lineage {lineage} round {k}: no intervention of >= H={cfg.horizon} steps was "
+            raise RuntimeError(f"{label}: no intervention of >= H={cfg.horizon} steps was "
                                f"recorded in {len(episodes)} episodes; nothing to aggregate")
         return kept
 
-    return run.stage(f"lineage_{lineage}/round_{k}/D.npz", collect)
+    return run.stage(f"{where}/D.npz", collect)
 
 
 def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
@@ -412,22 +421,26 @@ def drop_short_interventions(expert, H):
 # ----------------------------------------------------------------------------------------------
 # Step 3: calibration (Sec. IV-D, calibrate.py)
 # ----------------------------------------------------------------------------------------------
-def calibrate_noise(run, lineage, k, policy, rounds_data, stats):
+def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
     """calibrate.calibrate with the round's HG-DAgger policy on the interventions of rounds 1..k
-    (PAPER_SETUP.md §5). Returns the calibrate.Calibration."""
+    (PAPER_SETUP.md §5); chain='closed_loop': that row's policy on its chain's interventions (its folder and
+    seed). Returns the calibrate.Calibration."""
     cfg = run.cfg
+    where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
+    keys = (lineage, k) + ((chain,) if chain else ())
+    label = f"lineage {lineage} round {k}" + (f" ({chain} chain)" if chain else "")
 
     def measure():
         episodes = [ep for D in rounds_data for ep in D]
-        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", lineage, k))
+        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", *keys))
         t0 = time.time()
         cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
                                   gen, log=lambda msg: run.log("  calibration: " + msg))
-        run.log(f"lineage {lineage} round {k}: calibration on {len(episodes)} intervention episodes "
+        run.log(f"{label}: calibration on {len(episodes)} intervention episodes "
                 f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
         return cal.to_dict()
 
-    return calibrate.Calibration.from_dict(run.stage(f"lineage_{lineage}/round_{k}/calibration.json", measure))
+    return calibrate.Calibration.from_dict(run.stage(f"{where}/calibration.json", measure))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -451,7 +464,9 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
     if method == "pooled":
         return "pooled", cal.pooled  # Eq. (16)
     if method == "closed_loop":
-        return "pooled", cal.closed_loop_pooled if cal.closed_loop_pooled is not None else cal.pooled
+        return "pooled", cal.pooled  # Eq. (16), measured on its own chain (closed_loop_chain)
+    if method == "unguided_pooled":  # the control: Sigma_bar from unguided closed-loop rollouts
+        return "pooled", cal.unguided_pooled if cal.unguided_pooled is not None else cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
         per_episode = {}
         for j, e in enumerate(episodes if episodes is not None else np.unique(cal.episode_index)):
@@ -544,6 +559,25 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
     evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
                     f"{method} (lineage {lineage}, K={k})")
+
+
+def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration):
+    """Table I's closed-loop pooled row (PAPER_SETUP.md §5; the paper ran one lineage of it): Sec. IV-A's
+    steps 2-5 as written -- the round's policy co-trained with pooled Sigma_bar^alpha collects the next round's
+    interventions and is itself measured again (Sigma_hat and W) on the chain's interventions before that
+    round's training. Round 1 is the main chain's (pi_0 collected it, HG-DAgger's round-1 policy was measured);
+    from round 2 on the chain's data and calibration are in lineage_<l>/round_<k>/closed_loop/. Every round's
+    policy is fine-tuned from pi_0 (step 6), as every other row."""
+    cfg, rounds_data, calibration = run.cfg, [first_round], first_calibration
+    policy = success = None
+    for k in range(1, cfg.rounds + 1):
+        if k > 1:  # the previous round's calibrated policy drives, the oracle intervenes (step 2) ...
+            rounds_data.append(collect_interventions(run, lineage, k, policy, success, chain="closed_loop"))
+            # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
+            calibration = calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain="closed_loop")
+        policy = fine_tune(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)  # step 4
+        success = evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/closed_loop.json", policy,
+                                  f"closed_loop (lineage {lineage}, K={k})")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -796,7 +830,8 @@ def calibration_config(cfg):
     """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
     return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
                                        blend_segments=cfg.calib_blend_segments,
-                                       rollouts_per_beta=cfg.calib_rollouts_per_beta)
+                                       rollouts_per_beta=cfg.calib_rollouts_per_beta,
+                                       unguided="unguided_pooled" in cfg.methods)
 
 
 def env_options(cfg):

@@ -105,9 +105,9 @@ def main():
                                            np.asarray(cfg.betas), cfg.n_act, gen, threshold))
     rows.append(("blend rollouts", f"13 betas, {int(blend.rollouts.n_recorded.sum())} env steps, "
                  f"{int(blend.kept.sum())} kept", w, c))
-    _, w, c = timed(lambda: cal.closed_loop_sigma(env, policy, interventions, cfg.n_act, gen, threshold,
-                                                   cfg.closed_loop_segments))
-    rows.append(("closed-loop rollouts", f"{min(len(segs), cfg.closed_loop_segments)} segments", w, c))
+    _, w, c = timed(lambda: cal.unguided_sigma(env, policy, interventions, cfg.n_act, gen, threshold,
+                                                   cfg.unguided_segments))
+    rows.append(("closed-loop rollouts", f"{min(len(segs), cfg.unguided_segments)} segments", w, c))
     calib, w, c = timed(lambda: cal.calibrate(env, policy, interventions, unit, cfg, gen))
     rows.append(("calibrate() total", f"{len(interventions)} interventions, {n_steps} expert steps", w, c))
 

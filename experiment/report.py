@@ -28,6 +28,33 @@ METHOD_LABELS = {
 }
 
 
+# The paper's tables (mean ± SE over lineages, lineage count), to draw and print beside a run's own: Table I
+# (planar reacher, 100 scenarios x 3) and Table II (UR5 engine lever). BC is one value for every K.
+PAPER_TABLES = {
+    "planar": {"bc": [(68.0, 0.2, 1)],
+               "hg_dagger": [(79.9, 0.5, 5), (81.9, 0.7, 5), (83.3, 1.5, 5), (85.3, 0.7, 5), (87.3, 1.0, 5)],
+               "fixed_2": [(81.9, 0.8, 5), (84.8, 0.7, 5), (85.1, 0.3, 5), (88.6, 0.4, 5), (89.1, 0.4, 5)],
+               "fixed_4": [(82.7, 0.9, 5), (86.1, 0.7, 5), (86.3, 0.5, 5), (87.7, 0.6, 5), (89.2, 0.8, 5)],
+               "fixed_8": [(83.9, 0.8, 5), (85.1, 0.8, 5), (85.1, 0.8, 5), (86.1, 0.8, 5), (87.1, 0.8, 5)],
+               "fixed_12": [(83.3, 0.7, 5), (84.8, 0.6, 5), (85.1, 0.8, 5), (84.5, 1.0, 5), (85.0, 0.8, 5)],
+               "fixed_16": [(83.2, 1.3, 5), (85.1, 0.6, 5), (83.8, 0.9, 5), (83.4, 0.9, 5), (84.8, 0.8, 5)],
+               "pooled": [(82.0, 0.6, 5), (86.2, 0.8, 5), (86.5, 0.4, 5), (87.5, 0.9, 5), (89.3, 0.5, 5)],
+               "per_step": [(81.6, 0.9, 5), (85.3, 0.9, 5), (85.5, 0.3, 5), (86.5, 0.5, 5), (88.5, 0.8, 5)],
+               "closed_loop": [(81.6, 1.0, 1), (83.3, 0.2, 1), (85.9, 0.5, 1), (88.8, 0.2, 1), (89.3, 0.7, 1)]},
+    "engine3d": {"bc": [(58.0, 1.2, 1)],
+                 "hg_dagger": [(57.4, 5.6, 3), (58.1, 4.0, 3)],
+                 "pooled": [(68.8, 4.2, 3), (63.4, 4.8, 3)]},
+}
+
+
+def paper_table(cfg):
+    """The paper's cells for this run's env, methods and rounds in table_rows' layout ({} if the paper has none)."""
+    paper = PAPER_TABLES.get(cfg.env, {})
+    return {m: ([paper[m][0]] if m == "bc" else [paper[m][k] if k < len(paper[m]) else None
+                                                   for k in range(cfg.rounds)])
+            for m in cfg.methods if m in paper}
+
+
 def method_label(method):
     """The table's name of a method: METHOD_LABELS, or 'Fixed iso. noise (sigma=s, ...)' for fixed_<s>."""
     if method.startswith("fixed_"):
@@ -181,6 +208,11 @@ def format_table(cfg, table, stats, unseen=None):
     lines.append(f"Success rate in % on {scenario_words(cfg)} x {cfg.eval_repeats} "
                  f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
                  f"its spread is not measured). BC is one pi_0 shared by every lineage.")
+    paper = paper_table(cfg)
+    if paper:
+        lines += ["", f"The paper's Table {'I' if cfg.env == 'planar' else 'II'} for the same rows and rounds (its "
+                      f"own env, network and budget: compare orderings and gaps, not levels):", ""]
+        lines += table_rows(cfg, paper)
     lines += paired_lines(cfg, stats)
     if unseen is not None and unseen[0]:
         lines += ["", f"**Unseen scenarios.** The same policies on {scenario_words(cfg, 'unseen')} x "
@@ -333,17 +365,39 @@ def write_tables(run, tables):
 
 
 def plot_success_vs_round(cfg, table, path):
+    """The run's table as lines over rounds; where the paper has the env's table, its numbers in a panel beside
+    (same colours, same y-span: the orderings and gaps compare, the levels do not)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8.5, 4))
+    paper = paper_table(cfg)
+    fig, axes = plt.subplots(1, 2 if paper else 1, figsize=(13 if paper else 8.5, 4), squeeze=False)
+    span = _draw_success_lines(axes[0, 0], cfg, table)
+    axes[0, 0].set_title(f"Success vs round ({cfg.env}, this run)")
+    if paper:
+        paper_span = _draw_success_lines(axes[0, 1], cfg, paper)
+        axes[0, 1].set_title(f"The paper's Table {'I' if cfg.env == 'planar' else 'II'}")
+        half = max(span[1] - span[0], paper_span[1] - paper_span[0]) / 2 + 2  # one y-span for both panels
+        for ax, (lo, hi) in ((axes[0, 0], span), (axes[0, 1], paper_span)):
+            ax.set_ylim((lo + hi) / 2 - half, (lo + hi) / 2 + half)
+    axes[0, -1].legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)  # outside
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def _draw_success_lines(ax, cfg, table):
+    """plot_success_vs_round's lines on one axis, a colour per method in cfg.methods' order. Returns the
+    (lowest, highest) value drawn (mean -+ SE)."""
     ks = np.arange(1, cfg.rounds + 1)
+    values = []
     for method in cfg.methods:
         if method not in table:
             continue
         if method == "bc":
             ax.axhline(table["bc"][0][0], color="k", ls=":", label=method_label("bc"))
+            values.append(table["bc"][0][0])
             continue
         cells = table[method]
         xs = [k for k, c in zip(ks, cells) if c]
@@ -354,16 +408,13 @@ def plot_success_vs_round(cfg, table, path):
         i = list(cfg.methods).index(method)
         xs = np.array(xs, float) + 0.04 * (i - len(cfg.methods) / 2)  # side by side, not on top of each other
         style = "-o" if method in ("pooled", "per_step", "closed_loop") else ("-s" if method == "hg_dagger" else "--.")
-        ax.errorbar(xs, m, yerr=se, fmt=style, capsize=3, label=method_label(method))
+        ax.errorbar(xs, m, yerr=se, fmt=style, capsize=3, label=method_label(method), color=f"C{i % 10}")
+        values += [*(m - se), *(m + se)]
     ax.set_xlabel("DAgger round K")
     ax.set_ylabel("success rate [%]")
     ax.set_xticks(ks)
     ax.set_xlim(0.6, cfg.rounds + 0.4)
-    ax.set_title(f"Success vs round ({cfg.env}, the data of Table I)")
-    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)  # outside the data
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
+    return (min(values), max(values)) if values else (0.0, 100.0)
 
 
 def plot_table(cfg, table, path):

@@ -296,7 +296,7 @@ def _calibration():
     return cal.Calibration(
         W=W, r=3.0, fit_note="fit", median_step=0.01, sigma_hat=S,
         sigma_alpha=cal.calibrated_sigma(S, W), episode_index=np.arange(6), timestep=np.arange(6) * 2,
-        pooled=cal.pooled_sigma(S, W), closed_loop_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13),
+        pooled=cal.pooled_sigma(S, W), unguided_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13),
         blend_s=np.linspace(0.01, 0.98, 13), blend_x=np.linspace(0.0, 0.04, 13),
         blend_kept=np.arange(13) < 11, blend_episode=np.arange(13) % 4, blend_start=np.full(13, 5),
         W_ci=(0.04, 0.062))
@@ -429,7 +429,7 @@ def test_blend_rollouts_mark_divergence(planar):
     assert out.rollouts.n_recorded[0] == min(end, len(episodes[0]["q"]) - 1) - start
     e = out.rollouts.nearest_error[0, cal.CalibrationConfig.settle_start:cal.CalibrationConfig.settle_end + 1]
     assert out.x[0] == pytest.approx(np.sqrt(np.mean(e ** 2))) and out.x[0] > 0
-    # a stopping closed loop (closed_loop_sigma's) still stops at the first diverged step
+    # a stopping closed loop (unguided_sigma's) still stops at the first diverged step
     job = [(episodes[0], (start, end))]
     stopped = cal._closed_loop(env, job, lambda obs, expert, rows: expert + 0.05, policy.cfg.horizon, 10, 1e-6)
     assert stopped.diverged[0] and stopped.n_recorded[0] < out.rollouts.n_recorded[0]
@@ -470,7 +470,7 @@ def test_contacts_are_recorded_and_discarded_only_on_request(planar):
 def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=3, bootstrap=20)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=True, unguided_segments=3, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
@@ -480,14 +480,14 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
     assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
     assert all(np.sum(c.blend_beta == b) == len(long_enough) for b in cfg.betas)
-    for value in (c.W, *c.pooled.ravel(), *c.closed_loop_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
+    for value in (c.W, *c.pooled.ravel(), *c.unguided_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
         assert math.isfinite(value)
     np.testing.assert_allclose(np.trace(c.sigma_alpha, axis1=1, axis2=2), c.W ** 2, rtol=1e-9)
     assert (c.W_ci is None) == (c.r is None)                                 # an interval with every fit
     assert c.r is not None or c.fit_note.startswith("FALLBACK")                # a fallback says so
     assert c.W_ci is None or c.W_ci[0] <= c.W_ci[1]
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
-    assert np.trace(c.closed_loop_pooled) == pytest.approx(c.W ** 2)
+    assert np.trace(c.unguided_pooled) == pytest.approx(c.W ** 2)
     # deterministic: same seed, same calibration
     again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     assert again.to_dict() == c.to_dict()
@@ -502,14 +502,14 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
 def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop_segments=2, diverge_threshold=1e-9)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=True, unguided_segments=2, diverge_threshold=1e-9)
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert not c.blend_kept.any()
     assert c.r is None and c.fit_note.startswith("FALLBACK")
     assert c.W_ci is None                                                     # no fit, no interval
     assert c.W ** 2 == pytest.approx(np.trace(c.sigma_hat.mean(axis=0)))       # ||W||^2 = tr(Sigma_bar)
     np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
-    np.testing.assert_allclose(c.closed_loop_pooled, c.pooled)                # closed-loop fallback too
+    np.testing.assert_allclose(c.unguided_pooled, c.pooled)                # closed-loop fallback too
     assert "closed loop" in c.fit_note
 
 
@@ -519,7 +519,7 @@ def test_calibrate_holds_W_within_the_authors_fit_bounds(planar, monkeypatch):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
     paper = envs.PAPER_MEDIAN_STEP["planar"]
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, diverge_threshold=1e3, bootstrap=5)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=False, diverge_threshold=1e3, bootstrap=5)
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(1e5 * unit, 1e2, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert c.W == pytest.approx(60 * paper)                                  # in rad: the bound in their unit
@@ -575,7 +575,7 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
 def test_rollouts_per_beta_repeats_every_ratio_on_every_segment(planar):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, closed_loop=False, rollouts_per_beta=2, bootstrap=20)
+    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=False, rollouts_per_beta=2, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     once = cal.calibrate(env, policy, episodes, unit, replace(cfg, rollouts_per_beta=1),
                          torch.Generator().manual_seed(0))
@@ -599,7 +599,7 @@ def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
     c = cal.Calibration(
         W=W, r=2.0, fit_note="fit", median_step=unit, sigma_hat=S, sigma_alpha=cal.calibrated_sigma(S, W),
         episode_index=np.zeros(6, dtype=np.int64), timestep=np.arange(6) * 2, pooled=cal.pooled_sigma(S, W),
-        closed_loop_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13), blend_s=np.linspace(0.01, 0.98, 13),
+        unguided_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13), blend_s=np.linspace(0.01, 0.98, 13),
         blend_x=np.linspace(0.0, W, 13), blend_kept=np.ones(13, dtype=bool),
         blend_episode=np.zeros(13, dtype=np.int64), blend_start=np.full(13, 5))
     path = tmp_path / "fig2_engine3d.png"

@@ -179,6 +179,11 @@ def test_zero_noise_control_is_the_pipeline_without_noise():
     assert dagger.noise_model("zero_noise", None, None, 0.0245, 0.0176) == ("isotropic", 0.0)
     assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)  # no units given: our median steps
     assert "zero_noise" not in dagger.Config().methods  # the paper profile runs Table I's rows only
+    cal = calibrate.Calibration.__new__(calibrate.Calibration)
+    cal.pooled, cal.unguided_pooled = np.eye(3), 2 * np.eye(3)
+    assert dagger.noise_model("unguided_pooled", cal)[1] is cal.unguided_pooled
+    cal.unguided_pooled = None  # not measured: the open-loop pooled stands in
+    assert dagger.noise_model("unguided_pooled", cal)[1] is cal.pooled
 
 
 def test_start_option_names_the_run_and_reaches_the_env():
@@ -612,3 +617,51 @@ def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_p
     json.dump({**record, "pi0_sha256": "0" * 64}, open(other, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match="lineage_1 was made from another pi_0"):
         dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+
+
+def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrated_policy(tmp_path, monkeypatch):
+    """Table I's closed-loop pooled row: round 1 shares pi_0's interventions and HG-DAgger's round-1
+    calibration; from round 2 on, the previous round's closed_loop policy collects (skipping what its own
+    evaluation solved), is measured on the chain's interventions, and the row trains with that pooled noise."""
+    calls, made = [], {}
+    for name in ("collect_interventions", "calibrate_noise", "fine_tune", "evaluate_policy"):
+        real = getattr(dagger, name)
+
+        def spy(*args, _real=real, _name=name, **kwargs):
+            out = _real(*args, **kwargs)  # lists as they were at the call (rounds_data grows later)
+            calls.append((_name, tuple(list(a) if isinstance(a, list) else a for a in args), kwargs, out))
+            return out
+        monkeypatch.setattr(dagger, name, spy)
+    cfg = replace(TINY, rounds=2, methods=("bc", "hg_dagger", "closed_loop"))
+    dagger.run_experiment(cfg, str(tmp_path))
+    for name, args, kwargs, out in calls:
+        if name == "fine_tune":
+            made[(args[2], args[3])] = (out, args[5], args[6])  # (k, method): policy, data, calibration
+        if name == "evaluate_policy":
+            made[args[1]] = out
+        if name == "collect_interventions" and kwargs.get("chain"):
+            chain_collect = args
+        if name == "calibrate_noise" and kwargs.get("chain"):
+            chain_cal = (args, args[4], out)
+    cl1, data1, cal1 = made[(1, "closed_loop")]
+    hg1_data = made[(1, "hg_dagger")][1]
+    assert len(data1) == 1 and data1[0] is hg1_data[0]  # round 1: pi_0's interventions, as HG-DAgger's
+    main_cal1 = calibrate.Calibration.from_dict(json.load(open(tmp_path / "lineage_0/round_1/calibration.json")))
+    np.testing.assert_array_equal(cal1.pooled, main_cal1.pooled)
+    # round 2: collected by the round-1 closed_loop policy with its own evaluation as the skip list
+    assert chain_collect[3] is cl1 and chain_collect[2] == 2
+    np.testing.assert_array_equal(chain_collect[4], made["lineage_0/round_1/eval/closed_loop.json"])
+    cal_args, cal_data, chain_calibration = chain_cal
+    assert cal_args[3] is cl1 and len(cal_data) == 2 and cal_data[0] is data1[0]
+    cl2, data2, cal2 = made[(2, "closed_loop")]
+    assert cal2 is chain_calibration and len(data2) == 2 and all(a is b for a, b in zip(data2, cal_data))
+    assert dagger.noise_model("closed_loop", cal2)[1] is cal2.pooled
+    for f in ("lineage_0/round_2/closed_loop/D.npz", "lineage_0/round_2/closed_loop/calibration.json",
+              "lineage_0/round_2/eval/closed_loop.json", "lineage_0/round_2/checkpoints/closed_loop.pt"):
+        assert (tmp_path / f).is_file(), f
+    assert not (tmp_path / "lineage_0/round_1/closed_loop").exists()
+    # the main chain's round 2 is HG-DAgger's: its own folder, collected by HG-DAgger's round-1 policy
+    main_collect = [a for n, a, kw, _ in calls if n == "collect_interventions" and not kw.get("chain") and a[2] == 2]
+    assert main_collect[0][3] is made[(1, "hg_dagger")][0]
+    table = open(tmp_path / "table.md").read()
+    assert "Closed-loop pooled" in table

@@ -2,6 +2,7 @@
 import math
 from dataclasses import replace
 
+import matplotlib.image
 import numpy as np
 import pytest
 
@@ -193,3 +194,28 @@ def test_scenario_paired_differences_and_their_se(tmp_path):
     lines = report.scenario_paired_lines(cfg, {"1": {"0": p}})
     assert "HG-DAgger − BC: +25.0 ± 25.0" in lines[2] and "fixed_4 − HG-DAgger: +12.5 ± 23.9" in lines[2]
     assert "±24 points" in lines[3]
+
+
+def test_the_table_prints_and_draws_the_papers_cells_for_the_runs_rows_and_rounds(tmp_path):
+    cfg = dagger.Config(name="t", rounds=2, lineages=3, methods=("bc", "hg_dagger", "fixed_4", "pooled", "zero_noise"))
+    paper = report.paper_table(cfg)
+    assert paper["hg_dagger"] == [(79.9, 0.5, 5), (81.9, 0.7, 5)] and paper["bc"] == [(68.0, 0.2, 1)]
+    assert paper["fixed_4"][1] == (86.1, 0.7, 5) and "zero_noise" not in paper  # the control is not the paper's
+    results = {"bc": {"all": [60.0]}, "hg_dagger": {"0": [62.0, 65.0], "1": [64.0, 61.0], "2": [63.0, 66.0]},
+               "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
+               "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]},
+               "zero_noise": {"0": [60.0, 60.0], "1": [61.0, 61.0], "2": [62.0, 62.0]}}
+    table, stats = dagger.summarize(cfg, results)
+    ours, theirs = report.format_table(cfg, table, stats).split("The paper's Table I")
+    assert "| Pooled Sigma-bar^alpha (Ours) | 82.0 ± 0.6 (5) | 86.2 ± 0.8 (5) |" in theirs
+    assert "| HG-DAgger | 63.0 ± 0.6 (3) | 64.0 ± 1.5 (3) |" in ours and "82.0" not in ours
+    lever = dagger.Config(name="t", env="engine3d", rounds=2, lineages=3, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    assert report.paper_table(lever) == {"bc": [(58.0, 1.2, 1)], "hg_dagger": [(57.4, 5.6, 3), (58.1, 4.0, 3)],
+                                         "pooled": [(68.8, 4.2, 3), (63.4, 4.8, 3)]}
+    five = replace(cfg, rounds=5)
+    assert report.paper_table(five)["pooled"][4] == (89.3, 0.5, 5)
+    assert report.paper_table(replace(lever, rounds=3))["pooled"][2] is None  # the paper ran 2 rounds there
+    path = str(tmp_path / "success_vs_round.png")
+    report.plot_success_vs_round(cfg, table, path)
+    image = matplotlib.image.imread(path)
+    assert image.shape[1] > 1.4 * image.shape[0]  # two panels side by side: this run and the paper's
