@@ -37,6 +37,17 @@ PROFILES = {
                   start="random", finetune="continue",
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
                   eval_scenarios=100, eval_repeats=3),
+    # All of Table I on the 2-core machine: the mid recipe with the paper's five rounds and every row (the fixed
+    # sweep, pooled, per-step, and the closed-loop row's own chain of rounds), 5 lineages. One lineage is 45
+    # fine-tuned cells; run it as --prepare, then --lineage i (side by side, or on other days and machines:
+    # lineage folders join with --report), then --report. Its cost per stage and the projected wall:
+    # python benchmarks/table1_cost.py --run runs/mid (benchmarks/README.md, "All of Table I overnight").
+    "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5, episodes_per_round=100,
+                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
+                     start="random", finetune="continue",
+                     methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
+                              "per_step", "closed_loop"),
+                     eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the earlier mid recipe (U-Net, fine-tuning restarted) on the UR5
     # engine-lever env with Table II's rows (BC, HG-DAgger, pooled Sigma-bar^alpha; the paper's 2 rounds and 3
     # lineages) and fixed sigma = 4 as a reference. --prepare (D0 + BC, ~55 min of one core), --lineage 0/1/2

@@ -665,3 +665,45 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
     assert main_collect[0][3] is made[(1, "hg_dagger")][0]
     table = open(tmp_path / "table.md").read()
     assert "Closed-loop pooled" in table
+
+
+def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_lineage(tmp_path):
+    """The table1 profile: the mid recipe with the paper's five rounds and all ten rows. benchmarks/table1_cost.py
+    counts a lineage's stages as the loop runs them and projects unmeasured rounds from the measured ones."""
+    import importlib.util
+    cfg, mid = dagger.PROFILES["table1"], dagger.PROFILES["mid"]
+    assert cfg.rounds == 5 and cfg.lineages == 5 and cfg.methods == dagger.TABLE_I_METHODS
+    assert {f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(mid, f.name)} == {
+        "name", "rounds", "methods"}
+    spec = importlib.util.spec_from_file_location(
+        "table1_cost", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                    "benchmarks", "table1_cost.py"))
+    cost = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cost)
+    run = run_folder.Run(str(tmp_path), mid)
+    seconds = {"demos": 80, "train_bc": 150, "bc": 150}
+    for stage, s in seconds.items():
+        run.record_time(stage, s)
+    run.record_time("evaluate/eval/pi0.json", 10)
+    for lineage in (0, 1):
+        for k, calib in ((1, 10), (2, 16)):  # calibration grows with the rounds' interventions
+            where = f"lineage_{lineage}/round_{k}"
+            run.record_time(f"collect/{where}", 50)
+            run.record_time(f"calibrate/{where}", calib)
+            run.record_time(f"train_hg_dagger/{where}", 200)
+            for m in ("fixed_2", "pooled"):
+                run.record_time(f"train_{m}/{where}", 300)
+                run.record_time(f"evaluate/{where}/eval/{m}.json", 10)
+    timings = cost.read_timings(str(tmp_path), None)
+    wall1, rows = cost.lineage_wall(cfg, timings, 1)
+    counts = {name: n for name, (n, _, _) in rows.items()}
+    assert counts == {"collect": 5, "cell: HG-DAgger (train + evaluations)": 5, "calibrate": 5,
+                      "cell: a noised arm (train + evaluations)": 35, "closed-loop chain: cell": 5,
+                      "closed-loop chain: collect": 4, "closed-loop chain: calibrate": 4}
+    assert rows["calibrate"][1] == pytest.approx(10 + 16 + 22 + 28 + 34)  # a line through rounds 1 and 2
+    assert not rows["calibrate"][2] and cost.per_round(timings, "calibrate", 2, grow=True) == (16, True)
+    cell = 300 + 2 * 10  # training and the two evaluations (eval + unseen)
+    assert rows["cell: a noised arm (train + evaluations)"][1] == pytest.approx(35 * cell)
+    assert wall1 == pytest.approx(sum(s for _, s, _ in rows.values()))
+    wall7, _ = cost.lineage_wall(cfg, timings, 7)  # the 7 noised arms of a round in one wave
+    assert wall1 - wall7 == pytest.approx(5 * 6 * cell)
