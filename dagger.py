@@ -128,13 +128,20 @@ class Config:
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
     # The authors' co-training (PAPER_SETUP.md §2): every fine-tuning batch is D0 and, in exactly this share,
-    # intervention frames, split equally over rounds 1..k; the noised methods noise every intervention frame
-    # they draw (relabel.AugmentationSampler) and never D0.
+    # intervention frames, split over rounds 1..k; the noised methods noise every intervention frame they draw
+    # (relabel.AugmentationSampler) and never D0.
     intervention_fraction: float = 0.3
+    # How that share is split over rounds 1..k: 'equal' (the authors' planar runs, PCD lib_repro.sh
+    # planar_multi_args) or 'frames', in proportion to each round's intervention frames (their lever runs,
+    # lever_multi_args)
+    round_shares: str = "equal"
     # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
     # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
-    # alone) continues BC's AdamW state along its tail; or 'restart', a fresh optimizer with its own warm-up
-    # and cosine over finetune_steps (the BC row is then pi_0 itself, with finetune_steps fewer steps).
+    # alone) continues BC's AdamW state along its tail; 'restart', a fresh optimizer with its own warm-up
+    # and cosine over finetune_steps (the BC row is then pi_0 itself, with finetune_steps fewer steps); or
+    # 'constant', the authors' lever runs (PCD lib_repro.sh lever_train: +20k steps at a constant 1e-6 after
+    # BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps, every arm continues its AdamW state at a
+    # constant finetune_lr (None: lr / 10) for finetune_steps more; the BC row is pi_0 itself, as theirs.
     finetune: str = "continue"
     # The share of a noised arm's intervention rows taken as recorded (the expert's own chunks), the rest
     # noised and relabelled. The authors' code: 0 (every drawn intervention frame noised; their raw_mix knob);
@@ -226,7 +233,8 @@ def behavior_cloning(run, demos):
         policy, continuing = make_policy(cfg, make_run_env(cfg)), cfg.finetune == "continue"
         tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
                           schedule_steps=cfg.bc_steps + cfg.finetune_steps if continuing else 0)
-        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=continuing)
+        # the arms continue pi_0's optimizer under 'continue' and 'constant': keep its state
+        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=cfg.finetune != "restart")
 
     return run.stage("checkpoints/bc.pt", train_pi0)
 
@@ -237,7 +245,7 @@ def bc_row_arm(root, cfg_fields):
     the same steps), else pi_0 itself; evaluated."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    if cfg.finetune != "continue":
+    if cfg.finetune != "continue":  # 'restart' and 'constant' (the authors' lever table): pi_0 itself
         evaluate_policy(run, "eval/bc.json", run.load("checkpoints/bc.pt"), "bc (pi_0)")
         return
 
@@ -478,20 +486,22 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
 
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
-    """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares; HG-DAgger's as recorded, a
-    noised method's noised and relabelled (relabel.AugmentationSampler), raw_mix of each round's share as
-    recorded."""
+    """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares (round_shares='frames': in
+    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's noised and relabelled
+    (relabel.AugmentationSampler), raw_mix of each round's share as recorded."""
     samplers, weights, offset = [], [], 0
-    for D in rounds_data:  # equal shares per round; a noised arm takes raw_mix of its round's share as recorded
+    frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
+    shares = [f / sum(frames) for f in frames] if cfg.round_shares == "frames" else [1.0] * len(rounds_data)
+    for D, share in zip(rounds_data, shares):  # a noised arm takes raw_mix of its round's share as recorded
         if method == "hg_dagger" or cfg.raw_mix > 0:
             samplers.append(relabel.ChunkSampler(D, cfg.horizon))
-            weights.append(1.0 if method == "hg_dagger" else cfg.raw_mix)
+            weights.append(share * (1.0 if method == "hg_dagger" else cfg.raw_mix))
         if method != "hg_dagger":
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
             samplers.append(relabel.AugmentationSampler(
                 D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
-            weights.append(1.0 - cfg.raw_mix)
+            weights.append(share * (1.0 - cfg.raw_mix))
         offset += len(D)
     return relabel.MixtureSampler(samplers, weights)
 
@@ -519,23 +529,30 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
 
 def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
     """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name` by cfg.finetune: 'continue' goes on with pi_0's
-    AdamW state along its cosine to bc_steps + finetune_steps (the authors' run); 'restart' runs finetune_steps
-    more with a fresh optimizer, warm-up and cosine (peak finetune_lr or lr)."""
+    AdamW state along its cosine to bc_steps + finetune_steps (the authors' planar run); 'constant' goes on with
+    it at a constant finetune_lr (None: lr / 10; their lever run); 'restart' runs finetune_steps more with a
+    fresh optimizer, warm-up and cosine (peak finetune_lr or lr)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
+    total = cfg.bc_steps + cfg.finetune_steps
     if cfg.finetune == "continue":
-        total = cfg.bc_steps + cfg.finetune_steps
         tc = train_config(cfg, policy, total, seed, schedule_steps=total, aug_fraction=aug_fraction)
+        return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
+    if cfg.finetune == "constant":
+        tc = train_config(cfg, policy, total, seed, lr=cfg.finetune_lr or cfg.lr / 10, aug_fraction=aug_fraction,
+                          constant_lr=True)
         return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
     tc = train_config(cfg, policy, cfg.finetune_steps, seed, lr=cfg.finetune_lr, aug_fraction=aug_fraction)
     return run.train(name, policy, obs, chunks, tc, sampler)
 
 
-def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0):
+def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, constant_lr=False):
     """diffusion.TrainConfig of a run to step `steps`: AdamW at peak lr, warm-up, a cosine that ends at
-    schedule_steps (0: steps), the authors' observation noise; aug_fraction of every batch from the sampler."""
+    schedule_steps (0: steps) -- or, constant_lr, lr throughout --, the authors' observation noise;
+    aug_fraction of every batch from the sampler."""
     return diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=lr or cfg.lr, seed=seed,
                                  warmup_steps=min(500, (schedule_steps or steps) // 10), schedule_steps=schedule_steps,
-                                 aug_fraction=aug_fraction, obs_noise=observation_noise(cfg, policy.cfg))
+                                 constant_lr=constant_lr, aug_fraction=aug_fraction,
+                                 obs_noise=observation_noise(cfg, policy.cfg))
 
 
 def observation_noise(cfg, policy_cfg):
@@ -562,12 +579,14 @@ def noised_arm(root, cfg_fields, lineage, k, method):
 
 
 def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration):
-    """Table I's closed-loop pooled row (PAPER_SETUP.md §5; the paper ran one lineage of it): Sec. IV-A's
-    steps 2-5 as written -- the round's policy co-trained with pooled Sigma_bar^alpha collects the next round's
-    interventions and is itself measured again (Sigma_hat and W) on the chain's interventions before that
-    round's training. Round 1 is the main chain's (pi_0 collected it, HG-DAgger's round-1 policy was measured);
-    from round 2 on the chain's data and calibration are in lineage_<l>/round_<k>/closed_loop/. Every round's
-    policy is fine-tuned from pi_0 (step 6), as every other row."""
+    """Table I's closed-loop pooled row (the paper ran one lineage of it; PCD paper/tables_repro/
+    planar_closed_loop.sh): Sec. IV-A's steps 2-5 as written -- the round's policy co-trained with pooled
+    Sigma_bar^alpha collects the next round's interventions, and the noise of round k is measured on that
+    policy over the chain's interventions of rounds 1..k. Round 1 is the main chain's (pi_0 collected it,
+    HG-DAgger's round-1 policy was measured: the authors copy lineage 1's round 1 too); from round 2 on the
+    chain's data and calibration are in lineage_<l>/round_<k>/closed_loop/. Every round's row is fine-tuned
+    from pi_0 (step 6), as every other row; it also collects the next round (the authors collect with a
+    chained fine-tune of the previous one, as in the main chain: see the loop's comment)."""
     cfg, rounds_data, calibration = run.cfg, [first_round], first_calibration
     policy = success = None
     for k in range(1, cfg.rounds + 1):

@@ -94,6 +94,7 @@ class TrainConfig:
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
     schedule_steps: int = 0          # step at which the cosine reaches 0 (0: steps). The authors' pi_0 is the 75k
     #                                  point of one 175k-step schedule that their fine-tuning continues (continue_from)
+    constant_lr: bool = False        # lr at every step, no warm-up or cosine (the authors' lever fine-tuning)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
     obs_noise: object = 0.0          # observation noise std in training, raw units (rad, m): one, or (obs_dim,)
     # not in the paper
@@ -1005,7 +1006,10 @@ def _masked_mse(eps_pred, eps, mask, device):
 
 
 def lr_at(step, cfg):
-    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.schedule_steps (0: cfg.steps)."""
+    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.schedule_steps (0: cfg.steps);
+    with cfg.constant_lr, cfg.lr at every step."""
+    if cfg.constant_lr:
+        return cfg.lr
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     end = cfg.schedule_steps or cfg.steps

@@ -44,6 +44,13 @@ def parse_args(argv, profiles, methods):
                    help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
                         "the policy does not solve, so they enter the training data) or train (fresh training "
                         "scenarios, the stricter variant)")
+    p.add_argument("--finetune", default=None, choices=("continue", "constant", "restart"),
+                   help="how every arm is fine-tuned from pi_0: continue (pi_0's optimizer along one cosine, the "
+                        "authors' planar runs), constant (pi_0's optimizer at a constant lr / 10, their lever "
+                        "runs) or restart (a fresh warm-up and cosine); default: the profile's")
+    p.add_argument("--round-shares", default=None, choices=("equal", "frames"),
+                   help="the intervention share of a batch split over rounds equally (the authors' planar runs) "
+                        "or by frame count (their lever runs); default: the profile's")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
     p.add_argument("--lineages", type=int, default=None, help="number of lineages")
     p.add_argument("--lineage", type=int, default=None,
@@ -76,6 +83,10 @@ def parse_args(argv, profiles, methods):
         over["goal_angle"] = args.goal_angle
     if args.collect_on:
         over["collect_on"] = args.collect_on
+    if args.finetune:
+        over["finetune"] = args.finetune
+    if args.round_shares:
+        over["round_shares"] = args.round_shares
     if args.no_eval_unseen:
         over["eval_unseen"] = False
     for key in ("rounds", "lineages", "seed"):
@@ -120,13 +131,16 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, start, goal angle, collection scenarios, set of methods)."""
+    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, set of
+    methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
     name += f"_{args.start}_start" if args.start else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
+    name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
+    name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     return name

@@ -91,11 +91,15 @@ def check_config(cfg, methods):
     if cfg.start is not None and cfg.start not in starts:
         raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
                          f"{', '.join(starts)}")
-    if cfg.finetune not in ("continue", "restart"):
-        raise ValueError(f"finetune must be 'continue' (the authors' run) or 'restart', got {cfg.finetune!r}")
+    if cfg.finetune not in ("continue", "restart", "constant"):
+        raise ValueError(f"finetune must be 'continue' (the authors' planar run), 'constant' (their lever run) or "
+                         f"'restart', got {cfg.finetune!r}")
     if cfg.finetune == "continue" and cfg.finetune_lr is not None:
-        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart'; 'continue' follows BC's "
-                         f"own schedule (lr)")
+        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart' or 'constant'; 'continue' "
+                         f"follows BC's own schedule (lr)")
+    if cfg.round_shares not in ("equal", "frames"):
+        raise ValueError(f"round_shares must be 'equal' (the authors' planar runs) or 'frames' (their lever "
+                         f"runs), got {cfg.round_shares!r}")
     if not 0.0 <= cfg.raw_mix < 1.0:
         raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
                          f"arm), got {cfg.raw_mix}")

@@ -89,9 +89,61 @@ def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
     assert 0.15 < is_recorded.mean() < 0.35 and mask[is_recorded].all()            # recorded rows: whole chunks
 
 
+def test_constant_mode_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi0_as_the_bc_row(tmp_path,
+                                                                                                    monkeypatch):
+    """finetune='constant' (the authors' lever runs): pi_0 ends its own cosine at bc_steps with its AdamW state
+    saved; an arm goes on from that state at lr / 10 at every step (or finetune_lr) to bc_steps + finetune_steps;
+    the BC row is pi_0 itself."""
+    cfg = replace(TINY, finetune="constant", methods=("bc", "hg_dagger"))
+    root = str(tmp_path / "constant")
+    made, real = [], dagger.train_config
+    monkeypatch.setattr(dagger, "train_config", lambda *a, **kw: made.append(real(*a, **kw)) or made[-1])
+    resumed, real_train = [], run_folder.Run.train
+    monkeypatch.setattr(run_folder.Run, "train", lambda self, name, *a, **kw: resumed.append(
+        (name, kw.get("continue_from"))) or real_train(self, name, *a, **kw))
+    dagger.run_experiment(cfg, root)
+    pi0 = torch.load(os.path.join(root, "checkpoints", "bc.pt"), weights_only=True)["train_state"]
+    assert pi0["step"] == cfg.bc_steps and pi0["optimizer"]["state"]
+    assert json.loads(pi0["train_config"])["schedule_steps"] == 0  # its own cosine, over bc_steps
+    bc_tc, arm_tc = made  # pi_0, then the HG-DAgger arm
+    assert not bc_tc.constant_lr and bc_tc.steps == cfg.bc_steps
+    assert arm_tc.constant_lr and arm_tc.lr == pytest.approx(cfg.lr / 10)
+    assert arm_tc.steps == cfg.bc_steps + cfg.finetune_steps  # finetune_steps more, from pi_0's step
+    assert resumed == [("checkpoints/bc.pt", None), ("lineage_0/round_1/checkpoints/hg_dagger.pt", "checkpoints/bc.pt")]
+    assert not os.path.exists(os.path.join(root, "checkpoints", "bc_continued.pt"))
+    assert dagger.pi0_eval_name(cfg) == "eval/bc.json"
+    lrs = [diffusion.lr_at(step, diffusion.TrainConfig(steps=100, lr=2e-4, constant_lr=True)) for step in (0, 5, 99)]
+    assert lrs == [2e-4] * 3  # no warm-up, no cosine
+    tc = dagger.train_config(replace(cfg, finetune_lr=3e-5), dagger.make_policy(cfg, dagger.make_run_env(cfg)),
+                             10, 0, lr=3e-5, constant_lr=True)
+    assert tc.lr == 3e-5 and tc.constant_lr
+
+
+def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(two_workers):
+    D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
+    demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
+    stats = dagger.demo_statistics(TINY, demos)
+    small = D[:1]
+    frames = np.array([sum(int(ep["expert"].sum()) for ep in x) for x in (D, small)], float)
+    assert frames[0] > frames[1]
+    equal = dagger.intervention_sampler(TINY, "hg_dagger", [D, small], None, stats)
+    assert np.allclose(equal.p, 0.5)  # the authors' planar runs
+    by_frames = dagger.intervention_sampler(replace(TINY, round_shares="frames"), "hg_dagger", [D, small], None, stats)
+    assert np.allclose(by_frames.p, frames / frames.sum())  # their lever runs
+    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(two_workers,
+                                                                       "lineage_0/round_1/calibration.json")))
+    mixed = dagger.intervention_sampler(replace(TINY, round_shares="frames", raw_mix=0.5), "fixed_4", [D, small],
+                                        cal, stats)
+    assert np.allclose(mixed.p, np.repeat(frames / frames.sum(), 2) * 0.5)
+    args, cfg = dagger.parse_args(["--profile", "smoke", "--finetune", "constant", "--round-shares", "frames"])
+    assert (cfg.finetune, cfg.round_shares) == ("constant", "frames")
+    assert cfg.name == "smoke_constant_frame_shares"
+
+
 @pytest.mark.parametrize("overrides,match", [
     (dict(finetune="warm"), "finetune must be 'continue'"),
     (dict(finetune="continue", finetune_lr=1e-4), "finetune_lr"),
+    (dict(round_shares="steps"), "round_shares must be 'equal'"),
     (dict(raw_mix=1.0), "raw_mix must be in"),
     (dict(network="gru"), "network must be one of"),
     (dict(start="home"), "not a start of the planar env"),
