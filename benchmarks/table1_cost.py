@@ -116,8 +116,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     cfg = dagger.PROFILES[args.profile]
     timings = read_timings(args.run, set(args.lineages) if args.lineages else None)
-    prepare = sum(flat(timings, kind) for kind in ("demos", "train_bc")) + flat(timings, "evaluate")
-    bc_row = flat(timings, "bc") + 2 * flat(timings, "evaluate")  # the BC row, in the background
+    # timings' names: 'bc' is pi_0's training, 'train_bc' the BC row's (pi_0 continued on D0 alone)
+    prepare = sum(flat(timings, kind) for kind in ("demos", "bc")) + flat(timings, "evaluate")
+    bc_row = flat(timings, "train_bc") + 2 * flat(timings, "evaluate")  # the BC row, in the background
     walls = {w: lineage_wall(cfg, timings, w)[0] for w in (1, 2, 3, 4, 7, 8)}
     _, rows = lineage_wall(cfg, timings, 1)
     print(f"Stages measured in {args.run}" + (f" (lineages {args.lineages})" if args.lineages else "")

@@ -124,16 +124,17 @@ def scenario_paired(run, scenarios="eval"):
 PAPER_CALIBRATION = {"planar": {"sigma": "3.9–5.1", "W": "8.0"}, "engine3d": {"sigma": "1.3–4.2", "W": "7.9–8.1"}}
 
 
-def calibration_summary(run):
+def calibration_summary(run, chain=None):
     """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W per lineage, in our median steps
     ('sigma_per_joint', 'W', 'W_ci'), in radians ('..._rad') and in the paper's median steps ('..._paper';
-    None where the env has no paper unit)."""
+    None where the env has no paper unit). chain='closed_loop': that row's own calibrations (rounds >= 2)."""
     cfg, out = run.cfg, {}
     paper = envs.paper_median_step(cfg.env)
     in_paper = lambda rad: None if paper is None or rad is None else (np.asarray(rad) / paper).tolist()  # noqa: E731
     for k in range(1, cfg.rounds + 1):
         for lineage in range(cfg.lineages):
-            p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "calibration.json")
+            p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", *([chain] if chain else []),
+                             "calibration.json")
             if os.path.exists(p):
                 c = read_json(p)
                 m = c["median_step"]
@@ -322,6 +323,13 @@ def calibration_lines(cfg, stats):
                      + (f" (the paper: {quoted['W']})" if quoted else ""))
         lines.append("  - per lineage" + (" (the paper's median steps)" if paper is not None else " (rad)") + ": "
                      + "; ".join(lineage_calibration(l, v, paper is not None) for l, v in per.items()))
+    if stats.get("calibration_closed_loop"):
+        lines.append("- the closed-loop row's own chain (measured on the previous round's closed_loop policy over "
+                     "the chain's interventions; round 1 is the one above), per lineage"
+                     + (" (the paper's median steps)" if paper is not None else " (rad)") + ":")
+        for k, per in stats["calibration_closed_loop"].items():
+            lines.append(f"  - K={k}: " + "; ".join(lineage_calibration(l, v, paper is not None)
+                                                    for l, v in per.items()))
     return lines
 
 
@@ -344,6 +352,8 @@ def write_tables(run, tables):
     results, table, stats = tables["eval"]
     results_unseen, table_unseen, stats_unseen = tables["unseen"]
     stats["calibration"] = calibration_summary(run)
+    if "closed_loop" in cfg.methods:
+        stats["calibration_closed_loop"] = calibration_summary(run, chain="closed_loop")
     stats["stage_times"] = stage_times(run)
     write_json(os.path.join(run.root, "results.json"), {"success": results, "stats": stats,
                                                         "success_unseen": results_unseen, "stats_unseen": stats_unseen})

@@ -189,9 +189,9 @@ def check_same_config(root, old, cfg, advice=None):
 
 def timing_name(name):
     """The timings/ name of a stage file: its kind (demos, bc, train_bc, collect, calibrate, train_<method>,
-    evaluate), then its lineage and round."""
+    evaluate), then its lineage and round (and a chain of its own, e.g. closed_loop)."""
     parts = name[:-len(os.path.splitext(name)[1])].split("/")
-    where = "/" + "/".join(parts[:2]) if parts[0].startswith("lineage_") else ""
+    where = "/" + "/".join(p for p in parts[:-1] if p != "checkpoints") if parts[0].startswith("lineage_") else ""
     if parts[-2] == "eval":
         return "evaluate/" + "/".join(parts)
     kind = {"D0": "demos", "bc": "bc", "bc_continued": "train_bc", "D": "collect",

@@ -660,11 +660,16 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
               "lineage_0/round_2/eval/closed_loop.json", "lineage_0/round_2/checkpoints/closed_loop.pt"):
         assert (tmp_path / f).is_file(), f
     assert not (tmp_path / "lineage_0/round_1/closed_loop").exists()
+    timings = sorted(os.listdir(tmp_path / "timings"))  # the chain's stages timed apart from the main chain's
+    for kind in ("collect", "calibrate"):
+        assert {f"{kind}__lineage_0__round_2.json", f"{kind}__lineage_0__round_2__closed_loop.json"} <= set(timings)
+    assert "train_closed_loop__lineage_0__round_2.json" in timings
     # the main chain's round 2 is HG-DAgger's: its own folder, collected by HG-DAgger's round-1 policy
     main_collect = [a for n, a, kw, _ in calls if n == "collect_interventions" and not kw.get("chain") and a[2] == 2]
     assert main_collect[0][3] is made[(1, "hg_dagger")][0]
     table = open(tmp_path / "table.md").read()
     assert "Closed-loop pooled" in table
+    assert "- the closed-loop row's own chain" in table and "  - K=2: 0: W " in table  # its calibration, reported
 
 
 def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_lineage(tmp_path):
