@@ -41,7 +41,7 @@ import oracle as oracle_mod
 import partial_denoise
 import relabel
 from experiment import cli, profiles, report
-from experiment.run_folder import Run, stage_seed
+from experiment.run_folder import Run, export_lineages, join_lineage, stage_seed
 from experiment.workers import InBackground, in_parallel
 
 
@@ -944,16 +944,22 @@ def write_report(run):
         stats["scenario_paired"] = report.scenario_paired(run, scenarios)
         tables[scenarios] = (success, table, stats)
     text = report.write_tables(run, tables)
-    demos = run.load("data/D0.npz")
-    make_figures(run, demos, demo_statistics(run.cfg, demos))
+    if os.path.exists(run.path("data", "D0.npz")):
+        demos = run.load("data/D0.npz")
+        make_figures(run, demos, demo_statistics(run.cfg, demos))
+    else:  # a folder of joined lineage results only: the table and its figures, not the paper's figures
+        run.log("no data/D0.npz here (lineages joined from results files): the paper's figures need --prepare")
     report.write_markdown_report(run, text, tables["eval"][2], tables["unseen"][2])
     return text
 
 
-def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1):
+def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(), export_to=None):
     """The command's mode on run folder `root` (resuming whatever is already there): every lineage, or only
-    `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report."""
+    `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report. join: lineage
+    results files unpacked into the folder first; export_to: a folder to write each lineage's results file to."""
     run = Run(root, cfg)
+    for path in join:
+        join_lineage(run, path)
     t0 = time.time()
     if not report_only:
         run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
@@ -961,6 +967,8 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, wo
         policy_calibrated_dagger(run, lineages, workers)
     text = write_report(run)
     run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
+    for path in export_lineages(run, export_to) if export_to else []:
+        run.log(f"wrote {path}")
     return run.root
 
 
@@ -973,7 +981,7 @@ def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
     return cli.run_command(run_experiment, cfg, args.out or os.path.join("runs", cfg.name), args.lineage,
-                           args.prepare, args.report, args.workers)
+                           args.prepare, args.report, args.workers, args.join, args.export_lineages)
 
 
 if __name__ == "__main__":

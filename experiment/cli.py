@@ -2,7 +2,7 @@
 
 Modes: the whole run (default); --prepare (the shared stages: D0, BC and its evaluation, the BC row);
 --lineage i (one lineage, e.g. one task of a cluster job array); --report (merge finished lineages into
-the table and figures). dagger.main passes in its profiles and method names: this module never imports it.
+the table and figures); --join / --export-lineages (a lineage's results as one file, to merge elsewhere). dagger.main passes in its profiles and method names: this module never imports it.
 """
 from __future__ import annotations
 
@@ -66,6 +66,13 @@ def parse_args(argv, profiles, methods):
                    help="processes for the arms of a round (and the BC row beside the rounds); default: 2 where "
                         "the machine has 2 cores or more, 1 with --lineage (lineages side by side use the cores)")
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
+    p.add_argument("--join", nargs="+", default=(), metavar="FILE",
+                   help="lineage results files (written by --export-lineages, e.g. benchmarks/results/<profile>/"
+                        "lineage_<l>.json) to unpack into the run folder first, so --report merges them; refused "
+                        "if made with another config or pi_0")
+    p.add_argument("--export-lineages", default=None, metavar="FOLDER",
+                   help="after the mode, write FOLDER/lineage_<l>.json: each lineage's results (evaluations, "
+                        "calibrations, timings; no checkpoints), for --join in another folder or a commit")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
     args = p.parse_args(argv)

@@ -168,6 +168,102 @@ class Run:
         write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
 
 
+# A lineage's results as one small file (a few hundred kB of JSON, no checkpoints or data): what --export-lineages
+# writes and --join reads, so a lineage run on another day or machine -- or committed under benchmarks/results/ --
+# joins a run folder's report. It holds every JSON under lineage_<l>/ (evaluations, calibrations, lineage.json),
+# the lineage's timings and the shared evaluations under eval/ (pi_0's, the BC row's) it is paired with.
+LINEAGE_FILE_FORMAT = "pcdagger-lineage-results-1"
+
+
+def lineage_results(run, lineage):
+    """{relative path: JSON content} of lineage `lineage`'s results in run folder `run` (see LINEAGE_FILE_FORMAT)."""
+    where = re.compile(rf"(^|__)lineage_{lineage}(__|\.json$)")
+    files = {}
+    for top, _, names in os.walk(run.path(f"lineage_{lineage}")):
+        for name in names:
+            if name.endswith(".json"):
+                path = os.path.join(top, name)
+                files[os.path.relpath(path, run.root)] = read_json(path)
+    for folder, keep in (("timings", where.search), ("eval", lambda name: True)):
+        for name in sorted(os.listdir(run.path(folder))) if os.path.isdir(run.path(folder)) else []:
+            if name.endswith(".json") and keep(name):
+                files[f"{folder}/{name}"] = read_json(run.path(folder, name))
+    return files
+
+
+def export_lineages(run, folder):
+    """folder/lineage_<l>.json for every lineage of the run folder that has a lineage.json (it ran at least one
+    stage); each says how many rounds it finished. Returns the paths written."""
+    os.makedirs(folder, exist_ok=True)
+    written = []
+    for lineage in sorted(int(m.group(1)) for m in map(re.compile(r"lineage_(\d+)$").match, os.listdir(run.root))
+                          if m and os.path.exists(run.path(m.group(0), "lineage.json"))):
+        record = read_json(run.path(f"lineage_{lineage}", "lineage.json"))
+        files = lineage_results(run, lineage)
+        path = os.path.join(folder, f"lineage_{lineage}.json")
+        write_json(path, {"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
+                          "pi0_sha256": record["pi0_sha256"], "rounds_finished": rounds_finished(run, lineage),
+                          "files": files})
+        written.append(path)
+    return written
+
+
+def rounds_finished(run, lineage):
+    """How many rounds of the lineage have every method's evaluation on disk (the rounds a report can use)."""
+    methods = [m for m in getattr(run.cfg, "methods", ()) if m != "bc"]
+    k = 0
+    while k < run.cfg.rounds and all(os.path.exists(run.path(f"lineage_{lineage}", f"round_{k + 1}", "eval",
+                                                                f"{m}.json")) for m in methods):
+        k += 1
+    return k
+
+
+def join_lineage(run, path):
+    """Unpack a lineage results file (export_lineages) into the run folder, so --report merges it. Refused
+    (ConfigMismatch, naming what differs) if it was made with another config (FOLDER_FREE_FIELDS aside), from
+    another pi_0 than the folder's (its checkpoints/bc.pt, else its other lineages' records), or if a file it
+    holds is already in the folder with other content. Joining the same file twice changes nothing."""
+    if not os.path.isfile(path):
+        raise RunFolderError(f"--join {path}: no such file (a lineage results file, written by --export-lineages)")
+    data = read_json(path)
+    if not isinstance(data, dict) or data.get("format") != LINEAGE_FILE_FORMAT:
+        raise RunFolderError(f"{path} is not a lineage results file (format {LINEAGE_FILE_FORMAT!r}, written by "
+                             "python dagger.py --profile P --report --export-lineages FOLDER)")
+    lineage = data["lineage"]
+    check_same_config(f"{path} (lineage {lineage})", data["config"], run.cfg,
+                      advice=f"A lineage joins a run folder only if it was made with the folder's config: join it "
+                             f"into a folder of its own config (--profile and options as it was run, --out).")
+    pi0 = folder_pi0(run)
+    if pi0 is not None and pi0 != data["pi0_sha256"]:
+        raise ConfigMismatch(
+            f"{path} (lineage {lineage}) was made from another pi_0 (the SHA-256 of its weights "
+            f"{data['pi0_sha256'][:12]}... there, {pi0[:12]}... in {run.root}): its numbers pair only with the "
+            "pi_0 they were made from. Join it into a folder of that pi_0.")
+    at = lambda rel: os.path.join(run.root, rel)  # noqa: E731 (run.path would make folders of a refused join)
+    clash = [rel for rel, content in data["files"].items() if os.path.exists(at(rel)) and read_json(at(rel)) != content]
+    if clash:
+        raise ConfigMismatch(f"{path} (lineage {lineage}) holds other results than {run.root} already has: "
+                             + ", ".join(sorted(clash)[:5]) + (" ..." if len(clash) > 5 else "")
+                             + f". Delete lineage_{lineage}/ there to join the file's lineage instead.")
+    for rel, content in data["files"].items():
+        if not os.path.exists(at(rel)):
+            write_json(run.path(rel), content)
+    run.log(f"joined lineage {lineage} ({data['rounds_finished']} of {run.cfg.rounds} rounds finished) from {path}")
+    return lineage
+
+
+def folder_pi0(run):
+    """The SHA-256 of the run folder's pi_0: its checkpoints/bc.pt, else the one its lineages record; None if
+    neither is there yet."""
+    if os.path.exists(run.path("checkpoints", "bc.pt")):
+        return weights_sha256(run.path("checkpoints", "bc.pt"))
+    for name in sorted(os.listdir(run.root)):
+        record = os.path.join(run.root, name, "lineage.json")
+        if re.fullmatch(r"lineage_\d+", name) and os.path.exists(record):
+            return read_json(record)["pi0_sha256"]
+    return None
+
+
 def check_same_config(root, old, cfg, advice=None):
     """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside)."""
     saved = asdict(cfg)

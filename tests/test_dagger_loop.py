@@ -712,3 +712,48 @@ def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_l
     assert wall1 == pytest.approx(sum(s for _, s, _ in rows.values()))
     wall7, _ = cost.lineage_wall(cfg, timings, 7)  # the 7 noised arms of a round in one wave
     assert wall1 - wall7 == pytest.approx(5 * 6 * cell)
+
+
+def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refused_where_it_does_not_belong(
+        full_run, tmp_path):
+    """--export-lineages writes one small file per lineage (its evaluations, calibrations, timings and the shared
+    evaluations it pairs with; no checkpoints or data); --join unpacks it into another folder of the same config,
+    whose report then has the lineage's numbers exactly. Another config, another pi_0, clashing results or a file
+    that is not one are refused with what differs."""
+    out = str(tmp_path / "results")
+    run = run_folder.Run(full_run, TINY)
+    (path,) = run_folder.export_lineages(run, out)
+    data = json.load(open(path))
+    assert os.path.basename(path) == "lineage_0.json" and data["rounds_finished"] == 1
+    assert "lineage_0/round_1/eval/hg_dagger.json" in data["files"] and "eval/bc.json" in data["files"]
+    assert "lineage_0/round_1/calibration.json" in data["files"] and "lineage_0/lineage.json" in data["files"]
+    assert any(f.startswith("timings/train_pooled__lineage_0") for f in data["files"])
+    assert not any(f.endswith((".pt", ".npz")) for f in data["files"])
+    assert data["pi0_sha256"] == run_folder.weights_sha256(os.path.join(full_run, "checkpoints", "bc.pt"))
+
+    root = str(tmp_path / "joined")  # a folder of results files only: no D0, no pi_0 checkpoint
+    dagger.run_experiment(TINY, root, report_only=True, join=[path])
+    dagger.run_experiment(TINY, root, report_only=True, join=[path])  # joining the same file again changes nothing
+    mine, theirs = (json.load(open(os.path.join(r, "results.json")))["success"] for r in (root, full_run))
+    assert mine == theirs and set(mine["pooled"]) == {"0"}
+    assert "| HG-DAgger | " in open(os.path.join(root, "table.md")).read()
+
+    bad = str(tmp_path / "bad.json")
+    json.dump({**data, "config": {**data["config"], "bc_steps": 31}}, open(bad, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match=r"bad.json \(lineage 0\) holds a run made with another "
+                                                        r"config: bc_steps = 31 there, 30 now"):
+        dagger.run_experiment(TINY, str(tmp_path / "other"), report_only=True, join=[bad])
+    json.dump({**data, "pi0_sha256": "0" * 64}, open(bad, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match="was made from another pi_0"):
+        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+    files = dict(data["files"])
+    files["lineage_0/round_1/eval/pooled.json"] = {**files["lineage_0/round_1/eval/pooled.json"], "success": [[True]]}
+    json.dump({**data, "files": files}, open(bad, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match=r"holds other results than .* lineage_0/round_1/eval/pooled"):
+        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+    json.dump({"success": []}, open(bad, "w"))
+    with pytest.raises(run_folder.RunFolderError, match="not a lineage results file"):
+        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+    with pytest.raises(run_folder.RunFolderError, match="no such file"):
+        dagger.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
+    assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
