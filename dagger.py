@@ -135,6 +135,12 @@ class Config:
     # planar_multi_args) or 'frames', in proportion to each round's intervention frames (their lever runs,
     # lever_multi_args)
     round_shares: str = "equal"
+    # Interventions shorter than the chunk H: 'drop' (the paper's label rule, Sec. IV-C: they teach nothing with
+    # chunks of H) or 'pad' (the authors' lever runs, PCD lib_repro.sh lever_train: teleop_pad_short_episodes,
+    # do_mask_loss_for_padding): every intervention is kept, its chunks repeat its last action past its end and
+    # those steps are out of the loss; the noised arms draw states at its steps too. D0 and the calibration
+    # keep the paper's rule (the authors also mask D0's padded tails: not done here).
+    short_interventions: str = "drop"
     # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
     # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
     # alone) continues BC's AdamW state along its tail; 'restart', a fresh optimizer with its own warm-up
@@ -275,8 +281,8 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
 
     collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
     evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
-    scenarios. Interventions shorter than H are dropped (Sec. IV-C); episodes without any are not kept.
-    chain: None, or 'closed_loop' for that row's own chain of rounds (its folder and seeds).
+    scenarios. Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
+    episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its folder and seeds).
     """
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
@@ -303,14 +309,16 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
+        pad = cfg.short_interventions == "pad"  # else the paper's rule: interventions shorter than H dropped
         for ep in episodes:
-            ep["expert"] = drop_short_interventions(ep["expert"], cfg.horizon)
-        kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon).any()]
+            ep["expert"] = ep["expert"] if pad else drop_short_interventions(ep["expert"], cfg.horizon)
+        kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon, pad).any()]
         alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
         rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
         run.log(f"  {len(episodes)} episodes: {alone} solved by the policy alone, {rescued} solved with the "
                 f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions "
-                f">= H, {sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
+                + ("(short ones padded)" if pad else ">= H")
+                + f", {sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
         if not kept:
             raise RuntimeError(f"{label}: no intervention of >= H={cfg.horizon} steps was "
                                f"recorded in {len(episodes)} episodes; nothing to aggregate")
@@ -494,13 +502,14 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     shares = [f / sum(frames) for f in frames] if cfg.round_shares == "frames" else [1.0] * len(rounds_data)
     for D, share in zip(rounds_data, shares):  # a noised arm takes raw_mix of its round's share as recorded
         if method == "hg_dagger" or cfg.raw_mix > 0:
-            samplers.append(relabel.ChunkSampler(D, cfg.horizon))
+            samplers.append(relabel.ChunkSampler(D, cfg.horizon, pad=cfg.short_interventions == "pad"))
             weights.append(share * (1.0 if method == "hg_dagger" else cfg.raw_mix))
         if method != "hg_dagger":
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
             samplers.append(relabel.AugmentationSampler(
-                D, lambda: make_run_env(cfg), stats, kind, sigma, relabel.RelabelConfig(horizon=cfg.horizon)))
+                D, lambda: make_run_env(cfg), stats, kind, sigma,
+                relabel.RelabelConfig(horizon=cfg.horizon, pad_short=cfg.short_interventions == "pad")))
             weights.append(share * (1.0 - cfg.raw_mix))
         offset += len(D)
     return relabel.MixtureSampler(samplers, weights)

@@ -342,37 +342,41 @@ class DiffusionPolicy(nn.Module):
 # Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
 
 
-def expert_runs(expert, H):
+def expert_runs(expert, H, pad=False):
     """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
     can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
     (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
     of H and is discarded, also when it ends the episode. Every other module derives its labels from here.
-    """
+    pad=True: the authors' lever runs instead (PAPER_SETUP.md; their teleop_pad_short_episodes): every run
+    counts, however short; its chunks are padded past its end and those steps masked out of the loss."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
     runs = [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
-    return [(s, e) for s, e in runs if e - s >= H or (s == 0 and e == T)]
+    return [(s, e) for s, e in runs if pad or e - s >= H or (s == 0 and e == T)]
 
 
-def label_mask(expert, H):
+def label_mask(expert, H, pad=False):
     """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
     t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
-    (the chunk is then padded with the last action)."""
+    (the chunk is then padded with the last action). pad=True: every step of every run starts a label (the
+    steps past its run's end padded and masked: chunk_dataset)."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     mask = np.zeros(T, dtype=bool)
-    for start, end in expert_runs(expert, H):
-        mask[start:(end if end == T else end - H + 1)] = True
+    for start, end in expert_runs(expert, H, pad):
+        mask[start:(end if end == T or pad else end - H + 1)] = True
     return mask
 
 
-def chunk_dataset(episodes, H):
+def chunk_dataset(episodes, H, pad=False):
     """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
-    A chunk is action[t : t + H]; past the episode end it repeats the last action."""
+    A chunk is action[t : t + H]; past the episode end it repeats the last action. pad=True (the authors'
+    lever runs; their do_mask_loss_for_padding): every expert step starts a chunk, which repeats its run's last
+    action past the run's end, and a third array, the loss mask (N, H) bool, is False on those padded steps."""
     if not isinstance(H, (int, np.integer)) or H < 1:
         raise ValueError(f"H must be a positive int, got {H!r}")
-    obs_list, chunk_list = [], []
+    obs_list, chunk_list, mask_list = [], [], []
     for i, ep in enumerate(episodes):
         for key in ("obs", "action", "expert"):
             if key not in ep:
@@ -382,13 +386,19 @@ def chunk_dataset(episodes, H):
         if len(obs) != T or len(expert) != T or action.ndim != 2:
             raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
                              "must share the length T, with action of shape (T, dof)")
-        starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
-        steps = np.minimum(starts[:, None] + np.arange(H)[None, :], T - 1)   # (n, H), padded at the end
+        starts = np.nonzero(label_mask(expert, H, pad))[0]             # (n,)
+        steps = starts[:, None] + np.arange(H)[None, :]                # (n, H)
+        last = np.full(len(starts), T - 1)                             # the last step a chunk may read
+        if pad:                                                        # the end of each start's own run
+            for start, end in expert_runs(expert, H, pad):
+                last[(starts >= start) & (starts < end)] = end - 1
+            mask_list.append(steps <= last[:, None])                   # (n, H): padded steps out of the loss
         obs_list.append(obs[starts].astype(np.float32))
-        chunk_list.append(action[steps].astype(np.float32))            # (n, H, dof)
+        chunk_list.append(action[np.minimum(steps, last[:, None])].astype(np.float32))  # (n, H, dof), padded
     if not obs_list:
         raise ValueError("chunk_dataset needs at least one episode")
-    return np.concatenate(obs_list), np.concatenate(chunk_list)
+    data = np.concatenate(obs_list), np.concatenate(chunk_list)
+    return (*data, np.concatenate(mask_list)) if pad else data
 
 
 # ----------------------------------------------------------------------------------------------

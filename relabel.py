@@ -66,6 +66,8 @@ class RelabelConfig:
     min_moving_steps: int = 3  # steps: fewer unmasked steps and the state is redrawn (theirs 8 frames = 2.7 steps)
     near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
     max_redraws: int = 6  # redraws (theirs 6), then the state is dropped
+    pad_short: bool = False  # interventions shorter than H noised too (diffusion.expert_runs pad=True; their lever
+    #   runs' teleop_pad_short_episodes): states are drawn at every intervention step, the labels end with the run
     # not in the paper: ours
     projection_window: int = 32  # steps: how far past t the projection looks, so a path that later passes
     #   near the same configuration cannot pull it far ahead (2H steps of path >> Table I's 16 median steps)
@@ -124,14 +126,15 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step, accel_per
 
 # ---- 2. Noised states around the intervention data (Sec. IV-A step 3; Σ^α from calibrate.py)
 
-def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule), and seg_end (N,):
-    the end (exclusive) of the expert run containing t -- the part of the trajectory labels may follow."""
+def label_steps(expert: np.ndarray, horizon: int, pad: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule; pad: every run's
+    every step), and seg_end (N,): the end (exclusive) of the expert run containing t -- the part of the
+    trajectory labels may follow."""
     expert = np.asarray(expert, dtype=bool)
     seg_end = np.zeros(len(expert), dtype=np.int64)
-    for start, end in expert_runs(expert, horizon):
+    for start, end in expert_runs(expert, horizon, pad):
         seg_end[start:end] = end
-    t = np.flatnonzero(label_mask(expert, horizon))
+    t = np.flatnonzero(label_mask(expert, horizon, pad))
     return t, seg_end[t]
 
 
@@ -660,7 +663,7 @@ def _build_table(sampler: AugmentationSampler, episodes: Sequence[dict], sigma) 
     sampler._episode_obs = [ep["obs"] for ep in episodes]  # recorded images are reused (references, no copy)
     for e, ep in enumerate(episodes):
         q, expert = _check_episode(ep)
-        t, seg_end = label_steps(expert, H)
+        t, seg_end = label_steps(expert, H, sampler.cfg.pad_short)
         if t.size == 0:
             offset += len(q)
             traj.append(q)
@@ -1049,14 +1052,19 @@ def _episode_sigma(noise: str, sigma, e: int, dof: int):
 # ---- samplers of a fine-tuning batch's intervention rows (dagger.intervention_sampler) -------------
 
 class ChunkSampler:
-    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
+    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data);
+    pad=True: at every intervention step, with the loss mask of the chunk's padded steps (chunk_dataset)."""
 
-    def __init__(self, episodes, H):
-        self.obs, self.chunks = chunk_dataset(episodes, H)
+    def __init__(self, episodes, H, pad=False):
+        data = chunk_dataset(episodes, H, pad)
+        self.obs, self.chunks = data[:2]
+        self.mask = data[2] if pad else None  # (N, H) bool, False on the padded steps
 
     def __call__(self, n, rng):
         pick = rng.integers(len(self.obs), size=n)
-        return self.obs[pick], self.chunks[pick]
+        if self.mask is None:
+            return self.obs[pick], self.chunks[pick]
+        return self.obs[pick], self.chunks[pick], self.mask[pick]
 
 
 class MixtureSampler:

@@ -51,6 +51,10 @@ def parse_args(argv, profiles, methods):
     p.add_argument("--round-shares", default=None, choices=("equal", "frames"),
                    help="the intervention share of a batch split over rounds equally (the authors' planar runs) "
                         "or by frame count (their lever runs); default: the profile's")
+    p.add_argument("--short-interventions", default=None, choices=("drop", "pad"),
+                   help="interventions shorter than the chunk: drop (the paper's label rule) or pad (the authors' "
+                        "lever runs: kept, their chunks padded and the padded steps out of the loss); default: "
+                        "the profile's")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
     p.add_argument("--lineages", type=int, default=None, help="number of lineages")
     p.add_argument("--lineage", type=int, default=None,
@@ -94,6 +98,8 @@ def parse_args(argv, profiles, methods):
         over["finetune"] = args.finetune
     if args.round_shares:
         over["round_shares"] = args.round_shares
+    if args.short_interventions:
+        over["short_interventions"] = args.short_interventions
     if args.no_eval_unseen:
         over["eval_unseen"] = False
     for key in ("rounds", "lineages", "seed"):
@@ -138,8 +144,8 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, set of
-    methods)."""
+    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, short
+    interventions, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
@@ -148,6 +154,7 @@ def folder_name(cfg, over, args):
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
     name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
+    name += "_pad_short" if over.get("short_interventions", cfg.short_interventions) != cfg.short_interventions else ""
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     return name

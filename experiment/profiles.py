@@ -97,6 +97,9 @@ def check_config(cfg, methods):
     if cfg.finetune == "continue" and cfg.finetune_lr is not None:
         raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart' or 'constant'; 'continue' "
                          f"follows BC's own schedule (lr)")
+    if cfg.short_interventions not in ("drop", "pad"):
+        raise ValueError(f"short_interventions must be 'drop' (the paper's label rule) or 'pad' (the authors' lever "
+                         f"runs), got {cfg.short_interventions!r}")
     if cfg.round_shares not in ("equal", "frames"):
         raise ValueError(f"round_shares must be 'equal' (the authors' planar runs) or 'frames' (their lever "
                          f"runs), got {cfg.round_shares!r}")

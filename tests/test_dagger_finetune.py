@@ -159,3 +159,51 @@ def test_planar_start_option_reaches_the_env():
     assert dagger.make_run_env(TINY).cfg.start == "random"                          # the authors' starts
     args, cfg = dagger.parse_args(["--profile", "smoke", "--start", "fixed"])
     assert cfg.start == "fixed" and cfg.name.endswith("_fixed_start")
+
+
+def test_short_interventions_padded_are_kept_with_their_padded_steps_out_of_the_loss(two_workers, tmp_path,
+                                                                                     monkeypatch):
+    """short_interventions='pad' (the authors' lever runs): an intervention shorter than H is kept at collection,
+    every one of its steps starts a chunk that repeats its last action past its end with those steps masked,
+    and the noised arms draw states there too; 'drop' (the paper's rule) keeps neither."""
+    H, pad_cfg = TINY.horizon, replace(TINY, short_interventions="pad")
+    D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
+    ep = max(D, key=lambda e: len(e["expert"]))
+    free = np.flatnonzero(~ep["expert"][1:-1]) + 1                     # policy-driven steps inside the episode
+    s0 = int(free[np.flatnonzero(~ep["expert"][free - 1] & ~ep["expert"][free + 2])[0]])
+    short = {**ep, "expert": ep["expert"].copy()}
+    short["expert"][s0:s0 + 2] = True                                   # a 2-step intervention, H > 2
+    only_short = {**ep, "expert": np.zeros_like(ep["expert"])}
+    only_short["expert"][s0:s0 + 2] = True
+
+    obs, chunks, mask = diffusion.chunk_dataset([short], H, pad=True)
+    first = np.flatnonzero((obs == short["obs"][s0]).all(axis=1))[0]
+    assert mask[first].tolist() == [True, True] + [False] * (H - 2)
+    assert np.allclose(chunks[first, 2:], short["action"][s0 + 1])     # padded with the run's last action
+    assert len(obs) == short["expert"].sum()                            # every expert step starts a chunk
+    assert not (diffusion.chunk_dataset([short], H)[0] == short["obs"][s0]).all(axis=1).any()  # the paper: dropped
+
+    demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
+    stats = dagger.demo_statistics(TINY, demos)
+    assert len(dagger.intervention_sampler(TINY, "hg_dagger", [[short]], None, stats)(64, np.random.default_rng(0))) == 2
+    o, c, m = dagger.intervention_sampler(pad_cfg, "hg_dagger", [[short]], None, stats)(256, np.random.default_rng(0))
+    assert m.all(axis=1).mean() < 1 and m[:, 0].all()
+    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(two_workers,
+                                                                       "lineage_0/round_1/calibration.json")))
+    noised = {c.short_interventions: dagger.intervention_sampler(c, "fixed_4", [[short]], cal, stats).samplers[0]
+              for c in (TINY, pad_cfg)}
+    assert len(noised["pad"].center) == short["expert"].sum()
+    assert len(noised["drop"].center) == diffusion.label_mask(short["expert"], H).sum()
+
+    def fake_rollout(env_list, policy, n_act, gen, oracle=None, log=None, seed=0):
+        return [{**short, "expert": short["expert"].copy()}, {**only_short, "expert": only_short["expert"].copy()}]
+    monkeypatch.setattr(dagger, "rollout", fake_rollout)
+    policy = type("Stub", (), {"device": "cpu"})()
+    for cfg, kept in ((TINY, 1), (pad_cfg, 2)):
+        run = run_folder.Run(str(tmp_path / cfg.short_interventions), cfg)
+        got = dagger.collect_interventions(run, 0, 1, policy, np.zeros((TINY.eval_scenarios, 1), bool))
+        assert len(got) == kept and bool(got[0]["expert"][s0]) == (cfg is pad_cfg)
+    args, cfg = dagger.parse_args(["--profile", "table2", "--short-interventions", "pad"])
+    assert cfg.short_interventions == "pad" and cfg.name == "table2_pad_short"
+    with pytest.raises(ValueError, match="short_interventions must be 'drop'"):
+        replace(TINY, short_interventions="keep")
