@@ -64,18 +64,19 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
+        source = data_lineage(cfg, lineage)  # whose interventions and noise it trains on: its own (Table I)
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
-            rounds_data.append(collect_interventions(run, lineage, k, collector, collector_success))
+            rounds_data.append(collect_interventions(run, source, k, collector, collector_success))
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
-            hg = fine_tune(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
-            hg_success = evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/hg_dagger.json", hg,
-                                         f"hg_dagger (lineage {lineage}, K={k})")
+            hg, hg_success = hg_dagger_round(run, lineage, k, demos, rounds_data, stats)
+            if source != lineage:  # replicates='seeds': lineage 0's round-k policy collects and is calibrated
+                hg, hg_success = hg_dagger_round(run, source, k, demos, rounds_data, stats)
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
-                calibrations.append(calibrate_noise(run, lineage, k, hg, rounds_data, stats))
+                calibrations.append(calibrate_noise(run, source, k, hg, rounds_data, stats))
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
                 arms = [(run.root, asdict(cfg), lineage, k, method) for method in noised]
@@ -141,6 +142,11 @@ class Config:
     # those steps are out of the loss; the noised arms draw states at its steps too. D0 and the calibration
     # keep the paper's rule (the authors also mask D0's padded tails: not done here).
     short_interventions: str = "drop"
+    # What a lineage is: 'lineages', an independent chain of rounds (its own interventions, calibrations and
+    # training seeds; Table I's lineages, the authors' planar runs) or 'seeds', the authors' lever runs (PCD
+    # lever_seeds.sh: 3 training seeds on one intervention set): every lineage trains on lineage 0's
+    # interventions and calibrations with its own training seeds. Run lineage 0 first (or all in one command).
+    replicates: str = "lineages"
     # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
     # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
     # alone) continues BC's AdamW state along its tail; 'restart', a fresh optimizer with its own warm-up
@@ -425,6 +431,21 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     return episodes
 
 
+def hg_dagger_round(run, lineage, k, demos, rounds_data, stats):
+    """The HG-DAgger row of round k (steps 4 and 6 without noise): pi_0 fine-tuned on D0 and D_1..D_k as
+    recorded, and its evaluation. Returns (policy, success (scenarios, repeats) bool)."""
+    hg = fine_tune(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
+    return hg, evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/hg_dagger.json", hg,
+                               f"hg_dagger (lineage {lineage}, K={k})")
+
+
+def data_lineage(cfg, lineage):
+    """The lineage whose interventions and calibrations `lineage` trains on: itself (replicates='lineages',
+    Table I's independent lineages) or lineage 0 (replicates='seeds', the authors' lever runs: one intervention
+    set, every arm retrained with each lineage's own training seed)."""
+    return lineage if cfg.replicates == "lineages" else 0
+
+
 def drop_short_interventions(expert, H):
     """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False
     (diffusion.expert_runs, the paper's label rule)."""
@@ -579,9 +600,9 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     folder)."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    demos = run.load("data/D0.npz")
-    rounds_data = [run.load(f"lineage_{lineage}/round_{j}/D.npz") for j in range(1, k + 1)]
-    calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{lineage}/round_{k}/calibration.json"))
+    demos, source = run.load("data/D0.npz"), data_lineage(cfg, lineage)
+    rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
+    calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
     policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
     evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
                     f"{method} (lineage {lineage}, K={k})")

@@ -55,6 +55,9 @@ def parse_args(argv, profiles, methods):
                    help="interventions shorter than the chunk: drop (the paper's label rule) or pad (the authors' "
                         "lever runs: kept, their chunks padded and the padded steps out of the loss); default: "
                         "the profile's")
+    p.add_argument("--replicates", default=None, choices=("lineages", "seeds"),
+                   help="what a lineage is: lineages (independent chains, Table I) or seeds (the authors' lever "
+                        "runs: training seeds on lineage 0's interventions and calibrations); default: lineages")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
     p.add_argument("--lineages", type=int, default=None, help="number of lineages")
     p.add_argument("--lineage", type=int, default=None,
@@ -100,6 +103,8 @@ def parse_args(argv, profiles, methods):
         over["round_shares"] = args.round_shares
     if args.short_interventions:
         over["short_interventions"] = args.short_interventions
+    if args.replicates:
+        over["replicates"] = args.replicates
     if args.no_eval_unseen:
         over["eval_unseen"] = False
     for key in ("rounds", "lineages", "seed"):
@@ -145,7 +150,7 @@ def parse_methods(parser, text, methods):
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
     (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, short
-    interventions, set of methods)."""
+    interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
@@ -155,6 +160,7 @@ def folder_name(cfg, over, args):
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
     name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
     name += "_pad_short" if over.get("short_interventions", cfg.short_interventions) != cfg.short_interventions else ""
+    name += "_seed_replicates" if over.get("replicates", cfg.replicates) != cfg.replicates else ""
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     return name

@@ -97,6 +97,12 @@ def check_config(cfg, methods):
     if cfg.finetune == "continue" and cfg.finetune_lr is not None:
         raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart' or 'constant'; 'continue' "
                          f"follows BC's own schedule (lr)")
+    if cfg.replicates not in ("lineages", "seeds"):
+        raise ValueError(f"replicates must be 'lineages' (independent chains) or 'seeds' (training seeds on lineage "
+                         f"0's interventions), got {cfg.replicates!r}")
+    if cfg.replicates == "seeds" and "closed_loop" in cfg.methods:
+        raise ValueError("replicates='seeds' trains every lineage on lineage 0's interventions, but the closed_loop "
+                         "row collects its own chain of them: run it with replicates='lineages'")
     if cfg.short_interventions not in ("drop", "pad"):
         raise ValueError(f"short_interventions must be 'drop' (the paper's label rule) or 'pad' (the authors' lever "
                          f"runs), got {cfg.short_interventions!r}")

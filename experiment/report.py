@@ -208,7 +208,10 @@ def format_table(cfg, table, stats, unseen=None):
     lines.append("")
     lines.append(f"Success rate in % on {scenario_words(cfg)} x {cfg.eval_repeats} "
                  f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
-                 f"its spread is not measured). BC is one pi_0 shared by every lineage.")
+                 f"its spread is not measured). BC is one pi_0 shared by every lineage."
+                 + (" A lineage here is a training seed: every lineage trains on lineage 0's interventions and "
+                    "calibrations (replicates='seeds', the authors' lever runs), so the spread is the training "
+                    "seeds' alone." if getattr(cfg, "replicates", "lineages") == "seeds" else ""))
     paper = paper_table(cfg)
     if paper:
         lines += ["", f"The paper's Table {'I' if cfg.env == 'planar' else 'II'} for the same rows and rounds (its "

@@ -207,3 +207,33 @@ def test_short_interventions_padded_are_kept_with_their_padded_steps_out_of_the_
     assert cfg.short_interventions == "pad" and cfg.name == "table2_pad_short"
     with pytest.raises(ValueError, match="short_interventions must be 'drop'"):
         replace(TINY, short_interventions="keep")
+
+
+def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_its_own_training_seed(tmp_path):
+    """replicates='seeds' (the authors' lever runs: training seeds on one intervention set): lineage 1 collects
+    and calibrates nothing of its own -- it trains on lineage 0's D_1, D_2 (D_2 collected by lineage 0's round-1
+    policy) and calibrations -- but every arm is trained again with its own seed; the table says what a lineage
+    is; the closed-loop row, which collects its own chain, is refused."""
+    cfg = replace(TINY, rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4"), replicates="seeds")
+    root = str(tmp_path / "seeds")
+    dagger.run_experiment(cfg, root)
+    l0, l1 = (os.path.join(root, f"lineage_{l}") for l in (0, 1))
+    for k in (1, 2):
+        assert os.path.exists(os.path.join(l0, f"round_{k}", "D.npz"))
+        assert os.path.exists(os.path.join(l0, f"round_{k}", "calibration.json"))
+        assert not os.path.exists(os.path.join(l1, f"round_{k}", "D.npz"))
+        assert not os.path.exists(os.path.join(l1, f"round_{k}", "calibration.json"))
+        for m in ("hg_dagger", "fixed_4"):
+            a, b = (torch.load(os.path.join(l, f"round_{k}", "checkpoints", f"{m}.pt"), weights_only=True)["state_dict"]
+                    for l in (l0, l1))
+            assert any(not torch.equal(a[n], b[n]) for n in a)  # another training seed, another policy
+            assert os.path.exists(os.path.join(l1, f"round_{k}", "eval", f"{m}.json"))
+    results = json.load(open(os.path.join(root, "results.json")))
+    assert set(results["success"]["fixed_4"]) == {"0", "1"}
+    assert "A lineage here is a training seed" in open(os.path.join(root, "table.md")).read()
+    args, named = dagger.parse_args(["--profile", "table2", "--replicates", "seeds"])
+    assert named.replicates == "seeds" and named.name == "table2_seed_replicates"
+    with pytest.raises(ValueError, match="closed_loop row, which collects|collects its own chain"):
+        replace(cfg, methods=("bc", "hg_dagger", "closed_loop"))
+    with pytest.raises(ValueError, match="replicates must be 'lineages'"):
+        replace(TINY, replicates="trainings")
