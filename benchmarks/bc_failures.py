@@ -9,8 +9,12 @@ target. Collisions are re-judged on the sub-steps of the last step with the env'
 engine3d with position-only success also counts the successes whose tool is within 10 deg of the goal
 posture's orientation (the authors' rule has this part: EngineConfig.goal_angle_tolerance).
 
-Usage:  python benchmarks/bc_failures.py CHECKPOINT [--env planar|engine3d] [--start random|home]
-                                                   [--repeats 3] [--seed 123]
+With several checkpoints (e.g. BC, HG-DAgger and pooled of one round) it ends with the failure-time
+histogram side by side: when the collisions happen (the first second, 1-3 s, 3-10 s, later), their share in
+the first second, and the timeouts -- the paper's lever policies fail mostly in the first second.
+
+Usage:  python benchmarks/bc_failures.py CHECKPOINT [CHECKPOINT ...] [--labels BC HG pooled]
+                                         [--env planar|engine3d] [--start random|home] [--repeats 3] [--seed 123]
 """
 import argparse
 import os
@@ -85,20 +89,30 @@ def classify_engine3d(env, episode):
     return ("collision: self" if partner == "the arm itself" else "collision: obstacle"), partner, T, dist
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("checkpoint")
-    parser.add_argument("--env", default="planar", choices=sorted(envs.ENVIRONMENTS))
-    parser.add_argument("--start", default=None, choices=envs.ENGINE_STARTS, help="engine3d: the start rule")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=123)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    policy = diffusion.DiffusionPolicy.load(args.checkpoint)
-    seeds = envs.eval_seeds()
+# the failure-time histogram's bins, in seconds of the episode
+TIME_BINS = ((0, 1), (1, 3), (3, 10), (10, float("inf")))
+
+
+def failure_times(rows, dt):
+    """{'success', 'timeout', 'collisions', (lo, hi) per TIME_BINS: collisions whose step falls in [lo, hi) s,
+    'first_second': the share of the collisions within the first second}, counts of episodes (rows of
+    classify; a collision at step T happened during the T-th step, at (T - 1) * dt to T * dt s)."""
+    t = np.array([(r[2] - 1) * dt for r in rows if r[0].startswith("collision")])
+    out = {"episodes": len(rows), "success": sum(r[0] == "success" for r in rows),
+           "timeout": sum(r[0] == "timeout" for r in rows), "collisions": len(t)}
+    for lo, hi in TIME_BINS:
+        out[(lo, hi)] = int(np.sum((t >= lo) & (t < hi)))
+    out["first_second"] = out[TIME_BINS[0]] / len(t) if len(t) else float("nan")
+    return out
+
+
+def roll_out(checkpoint, args):
+    """(env_list, episodes, rows): the policy at `checkpoint` on the evaluation scenarios x repeats, each
+    episode classified."""
+    policy = diffusion.DiffusionPolicy.load(checkpoint)
     env_list = []
     for _ in range(args.repeats):
-        for s in seeds:
+        for s in envs.eval_seeds():
             e = envs.make_env(args.env, **({"start": args.start} if args.start else {}))
             e.reset(seed=s)
             env_list.append(e)
@@ -108,9 +122,42 @@ def main():
     for e, ep in zip(env_list, episodes):
         e.reset(seed=ep["seed"])
         rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
+    return env_list, episodes, rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT")
+    parser.add_argument("--labels", nargs="+", default=None, help="a name per checkpoint for the histogram")
+    parser.add_argument("--env", default="planar", choices=sorted(envs.ENVIRONMENTS))
+    parser.add_argument("--start", default=None, choices=envs.ENGINE_STARTS, help="engine3d: the start rule")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=123)
+    args = parser.parse_args()
+    labels = args.labels or [os.path.splitext(os.path.basename(c))[0] for c in args.checkpoints]
+    if len(labels) != len(args.checkpoints):
+        parser.error(f"--labels: {len(labels)} names for {len(args.checkpoints)} checkpoints; give one per checkpoint")
+    torch.set_num_threads(1)
+    histograms = []
+    for checkpoint in args.checkpoints:
+        env_list, episodes, rows = roll_out(checkpoint, args)
+        print_failures(args, checkpoint, env_list, episodes, rows)
+        histograms.append(failure_times(rows, env_list[0].cfg.dt))
+    if len(histograms) > 1:
+        print("\n## When the policies fail (episodes; a collision's time is the start of its step)\n")
+        bins = [f"collision {lo:g}-{hi:g} s" if hi != float("inf") else f"collision after {lo:g} s"
+                for lo, hi in TIME_BINS]
+        print("| policy | success | " + " | ".join(bins) + " | timeout | collisions in the first second |")
+        print("|---|---|" + "---|" * len(bins) + "---|---|")
+        for label, h in zip(labels, histograms):
+            print(f"| {label} | {h['success']} | " + " | ".join(str(h[b]) for b in TIME_BINS)
+                  + f" | {h['timeout']} | {h['first_second']:.0%} of {h['collisions']} |")
+
+
+def print_failures(args, checkpoint, env_list, episodes, rows):
+    """The outcome table, the colliding parts, the collision times and the timeouts' distances of one policy."""
     n = len(rows)
-    outcomes = [r[0] for r in rows]
-    print(f"{args.checkpoint}: {n} episodes ({len(seeds)} scenarios x {args.repeats})\n")
+    print(f"{checkpoint}: {n} episodes ({n // args.repeats} scenarios x {args.repeats})\n")
     print("| outcome | episodes | share | median step | steps (10th-90th pct) |")
     print("|---|---|---|---|---|")
     for outcome in ("success", "collision: obstacle", "collision: self", "collision: other", "timeout"):
@@ -138,11 +185,6 @@ def main():
                   f"not checked: goal_angle_tolerance is None): {np.sum(angles <= 10)} of {len(angles)}; angle median "
                   f"{np.median(angles):.0f} deg (10th-90th pct {np.percentile(angles, 10):.0f}-"
                   f"{np.percentile(angles, 90):.0f})")
-    # per-scenario: how many scenarios are never / sometimes / always solved
-    per_seed = np.array(outcomes).reshape(args.repeats, len(seeds)) == "success"
-    solved = per_seed.sum(axis=0)
-    print(f"\nscenarios solved in 0 / some / all of {args.repeats} repeats: {np.sum(solved == 0)} / "
-          f"{np.sum((solved > 0) & (solved < args.repeats))} / {np.sum(solved == args.repeats)}")
 
 
 if __name__ == "__main__":

@@ -219,3 +219,27 @@ def test_the_table_prints_and_draws_the_papers_cells_for_the_runs_rows_and_round
     report.plot_success_vs_round(cfg, table, path)
     image = matplotlib.image.imread(path)
     assert image.shape[1] > 1.4 * image.shape[0]  # two panels side by side: this run and the paper's
+
+
+def test_failure_time_histogram_bins_collisions_by_the_second_they_happen(monkeypatch, capsys):
+    """benchmarks/bc_failures.py's histogram: a collision at step T happened at (T - 1) dt s; the first-second
+    share counts collisions only; a checkpoint without a label is refused before anything rolls out."""
+    import importlib.util
+    import os
+    import sys
+    spec = importlib.util.spec_from_file_location(
+        "bc_failures", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                    "benchmarks", "bc_failures.py"))
+    failures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(failures)
+    rows = [("success", "", 120, 0.01), ("timeout", "", 333, 0.3), ("collision: obstacle", "link 2", 1, 0.5),
+            ("collision: obstacle", "palm", 10, 0.5), ("collision: self", "link 1-link 3", 11, 0.4),
+            ("collision: obstacle", "palm", 31, 0.4), ("collision: other", "", 250, 0.2)]
+    h = failures.failure_times(rows, dt=0.1)
+    assert (h["success"], h["timeout"], h["collisions"], h["episodes"]) == (1, 1, 5, 7)
+    assert [h[b] for b in failures.TIME_BINS] == [2, 1, 1, 1]  # steps 1, 10 | 11 (1.0 s) | 31 (3.0 s) | 250
+    assert h["first_second"] == pytest.approx(2 / 5)
+    monkeypatch.setattr(sys, "argv", ["bc_failures.py", "a.pt", "b.pt", "--labels", "BC"])
+    with pytest.raises(SystemExit):
+        failures.main()
+    assert "2 checkpoints" in capsys.readouterr().err
