@@ -288,7 +288,8 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
     evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
     scenarios. Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
-    episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its folder and seeds).
+    episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
+    folder and seeds).
     """
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
