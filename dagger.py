@@ -975,7 +975,7 @@ def write_report(run):
         stats["scenario_paired"] = report.scenario_paired(run, scenarios)
         tables[scenarios] = (success, table, stats)
     text = report.write_tables(run, tables)
-    if os.path.exists(run.path("data", "D0.npz")):
+    if os.path.exists(os.path.join(run.root, "data", "D0.npz")):
         demos = run.load("data/D0.npz")
         make_figures(run, demos, demo_statistics(run.cfg, demos))
     else:  # a folder of joined lineage results only: the table and its figures, not the paper's figures

@@ -255,8 +255,9 @@ def join_lineage(run, path):
 def folder_pi0(run):
     """The SHA-256 of the run folder's pi_0: its checkpoints/bc.pt, else the one its lineages record; None if
     neither is there yet."""
-    if os.path.exists(run.path("checkpoints", "bc.pt")):
-        return weights_sha256(run.path("checkpoints", "bc.pt"))
+    pi0 = os.path.join(run.root, "checkpoints", "bc.pt")
+    if os.path.exists(pi0):
+        return weights_sha256(pi0)
     for name in sorted(os.listdir(run.root)):
         record = os.path.join(run.root, name, "lineage.json")
         if re.fullmatch(r"lineage_\d+", name) and os.path.exists(record):
