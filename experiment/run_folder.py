@@ -203,7 +203,7 @@ def export_lineages(run, folder):
         path = os.path.join(folder, f"lineage_{lineage}.json")
         write_json(path, {"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
                           "pi0_sha256": record["pi0_sha256"], "rounds_finished": rounds_finished(run, lineage),
-                          "files": files})
+                          "files": files}, compact=True)
         written.append(path)
     return written
 
@@ -316,10 +316,10 @@ def weights_sha256(path):
     return digest.hexdigest()
 
 
-def write_json(path, data):
+def write_json(path, data, compact=False):
     tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
     with open(tmp, "w") as f:
-        json.dump(data, f, indent=1)
+        json.dump(data, f, **({"separators": (",", ":")} if compact else {"indent": 1}))
     os.replace(tmp, path)  # a stage is finished only when its file is complete
 
 
