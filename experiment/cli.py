@@ -75,10 +75,10 @@ def parse_args(argv, profiles, methods):
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
     p.add_argument("--join", nargs="+", default=(), metavar="FILE",
                    help="lineage results files (written by --export-lineages, e.g. benchmarks/results/<profile>/"
-                        "lineage_<l>.json) to unpack into the run folder first, so --report merges them; refused "
+                        "lineage_<l>.json.gz) to unpack into the run folder first, so --report merges them; refused "
                         "if made with another config or pi_0")
     p.add_argument("--export-lineages", default=None, metavar="FOLDER",
-                   help="after the mode, write FOLDER/lineage_<l>.json: each lineage's results (evaluations, "
+                   help="after the mode, write FOLDER/lineage_<l>.json.gz: each lineage's results (evaluations, "
                         "calibrations, timings; no checkpoints), for --join in another folder or a commit")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")

@@ -7,6 +7,7 @@ stage finished, else compute it, write it atomically, log and time it. Nothing h
 """
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import os
@@ -168,7 +169,7 @@ class Run:
         write_json(self.path("timings", stage.replace("/", "__") + ".json"), {"stage": stage, "seconds": seconds})
 
 
-# A lineage's results as one small file (a few hundred kB of JSON, no checkpoints or data): what --export-lineages
+# A lineage's results as one small file (gzipped JSON, a few hundred kB; no checkpoints or data): what --export-lineages
 # writes and --join reads, so a lineage run on another day or machine -- or committed under benchmarks/results/ --
 # joins a run folder's report. It holds every JSON under lineage_<l>/ (evaluations, calibrations, lineage.json),
 # the lineage's timings and the shared evaluations under eval/ (pi_0's, the BC row's) it is paired with.
@@ -192,7 +193,7 @@ def lineage_results(run, lineage):
 
 
 def export_lineages(run, folder):
-    """folder/lineage_<l>.json for every lineage of the run folder that has a lineage.json (it ran at least one
+    """folder/lineage_<l>.json.gz for every lineage of the run folder that has a lineage.json (it ran at least one
     stage); each says how many rounds it finished. Returns the paths written."""
     os.makedirs(folder, exist_ok=True)
     written = []
@@ -200,10 +201,13 @@ def export_lineages(run, folder):
                           if m and os.path.exists(run.path(m.group(0), "lineage.json"))):
         record = read_json(run.path(f"lineage_{lineage}", "lineage.json"))
         files = lineage_results(run, lineage)
-        path = os.path.join(folder, f"lineage_{lineage}.json")
-        write_json(path, {"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
-                          "pi0_sha256": record["pi0_sha256"], "rounds_finished": rounds_finished(run, lineage),
-                          "files": files}, compact=True)
+        path = os.path.join(folder, f"lineage_{lineage}.json.gz")
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with gzip.open(tmp, "wt") as f:  # gzip: the calibrations' per-step covariances are most of it
+            json.dump({"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
+                       "pi0_sha256": record["pi0_sha256"], "rounds_finished": rounds_finished(run, lineage),
+                       "files": files}, f, separators=(",", ":"))
+        os.replace(tmp, path)
         written.append(path)
     return written
 
@@ -225,7 +229,7 @@ def join_lineage(run, path):
     holds is already in the folder with other content. Joining the same file twice changes nothing."""
     if not os.path.isfile(path):
         raise RunFolderError(f"--join {path}: no such file (a lineage results file, written by --export-lineages)")
-    data = read_json(path)
+    data = load_stage_file(path, _read_lineage_file)
     if not isinstance(data, dict) or data.get("format") != LINEAGE_FILE_FORMAT:
         raise RunFolderError(f"{path} is not a lineage results file (format {LINEAGE_FILE_FORMAT!r}, written by "
                              "python dagger.py --profile P --report --export-lineages FOLDER)")
@@ -250,6 +254,13 @@ def join_lineage(run, path):
             write_json(run.path(rel), content)
     run.log(f"joined lineage {lineage} ({data['rounds_finished']} of {run.cfg.rounds} rounds finished) from {path}")
     return lineage
+
+
+def _read_lineage_file(path):
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"
+    with (gzip.open(path, "rt") if gzipped else open(path)) as f:
+        return json.load(f)
 
 
 def folder_pi0(run):
@@ -316,10 +327,10 @@ def weights_sha256(path):
     return digest.hexdigest()
 
 
-def write_json(path, data, compact=False):
+def write_json(path, data):
     tmp = f"{path}.{os.getpid()}.tmp"  # per process: parallel lineages (--lineage i) write the same report
     with open(tmp, "w") as f:
-        json.dump(data, f, **({"separators": (",", ":")} if compact else {"indent": 1}))
+        json.dump(data, f, indent=1)
     os.replace(tmp, path)  # a stage is finished only when its file is complete
 
 

@@ -723,8 +723,9 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     out = str(tmp_path / "results")
     run = run_folder.Run(full_run, TINY)
     (path,) = run_folder.export_lineages(run, out)
-    data = json.load(open(path))
-    assert os.path.basename(path) == "lineage_0.json" and data["rounds_finished"] == 1
+    import gzip
+    data = json.load(gzip.open(path, "rt"))
+    assert os.path.basename(path) == "lineage_0.json.gz" and data["rounds_finished"] == 1
     assert "lineage_0/round_1/eval/hg_dagger.json" in data["files"] and "eval/bc.json" in data["files"]
     assert "lineage_0/round_1/calibration.json" in data["files"] and "lineage_0/lineage.json" in data["files"]
     assert any(f.startswith("timings/train_pooled__lineage_0") for f in data["files"])
