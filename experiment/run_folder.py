@@ -193,19 +193,22 @@ def lineage_results(run, lineage):
 
 
 def export_lineages(run, folder):
-    """folder/lineage_<l>.json.gz for every lineage of the run folder that has a lineage.json (it ran at least one
-    stage); each says how many rounds it finished. Returns the paths written."""
+    """folder/lineage_<l>.json.gz for every lineage of the run folder that finished a round (every method's
+    evaluation); each says how many rounds it finished. Returns the paths written."""
     os.makedirs(folder, exist_ok=True)
     written = []
     for lineage in sorted(int(m.group(1)) for m in map(re.compile(r"lineage_(\d+)$").match, os.listdir(run.root))
                           if m and os.path.exists(run.path(m.group(0), "lineage.json"))):
-        record = read_json(run.path(f"lineage_{lineage}", "lineage.json"))
+        record, finished = read_json(run.path(f"lineage_{lineage}", "lineage.json")), rounds_finished(run, lineage)
+        if not finished:
+            run.log(f"lineage {lineage}: no round finished yet, no results file written")
+            continue
         files = lineage_results(run, lineage)
         path = os.path.join(folder, f"lineage_{lineage}.json.gz")
         tmp = f"{path}.{os.getpid()}.tmp"
         with gzip.open(tmp, "wt") as f:  # gzip: the calibrations' per-step covariances are most of it
             json.dump({"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
-                       "pi0_sha256": record["pi0_sha256"], "rounds_finished": rounds_finished(run, lineage),
+                       "pi0_sha256": record["pi0_sha256"], "rounds_finished": finished,
                        "files": files}, f, separators=(",", ":"))
         os.replace(tmp, path)
         written.append(path)
