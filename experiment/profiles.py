@@ -28,10 +28,9 @@ PROFILES = {
     # demonstration start DAgger had little to fix), their fine-tuning (every arm continues pi_0's optimizer along
     # one cosine of bc_steps + finetune_steps; their pi_0 sits at 43 % of it, ours at 50 %), and the residual-MLP
     # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
-    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured with 2 / 4 / 8 and
-    # the control (the same count of arms less one): prepare 14 min, lineages 0-2 side by side 116 min, 3-4 side
-    # by side 74 min, the cores shared with probes for about half of it (benchmarks/README.md, "The mid run on
-    # the new recipe").
+    # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured with sigma 2-16 and
+    # pooled (2026-11-25): prepare 7 min, lineages 0-2 side by side 77 min, 3-4 side by side 55 min: 2 h 19 min
+    # (benchmarks/README.md, "The mid run with Table I's whole sweep").
     "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                   start="random", finetune="continue",
