@@ -715,6 +715,48 @@ def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_l
     assert wall1 - wall7 == pytest.approx(5 * 6 * cell)
 
 
+def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrations(tmp_path, monkeypatch):
+    """benchmarks/lever_networks.py: D0 collected once and copied into every candidate's folder; each candidate's
+    pi_0 trained with its own fields (a continued one also gets the BC row, pi_0 continued on D0); the table's
+    steps/s and points per minute come from the folder's timings and evaluations; a rerun trains nothing."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        "lever_networks", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                       "benchmarks", "lever_networks.py"))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.setattr(bench, "CANDIDATES", {
+        "unet": dict(finetune="restart"),  # the smoke profile's U-Net (16, 32), restarted
+        "mlp_h8": dict(network="mlp", mlp_width=32, mlp_blocks=1, horizon=8, n_act=4, finetune="continue",
+                       bc_steps=40, finetune_steps=20)})
+    fields = dict(n_demos=6, bc_steps=40, finetune_steps=20, eval_scenarios=4, K=5)
+    monkeypatch.setitem(dagger.PROFILES, "smoke", replace(dagger.PROFILES["smoke"], **fields))
+    out = str(tmp_path / "nets")
+    with pytest.raises(SystemExit, match="unknown candidate 'lstm'"):
+        bench.main(["--base", "smoke", "--out", out, "--candidates", "unet,lstm"])
+    assert not os.path.exists(out)  # every name is checked before anything runs
+    text = bench.main(["--base", "smoke", "--out", out, "--candidates", "unet,mlp_h8"])
+    d0 = open(os.path.join(out, "D0", "data", "D0.npz"), "rb").read()
+    for name in ("unet", "mlp_h8"):
+        assert open(os.path.join(out, name, "data", "D0.npz"), "rb").read() == d0
+    mlp = dagger.Config(**run_folder.read_json(os.path.join(out, "mlp_h8", "config.json")))
+    assert (mlp.network, mlp.horizon, mlp.n_act, mlp.eval_unseen) == ("mlp", 8, 4, False)
+    assert os.path.exists(os.path.join(out, "mlp_h8", "checkpoints", "bc_continued.pt"))  # the BC row, continued
+    assert not os.path.exists(os.path.join(out, "unet", "checkpoints", "bc_continued.pt"))  # restart: pi_0 itself
+    rows = {r["candidate"]: r for r in (bench.result_row(out, n) for n in ("unet", "mlp_h8"))}
+    seconds = run_folder.read_json(os.path.join(out, "mlp_h8", "timings", "bc.json"))["seconds"]
+    pi0 = 100 * np.mean(run_folder.read_json(os.path.join(out, "mlp_h8", "eval", "pi0.json"))["success"])
+    assert rows["mlp_h8"]["steps_per_s"] == pytest.approx(40 / seconds)
+    assert rows["mlp_h8"]["pi0"] == pytest.approx(pi0)
+    assert rows["mlp_h8"]["points_per_minute"] == pytest.approx(pi0 / (seconds / 60))
+    assert rows["unet"]["pi0"] == rows["unet"]["bc_row"]  # restart: the BC row is pi_0
+    assert rows["mlp_h8"]["chunk"] == "8 / 4" and "MLP 32 x 1" in text and "U-Net (16, 32)" in text
+    assert len(text.splitlines()) == 4
+    stamp = os.path.getmtime(os.path.join(out, "mlp_h8", "checkpoints", "bc.pt"))
+    assert bench.main(["--base", "smoke", "--out", out, "--candidates", "unet,mlp_h8"]) == text  # resumed: done
+    assert os.path.getmtime(os.path.join(out, "mlp_h8", "checkpoints", "bc.pt")) == stamp
+
+
 def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refused_where_it_does_not_belong(
         full_run, tmp_path):
     """--export-lineages writes one small file per lineage (its evaluations, calibrations, timings and the shared

@@ -1,0 +1,148 @@
+"""Which epsilon network can the lever learn at CPU cost? BC success against training CPU-minutes.
+
+Table II needs a BC policy (pi_0) on the UR5 engine lever in the paper's band (BC 58 %; we ask 45-70 %) at a
+cost the 2-core machine can pay for every cell of the table. The planar recipe (residual MLP, chunk 20, batch 256,
+continued) stays at 15-20 % there; the U-Net (32, 64, 128) at batch 64 reaches 49 % but needs 48 min of one core
+for pi_0 and ~20 min for each fine-tuned cell (benchmarks/README.md, "The mid recipe on the lever").
+
+Each candidate is a profile (default table2) with some dagger.Config fields changed -- the network, the chunk
+(H and the steps executed), the widths, the batch, the steps, the fine-tuning mode -- run as
+`python dagger.py --prepare` in its own folder OUT/<candidate>/: D0 (collected once in OUT/D0/ and copied into
+every candidate's folder, so all of them learn from the same demonstrations), pi_0 and its evaluation on the
+evaluation scenarios; then the table's BC row (dagger.bc_row_arm: under finetune='continue' pi_0 continued on
+D0 alone for finetune_steps more, the budget every cell of the table trains; else pi_0 itself). Every stage is a
+file: a stopped benchmark resumes where it stopped.
+
+Prints a markdown table: the candidate's fields, its parameter count, training steps per second, the CPU-minutes
+of pi_0's training (wall seconds of a process with one torch thread: run no more --jobs than cores), pi_0's
+and the BC row's success, success points per CPU-minute, an evaluation's minutes, and whether pi_0 is in the band.
+
+Usage:  python benchmarks/lever_networks.py [--candidates mlp_h10,unet16_b256 | all] [--jobs 2]
+                                            [--out runs/lever_networks] [--base table2]
+"""
+import argparse
+import os
+import shutil
+import sys
+from dataclasses import asdict, replace
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import dagger  # noqa: E402
+from experiment.run_folder import Run, read_json  # noqa: E402
+from experiment.workers import in_parallel  # noqa: E402
+
+# dagger.Config fields each candidate changes in the base profile. The continued ones train pi_0 for bc_steps of
+# one cosine of bc_steps + finetune_steps (the mid recipe); the table2 profile restarts (warm-up, cosine).
+CONTINUED = dict(batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000, finetune="continue")
+CANDIDATES = {
+    # the table2 profile as it is: U-Net (32, 64, 128), batch 64, BC 30k restarted (measured: pi_0 49.0 %, 48 min)
+    "unet32_b64": dict(),
+    # the planar mid recipe: residual MLP 256 x 3, chunk 20, 10 executed (measured: pi_0 15.0 %, BC row 20.0 %)
+    "mlp_h20": dict(network="mlp", **CONTINUED),
+    # the same MLP on a chunk of 10, 5 executed: half the action numbers to learn, twice the policy calls
+    "mlp_h10": dict(network="mlp", horizon=10, n_act=5, **CONTINUED),
+    # the U-Net's temporal convolutions at half the widths, batch 256, continued
+    "unet16_b256": dict(network="unet", down_dims=(16, 32, 64), **CONTINUED),
+}
+DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two not yet measured on the lever
+BAND = (45.0, 70.0)  # pi_0 success, %: around the paper's BC (Table II: 58.0)
+
+
+def candidate_config(base, name, seed=0):
+    """The dagger.Config of candidate `name`: profile `base` with the candidate's fields and its own folder name."""
+    if name not in CANDIDATES:
+        raise SystemExit(f"unknown candidate {name!r}; valid: {', '.join(CANDIDATES)} (or all)")
+    if base not in dagger.PROFILES:
+        raise SystemExit(f"unknown --base {base!r}; valid: {', '.join(dagger.PROFILES)}")
+    fields = {**asdict(dagger.PROFILES[base]), **CANDIDATES[name], "name": f"{base}_{name}", "seed": seed,
+              "eval_unseen": False}  # the unseen scenarios do not choose a network
+    try:
+        return dagger.Config(**fields)
+    except ValueError as err:
+        raise SystemExit(f"candidate {name!r} on --base {base}: {err}") from None
+
+
+def shared_demos(out, base, seed=0):
+    """OUT/D0/data/D0.npz: the base profile's oracle demonstrations, collected once (a stage: resumable)."""
+    run = Run(os.path.join(out, "D0"), replace(dagger.PROFILES[base], seed=seed))
+    dagger.oracle_demonstrations(run)
+    return run.path("data", "D0.npz")
+
+
+def measure(out, name, cfg_fields, demos_path):
+    """One candidate (a worker's job): D0 copied in, pi_0 trained and evaluated (dagger.py --prepare), the BC row."""
+    root = os.path.join(out, name)
+    target = os.path.join(root, "data", "D0.npz")
+    if not os.path.exists(target):
+        os.makedirs(os.path.dirname(target), exist_ok=True)
+        shutil.copyfile(demos_path, target + ".part")
+        os.replace(target + ".part", target)
+    cfg = dagger.Config(**cfg_fields)
+    dagger.run_experiment(cfg, root, prepare=True)
+    dagger.bc_row_arm(root, cfg_fields)
+
+
+def result_row(out, name):
+    """The table row of a finished candidate, from its folder (config, timings, evaluations, pi_0's weights)."""
+    root = os.path.join(out, name)
+    cfg = dagger.Config(**read_json(os.path.join(root, "config.json")))
+    pi0 = Run(root, cfg).load("checkpoints/bc.pt")
+    seconds = read_json(os.path.join(root, "timings", "bc.json"))["seconds"]
+    pi0_eval = dagger.pi0_eval_name(cfg)
+    success = {key: 100.0 * float(np.mean(read_json(os.path.join(root, *path.split("/")))["success"]))
+               for key, path in (("pi0", pi0_eval), ("bc_row", "eval/bc.json"))}
+    evaluation = read_json(os.path.join(root, "timings", "evaluate__" + pi0_eval[:-5].replace("/", "__") + ".json"))
+    net = (f"U-Net {tuple(cfg.down_dims)}" if cfg.network == "unet"
+           else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks}")
+    return {"candidate": name, "network": net, "chunk": f"{cfg.horizon} / {cfg.n_act}", "batch": cfg.batch_size,
+            "bc_steps": cfg.bc_steps, "finetune": cfg.finetune,
+            "params": sum(p.numel() for p in pi0.net.parameters()),
+            "steps_per_s": cfg.bc_steps / seconds, "bc_minutes": seconds / 60.0,
+            "pi0": success["pi0"], "bc_row": success["bc_row"],
+            "points_per_minute": success["pi0"] / (seconds / 60.0), "eval_minutes": evaluation["seconds"] / 60.0,
+            "in_band": BAND[0] <= success["pi0"] <= BAND[1]}
+
+
+def table(rows):
+    """The markdown table of result_row dicts."""
+    lines = ["| candidate | network | H / executed | batch | BC steps (fine-tuning) | parameters | steps/s "
+             "| pi_0 CPU-min | pi_0 % | BC row % | pi_0 points per CPU-min | one evaluation, min | in "
+             f"{BAND[0]:.0f}-{BAND[1]:.0f} % |",
+             "|---" * 13 + "|"]
+    for r in rows:
+        lines.append(f"| {r['candidate']} | {r['network']} | {r['chunk']} | {r['batch']} | {r['bc_steps']:,} "
+                     f"({r['finetune']}) | {r['params']:,} | {r['steps_per_s']:.1f} | {r['bc_minutes']:.1f} "
+                     f"| {r['pi0']:.1f} | {r['bc_row']:.1f} | {r['points_per_minute']:.2f} "
+                     f"| {r['eval_minutes']:.1f} | {'yes' if r['in_band'] else 'no'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--candidates", default=",".join(DEFAULT_CANDIDATES),
+                   help=f"comma-separated subset of {', '.join(CANDIDATES)}, or all "
+                        f"(default: {','.join(DEFAULT_CANDIDATES)})")
+    p.add_argument("--base", default="table2", help="the profile the candidates change (default table2: the lever)")
+    p.add_argument("--out", default=os.path.join("runs", "lever_networks"), help="folder of the candidates' folders")
+    p.add_argument("--jobs", type=int, default=1, help="candidates trained side by side, one process each "
+                                                       "(no more than the cores: the minutes are wall minutes)")
+    p.add_argument("--seed", type=int, default=0, help="master seed of D0 and of every candidate")
+    args = p.parse_args(argv)
+    if args.jobs < 1:
+        raise SystemExit(f"--jobs must be >= 1, got {args.jobs}")
+    names = list(CANDIDATES) if args.candidates == "all" else [n for n in args.candidates.split(",") if n]
+    configs = {name: candidate_config(args.base, name, args.seed) for name in names}  # every name checked first
+    demos_path = shared_demos(args.out, args.base, args.seed)
+    in_parallel(measure, [(args.out, name, asdict(cfg), demos_path) for name, cfg in configs.items()], args.jobs,
+                print)
+    text = table([result_row(args.out, name) for name in names])
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    main()
