@@ -49,6 +49,9 @@ CANDIDATES = {
     "mlp_h10": dict(network="mlp", horizon=10, n_act=5, **CONTINUED),
     # the U-Net's temporal convolutions at half the widths, batch 256, continued
     "unet16_b256": dict(network="unet", down_dims=(16, 32, 64), **CONTINUED),
+    # the same U-Net with pi_0 at the end of its own cosine: the pi_0 of the authors' lever fine-tuning
+    # (finetune='constant': every arm continues it at a constant lr / 10; the BC row is pi_0 itself)
+    "unet16_b256_constant": dict(network="unet", down_dims=(16, 32, 64), **{**CONTINUED, "finetune": "constant"}),
 }
 DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two not yet measured on the lever
 TIMED_STEPS = 200  # training steps timed for the CPU cost of a step

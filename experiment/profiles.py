@@ -39,8 +39,9 @@ PROFILES = {
     # All of Table I on the 2-core machine: the mid recipe with the paper's five rounds and every row (the fixed
     # sweep, pooled, per-step, and the closed-loop row's own chain of rounds), 5 lineages. One lineage is 45
     # fine-tuned cells; run it as --prepare, then --lineage i (side by side, or on other days and machines:
-    # lineage folders join with --report), then --report. Its cost per stage and the projected wall:
-    # python benchmarks/table1_cost.py --run runs/mid (benchmarks/README.md, "All of Table I overnight").
+    # lineage folders join with --report), then --report. Measured (2026-11-25): prepare 7 min, one lineage 1 h 48 min
+    # with --workers 2; five lineages 7.2 h projected on 2 cores (python benchmarks/table1_cost.py --run runs/table1;
+    # benchmarks/README.md, "All of Table I: one whole table1 lineage").
     "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5, episodes_per_round=100,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                      start="random", finetune="continue",
