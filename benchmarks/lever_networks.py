@@ -53,7 +53,7 @@ CANDIDATES = {
     # (finetune='constant': every arm continues it at a constant lr / 10; the BC row is pi_0 itself)
     "unet16_b256_constant": dict(network="unet", down_dims=(16, 32, 64), **{**CONTINUED, "finetune": "constant"}),
 }
-DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two not yet measured on the lever
+DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two new ones (measured: benchmarks/README.md, "ε-networks ...")
 TIMED_STEPS = 200  # training steps timed for the CPU cost of a step
 BAND = (45.0, 70.0)  # pi_0 success, %: around the paper's BC (Table II: 58.0)
 
