@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import diffusion  # noqa: E402
-from experiment.run_folder import Run, read_json, write_json  # noqa: E402
+from experiment.run_folder import Run, read_json, timing_name, write_json  # noqa: E402
 from experiment.workers import in_parallel  # noqa: E402
 
 # dagger.Config fields each candidate changes in the base profile. The continued ones train pi_0 for bc_steps of
@@ -116,7 +116,7 @@ def result_row(out, name):
     pi0_eval = dagger.pi0_eval_name(cfg)
     success = {key: 100.0 * float(np.mean(read_json(os.path.join(root, *path.split("/")))["success"]))
                for key, path in (("pi0", pi0_eval), ("bc_row", "eval/bc.json"))}
-    evaluation = read_json(os.path.join(root, "timings", "evaluate__" + pi0_eval[:-5].replace("/", "__") + ".json"))
+    evaluation = read_json(os.path.join(root, "timings", timing_name(pi0_eval).replace("/", "__") + ".json"))
     net = (f"U-Net {tuple(cfg.down_dims)}" if cfg.network == "unet"
            else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks}")
     return {"candidate": name, "network": net, "chunk": f"{cfg.horizon} / {cfg.n_act}", "batch": cfg.batch_size,
@@ -150,7 +150,7 @@ def main(argv=None):
     p.add_argument("--base", default="table2", help="the profile the candidates change (default table2: the lever)")
     p.add_argument("--out", default=os.path.join("runs", "lever_networks"), help="folder of the candidates' folders")
     p.add_argument("--jobs", type=int, default=1, help="candidates trained side by side, one process each "
-                                                       "(no more than the cores: the minutes are wall minutes)")
+                                                       "(no more than the cores: the evaluations' minutes are wall)")
     p.add_argument("--seed", type=int, default=0, help="master seed of D0 and of every candidate")
     args = p.parse_args(argv)
     if args.jobs < 1:

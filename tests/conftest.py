@@ -1,5 +1,21 @@
 """Test-wide settings. The networks under test are tiny: one torch thread is as fast as two on an idle
 machine and many times faster on a loaded one (thread oversubscription), so tests use one."""
+import importlib.util
+import os
+
+import pytest
 import torch
 
 torch.set_num_threads(1)
+
+
+@pytest.fixture
+def load_benchmark():
+    """load_benchmark(name) -> the module benchmarks/<name>.py (a script folder, not a package)."""
+    def load(name):
+        path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", name + ".py")
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    return load

@@ -673,19 +673,14 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
     assert "- the closed-loop row's own chain" in table and "  - K=2: 0: W " in table  # its calibration, reported
 
 
-def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_lineage(tmp_path):
+def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_lineage(tmp_path, load_benchmark):
     """The table1 profile: the mid recipe with the paper's five rounds and all ten rows. benchmarks/table1_cost.py
     counts a lineage's stages as the loop runs them and projects unmeasured rounds from the measured ones."""
-    import importlib.util
     cfg, mid = dagger.PROFILES["table1"], dagger.PROFILES["mid"]
     assert cfg.rounds == 5 and cfg.lineages == 5 and cfg.methods == dagger.TABLE_I_METHODS
     assert {f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(mid, f.name)} == {
         "name", "rounds", "methods"}
-    spec = importlib.util.spec_from_file_location(
-        "table1_cost", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                    "benchmarks", "table1_cost.py"))
-    cost = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cost)
+    cost = load_benchmark("table1_cost")
     run = run_folder.Run(str(tmp_path), mid)
     seconds = {"demos": 80, "train_bc": 150, "bc": 150}
     for stage, s in seconds.items():
@@ -715,17 +710,13 @@ def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_l
     assert wall1 - wall7 == pytest.approx(5 * 6 * cell)
 
 
-def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrations(tmp_path, monkeypatch):
+def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrations(tmp_path, monkeypatch,
+                                                                                      load_benchmark):
     """benchmarks/lever_networks.py: D0 collected once and copied into every candidate's folder; each candidate's
     pi_0 trained with its own fields (a continued one also gets the BC row, pi_0 continued on D0); the table's
     steps per CPU-second and points per CPU-minute come from the measured CPU time of a step and the evaluations;
     a rerun trains nothing."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location(
-        "lever_networks", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                       "benchmarks", "lever_networks.py"))
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("lever_networks")
     monkeypatch.setattr(bench, "CANDIDATES", {
         "unet": dict(finetune="restart"),  # the smoke profile's U-Net (16, 32), restarted
         "mlp_h8": dict(network="mlp", mlp_width=32, mlp_blocks=1, horizon=8, n_act=4, finetune="continue",

@@ -221,17 +221,11 @@ def test_the_table_prints_and_draws_the_papers_cells_for_the_runs_rows_and_round
     assert image.shape[1] > 1.4 * image.shape[0]  # two panels side by side: this run and the paper's
 
 
-def test_failure_time_histogram_bins_collisions_by_the_second_they_happen(monkeypatch, capsys):
+def test_failure_time_histogram_bins_collisions_by_the_second_they_happen(monkeypatch, capsys, load_benchmark):
     """benchmarks/bc_failures.py's histogram: a collision at step T happened at (T - 1) dt s; the first-second
     share counts collisions only; a checkpoint without a label is refused before anything rolls out."""
-    import importlib.util
-    import os
     import sys
-    spec = importlib.util.spec_from_file_location(
-        "bc_failures", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                    "benchmarks", "bc_failures.py"))
-    failures = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(failures)
+    failures = load_benchmark("bc_failures")
     rows = [("success", "", 120, 0.01), ("timeout", "", 333, 0.3), ("collision: obstacle", "link 2", 1, 0.5),
             ("collision: obstacle", "palm", 10, 0.5), ("collision: self", "link 1-link 3", 11, 0.4),
             ("collision: obstacle", "palm", 31, 0.4), ("collision: other", "", 250, 0.2)]
