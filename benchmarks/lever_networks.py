@@ -38,11 +38,12 @@ from experiment.run_folder import Run, read_json, timing_name, write_json  # noq
 from experiment.workers import in_parallel  # noqa: E402
 
 # dagger.Config fields each candidate changes in the base profile. The continued ones train pi_0 for bc_steps of
-# one cosine of bc_steps + finetune_steps (the mid recipe); the table2 profile restarts (warm-up, cosine).
+# one cosine of bc_steps + finetune_steps (the mid recipe, and the table2 profile's since unet16_b256 was chosen).
 CONTINUED = dict(batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000, finetune="continue")
 CANDIDATES = {
-    # the table2 profile as it is: U-Net (32, 64, 128), batch 64, BC 30k restarted (measured: pi_0 49.0 %, 48 min)
-    "unet32_b64": dict(),
+    # the earlier table2 recipe: U-Net (32, 64, 128), batch 64, BC 30k restarted (measured: pi_0 49.0 %, 48 min)
+    "unet32_b64": dict(network="unet", down_dims=(32, 64, 128), batch_size=64, lr=3e-4, bc_steps=30_000,
+                       finetune_steps=2_500, finetune="restart"),
     # the planar mid recipe: residual MLP 256 x 3, chunk 20, 10 executed (measured: pi_0 15.0 %, BC row 20.0 %)
     "mlp_h20": dict(network="mlp", **CONTINUED),
     # the same MLP on a chunk of 10, 5 executed: half the action numbers to learn, twice the policy calls

@@ -193,10 +193,14 @@ def test_start_option_names_the_run_and_reaches_the_env():
     assert dagger.make_run_env(cfg).cfg.start == "random"  # the authors' starts by default
 
 
-def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows():
+def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows(load_benchmark):
     _, cfg = dagger.parse_args(["--profile", "table2"])
     assert cfg.env == "engine3d" and cfg.name == "table2"  # the profile's own env adds no suffix
     assert {"bc", "hg_dagger", "pooled"} <= set(cfg.methods) and (cfg.rounds, cfg.lineages) == (2, 3)  # Table II
+    assert {"fixed_4", "fixed_8"} <= set(cfg.methods)  # 8: the authors' calibrated size in radians, beside 4
+    # the epsilon network chosen by benchmarks/lever_networks.py (unet16_b256), continued as the planar recipe
+    chosen = load_benchmark("lever_networks").CANDIDATES["unet16_b256"]
+    assert {k: getattr(cfg, k) for k in chosen} == chosen
     assert dagger.make_run_env(cfg).cfg.start == "random"
     _, cfg = dagger.parse_args(["--profile", "table2", "--env", "planar"])
     assert cfg.env == "planar" and cfg.name == "table2_planar"  # never the engine3d run's folder
