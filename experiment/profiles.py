@@ -54,7 +54,9 @@ PROFILES = {
     # benchmarks/README.md, "epsilon-networks the lever learns at CPU cost"): the U-Net at half the widths, batch 256,
     # BC 10k steps of one cosine of 20k that every arm continues (pi_0 45.0 % in 9.7 CPU-min; the earlier
     # U-Net (32, 64, 128), batch 64, 30k restarted: 49.0 % in ~48 CPU-min). --prepare, --lineage 0/1/2 side by
-    # side, --report (README).
+    # side, --report (README). Measured (2026-11-25): a cell 10.5 min of fine-tuning + 1 min of evaluations,
+    # lineages 0 and 1 side by side 2 h (25 min of it lost to a side job); ~2 h 50 min end to end projected
+    # (benchmarks/README.md, "The Table II analogue today").
     "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
                      K=20, down_dims=(16, 32, 64), batch_size=256, lr=1e-3, bc_steps=10_000,
                      finetune_steps=10_000, finetune="continue",
