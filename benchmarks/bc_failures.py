@@ -107,22 +107,35 @@ def failure_times(rows, dt):
 
 
 def roll_out(checkpoint, args):
-    """(env_list, episodes, rows): the policy at `checkpoint` on the evaluation scenarios x repeats, each
-    episode classified."""
+    """(rows, angles, scene): the policy at `checkpoint` on the evaluation scenarios x repeats, each episode
+    classified; `angles` the tool's angle to the goal posture's orientation of every success (engine3d with
+    position-only success, else empty); `scene` what print_failures needs of the env (dt, goal tolerance).
+
+    Like dagger.evaluate, the episodes run in lockstep in groups of at most dagger.MAX_PARALLEL_ENVS[env]
+    (engine3d: 100, one pybullet client each), and every group is classified and its simulators closed
+    before the next one starts: memory stays that of one group, however many policies and repeats."""
     policy = diffusion.DiffusionPolicy.load(checkpoint)
-    env_list = []
-    for _ in range(args.repeats):
-        for s in envs.eval_seeds():
+    jobs = [int(s) for _ in range(args.repeats) for s in envs.eval_seeds()]
+    group = dagger.MAX_PARALLEL_ENVS.get(args.env) or len(jobs)
+    gen = torch.Generator().manual_seed(args.seed)
+    rows, angles, scene = [], [], None
+    for start in range(0, len(jobs), group):
+        env_list = []
+        for s in jobs[start:start + group]:
             e = envs.make_env(args.env, **({"start": args.start} if args.start else {}))
             e.reset(seed=s)
             env_list.append(e)
-    gen = torch.Generator().manual_seed(args.seed)
-    episodes = dagger.rollout(env_list, policy, policy.cfg.n_act, gen)
-    rows = []
-    for e, ep in zip(env_list, episodes):
-        e.reset(seed=ep["seed"])
-        rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
-    return env_list, episodes, rows
+        for e, ep in zip(env_list, dagger.rollout(env_list, policy, policy.cfg.n_act, gen)):
+            e.reset(seed=ep["seed"])
+            rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
+            if scene is None:
+                scene = {"dt": e.cfg.dt, "goal_tolerance": e.goal_tolerance,
+                         "angle_rule": args.env == "engine3d" and not e.goal_is_pose}
+            if scene["angle_rule"] and rows[-1][0] == "success":
+                angles.append(e.tool_angle(ending(e, ep)[3]))
+            if hasattr(e, "close"):
+                e.close()  # free the simulator (a pybullet client) now: nothing below needs it
+    return rows, np.array(angles), scene
 
 
 def main():
@@ -140,9 +153,9 @@ def main():
     torch.set_num_threads(1)
     histograms = []
     for checkpoint in args.checkpoints:
-        env_list, episodes, rows = roll_out(checkpoint, args)
-        print_failures(args, checkpoint, env_list, episodes, rows)
-        histograms.append(failure_times(rows, env_list[0].cfg.dt))
+        rows, angles, scene = roll_out(checkpoint, args)
+        print_failures(args, checkpoint, rows, angles, scene)
+        histograms.append(failure_times(rows, scene["dt"]))
     if len(histograms) > 1:
         print("\n## When the policies fail (episodes; a collision's time is the start of its step)\n")
         bins = [f"collision {lo:g}-{hi:g} s" if hi != float("inf") else f"collision after {lo:g} s"
@@ -154,7 +167,7 @@ def main():
                   + f" | {h['timeout']} | {h['first_second']:.0%} of {h['collisions']} |")
 
 
-def print_failures(args, checkpoint, env_list, episodes, rows):
+def print_failures(args, checkpoint, rows, angles, scene):
     """The outcome table, the colliding parts, the collision times and the timeouts' distances of one policy."""
     n = len(rows)
     print(f"{checkpoint}: {n} episodes ({n // args.repeats} scenarios x {args.repeats})\n")
@@ -176,10 +189,8 @@ def print_failures(args, checkpoint, env_list, episodes, rows):
     timeouts = np.array([r[3] for r in rows if r[0] == "timeout"])
     if len(timeouts):
         print(f"timeouts: final end-effector distance to the target median {np.median(timeouts):.3f} m "
-              f"(success radius {env_list[0].goal_tolerance} m)")
-    if args.env == "engine3d" and not env_list[0].goal_is_pose:  # the authors' 10 deg, not checked
-        angles = np.array([e.tool_angle(ending(e, ep)[3]) for e, ep, r in zip(env_list, episodes, rows)
-                           if r[0] == "success"])
+              f"(success radius {scene['goal_tolerance']} m)")
+    if scene["angle_rule"]:  # the authors' 10 deg, not checked
         if len(angles):
             print(f"successes with the tool within 10 deg of the goal posture's orientation (the authors' rule, "
                   f"not checked: goal_angle_tolerance is None): {np.sum(angles <= 10)} of {len(angles)}; angle median "

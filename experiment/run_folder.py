@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gzip
 import hashlib
+import io
 import json
 import os
 import re
@@ -206,7 +207,10 @@ def export_lineages(run, folder):
         files = lineage_results(run, lineage)
         path = os.path.join(folder, f"lineage_{lineage}.json.gz")
         tmp = f"{path}.{os.getpid()}.tmp"
-        with gzip.open(tmp, "wt") as f:  # gzip: the calibrations' per-step covariances are most of it
+        # gzip (the calibrations' per-step covariances are most of it) without a time or a name in its header:
+        # exporting the same results again writes the same bytes, so a commit shows only what changed
+        with open(tmp, "wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as z, \
+                io.TextIOWrapper(z, encoding="utf-8") as f:
             json.dump({"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
                        "pi0_sha256": record["pi0_sha256"], "rounds_finished": finished,
                        "files": files}, f, separators=(",", ":"))

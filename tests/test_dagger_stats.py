@@ -237,3 +237,37 @@ def test_failure_time_histogram_bins_collisions_by_the_second_they_happen(monkey
     with pytest.raises(SystemExit):
         failures.main()
     assert "2 checkpoints" in capsys.readouterr().err
+
+
+def test_failure_rollout_runs_in_groups_and_closes_each_group_before_the_next(monkeypatch, tmp_path, load_benchmark):
+    """bc_failures.roll_out holds at most dagger.MAX_PARALLEL_ENVS[env] simulators at once (engine3d: one pybullet
+    client each; holding every policy's 300 made the 24 GB machine thrash) and classifies every episode."""
+    import argparse
+    import diffusion
+    import envs
+    failures = load_benchmark("bc_failures")
+    open_now, most = [0], [0]
+    make = envs.make_env
+
+    def tracked(name, **kw):
+        e = make(name, episode_seconds=0.5, **kw)  # 5 steps: the untrained policy's episodes end fast
+
+        def close():
+            open_now[0] -= 1
+        e.close = close
+        open_now[0] += 1
+        most[0] = max(most[0], open_now[0])
+        return e
+    monkeypatch.setattr(envs, "make_env", tracked)
+    monkeypatch.setattr(envs, "eval_seeds", lambda: [10_000, 10_001, 10_002])
+    monkeypatch.setitem(dagger.MAX_PARALLEL_ENVS, "planar", 2)
+    e = make("planar")
+    policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(obs_dim=e.obs_dim, dof=e.dof, horizon=4, n_act=2, K=5,
+                                                              down_dims=(16, 32), n_groups=4, step_embed_dim=32))
+    path = str(tmp_path / "p.pt")
+    policy.save(path)
+    args = argparse.Namespace(env="planar", start=None, repeats=2, seed=0)
+    rows, angles, scene = failures.roll_out(path, args)
+    assert len(rows) == 6 and all(r[0] in ("success", "timeout") or r[0].startswith("collision") for r in rows)
+    assert most[0] == 2 and open_now[0] == 0  # groups of 2, every simulator closed
+    assert scene["dt"] == e.cfg.dt and not scene["angle_rule"] and len(angles) == 0
