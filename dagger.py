@@ -41,7 +41,7 @@ import oracle as oracle_mod
 import partial_denoise
 import relabel
 from experiment import cli, profiles, report
-from experiment.run_folder import Run, export_lineages, join_lineage, stage_seed
+from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, stage_seed
 from experiment.workers import InBackground, in_parallel
 
 
@@ -984,11 +984,15 @@ def write_report(run):
     return text
 
 
-def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(), export_to=None):
+def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(), export_to=None,
+                   copy_src=None):
     """The command's mode on run folder `root` (resuming whatever is already there): every lineage, or only
     `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report. join: lineage
-    results files unpacked into the folder first; export_to: a folder to write each lineage's results file to."""
+    results files unpacked into the folder first; export_to: a folder to write each lineage's results file to;
+    copy_src: a finished run folder of the same config with fewer methods whose stages are copied in first."""
     run = Run(root, cfg)
+    if copy_src:
+        copy_from(run, copy_src)
     for path in join:
         join_lineage(run, path)
     t0 = time.time()
@@ -1012,7 +1016,7 @@ def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
     return cli.run_command(run_experiment, cfg, args.out or os.path.join("runs", cfg.name), args.lineage,
-                           args.prepare, args.report, args.workers, args.join, args.export_lineages)
+                           args.prepare, args.report, args.workers, args.join, args.export_lineages, args.copy_from)
 
 
 if __name__ == "__main__":

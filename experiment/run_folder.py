@@ -13,6 +13,7 @@ import io
 import json
 import os
 import re
+import shutil
 import time
 from dataclasses import asdict, fields, replace
 
@@ -227,6 +228,55 @@ def rounds_finished(run, lineage):
                                                                 f"{m}.json")) for m in methods):
         k += 1
     return k
+
+
+STAGE_FOLDERS = ("data", "checkpoints", "eval", "timings")  # a folder's stages, beside its lineage_<l>/ folders
+
+
+def copy_from(run, src):
+    """Seed the run folder with the finished stages of folder `src`, made with the same config but fewer methods
+    (a row added to a finished run, e.g. the sigma = 0 control beside table2): its data, checkpoints, evaluations,
+    timings and lineages are copied in, each lineage.json given this folder's config, so only the new methods'
+    stages run. The stage seeds do not depend on the methods list: the copied stages are those this run would
+    compute. Refused (ConfigMismatch) if src differs in any other field (FOLDER_FREE_FIELDS aside), runs a method
+    this run lacks, or has another pi_0 than one already here; files already here are kept. Returns the count."""
+    path = os.path.join(src, "config.json")
+    if not os.path.isfile(path):
+        raise RunFolderError(f"--copy-from {src}: not a run folder (no config.json there)")
+    if os.path.realpath(src) == os.path.realpath(run.root):
+        raise RunFolderError(f"--copy-from {src}: that is this run's own folder; name the finished run to copy from")
+    old, cfg = read_json(path), run.cfg
+    extra = [m for m in old.get("methods", ()) if m not in cfg.methods]
+    if extra:
+        raise ConfigMismatch(f"--copy-from {src}: it runs {', '.join(extra)}, which this run does not; copy only from "
+                             f"a folder whose methods are among this run's ({', '.join(cfg.methods)})")
+    check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name}, cfg,
+                      advice="--copy-from takes the stages of a run that differs only in its methods: run the other "
+                             "fields' change from scratch in its own folder.")
+    pi0_src, pi0_here = (os.path.join(r, "checkpoints", "bc.pt") for r in (src, run.root))
+    if os.path.exists(pi0_src) and os.path.exists(pi0_here) and weights_sha256(pi0_src) != weights_sha256(pi0_here):
+        raise ConfigMismatch(f"--copy-from {src}: its pi_0 differs from the one already in {run.root} (another "
+                             "machine or seed); its lineages pair only with their own pi_0. Copy into a new folder.")
+    copied = 0
+    for dirpath, _, names in os.walk(src):
+        rel_dir = os.path.relpath(dirpath, src)
+        top = rel_dir.split(os.sep)[0]
+        if top not in STAGE_FOLDERS and not re.fullmatch(r"lineage_\d+", top):
+            continue  # the report, the log, the figures: this run writes its own
+        for name in sorted(names):
+            rel = os.path.join(rel_dir, name)
+            if ".tmp" in name or os.path.exists(os.path.join(run.root, rel)):
+                continue  # a stage being written there, or one this folder already has
+            dst = run.path(rel)
+            if name == "lineage.json":
+                write_json(dst, {**read_json(os.path.join(src, rel)), "config": asdict(cfg)})
+            else:
+                tmp = f"{dst}.{os.getpid()}.tmp"
+                shutil.copyfile(os.path.join(src, rel), tmp)
+                os.replace(tmp, dst)  # a stage is finished only when its file is complete
+            copied += 1
+    run.log(f"copied {copied} stage files from {src} (the same config, methods {', '.join(old.get('methods', ()))})")
+    return copied
 
 
 def join_lineage(run, path):

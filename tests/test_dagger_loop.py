@@ -802,3 +802,35 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     with pytest.raises(run_folder.RunFolderError, match="no such file"):
         dagger.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
+
+
+def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(full_run, tmp_path, monkeypatch):
+    """--copy-from FOLDER (the sigma = 0 control beside a finished table): the stages of a run with the same config
+    and fewer methods are copied in, so only the added method trains, and the copied rows report the same numbers.
+    A folder with another config, or with a method this run lacks, is refused before anything is copied."""
+    trained = []
+    real = run_folder.Run.train
+
+    def spy(self, name, *args, **kwargs):
+        trained.append(name)
+        return real(self, name, *args, **kwargs)
+    monkeypatch.setattr(run_folder.Run, "train", spy)
+    cfg = replace(TINY, methods=TINY.methods + ("zero_noise",), name="tiny_zero")
+    root = str(tmp_path / "control")
+    dagger.run_experiment(cfg, root, copy_src=full_run)
+    assert trained == ["lineage_0/round_1/checkpoints/zero_noise.pt"]
+    mine, theirs = (json.load(open(os.path.join(r, "results.json")))["success"] for r in (root, full_run))
+    assert set(mine) == set(theirs) | {"zero_noise"} and all(mine[m] == theirs[m] for m in theirs)
+    record = json.load(open(os.path.join(root, "lineage_0", "lineage.json")))
+    assert record["config"]["methods"][-1] == "zero_noise" and record["config"]["name"] == "tiny_zero"
+
+    with pytest.raises(run_folder.ConfigMismatch, match="bc_steps = 30 there, 31 now"):
+        dagger.run_experiment(replace(cfg, bc_steps=31), str(tmp_path / "other"), copy_src=full_run)
+    fewer = replace(TINY, methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step"), name="tiny_fewer")
+    with pytest.raises(run_folder.ConfigMismatch, match="it runs closed_loop, which this run does not"):
+        dagger.run_experiment(fewer, str(tmp_path / "fewer"), copy_src=full_run)
+    with pytest.raises(run_folder.RunFolderError, match="not a run folder"):
+        dagger.run_experiment(cfg, str(tmp_path / "third"), copy_src=str(tmp_path / "missing"))
+    assert not os.path.exists(os.path.join(str(tmp_path / "other"), "data"))  # a refused copy leaves no stage
+    args, _ = dagger.parse_args(["--profile", "table2", "--methods", "hg_dagger,zero_noise", "--copy-from", root])
+    assert args.copy_from == root
