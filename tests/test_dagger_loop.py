@@ -478,9 +478,10 @@ def readme_commands():
 
 
 def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeypatch, capsys):
-    """Each README command, as written but with its profile swapped for a shrunken smoke profile, runs to
-    the end in the order the README gives them, in one working folder: none is refused by a folder another
-    command made (e.g. --methods right after the default run), --help prints the options."""
+    """Each README command, as written but with its profile (and the profile's folder runs/<profile>) swapped
+    for a shrunken smoke profile, runs to the end in the order the README gives them, in one working folder:
+    none is refused by a folder another command made (e.g. --methods right after the default run), --help
+    prints the options."""
     smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
                     episodes_per_round=2, n_demos=2, bc_steps=10, finetune_steps=6, image_size=16)
     monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
@@ -490,7 +491,7 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     for argv in commands:
         if "--profile" in argv:
             i = argv.index("--profile")
-            argv = argv[:i] + argv[i + 2:]
+            argv = [a.replace(f"runs/{argv[i + 1]}", "runs/smoke") for a in argv[:i] + argv[i + 2:]]
         if "--help" in argv:
             with pytest.raises(SystemExit) as done:
                 dagger.main(argv)
