@@ -672,25 +672,33 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, ma
     generator is seeded identically for every method, so methods face the same scenarios and the
     same draws where their policies agree (a paired comparison).
     """
+    jobs = [int(s) for _ in range(repeats) for s in seeds]
+    gen = torch.Generator(device=policy.device).manual_seed(seed)
+    ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, env_options,
+                                                                 max_parallel, log)], bool)
+    return ok.reshape(repeats, len(seeds)).T
+
+
+
+def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=None, max_parallel="env default",
+                       log=None):
+    """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
+    max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once). A group's envs stay open while the
+    caller reads its pairs (e.g. to classify how an episode ended) and are closed before the next group starts,
+    so memory stays that of one group."""
     if max_parallel == "env default":
         max_parallel = MAX_PARALLEL_ENVS.get(env_name)
-    jobs = [int(s) for _ in range(repeats) for s in seeds]
     group = max_parallel or max(1, len(jobs))
-    gen = torch.Generator(device=policy.device).manual_seed(seed)
-    ok = []
     for start in range(0, len(jobs), group):
         env_list = []
         for s in jobs[start:start + group]:
             e = envs.make_env(env_name, **(env_options or {}))
             e.reset(seed=s)
             env_list.append(e)
-        ok += [ep["success"] for ep in rollout(env_list, policy, n_act, gen, log=log)]
+        yield from zip(env_list, rollout(env_list, policy, n_act, generator, log=log))
         for e in env_list:
             if hasattr(e, "close"):
                 e.close()  # free the simulator (a pybullet client) before the next group
-    ok = np.array(ok, bool)
-    return ok.reshape(repeats, len(seeds)).T
-
 
 # ----------------------------------------------------------------------------------------------
 # Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma, over lineages.

@@ -111,30 +111,22 @@ def roll_out(checkpoint, args):
     classified; `angles` the tool's angle to the goal posture's orientation of every success (engine3d with
     position-only success, else empty); `scene` what print_failures needs of the env (dt, goal tolerance).
 
-    Like dagger.evaluate, the episodes run in lockstep in groups of at most dagger.MAX_PARALLEL_ENVS[env]
-    (engine3d: 100, one pybullet client each), and every group is classified and its simulators closed
-    before the next one starts: memory stays that of one group, however many policies and repeats."""
+    The episodes run as in dagger.evaluate (dagger.rollouts_in_groups: lockstep, in groups of at most
+    dagger.MAX_PARALLEL_ENVS[env], engine3d 100 pybullet clients, each group closed before the next), and every
+    episode is classified while its env is open: memory stays that of one group, however many policies."""
     policy = diffusion.DiffusionPolicy.load(checkpoint)
     jobs = [int(s) for _ in range(args.repeats) for s in envs.eval_seeds()]
-    group = dagger.MAX_PARALLEL_ENVS.get(args.env) or len(jobs)
     gen = torch.Generator().manual_seed(args.seed)
     rows, angles, scene = [], [], None
-    for start in range(0, len(jobs), group):
-        env_list = []
-        for s in jobs[start:start + group]:
-            e = envs.make_env(args.env, **({"start": args.start} if args.start else {}))
-            e.reset(seed=s)
-            env_list.append(e)
-        for e, ep in zip(env_list, dagger.rollout(env_list, policy, policy.cfg.n_act, gen)):
-            e.reset(seed=ep["seed"])
-            rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
-            if scene is None:
-                scene = {"dt": e.cfg.dt, "goal_tolerance": e.goal_tolerance,
-                         "angle_rule": args.env == "engine3d" and not e.goal_is_pose}
-            if scene["angle_rule"] and rows[-1][0] == "success":
-                angles.append(e.tool_angle(ending(e, ep)[3]))
-            if hasattr(e, "close"):
-                e.close()  # free the simulator (a pybullet client) now: nothing below needs it
+    for e, ep in dagger.rollouts_in_groups(policy, args.env, jobs, policy.cfg.n_act, gen,
+                                           {"start": args.start} if args.start else None):
+        e.reset(seed=ep["seed"])
+        rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
+        if scene is None:
+            scene = {"dt": e.cfg.dt, "goal_tolerance": e.goal_tolerance,
+                     "angle_rule": args.env == "engine3d" and not e.goal_is_pose}
+        if scene["angle_rule"] and rows[-1][0] == "success":
+            angles.append(e.tool_angle(ending(e, ep)[3]))
     return rows, np.array(angles), scene
 
 
