@@ -82,7 +82,8 @@ def parse_args(argv, profiles, methods):
                         "calibrations, timings; no checkpoints), for --join in another folder or a commit")
     p.add_argument("--copy-from", default=None, metavar="FOLDER",
                    help="first copy in the finished stages of FOLDER, a run of the same config with fewer methods "
-                        "(e.g. runs/table2 for --methods ...,zero_noise), so only the added methods train")
+                        "(e.g. runs/table2 for --methods ...,zero_noise), so only the added methods train; with another "
+                        "--replicates, only lineage 0 (the same under both designs) is copied")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
     args = p.parse_args(argv)

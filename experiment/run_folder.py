@@ -238,8 +238,11 @@ def copy_from(run, src):
     (a row added to a finished run, e.g. the sigma = 0 control beside table2): its data, checkpoints, evaluations,
     timings and lineages are copied in, each lineage.json given this folder's config, so only the new methods'
     stages run. The stage seeds do not depend on the methods list: the copied stages are those this run would
-    compute. Refused (ConfigMismatch) if src differs in any other field (FOLDER_FREE_FIELDS aside), runs a method
-    this run lacks, or has another pi_0 than one already here; files already here are kept. Returns the count."""
+    compute. If src differs in `replicates` as well (independent lineages there, training seeds on lineage 0's
+    interventions here, or the reverse), only the shared stages and lineage 0 are copied: lineage 0 is the same
+    run under both designs, the others are not. Refused (ConfigMismatch) if src differs in any other field
+    (FOLDER_FREE_FIELDS aside), runs a method this run lacks, or has another pi_0 than one already here; files
+    already here are kept. Returns the count."""
     path = os.path.join(src, "config.json")
     if not os.path.isfile(path):
         raise RunFolderError(f"--copy-from {src}: not a run folder (no config.json there)")
@@ -250,9 +253,10 @@ def copy_from(run, src):
     if extra:
         raise ConfigMismatch(f"--copy-from {src}: it runs {', '.join(extra)}, which this run does not; copy only from "
                              f"a folder whose methods are among this run's ({', '.join(cfg.methods)})")
-    check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name}, cfg,
-                      advice="--copy-from takes the stages of a run that differs only in its methods: run the other "
-                             "fields' change from scratch in its own folder.")
+    lineage_0_only = old.get("replicates", "lineages") != cfg.replicates
+    check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name, "replicates": cfg.replicates}, cfg,
+                      advice="--copy-from takes the stages of a run that differs only in its methods (and "
+                             "replicates): run the other fields' change from scratch in its own folder.")
     pi0_src, pi0_here = (os.path.join(r, "checkpoints", "bc.pt") for r in (src, run.root))
     if os.path.exists(pi0_src) and os.path.exists(pi0_here) and weights_sha256(pi0_src) != weights_sha256(pi0_here):
         raise ConfigMismatch(f"--copy-from {src}: its pi_0 differs from the one already in {run.root} (another "
@@ -267,6 +271,9 @@ def copy_from(run, src):
             rel = os.path.join(rel_dir, name)
             if ".tmp" in name or os.path.exists(os.path.join(run.root, rel)):
                 continue  # a stage being written there, or one this folder already has
+            other = re.search(r"lineage_(\d+)", rel)
+            if lineage_0_only and other and other.group(1) != "0":
+                continue  # another replicate design: lineages 1, 2, ... are not this run's
             dst = run.path(rel)
             if name == "lineage.json":
                 write_json(dst, {**read_json(os.path.join(src, rel)), "config": asdict(cfg)})
@@ -275,7 +282,8 @@ def copy_from(run, src):
                 shutil.copyfile(os.path.join(src, rel), tmp)
                 os.replace(tmp, dst)  # a stage is finished only when its file is complete
             copied += 1
-    run.log(f"copied {copied} stage files from {src} (the same config, methods {', '.join(old.get('methods', ()))})")
+    run.log(f"copied {copied} stage files from {src} (the same config, methods {', '.join(old.get('methods', ()))}"
+            + (f"; replicates {old.get('replicates', 'lineages')} there: lineage 0 only)" if lineage_0_only else ")"))
     return copied
 
 

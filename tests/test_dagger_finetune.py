@@ -209,14 +209,30 @@ def test_short_interventions_padded_are_kept_with_their_padded_steps_out_of_the_
         replace(TINY, short_interventions="keep")
 
 
-def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_its_own_training_seed(tmp_path):
+def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_its_own_training_seed(
+        tmp_path, monkeypatch):
     """replicates='seeds' (the authors' lever runs: training seeds on one intervention set): lineage 1 collects
     and calibrates nothing of its own -- it trains on lineage 0's D_1, D_2 (D_2 collected by lineage 0's round-1
     policy) and calibrations -- but every arm is trained again with its own seed; the table says what a lineage
-    is; the closed-loop row, which collects its own chain, is refused."""
+    is; the closed-loop row, which collects its own chain, is refused. Lineage 0 is the same run under both
+    designs: --copy-from an independent-lineages folder brings lineage 0 (not lineage 1) and only lineage 1
+    trains."""
     cfg = replace(TINY, rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4"), replicates="seeds")
+    src = str(tmp_path / "lineages")
+    dagger.run_experiment(replace(cfg, replicates="lineages", methods=("bc", "hg_dagger")), src)
+    trained, real = [], run_folder.Run.train
+
+    def spy(self, name, *args, **kwargs):
+        trained.append(name)
+        return real(self, name, *args, **kwargs)
+    monkeypatch.setattr(run_folder.Run, "train", spy)
     root = str(tmp_path / "seeds")
-    dagger.run_experiment(cfg, root)
+    dagger.run_experiment(cfg, root, copy_src=src)
+    assert sorted(trained) == sorted([f"lineage_0/round_{k}/checkpoints/fixed_4.pt" for k in (1, 2)]
+                                     + [f"lineage_1/round_{k}/checkpoints/{m}.pt" for k in (1, 2)
+                                        for m in ("hg_dagger", "fixed_4")])
+    assert not any("lineage_1" in name for name in os.listdir(os.path.join(root, "timings"))
+                   if name.startswith("collect"))
     l0, l1 = (os.path.join(root, f"lineage_{l}") for l in (0, 1))
     for k in (1, 2):
         assert os.path.exists(os.path.join(l0, f"round_{k}", "D.npz"))
