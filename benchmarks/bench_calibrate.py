@@ -15,6 +15,7 @@ Usage:  python benchmarks/bench_calibrate.py [--demos 12] [--train-steps 1000] [
 Prints a markdown table (wall and CPU seconds).
 
 How steady W is:  python benchmarks/bench_calibrate.py --run runs/quick --seeds 5 [--lineage 0] [--round 1]
+                                                       [--betas 0.1,0.2,0.3,0.5,0.75,0.9]
 calibrates the round's HG-DAgger policy on the interventions of rounds 1..k of a finished run folder, with
 the run's own calibration settings (dagger.calibration_config), once per calibration seed (seed 0 is the
 run's own), and ends with one line: W spread: mean M, SD S, SD/mean P %, T s per calibration (M and S in
@@ -57,11 +58,14 @@ def main():
     parser.add_argument("--round", type=int, default=1, help="--run: the round k (its HG-DAgger policy, D_1..D_k)")
     parser.add_argument("--blend-segments", type=int, default=None,
                         help="--run: override the profile's calib_blend_segments (0: every long enough segment)")
+    parser.add_argument("--betas", default=None, metavar="B1,B2,...",
+                        help="--run: the blend ratios instead of calibrate's 13 (e.g. the authors' lever set "
+                             "0.1,0.2,0.3,0.5,0.75,0.9)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.run:
-        return w_spread(args.run, args.seeds, args.lineage, args.round, args.blend_segments)
+        return w_spread(args.run, args.seeds, args.lineage, args.round, args.blend_segments, parse_betas(args.betas))
 
     env = make_env("planar")
     expert, seed = oracle.Oracle(), 0
@@ -119,8 +123,23 @@ def main():
     print("\n" + calib.report())
 
 
-def w_spread(root, n_seeds, lineage, k, blend_segments=None):
-    """W of one round recalibrated with n_seeds calibration seeds: a table per seed and the spread line."""
+def parse_betas(text):
+    """--betas '0.1,0.2,...' as a tuple of ratios in (0, 1), at least 3 distinct (the fit has 2 parameters);
+    None stays None (calibrate's own 13)."""
+    if text is None:
+        return None
+    try:
+        betas = tuple(float(b) for b in text.split(","))
+    except ValueError:
+        raise SystemExit(f"--betas {text!r}: give comma-separated numbers, e.g. 0.1,0.2,0.3,0.5,0.75,0.9") from None
+    if len(set(betas)) < 3 or not all(0 < b < 1 for b in betas):
+        raise SystemExit(f"--betas {text!r}: give at least 3 distinct blend ratios, each in (0, 1)")
+    return betas
+
+
+def w_spread(root, n_seeds, lineage, k, blend_segments=None, betas=None):
+    """W of one round recalibrated with n_seeds calibration seeds: a table per seed and the spread line.
+    betas: other blend ratios than calibrate's (the authors' six on the lever), or None."""
     import dataclasses
     import dagger
     from experiment.run_folder import Run, read_json, stage_seed
@@ -143,6 +162,8 @@ def w_spread(root, n_seeds, lineage, k, blend_segments=None):
     demos = run.load("data/D0.npz")
     stats = dagger.demo_statistics(cfg, demos)
     ccfg = dagger.calibration_config(cfg)
+    if betas is not None:
+        ccfg = dataclasses.replace(ccfg, betas=betas)
     paper = paper_median_step(cfg.env) or stats.median_step
     seeds = [stage_seed(cfg, "calibrate", lineage, k)] + list(range(1, n_seeds))
     print(f"{root}, {where}: {len(episodes)} intervention episodes, unit {paper:.4f} rad (paper median step); "

@@ -835,3 +835,21 @@ def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(f
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "data"))  # a refused copy leaves no stage
     args, _ = dagger.parse_args(["--profile", "table2", "--methods", "hg_dagger,zero_noise", "--copy-from", root])
     assert args.copy_from == root
+
+
+def test_w_spread_recalibrates_a_finished_round_at_other_blend_ratios(full_run, load_benchmark, capsys):
+    """benchmarks/bench_calibrate.py --run --betas (the authors' six lever ratios against our 13): the round's
+    HG-DAgger policy recalibrated per seed with the ratios given; the first seed is the run's own, so with the run's
+    ratios it gives the run's W; a malformed list is refused with the valid form."""
+    bench = load_benchmark("bench_calibrate")
+    bench.w_spread(full_run, 2, 0, 1)
+    ours = capsys.readouterr().out
+    saved = json.load(open(os.path.join(full_run, "lineage_0", "round_1", "calibration.json")))
+    paper = envs.paper_median_step(TINY.env)
+    assert f"| {saved['W'] / paper:.2f} |" in ours.splitlines()[3] and "/13 |" in ours
+    bench.w_spread(full_run, 2, 0, 1, betas=bench.parse_betas("0.2,0.5,0.8"))
+    theirs = capsys.readouterr().out
+    assert "/3 |" in theirs and "/13 |" not in theirs and "W spread: mean" in theirs
+    for bad in ("0.2,x", "0.2,0.5", "0.2,0.5,1.5"):
+        with pytest.raises(SystemExit, match="--betas"):
+            bench.parse_betas(bad)
