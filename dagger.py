@@ -679,7 +679,6 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, ma
     return ok.reshape(repeats, len(seeds)).T
 
 
-
 def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=None, max_parallel="env default",
                        log=None):
     """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
@@ -699,6 +698,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=Non
         for e in env_list:
             if hasattr(e, "close"):
                 e.close()  # free the simulator (a pybullet client) before the next group
+
 
 # ----------------------------------------------------------------------------------------------
 # Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma, over lineages.

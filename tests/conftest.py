@@ -19,3 +19,17 @@ def load_benchmark():
         spec.loader.exec_module(module)
         return module
     return load
+
+
+@pytest.fixture
+def trained_stages(monkeypatch):
+    """The list, in order, of the checkpoint names Run.train is asked for from here on (the stages that trained
+    rather than being loaded or copied)."""
+    from experiment import run_folder
+    trained, real = [], run_folder.Run.train
+
+    def spy(self, name, *args, **kwargs):
+        trained.append(name)
+        return real(self, name, *args, **kwargs)
+    monkeypatch.setattr(run_folder.Run, "train", spy)
+    return trained

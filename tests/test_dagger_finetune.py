@@ -210,7 +210,7 @@ def test_short_interventions_padded_are_kept_with_their_padded_steps_out_of_the_
 
 
 def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_its_own_training_seed(
-        tmp_path, monkeypatch):
+        tmp_path, trained_stages):
     """replicates='seeds' (the authors' lever runs: training seeds on one intervention set): lineage 1 collects
     and calibrates nothing of its own -- it trains on lineage 0's D_1, D_2 (D_2 collected by lineage 0's round-1
     policy) and calibrations -- but every arm is trained again with its own seed; the table says what a lineage
@@ -220,15 +220,10 @@ def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_it
     cfg = replace(TINY, rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4"), replicates="seeds")
     src = str(tmp_path / "lineages")
     dagger.run_experiment(replace(cfg, replicates="lineages", methods=("bc", "hg_dagger")), src)
-    trained, real = [], run_folder.Run.train
-
-    def spy(self, name, *args, **kwargs):
-        trained.append(name)
-        return real(self, name, *args, **kwargs)
-    monkeypatch.setattr(run_folder.Run, "train", spy)
+    trained_stages.clear()  # from here on: the seeds run's own training
     root = str(tmp_path / "seeds")
     dagger.run_experiment(cfg, root, copy_src=src)
-    assert sorted(trained) == sorted([f"lineage_0/round_{k}/checkpoints/fixed_4.pt" for k in (1, 2)]
+    assert sorted(trained_stages) == sorted([f"lineage_0/round_{k}/checkpoints/fixed_4.pt" for k in (1, 2)]
                                      + [f"lineage_1/round_{k}/checkpoints/{m}.pt" for k in (1, 2)
                                         for m in ("hg_dagger", "fixed_4")])
     assert not any("lineage_1" in name for name in os.listdir(os.path.join(root, "timings"))

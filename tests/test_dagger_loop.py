@@ -805,21 +805,14 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
 
 
-def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(full_run, tmp_path, monkeypatch):
+def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(full_run, tmp_path, trained_stages):
     """--copy-from FOLDER (the sigma = 0 control beside a finished table): the stages of a run with the same config
     and fewer methods are copied in, so only the added method trains, and the copied rows report the same numbers.
     A folder with another config, or with a method this run lacks, is refused before anything is copied."""
-    trained = []
-    real = run_folder.Run.train
-
-    def spy(self, name, *args, **kwargs):
-        trained.append(name)
-        return real(self, name, *args, **kwargs)
-    monkeypatch.setattr(run_folder.Run, "train", spy)
     cfg = replace(TINY, methods=TINY.methods + ("zero_noise",), name="tiny_zero")
     root = str(tmp_path / "control")
     dagger.run_experiment(cfg, root, copy_src=full_run)
-    assert trained == ["lineage_0/round_1/checkpoints/zero_noise.pt"]
+    assert trained_stages == ["lineage_0/round_1/checkpoints/zero_noise.pt"]
     mine, theirs = (json.load(open(os.path.join(r, "results.json")))["success"] for r in (root, full_run))
     assert set(mine) == set(theirs) | {"zero_noise"} and all(mine[m] == theirs[m] for m in theirs)
     record = json.load(open(os.path.join(root, "lineage_0", "lineage.json")))
