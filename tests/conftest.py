@@ -33,3 +33,17 @@ def trained_stages(monkeypatch):
         return real(self, name, *args, **kwargs)
     monkeypatch.setattr(run_folder.Run, "train", spy)
     return trained
+
+
+@pytest.fixture
+def augmentation_samplers(monkeypatch):
+    """The list, in order, of every relabel.AugmentationSampler built from here on, as dicts: noise (the kind),
+    sigma (as the constructor received it), episodes and the built sampler itself."""
+    import relabel
+    built, real = [], relabel.AugmentationSampler.__init__
+
+    def spy(self, episodes, make_env, stats, noise, sigma, cfg=None):
+        real(self, episodes, make_env, stats, noise, sigma, cfg)
+        built.append(dict(noise=noise, sigma=sigma, episodes=list(episodes), sampler=self))
+    monkeypatch.setattr(relabel.AugmentationSampler, "__init__", spy)
+    return built

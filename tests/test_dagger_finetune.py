@@ -1,5 +1,6 @@
 """dagger.py's fine-tuning recipe: continuing pi_0's schedule (the authors' run) or restarting, the BC row,
-the recorded share of a noised arm (raw_mix), the arms in worker processes, the planar start option."""
+the recorded share of a noised arm (raw_mix), the arms in worker processes, the planar start option; the noise
+each noised arm's sampler is built with (Eqs. 14-16 of its own round's calibration, Table I's fixed sigmas)."""
 import json
 import os
 import shutil
@@ -12,6 +13,7 @@ import torch
 import calibrate
 import dagger
 import diffusion
+import envs
 import relabel
 from experiment import run_folder
 
@@ -248,3 +250,218 @@ def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_it
         replace(cfg, methods=("bc", "hg_dagger", "closed_loop"))
     with pytest.raises(ValueError, match="replicates must be 'lineages'"):
         replace(TINY, replicates="trainings")
+
+
+# ---- each noised arm's sampler gets its own round's noise (Eqs. 14-16, Table I's rows) -------------------------
+def synthetic_rounds(dof=3, H=TINY.horizon):
+    """Two rounds of intervention episodes (2 and 3 episodes, of different lengths) with one intervention of
+    2H steps each: no env is made until a sampler draws, and these tests only build samplers."""
+    rounds, seed = [], 100
+    for n_episodes in (2, 3):
+        D = []
+        for _ in range(n_episodes):
+            T = 3 * H + seed % 7
+            expert = np.zeros(T, bool)
+            expert[5:5 + 2 * H] = True
+            q = np.cumsum(np.full((T, dof), 0.02), axis=0) + 0.01 * seed
+            D.append({"obs": np.zeros((T, 2 * dof + 2), np.float32), "q": q, "action": np.roll(q, -1, axis=0),
+                      "expert": expert, "seed": seed})
+            seed += 1
+        rounds.append(D)
+    return rounds
+
+
+def synthetic_calibration(episodes, W, seed=0):
+    """A calibrate.Calibration of `episodes` (the rounds' episodes concatenated, as calibrate_noise passes them)
+    measured at every step: a random Sigma_hat_t per step (trace ~2e-4 rad^2, so ||W||^2 = W^2 rescales it by a
+    large factor), Sigma^alpha_t and the pooled Sigma_bar^alpha by calibrate.py (as calibrate.calibrate makes
+    them), a distinct unguided_pooled."""
+    rng = np.random.default_rng(seed)
+    dof = episodes[0]["q"].shape[1]
+    episode_index = np.concatenate([np.full(len(ep["q"]), e) for e, ep in enumerate(episodes)])
+    timestep = np.concatenate([np.arange(len(ep["q"])) for ep in episodes])
+    A = rng.normal(scale=0.005, size=(len(timestep), dof, dof))
+    sigma_hat = A @ np.swapaxes(A, 1, 2) + 1e-6 * np.eye(dof)                   # (M, dof, dof) rad^2
+    B = rng.normal(scale=0.01, size=(dof, dof))
+    empty = np.zeros(0)
+    return calibrate.Calibration(W=W, r=None, fit_note="fit", median_step=0.02, sigma_hat=sigma_hat,
+                                 sigma_alpha=calibrate.calibrated_sigma(sigma_hat, W), episode_index=episode_index,
+                                 timestep=timestep, pooled=calibrate.pooled_sigma(sigma_hat, W),
+                                 unguided_pooled=B @ B.T + 1e-6 * np.eye(dof), blend_beta=empty, blend_s=empty,
+                                 blend_x=empty, blend_kept=np.zeros(0, bool), blend_episode=empty,
+                                 blend_start=empty, paper_median_step=envs.paper_median_step("planar"))
+
+
+def synthetic_stats(dof=3):
+    """DemoStats with our median step 0.02 rad beside the paper's planar 0.0176 rad (fixed sigmas convert)."""
+    return relabel.DemoStats(median_step=0.02, median_speed=0.02, accel_max=np.full(dof, 0.01),
+                             max_step=np.full(dof, 0.1), acc_p95=0.01,
+                             paper_median_step=envs.paper_median_step("planar"), frames_per_step=3.0)
+
+
+def eq16_pooled(cal):
+    """Eqs. (15)-(16) from the calibration's raw measurements, written out here: Sigma_bar = mean_m Sigma_hat_m,
+    Sigma_bar^alpha = ||W||^2 / tr(Sigma_bar) Sigma_bar (rad^2; W in rad)."""
+    sigma_bar = cal.sigma_hat.mean(axis=0)
+    return cal.W ** 2 / np.trace(sigma_bar) * sigma_bar
+
+
+def eq14_per_step(cal, episode, t):
+    """Eq. (14) at step t of calibrated episode `episode`: Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t."""
+    (row,) = np.flatnonzero((cal.episode_index == episode) & (cal.timestep == t))
+    return cal.W ** 2 / np.trace(cal.sigma_hat[row]) * cal.sigma_hat[row]
+
+
+def sampler_covariances(sampler):
+    """(N, dof, dof) rad^2: the covariance L_t L_t^T the sampler draws each of its table's rows with."""
+    return sampler.factors @ np.swapaxes(sampler.factors, 1, 2)
+
+
+def assert_pooled(sampler, expected):
+    covs = sampler_covariances(sampler)
+    np.testing.assert_allclose(covs, np.broadcast_to(expected, covs.shape), rtol=1e-9, atol=1e-15)
+
+
+def assert_per_step(sampler, cal, offset):
+    """Every row of `sampler` (episode i of its round, step t) has Eq. (14)'s Sigma^alpha_t of calibrated episode
+    offset + i (the rounds' episodes are calibrated in order), step t."""
+    covs = sampler_covariances(sampler)
+    expected = [eq14_per_step(cal, offset + e, t) for e, t in zip(sampler.episode_of, sampler.step_of)]
+    np.testing.assert_allclose(covs, np.array(expected), rtol=1e-9, atol=1e-15)
+
+
+def test_pooled_arm_draws_eq_16_sigma_bar_alpha_scaled_to_w(augmentation_samplers):
+    """Fails if the pooled arm's sampler is given anything but Eqs. (15)-(16) of the round's calibration: the
+    unscaled Sigma_bar (W's scaling dropped, noise_model returning cal.sigma_hat.mean(0)), another matrix of the
+    calibration, or a covariance in other units than rad^2."""
+    rounds = synthetic_rounds()
+    cal = synthetic_calibration(rounds[0] + rounds[1], W=0.06)
+    expected = eq16_pooled(cal)
+    unscaled = cal.sigma_hat.mean(axis=0)
+    assert np.trace(expected) == pytest.approx(0.06 ** 2)                   # Eq. (16): tr = ||W||^2
+    assert np.trace(expected) > 10 * np.trace(unscaled)                      # the scaling matters here
+    sampler = dagger.intervention_sampler(TINY, "pooled", rounds, cal, synthetic_stats())
+    assert [type(s).__name__ for s in sampler.samplers] == ["AugmentationSampler"] * 2
+    assert [b["noise"] for b in augmentation_samplers] == ["pooled", "pooled"]
+    for built, D in zip(augmentation_samplers, rounds):
+        assert built["episodes"] == D
+        np.testing.assert_allclose(built["sigma"], expected, rtol=1e-9)      # what the sampler receives ...
+        assert_pooled(built["sampler"], expected)                            # ... and draws with, every row
+
+
+def test_per_step_arm_draws_eq_14_of_each_episodes_own_steps_across_rounds(augmentation_samplers):
+    """Fails if a per_step sampler's row is noised with anything but Eq. (14)'s Sigma^alpha_t of its own episode
+    and step: W's scaling dropped (cal.sigma_hat instead of cal.sigma_alpha), the episodes of round 2 indexed from
+    0 instead of after round 1's (the offset in intervention_sampler), rounds or episodes swapped, steps shifted."""
+    rounds = synthetic_rounds()
+    cal = synthetic_calibration(rounds[0] + rounds[1], W=0.06)
+    ratio = cal.W ** 2 / np.trace(cal.sigma_hat, axis1=1, axis2=2)
+    assert ratio.min() > 5                                                   # the scaling matters at every step
+    dagger.intervention_sampler(TINY, "per_step", rounds, cal, synthetic_stats())
+    assert [b["noise"] for b in augmentation_samplers] == ["per_step", "per_step"]
+    offset = 0
+    for built, D in zip(augmentation_samplers, rounds):
+        assert built["episodes"] == D
+        assert sorted(np.unique(built["sampler"].episode_of)) == list(range(len(D)))  # every episode has rows
+        assert_per_step(built["sampler"], cal, offset)
+        offset += len(D)
+
+
+def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
+    """Fails if two arms' noises are swapped (each arm's covariance differs here): pooled and closed_loop get
+    Eq. (16)'s Sigma_bar^alpha of their calibration, per_step Eq. (14) per step, unguided_pooled the
+    calibration's unguided_pooled, fixed_<s> the isotropic (s * paper_median_step)^2 I rad^2 of Table I (sigma in
+    the paper's median steps: noise_model hands the sampler s * paper_median_step / median_step of ours),
+    zero_noise none; hg_dagger builds no noised sampler."""
+    rounds = synthetic_rounds()
+    cal = synthetic_calibration(rounds[0] + rounds[1], W=0.06)
+    stats, dof = synthetic_stats(), 3
+    paper = envs.paper_median_step("planar")
+    assert stats.median_step != paper                                        # the unit conversion matters here
+    dagger.intervention_sampler(TINY, "hg_dagger", rounds, None, stats)
+    assert augmentation_samplers == []
+    for method in ("fixed_2", "fixed_16", "zero_noise", "pooled", "closed_loop", "unguided_pooled", "per_step"):
+        augmentation_samplers.clear()
+        dagger.intervention_sampler(TINY, method, rounds, cal, stats)
+        assert len(augmentation_samplers) == len(rounds), method
+        offset = 0
+        for built, D in zip(augmentation_samplers, rounds):
+            sampler = built["sampler"]
+            if method.startswith("fixed_"):
+                s = float(method.split("_")[1])
+                assert built["noise"] == "isotropic"
+                assert_pooled(sampler, (s * paper) ** 2 * np.eye(dof))
+            elif method == "zero_noise":
+                assert built["noise"] == "isotropic" and np.all(sampler.factors == 0)
+            elif method == "unguided_pooled":
+                assert built["noise"] == "pooled"
+                assert_pooled(sampler, cal.unguided_pooled)
+            elif method == "per_step":
+                assert built["noise"] == "per_step"
+                assert_per_step(sampler, cal, offset)
+            else:
+                assert built["noise"] == "pooled", method
+                assert_pooled(sampler, eq16_pooled(cal))
+            offset += len(D)
+
+
+def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypatch, augmentation_samplers):
+    """Fails if, in the loop (policy_calibrated_dagger, noised_arm, closed_loop_chain), a noised arm of round k is
+    given another round's calibration (round 1's or k-1's; the first calibration kept for every round) or another
+    chain's: round k's pooled, per_step and fixed arms use the main chain's round-k calibration, the closed_loop
+    row round 1's main calibration at K=1 and its own chain's at K=2. Two rounds, calibrate.calibrate replaced
+    by a synthetic calibration with its own W per call, no training (finetune_from_pi0 hands back pi_0) and no
+    evaluation: only the samplers each arm builds are looked at."""
+    cfg = replace(TINY, rounds=2, methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"))
+    made = []
+
+    def fake_calibrate(env, policy, episodes, median_step, cal_cfg, generator, log=None):
+        made.append(synthetic_calibration(episodes, W=0.05 + 0.02 * len(made), seed=len(made)))
+        return made[-1]
+    monkeypatch.setattr(calibrate, "calibrate", fake_calibrate)
+    calibrations, arms = {}, {}  # (k, chain): the loop's calibration; (k, method): the arm's samplers
+    real_calibrate_noise, real_fine_tune = dagger.calibrate_noise, dagger.fine_tune
+
+    def calibrate_noise(run, lineage, k, *args, chain=None, **kwargs):
+        calibrations[(k, chain)] = real_calibrate_noise(run, lineage, k, *args, chain=chain, **kwargs)
+        return calibrations[(k, chain)]
+
+    def fine_tune(run, lineage, k, method, *args):
+        first = len(augmentation_samplers)
+        policy = real_fine_tune(run, lineage, k, method, *args)
+        arms[(k, method)] = augmentation_samplers[first:]
+        return policy
+    monkeypatch.setattr(dagger, "calibrate_noise", calibrate_noise)
+    monkeypatch.setattr(dagger, "fine_tune", fine_tune)
+    monkeypatch.setattr(dagger, "finetune_from_pi0", lambda run, name, *args, **kwargs: run.load("checkpoints/bc.pt"))
+    monkeypatch.setattr(dagger, "evaluate_policy", lambda run, name, policy, label, unseen=None: np.zeros(
+        (cfg.eval_scenarios, cfg.eval_repeats), bool))
+    dagger.policy_calibrated_dagger(run_folder.Run(str(tmp_path), cfg), [0])
+
+    assert set(calibrations) == {(1, None), (2, None), (2, "closed_loop")}
+    Ws = [c.W for c in calibrations.values()]
+    assert len(set(Ws)) == 3                                                 # three distinguishable calibrations
+    main = {k: run_folder.load_episodes(str(tmp_path / f"lineage_0/round_{k}/D.npz")) for k in (1, 2)}
+    chain_2 = run_folder.load_episodes(str(tmp_path / "lineage_0/round_2/closed_loop/D.npz"))
+    for k in (1, 2):
+        cal = calibrations[(k, None)]
+        assert arms[(k, "hg_dagger")] == []
+        for method in ("fixed_4", "pooled", "per_step"):
+            assert len(arms[(k, method)]) == k, (k, method)                  # one sampler per round of data
+        offset = 0
+        for j in range(k):  # the sampler of round j + 1's data
+            D = main[j + 1]
+            for method in ("fixed_4", "pooled", "per_step"):
+                assert [ep["seed"] for ep in arms[(k, method)][j]["episodes"]] == [ep["seed"] for ep in D]
+            assert_pooled(arms[(k, "fixed_4")][j]["sampler"], (4 * envs.paper_median_step("planar")) ** 2 * np.eye(
+                D[0]["q"].shape[1]))
+            assert_pooled(arms[(k, "pooled")][j]["sampler"], eq16_pooled(cal))
+            assert_per_step(arms[(k, "per_step")][j]["sampler"], cal, offset)
+            offset += len(D)
+    (cl_1,) = arms[(1, "closed_loop")]
+    assert_pooled(cl_1["sampler"], eq16_pooled(calibrations[(1, None)]))   # round 1: the main chain's
+    cl_2 = arms[(2, "closed_loop")]
+    assert [[ep["seed"] for ep in b["episodes"]] for b in cl_2] == [[ep["seed"] for ep in D]
+                                                                     for D in (main[1], chain_2)]
+    for built in cl_2:
+        assert_pooled(built["sampler"], eq16_pooled(calibrations[(2, "closed_loop")]))   # K=2: its own chain's

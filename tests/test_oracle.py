@@ -193,6 +193,42 @@ def test_shortcut_shortens_and_stays_free():
     assert length(short) < 4.2
 
 
+class FixedDraws:
+    """Test double of np.random.Generator for shortcut: uniform(low, high, size) returns low + (high - low) * u
+    for fixed fractions u (batch, 2), so the proposals' arc positions are known."""
+
+    def __init__(self, u):
+        self.u = np.asarray(u, dtype=np.float64)
+
+    def uniform(self, low, high, size):
+        assert size == self.u.shape
+        return low + (high - low) * self.u
+
+
+def test_shortcut_applies_the_free_proposal_that_saves_most_at_its_exact_points():
+    """Fails if shortcut's random phase puts a proposal's points anywhere but at their arc positions on the path
+    (the interpolation t = (s - cum[seg]) / (cum[seg + 1] - cum[seg])), draws them over less than the whole path
+    (cum[-1]), or ranks proposals by anything but the length they save (arc - chord): a U path around a wall
+    (greedy keeps every corner) and five known proposals -- same edge, blocked by the wall (the largest saving),
+    a long one along the first edge that saves little, one at the far corner that saves little, and the free one
+    that saves most, at corner B: it is the one applied, with its points exactly 0.3 before and after B."""
+    def wall(q):  # the open box -1 < x < 1.9, 0.3 < y < 1.7: the path goes around its right side
+        x, y = np.atleast_2d(q).T
+        return (x > -1.0) & (x < 1.9) & (y > 0.3) & (y < 1.7)
+    A, B, C, D = [0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]        # arc positions 0, 2, 4, 6
+    path = np.array([A, B, C, D])
+    arcs = np.array([[0.5, 1.5],     # both on edge AB: nothing to cut
+                     [1.0, 3.0],     # (1, 0) -> (2, 1): through the wall, saves 2 - sqrt(2) = 0.59
+                     [0.0, 2.05],    # A -> (2, 0.05): free, saves 2.05 - sqrt(4.0025) = 0.05
+                     [3.9, 4.1],     # (2, 1.9) -> (1.9, 2): free, saves 0.2 - 0.1 sqrt(2) = 0.06
+                     [1.7, 2.3]])    # (1.7, 0) -> (2, 0.3): free, saves 0.6 - 0.3 sqrt(2) = 0.18
+    short = shortcut(path, wall, FixedDraws(arcs / 6.0), iters=5, resolution=0.01, batch=5)
+    np.testing.assert_allclose(short, [A, [1.7, 0.0], [2.0, 0.3], C, D], atol=1e-12)
+    # without a free proposal that saves length, the greedy pass's path is returned as it is
+    unchanged = shortcut(path, wall, FixedDraws(arcs[:2] / 6.0), iters=2, resolution=0.01, batch=2)
+    np.testing.assert_array_equal(unchanged, path)
+
+
 def test_smooth_corners_rounds_free_corners_and_keeps_blocked_ones():
     path = np.array([[0.0, -1.0], [0.0, 0.0], [1.0, 0.0]])
     free = lambda q: np.zeros(len(np.atleast_2d(q)), bool)  # noqa: E731

@@ -817,12 +817,14 @@ def test_planar_obs_of_a_noised_state_is_rebuilt_by_forward_kinematics(planar):
     assert np.abs(v).max() > 0  # the previous frame q̃ - v is in the obs
 
 
-def servo_setup(stats, offset, n=64, seed=0, t0=20):
+def servo_setup(stats, offset, n=64, seed=0, t0=20, velocity=0.3):
+    """n states `offset` median steps (per joint, std) off smooth_trajectory at step t0, moving at the path's
+    velocity plus `velocity` median steps per step (per joint, std): (traj, q0, v0, their projections)."""
     traj = smooth_trajectory()
     rng = np.random.default_rng(seed)
     t = np.full(n, t0)
     q0 = traj[t] + rng.normal(size=(n, DOF)) * offset * stats.median_step
-    v0 = traj[t] - traj[t - 1] + rng.normal(size=(n, DOF)) * 0.3 * stats.median_step
+    v0 = traj[t] - traj[t - 1] + rng.normal(size=(n, DOF)) * velocity * stats.median_step
     return traj, q0, v0, monotone_projection(q0, traj, t, window=32)
 
 
@@ -861,6 +863,32 @@ def test_servo_respects_every_clamp(stats):
     lo, hi = q0.min(0) - 0.01, q0.max(0) + 0.01  # limits that the free servo would leave
     chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0, limits=(lo, hi))
     assert np.all((chunk >= lo) & (chunk <= hi))
+
+
+def test_servo_caps_hold_and_bind_where_the_unclamped_servo_would_exceed_them(stats):
+    """Fails if servo_return_chunk's acceleration cap (||a|| <= a_clamp) or its speed cap (||v|| <= max(1.68 m,
+    1.05 ||v0||)) is dropped or loosened. States 20 median steps off the path and 2 median steps per step off its
+    velocity: there the servo's PD commands up to ~3 a_clamp and, without the speed cap, ~1.8 times that cap
+    (checked below with the cap's knobs out of reach) -- unlike servo_setup's offset 8 of the test above, where
+    the PD peaks at 0.94 a_clamp and the acceleration cap never acts."""
+    m = stats.median_step
+    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)
+    traj, q0, v0, proj = servo_setup(stats, offset=20.0, velocity=2.0)
+    v_cap = np.maximum(1.68 * m, 1.05 * np.linalg.norm(v0, axis=1))[:, None]   # (B, 1)
+    # a loose per-joint max_step, so that the norm caps are what bind
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0)
+    vel, acc = servo_motion(q0, v0, chunk, 1.0)
+    accel, speed = np.linalg.norm(acc, axis=-1), np.linalg.norm(vel, axis=-1)   # (B, H) each
+    assert np.all(accel <= a_clamp * (1 + 1e-9))
+    assert accel.max() > 0.999 * a_clamp                                         # the acceleration cap acts
+    assert np.all(speed <= v_cap * (1 + 1e-9))
+    assert (speed / v_cap).max() > 0.999                                         # the speed cap acts
+    # the same states with the speed cap out of reach: well past it, and still within the acceleration cap
+    loose = RelabelConfig(speed_cap=1e3, speed_cap_v0=1e3)
+    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, 16, m, stats.acc_p95, 1.0, cfg=loose)
+    vel, acc = servo_motion(q0, v0, chunk, 1.0)
+    assert (np.linalg.norm(vel, axis=-1) / v_cap).max() > 1.3
+    assert np.all(np.linalg.norm(acc, axis=-1) <= a_clamp * (1 + 1e-9))
 
 
 def test_servo_returns_near_the_expert_path(stats):
