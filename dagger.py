@@ -200,6 +200,11 @@ class Config:
 
     def __post_init__(self):
         profiles.check_config(self, ALL_METHODS)  # every field's valid values, with a clear error
+        # every stage's seed is numpy's SeedSequence([seed, ...]) (run_folder.stage_seed): it takes no negative
+        # numbers, so a bad seed is refused here, before the run folder is made, not in the first stage
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0 (the master seed every stage's seed is derived from), "
+                             f"got {self.seed!r}")
 
 
 # The run sizes (smoke, quick, mid, table2, paper): overrides of the defaults above, in experiment/profiles.py

@@ -64,23 +64,24 @@ def method_label(method):
 
 def collect_results(run, scenarios="eval"):
     """success[method][lineage][k-1] in percent, from every finished evaluation on disk; scenarios 'eval'
-    (the evaluation scenarios) or 'unseen' (the unseen ones, files <method>_unseen.json)."""
+    (the evaluation scenarios) or 'unseen' (the unseen ones, files <method>_unseen.json). A file of another
+    shape or other scenarios than the run's config says is refused, naming it (Run.load: RunFolderError)."""
     cfg = run.cfg
     results = {}
     suffix = "" if scenarios == "eval" else "_unseen"
-    bc_path = os.path.join(run.root, "eval", f"bc{suffix}.json")
-    if os.path.exists(bc_path):
-        results["bc"] = {"all": [100.0 * float(np.mean(read_json(bc_path)["success"]))]}
+    bc_name = f"eval/bc{suffix}.json"
+    if os.path.exists(os.path.join(run.root, bc_name)):
+        results["bc"] = {"all": [100.0 * float(np.mean(run.load(bc_name)["success"]))]}
     for method in cfg.methods:
         if method == "bc":
             continue
         for lineage in range(cfg.lineages):
             row = []
             for k in range(1, cfg.rounds + 1):
-                p = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval", f"{method}{suffix}.json")
-                if not os.path.exists(p):
+                name = f"lineage_{lineage}/round_{k}/eval/{method}{suffix}.json"
+                if not os.path.exists(os.path.join(run.root, name)):
                     break
-                row.append(100.0 * float(np.mean(read_json(p)["success"])))
+                row.append(100.0 * float(np.mean(run.load(name)["success"])))
             if row:
                 results.setdefault(method, {})[str(lineage)] = row
     return results
@@ -93,21 +94,22 @@ def scenario_paired(run, scenarios="eval"):
     repeats. {k: {lineage: {method: {"vs", "diff", "se", "n"}}}}."""
     cfg, suffix = run.cfg, "" if scenarios == "eval" else "_unseen"
 
-    def per_scenario(path):
-        return np.asarray(read_json(path)["success"], float).mean(axis=1) if os.path.exists(path) else None
+    def per_scenario(name):  # an evaluation's success per scenario (its repeats averaged), checked by Run.load
+        exists = os.path.exists(os.path.join(run.root, *name.split("/")))
+        return np.asarray(run.load(name)["success"], float).mean(axis=1) if exists else None
 
-    bc = per_scenario(os.path.join(run.root, "eval", f"bc{suffix}.json"))
+    bc = per_scenario(f"eval/bc{suffix}.json")
     out = {}
     for k in range(1, cfg.rounds + 1):
         for lineage in range(cfg.lineages):
-            folder = os.path.join(run.root, f"lineage_{lineage}", f"round_{k}", "eval")
-            hg = per_scenario(os.path.join(folder, f"hg_dagger{suffix}.json"))
+            folder = f"lineage_{lineage}/round_{k}/eval"
+            hg = per_scenario(f"{folder}/hg_dagger{suffix}.json")
             if hg is None:
                 continue
             pairs = {"hg_dagger": (hg, bc, "bc")} if bc is not None else {}
             for m in cfg.methods:
                 if m not in ("bc", "hg_dagger"):
-                    mine = per_scenario(os.path.join(folder, f"{m}{suffix}.json"))
+                    mine = per_scenario(f"{folder}/{m}{suffix}.json")
                     if mine is not None:
                         pairs[m] = (mine, hg, "hg_dagger")
             for m, (a, b, vs) in pairs.items():

@@ -90,11 +90,17 @@ class Run:
         return value
 
     def load(self, name):
-        """A finished stage's result (a damaged file is named: RunFolderError)."""
+        """A finished stage's result (a damaged file, or an evaluation not of this run's scenarios, is named:
+        RunFolderError)."""
         path = os.path.join(self.root, *name.split("/"))
         if name.endswith(".pt"):
             return load_policy(path, self.cfg.device)
-        return load_episodes(path) if name.endswith(".npz") else read_json(path)
+        if name.endswith(".npz"):
+            return load_episodes(path)
+        data = read_json(path)
+        if is_evaluation(name):
+            check_evaluation(path, data, self.cfg, EVALUATION_ADVICE)
+        return data
 
     def train(self, name, policy, obs, chunks, train_cfg, sampler=None, continue_from=None, keep_state=False):
         """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
@@ -315,6 +321,10 @@ def join_lineage(run, path):
                              + ", ".join(sorted(clash)[:5]) + (" ..." if len(clash) > 5 else "")
                              + f". Delete lineage_{lineage}/ there to join the file's lineage instead.")
     for rel, content in data["files"].items():
+        if is_evaluation(rel):
+            check_evaluation(f"{path} (lineage {lineage}): its {rel}", content, run.cfg,
+                             "Export the lineage again from its run folder (--report --export-lineages FOLDER).")
+    for rel, content in data["files"].items():
         if not os.path.exists(at(rel)):
             write_json(run.path(rel), content)
     run.log(f"joined lineage {lineage} ({data['rounds_finished']} of {run.cfg.rounds} rounds finished) from {path}")
@@ -358,6 +368,58 @@ def check_same_config(root, old, cfg, advice=None):
             + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
             + ".\n" + (advice or f"Either give this run its own folder (--out runs/<new name>), or delete {root} "
                                     "to start it afresh (its finished stages are lost)."))
+
+
+# An evaluation file (dagger.evaluation): eval/<name>.json under the folder or a round, <name>_unseen.json on the
+# unseen scenarios; {"success": (eval_scenarios, eval_repeats) true/false, "seeds": the scenarios' seeds}.
+EVALUATION_ADVICE = ("Delete it and run the same command again to evaluate that policy again (in a folder of joined "
+                     "lineage results: --join the lineage's results file again).")
+
+
+def is_evaluation(name):
+    """Whether a '/'-separated stage name is an evaluation file (eval/bc.json, lineage_0/round_1/eval/pooled.json)."""
+    return re.search(r"(^|/)eval/[^/]+\.json$", name) is not None
+
+
+def check_evaluation(where, evaluation, cfg, advice):
+    """RunFolderError naming `where` (the file's path, or words ending in it) and saying `advice`, unless
+    `evaluation` is one of cfg's: success a (cfg.eval_scenarios, cfg.eval_repeats) table of true/false on the
+    first eval_scenarios evaluation scenarios (envs.eval_seeds), or unseen ones (envs.unseen_seeds) for a file
+    named *_unseen.json. Its seeds are checked where the file lists them (dagger.evaluation always does).
+    Without this a file of another shape is averaged into its table cell as if it were one."""
+    unseen = where.endswith("_unseen.json")
+    seeds = (envs.unseen_seeds() if unseen else envs.eval_seeds())[:cfg.eval_scenarios]
+    shape = (cfg.eval_scenarios, cfg.eval_repeats)
+    problem = None
+    if not isinstance(evaluation, dict) or "success" not in evaluation:
+        problem = "no success table"
+    else:
+        try:
+            success = np.asarray(evaluation["success"])
+        except ValueError:  # rows of unequal length
+            success = None
+        if success is None:
+            problem = "success rows of unequal length"
+        elif success.shape != shape:
+            problem = f"success of shape {success.shape}"
+        elif success.dtype.kind not in "biuf" or not np.isin(success, (0, 1)).all():
+            problem = "success values other than true/false"
+        elif "seeds" in evaluation and evaluation["seeds"] != seeds:
+            problem = f"seeds {seed_words(evaluation['seeds'])}"
+    if problem:
+        raise RunFolderError(
+            f"{where} is not an evaluation of this run: {problem}; expected success of shape {shape} "
+            f"(eval_scenarios x eval_repeats of the run's config) on the {'unseen' if unseen else 'evaluation'} "
+            f"scenarios' seeds {seed_words(seeds)}. {advice}")
+
+
+def seed_words(seeds):
+    """Scenario seeds in a few words: 10000..10099 for a run of consecutive seeds, else the list (its start)."""
+    if not isinstance(seeds, list):
+        return repr(seeds)
+    if seeds and all(isinstance(s, int) for s in seeds) and seeds == list(range(seeds[0], seeds[0] + len(seeds))):
+        return f"{seeds[0]}..{seeds[-1]} ({len(seeds)} seeds)"
+    return repr(seeds[:5])[:-1] + (", ...]" if len(seeds) > 5 else "]") + f" ({len(seeds)} seeds)"
 
 
 def timing_name(name):

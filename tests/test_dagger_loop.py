@@ -16,7 +16,7 @@ import dagger
 import diffusion
 import envs
 import relabel
-from experiment import report, run_folder
+from experiment import cli, report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
@@ -133,6 +133,21 @@ def test_bad_cli_arguments(argv, message, capsys):
 def test_config_rejects_unknown_method():
     with pytest.raises(ValueError, match="unknown method"):
         dagger.Config(methods=("bc", "dart"))
+
+
+def test_a_negative_seed_is_refused_before_the_run_folder_is_made(tmp_path, capsys):
+    """Bug: --seed -1 passed the command line, wrote config.json, log.txt and data/ and only then died in numpy's
+    SeedSequence with a traceback. Now Config refuses it (programmatic use too), naming the value and the valid
+    range, and the command exits 2 before anything is written."""
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.main(["--profile", "smoke", "--seed", "-1", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "Traceback" not in err
+    assert "seed must be an integer >= 0" in err and "got -1" in err
+    assert not out.exists() or not any(out.iterdir())
+    with pytest.raises(ValueError, match=r"seed must be an integer >= 0 .*got -1"):
+        replace(TINY, seed=-1)
 
 
 def test_summarize_paired_statistics():
@@ -803,6 +818,60 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     with pytest.raises(run_folder.RunFolderError, match="no such file"):
         dagger.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
+
+
+def files_and_times(root):
+    """{path: (mtime_ns, size)} of every file under root: what a refused command must leave as it was."""
+    return {os.path.join(top, n): (os.stat(os.path.join(top, n)).st_mtime_ns, os.stat(os.path.join(top, n)).st_size)
+            for top, _, names in os.walk(root) for n in names}
+
+
+@pytest.mark.parametrize("name,bad,expected", [
+    # a cell's evaluation of another shape: was averaged into the table as if it were the cell's (100 % here)
+    ("lineage_0/round_1/eval/pooled.json", {"success": [[True]], "seeds": [10_000]},
+     "success of shape (1, 1); expected success of shape (3, 1) (eval_scenarios x eval_repeats of the run's "
+     "config) on the evaluation scenarios' seeds 10000..10002 (3 seeds)"),
+    # the right shape on the wrong scenarios: the evaluation scenarios in the BC row's unseen-scenarios file
+    ("eval/bc_unseen.json", {"success": [[True], [False], [True]], "seeds": [10_000, 10_001, 10_002]},
+     "seeds 10000..10002 (3 seeds); expected success of shape (3, 1) (eval_scenarios x eval_repeats of the "
+     "run's config) on the unseen scenarios' seeds 20000..20002 (3 seeds)"),
+])
+def test_the_report_refuses_an_evaluation_of_another_shape_or_scenarios(full_run, tmp_path, name, bad, expected,
+                                                                        capsys):
+    """Bug: --report read any evaluation file with a success table, whatever its shape or scenarios, and printed
+    its mean as the cell (e.g. 100 % from one episode). Now a file that is not (eval_scenarios x eval_repeats) on
+    the run's scenarios is refused with its name and what was expected, exit 2, and nothing is written."""
+    import shutil
+    root = str(tmp_path / "copy")
+    shutil.copytree(full_run, root)
+    path = os.path.join(root, *name.split("/"))
+    json.dump(bad, open(path, "w"))
+    before = files_and_times(root)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run_command(dagger.run_experiment, TINY, root, None, False, True)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "Traceback" not in err
+    assert f"{path} is not an evaluation of this run: {expected}" in err
+    assert files_and_times(root) == before  # no table, no results, no figure written over
+
+
+def test_a_joined_results_file_with_an_evaluation_of_another_shape_is_refused_and_leaves_nothing(full_run, tmp_path):
+    """Bug: --join unpacked a lineage results file whose evaluation had another shape than its config says, and
+    the report then averaged it into the table. Now the join names the results file and the evaluation in it,
+    and unpacks nothing."""
+    import gzip
+    (path,) = run_folder.export_lineages(run_folder.Run(full_run, TINY), str(tmp_path / "results"))
+    data = json.load(gzip.open(path, "rt"))
+    files = dict(data["files"])
+    files["lineage_0/round_1/eval/hg_dagger.json"] = {"success": [[True]], "seeds": [10_000]}
+    bad = str(tmp_path / "bad.json")
+    json.dump({**data, "files": files}, open(bad, "w"))
+    root = str(tmp_path / "joined")
+    with pytest.raises(run_folder.RunFolderError, match=r"bad.json \(lineage 0\): its lineage_0/round_1/eval/"
+                                                        r"hg_dagger.json is not an evaluation of this run: "
+                                                        r"success of shape \(1, 1\); expected .*\(3, 1\)"):
+        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+    assert not os.path.exists(os.path.join(root, "lineage_0")) and not os.path.exists(os.path.join(root, "eval"))
 
 
 def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(full_run, tmp_path, trained_stages):
