@@ -25,7 +25,7 @@ def parse_args(argv, profiles, methods):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(profiles),
-                   help="run size: smoke (CI, ~1 min), quick (default: about 7 min wall measured on a 2-core CPU "
+                   help="run size: smoke (CI, ~2 min), quick (default: about 7 min wall measured on a 2-core CPU "
                         "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 5 lineages x 2 "
                         "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
