@@ -9,7 +9,7 @@ import diffusion
 import envs
 
 PROFILES = {
-    # CI: every stage and every output file, tiny sizes (about a minute). The calibration keeps the paper's
+    # CI: every stage and every output file, tiny sizes (about 2 minutes). The calibration keeps the paper's
     # blend protocol (calib_blend_segments=0: one rollout per ratio from every intervention segment long
     # enough to keep, 9 in the smoke round), so CI fits W by Eq. (12): with one segment each ratio had one
     # rollout, fewer than min_survivors = 3, and W always fell back to the open-loop error. Measured: 46 of
