@@ -1,6 +1,7 @@
 """Tests of oracle.py: planner properties on toy collision functions (test doubles defined here),
 then the Oracle on envs.PlanarReacher (demonstrations, determinism, gating, interventions)."""
 import math
+import re
 import time
 
 import numpy as np
@@ -275,6 +276,20 @@ def test_time_parameterize_repairs_corner_cuts_that_collide():
     assert not path_in_collision(safe, inside, 0.0005)  # ... unless slowed down there
     assert_limits(safe, np.zeros(2))
     assert len(safe) > len(fast)
+
+
+def test_time_parameterize_gives_up_at_the_speed_floor_and_says_how_slow_it_went():
+    """A path that crosses an obstacle cannot be repaired by slowing down: the repairs slow the pieces around the
+    crossing until one is under min_speed_factor of full speed, then PlanningFailed says the slowest piece's
+    factor. Fails if the message reports another piece's factor (min -> max gives 1: the far pieces never slow)
+    or if the loop stops before the floor."""
+    path = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    wall = lambda q: np.abs(np.atleast_2d(q)[:, 0] - 1.5) < 0.05  # noqa: E731  (across the middle piece)
+    with pytest.raises(PlanningFailed, match="of full speed") as info:
+        time_parameterize(path, V_MAX, A_MAX, J_MAX, DT, in_collision=wall, resolution=0.005,
+                          min_speed_factor=1e-2)
+    slowest = float(re.search(r"slowing down to ([0-9.e-]+) of full speed", str(info.value)).group(1))
+    assert 1e-2 * 0.7 <= slowest < 1e-2  # one repair (factor 0.7) past the floor, not a piece at full speed
 
 
 def test_time_parameterize_rejects_bad_input():
