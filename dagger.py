@@ -149,11 +149,10 @@ class Config:
     replicates: str = "lineages"
     # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
     # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
-    # alone) continues BC's AdamW state along its tail; 'restart', a fresh optimizer with its own warm-up
-    # and cosine over finetune_steps (the BC row is then pi_0 itself, with finetune_steps fewer steps); or
-    # 'constant', the authors' lever runs (PCD lib_repro.sh lever_train: +20k steps at a constant 1e-6 after
-    # BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps, every arm continues its AdamW state at a
-    # constant finetune_lr (None: lr / 10) for finetune_steps more; the BC row is pi_0 itself, as theirs.
+    # alone) continues BC's AdamW state along its tail; or 'constant', the authors' lever runs (PCD lib_repro.sh
+    # lever_train: +20k steps at a constant 1e-6 after BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps,
+    # every arm continues its AdamW state at a constant lr / 10 for finetune_steps more; the BC row is pi_0
+    # itself, as theirs.
     finetune: str = "continue"
     # The share of a noised arm's intervention rows taken as recorded (the expert's own chunks), the rest
     # noised and relabelled. The authors' code: 0 (every drawn intervention frame noised; their raw_mix knob);
@@ -190,8 +189,6 @@ class Config:
     network: str = "unet"
     mlp_width: int = 256
     mlp_blocks: int = 3
-    finetune_lr: float | None = None  # finetune='restart': peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
-    #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
     calib_blend_segments: int = 0  # 0: every intervention segment long enough to be kept starts one blended rollout
     #                                per ratio (the authors: one per source intervention); n: the n longest
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
@@ -250,8 +247,8 @@ def behavior_cloning(run, demos):
         policy, continuing = make_policy(cfg, make_run_env(cfg)), cfg.finetune == "continue"
         tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
                           schedule_steps=cfg.bc_steps + cfg.finetune_steps if continuing else 0)
-        # the arms continue pi_0's optimizer under 'continue' and 'constant': keep its state
-        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=cfg.finetune != "restart")
+        # every arm continues pi_0's optimizer: keep its state
+        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
 
     return run.stage("checkpoints/bc.pt", train_pi0)
 
@@ -262,7 +259,7 @@ def bc_row_arm(root, cfg_fields):
     the same steps), else pi_0 itself; evaluated."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    if cfg.finetune != "continue":  # 'restart' and 'constant' (the authors' lever table): pi_0 itself
+    if cfg.finetune == "constant":  # the authors' lever table: pi_0 itself
         evaluate_policy(run, "eval/bc.json", run.load("checkpoints/bc.pt"), "bc (pi_0)")
         return
 
@@ -566,19 +563,14 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
 def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
     """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name` by cfg.finetune: 'continue' goes on with pi_0's
     AdamW state along its cosine to bc_steps + finetune_steps (the authors' planar run); 'constant' goes on with
-    it at a constant finetune_lr (None: lr / 10; their lever run); 'restart' runs finetune_steps more with a
-    fresh optimizer, warm-up and cosine (peak finetune_lr or lr)."""
+    it at a constant lr / 10 (their lever run: 1e-6 after BC's 1e-5 peak)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
     total = cfg.bc_steps + cfg.finetune_steps
     if cfg.finetune == "continue":
         tc = train_config(cfg, policy, total, seed, schedule_steps=total, aug_fraction=aug_fraction)
-        return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
-    if cfg.finetune == "constant":
-        tc = train_config(cfg, policy, total, seed, lr=cfg.finetune_lr or cfg.lr / 10, aug_fraction=aug_fraction,
-                          constant_lr=True)
-        return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
-    tc = train_config(cfg, policy, cfg.finetune_steps, seed, lr=cfg.finetune_lr, aug_fraction=aug_fraction)
-    return run.train(name, policy, obs, chunks, tc, sampler)
+    else:
+        tc = train_config(cfg, policy, total, seed, lr=cfg.lr / 10, aug_fraction=aug_fraction, constant_lr=True)
+    return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
 
 
 def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, constant_lr=False):
@@ -880,7 +872,7 @@ def degenerate(a, b):
 
 
 def pi0_eval_name(cfg):
-    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'restart'."""
+    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'constant'."""
     return "eval/pi0.json" if cfg.finetune == "continue" else "eval/bc.json"
 
 

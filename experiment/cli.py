@@ -44,10 +44,10 @@ def parse_args(argv, profiles, methods):
                    help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
                         "the policy does not solve, so they enter the training data) or train (fresh training "
                         "scenarios, the stricter variant)")
-    p.add_argument("--finetune", default=None, choices=("continue", "constant", "restart"),
+    p.add_argument("--finetune", default=None, choices=("continue", "constant"),
                    help="how every arm is fine-tuned from pi_0: continue (pi_0's optimizer along one cosine, the "
-                        "authors' planar runs), constant (pi_0's optimizer at a constant lr / 10, their lever "
-                        "runs) or restart (a fresh warm-up and cosine); default: the profile's")
+                        "authors' planar runs) or constant (pi_0's optimizer at a constant lr / 10, their lever "
+                        "runs); default: the profile's")
     p.add_argument("--round-shares", default=None, choices=("equal", "frames"),
                    help="the intervention share of a batch split over rounds equally (the authors' planar runs) "
                         "or by frame count (their lever runs); default: the profile's")

@@ -100,12 +100,9 @@ def check_config(cfg, methods):
     if cfg.start is not None and cfg.start not in starts:
         raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
                          f"{', '.join(starts)}")
-    if cfg.finetune not in ("continue", "restart", "constant"):
-        raise ValueError(f"finetune must be 'continue' (the authors' planar run), 'constant' (their lever run) or "
-                         f"'restart', got {cfg.finetune!r}")
-    if cfg.finetune == "continue" and cfg.finetune_lr is not None:
-        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart' or 'constant'; 'continue' "
-                         f"follows BC's own schedule (lr)")
+    if cfg.finetune not in ("continue", "constant"):
+        raise ValueError(f"finetune must be 'continue' (the authors' planar run) or 'constant' (their lever run), "
+                         f"got {cfg.finetune!r}")
     if cfg.replicates not in ("lineages", "seeds"):
         raise ValueError(f"replicates must be 'lineages' (independent chains) or 'seeds' (training seeds on lineage "
                          f"0's interventions), got {cfg.replicates!r}")

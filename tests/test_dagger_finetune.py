@@ -1,4 +1,5 @@
-"""dagger.py's fine-tuning recipe: continuing pi_0's schedule (the authors' run) or restarting, the BC row,
+"""dagger.py's fine-tuning recipe: continuing pi_0's schedule (the authors' planar run) or at a constant lr (their
+lever run), the BC row,
 the recorded share of a noised arm (raw_mix), the arms in worker processes, the planar start option; the noise
 each noised arm's sampler is built with (Eqs. 14-16 of its own round's calibration, Table I's fixed sigmas)."""
 import json
@@ -55,16 +56,16 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
     assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
 
 
-def test_restart_keeps_pi0_as_the_bc_row(two_workers, tmp_path):
-    """Under finetune='restart' the table's BC row is pi_0 itself (no continued checkpoint), evaluated with the
+def test_constant_keeps_pi0_as_the_bc_row(two_workers, tmp_path):
+    """Under finetune='constant' the table's BC row is pi_0 itself (no continued checkpoint), evaluated with the
     same draws as pi_0's own evaluation of the 'continue' run; under 'continue' pi_0 has a file of its own."""
-    restart = replace(TINY, finetune="restart")
-    assert dagger.pi0_eval_name(restart) == "eval/bc.json" and dagger.pi0_eval_name(TINY) == "eval/pi0.json"
-    root = tmp_path / "restart"
+    constant = replace(TINY, finetune="constant")
+    assert dagger.pi0_eval_name(constant) == "eval/bc.json" and dagger.pi0_eval_name(TINY) == "eval/pi0.json"
+    root = tmp_path / "constant"
     for name in ("data/D0.npz", "checkpoints/bc.pt"):  # the same D0 and pi_0
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(os.path.join(two_workers, name), root / name)
-    dagger.bc_row_arm(str(root), asdict(restart))
+    dagger.bc_row_arm(str(root), asdict(constant))
     assert not (root / "checkpoints" / "bc_continued.pt").exists()
     row = json.load(open(root / "eval" / "bc.json"))["success"]
     assert row == json.load(open(os.path.join(two_workers, "eval", "pi0.json")))["success"]
@@ -94,7 +95,7 @@ def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
 def test_constant_mode_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi0_as_the_bc_row(tmp_path,
                                                                                                     monkeypatch):
     """finetune='constant' (the authors' lever runs): pi_0 ends its own cosine at bc_steps with its AdamW state
-    saved; an arm goes on from that state at lr / 10 at every step (or finetune_lr) to bc_steps + finetune_steps;
+    saved; an arm goes on from that state at lr / 10 at every step to bc_steps + finetune_steps;
     the BC row is pi_0 itself."""
     cfg = replace(TINY, finetune="constant", methods=("bc", "hg_dagger"))
     root = str(tmp_path / "constant")
@@ -116,8 +117,7 @@ def test_constant_mode_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps
     assert dagger.pi0_eval_name(cfg) == "eval/bc.json"
     lrs = [diffusion.lr_at(step, diffusion.TrainConfig(steps=100, lr=2e-4, constant_lr=True)) for step in (0, 5, 99)]
     assert lrs == [2e-4] * 3  # no warm-up, no cosine
-    tc = dagger.train_config(replace(cfg, finetune_lr=3e-5), dagger.make_policy(cfg, dagger.make_run_env(cfg)),
-                             10, 0, lr=3e-5, constant_lr=True)
+    tc = dagger.train_config(cfg, dagger.make_policy(cfg, dagger.make_run_env(cfg)), 10, 0, lr=3e-5, constant_lr=True)
     assert tc.lr == 3e-5 and tc.constant_lr
 
 
@@ -143,8 +143,7 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(two_
 
 
 @pytest.mark.parametrize("overrides,match", [
-    (dict(finetune="warm"), "finetune must be 'continue'"),
-    (dict(finetune="continue", finetune_lr=1e-4), "finetune_lr"),
+    (dict(finetune="restart"), "finetune must be 'continue'"),  # deleted: measured, not adopted
     (dict(round_shares="steps"), "round_shares must be 'equal'"),
     (dict(raw_mix=1.0), "raw_mix must be in"),
     (dict(network="gru"), "network must be one of"),

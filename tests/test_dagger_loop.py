@@ -270,6 +270,51 @@ def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_pa
         run_folder.Run(str(root), replace(TINY, image_size=48))
 
 
+def test_a_retired_field_is_dropped_at_the_value_that_remains_and_another_value_is_refused(full_run, tmp_path):
+    """A config stored before an option was deleted (run_folder.RETIRED_FIELDS: config.json, a lineage record, a
+    --join file, a --copy-from folder all compare through check_same_config) still matches where the field holds
+    the behaviour that remains; another value ran deleted code and is refused, naming the field."""
+    assert run_folder.RETIRED_FIELDS
+    stored = json.load(open(os.path.join(full_run, "config.json")))
+    for field, allowed in run_folder.RETIRED_FIELDS.items():
+        for value in ((17, "anything") if allowed is run_folder.ANY_VALUE else allowed):
+            run_folder.check_same_config("older", {**stored, field: value}, TINY)
+        if allowed is not run_folder.ANY_VALUE:
+            with pytest.raises(run_folder.ConfigMismatch, match=rf"older was made with {field} = 'gone'"):
+                run_folder.check_same_config("older", {**stored, field: "gone"}, TINY)
+    root = tmp_path / "older"
+    root.mkdir()
+    field, allowed = next((f, a) for f, a in run_folder.RETIRED_FIELDS.items() if a is not run_folder.ANY_VALUE)
+    json.dump({**stored, field: allowed[0]}, open(root / "config.json", "w"))
+    run_folder.Run(str(root), TINY)  # an old folder's config.json loads as before
+    json.dump({**stored, field: "gone"}, open(root / "config.json", "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match=field):
+        run_folder.Run(str(root), TINY)
+
+
+# benchmarks/results/<folder>: the options of the command that reports it (benchmarks/README.md)
+COMMITTED_RESULTS = {
+    "mid": ["--profile", "mid"], "table1": ["--profile", "table1"], "table2": ["--profile", "table2"],
+    "table2_authors_finetune": ["--profile", "table2", "--finetune", "constant", "--round-shares", "frames",
+                                "--short-interventions", "pad"],
+    "table2_authors_finetune_seeds": ["--profile", "table2", "--finetune", "constant", "--round-shares", "frames",
+                                      "--short-interventions", "pad", "--replicates", "seeds",
+                                      "--methods", "hg_dagger,pooled"]}
+
+
+@pytest.mark.parametrize("folder", sorted(COMMITTED_RESULTS))
+def test_every_committed_results_file_matches_the_config_of_the_command_that_reports_it(folder):
+    """--join compares each file's stored config with the command's (a deleted option's field dropped at the
+    value that remains): a change to a profile or an option must leave the committed results joinable."""
+    _, cfg = dagger.parse_args(COMMITTED_RESULTS[folder])
+    where = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "results", folder)
+    paths = sorted(p for p in os.listdir(where) if p.endswith(".json.gz"))
+    assert paths
+    for name in paths:
+        data = run_folder.load_stage_file(os.path.join(where, name), run_folder._read_lineage_file)
+        run_folder.check_same_config(name, data["config"], cfg)
+
+
 def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
     """Every stage with the UR5 env and camera images: demos, BC, HG-DAgger with the 6-dof oracle,
     calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""
@@ -739,7 +784,7 @@ def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrati
     a rerun trains nothing."""
     bench = load_benchmark("lever_networks")
     monkeypatch.setattr(bench, "CANDIDATES", {
-        "unet": dict(finetune="restart"),  # the smoke profile's U-Net (16, 32), restarted
+        "unet": dict(finetune="constant"),  # the smoke profile's U-Net (16, 32), pi_0 at the end of its own cosine
         "mlp_h8": dict(network="mlp", mlp_width=32, mlp_blocks=1, horizon=8, n_act=4, finetune="continue",
                        bc_steps=40, finetune_steps=20)})
     fields = dict(n_demos=6, bc_steps=40, finetune_steps=20, eval_scenarios=4, K=5)
@@ -755,7 +800,7 @@ def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrati
     mlp = dagger.Config(**run_folder.read_json(os.path.join(out, "mlp_h8", "config.json")))
     assert (mlp.network, mlp.horizon, mlp.n_act, mlp.eval_unseen) == ("mlp", 8, 4, False)
     assert os.path.exists(os.path.join(out, "mlp_h8", "checkpoints", "bc_continued.pt"))  # the BC row, continued
-    assert not os.path.exists(os.path.join(out, "unet", "checkpoints", "bc_continued.pt"))  # restart: pi_0 itself
+    assert not os.path.exists(os.path.join(out, "unet", "checkpoints", "bc_continued.pt"))  # constant: pi_0 itself
     rows = {r["candidate"]: r for r in (bench.result_row(out, n) for n in ("unet", "mlp_h8"))}
     seconds = 40 * run_folder.read_json(os.path.join(out, "mlp_h8", "cpu_per_step.json"))["seconds"]
     assert 0 < seconds < 60
@@ -763,7 +808,7 @@ def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrati
     assert rows["mlp_h8"]["steps_per_s"] == pytest.approx(40 / seconds)
     assert rows["mlp_h8"]["pi0"] == pytest.approx(pi0)
     assert rows["mlp_h8"]["points_per_minute"] == pytest.approx(pi0 / (seconds / 60))
-    assert rows["unet"]["pi0"] == rows["unet"]["bc_row"]  # restart: the BC row is pi_0
+    assert rows["unet"]["pi0"] == rows["unet"]["bc_row"]  # constant: the BC row is pi_0
     assert rows["mlp_h8"]["chunk"] == "8 / 4" and "MLP 32 x 1" in text and "U-Net (16, 32)" in text
     assert len(text.splitlines()) == 4
     stamp = os.path.getmtime(os.path.join(out, "mlp_h8", "checkpoints", "bc.pt"))
