@@ -154,11 +154,6 @@ class Config:
     # every arm continues its AdamW state at a constant lr / 10 for finetune_steps more; the BC row is pi_0
     # itself, as theirs.
     finetune: str = "continue"
-    # The share of a noised arm's intervention rows taken as recorded (the expert's own chunks), the rest
-    # noised and relabelled. The authors' code: 0 (every drawn intervention frame noised; their raw_mix knob);
-    # the paper's text co-trains on the recorded interventions and their noised copies: 0.5. Measured on mid's
-    # round 1 (benchmarks/README.md, "The co-training mix"): 0.5 gave fixed sigma = 2 +0.9 and pooled -2.4 points.
-    raw_mix: float = 0.0
     # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
@@ -519,22 +514,22 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares (round_shares='frames': in
-    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's noised and relabelled
-    (relabel.AugmentationSampler), raw_mix of each round's share as recorded."""
+    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's every drawn frame noised
+    and relabelled (relabel.AugmentationSampler), as in the authors' code. (The paper's text also co-trains on
+    the recorded chunks: measured, not adopted, benchmarks/README.md, "The co-training mix".)"""
     samplers, weights, offset = [], [], 0
     frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
     shares = [f / sum(frames) for f in frames] if cfg.round_shares == "frames" else [1.0] * len(rounds_data)
-    for D, share in zip(rounds_data, shares):  # a noised arm takes raw_mix of its round's share as recorded
-        if method == "hg_dagger" or cfg.raw_mix > 0:
+    for D, share in zip(rounds_data, shares):
+        if method == "hg_dagger":
             samplers.append(relabel.ChunkSampler(D, cfg.horizon, pad=cfg.short_interventions == "pad"))
-            weights.append(share * (1.0 if method == "hg_dagger" else cfg.raw_mix))
-        if method != "hg_dagger":
+        else:
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
             samplers.append(relabel.AugmentationSampler(
                 D, lambda: make_run_env(cfg), stats, kind, sigma,
                 relabel.RelabelConfig(horizon=cfg.horizon, pad_short=cfg.short_interventions == "pad")))
-            weights.append(share * (1.0 - cfg.raw_mix))
+        weights.append(share)
         offset += len(D)
     return relabel.MixtureSampler(samplers, weights)
 
@@ -552,7 +547,7 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
         run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
                 f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
                 f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
-                                                  f", {1 - cfg.raw_mix:.0%} of them noised and relabelled")
+                                                  ", every drawn frame noised and relabelled")
                 + (" (continuing pi_0's optimizer and schedule)" if cfg.finetune == "continue" else ""))
         return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
                                  cfg.intervention_fraction)

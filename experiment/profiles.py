@@ -115,9 +115,6 @@ def check_config(cfg, methods):
     if cfg.round_shares not in ("equal", "frames"):
         raise ValueError(f"round_shares must be 'equal' (the authors' planar runs) or 'frames' (their lever "
                          f"runs), got {cfg.round_shares!r}")
-    if not 0.0 <= cfg.raw_mix < 1.0:
-        raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
-                         f"arm), got {cfg.raw_mix}")
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
     if cfg.image_size < 8:

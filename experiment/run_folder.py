@@ -45,6 +45,7 @@ FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
 ANY_VALUE = None
 RETIRED_FIELDS = {
     "finetune_lr": (None,),  # finetune='constant' runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
+    "raw_mix": (0.0,),  # a noised arm noises every intervention frame it draws (the authors' code)
 }
 
 

@@ -1,6 +1,5 @@
 """dagger.py's fine-tuning recipe: continuing pi_0's schedule (the authors' planar run) or at a constant lr (their
-lever run), the BC row,
-the recorded share of a noised arm (raw_mix), the arms in worker processes, the planar start option; the noise
+lever run), the BC row, what a noised arm draws, the arms in worker processes, the planar start option; the noise
 each noised arm's sampler is built with (Eqs. 14-16 of its own round's calibration, Table I's fixed sigmas)."""
 import json
 import os
@@ -71,7 +70,7 @@ def test_constant_keeps_pi0_as_the_bc_row(two_workers, tmp_path):
     assert row == json.load(open(os.path.join(two_workers, "eval", "pi0.json")))["success"]
 
 
-def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
+def test_hg_dagger_draws_the_recorded_chunks_and_a_noised_arm_only_noised_states(two_workers):
     D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
     demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
     stats = dagger.demo_statistics(TINY, demos)
@@ -82,14 +81,10 @@ def test_raw_mix_takes_that_share_of_each_round_as_recorded(two_workers):
     assert kinds(hg) == ["ChunkSampler"] * 2 and np.allclose(hg.p, 0.5)
     code = dagger.intervention_sampler(TINY, "fixed_4", [D, D], cal, stats)       # the authors' code: all noised
     assert kinds(code) == ["AugmentationSampler"] * 2 and np.allclose(code.p, 0.5)
-    text = dagger.intervention_sampler(replace(TINY, raw_mix=0.5), "pooled", [D, D], cal, stats)   # the paper's text
-    assert kinds(text) == ["ChunkSampler", "AugmentationSampler"] * 2 and np.allclose(text.p, 0.25)
-    third = dagger.intervention_sampler(replace(TINY, raw_mix=0.25), "fixed_4", [D], cal, stats)
-    assert np.allclose(third.p, [0.25, 0.75])
-    obs, chunks, mask = third(400, np.random.default_rng(0))
     recorded = relabel.ChunkSampler(D, TINY.horizon)
-    is_recorded = np.array([any(np.array_equal(o, r) for r in recorded.obs) for o in obs])
-    assert 0.15 < is_recorded.mean() < 0.35 and mask[is_recorded].all()            # recorded rows: whole chunks
+    is_recorded = lambda rows: np.array([any(np.array_equal(o, r) for r in recorded.obs) for o in rows])
+    assert is_recorded(hg(100, np.random.default_rng(0))[0]).all()
+    assert not is_recorded(code(100, np.random.default_rng(0))[0]).any()  # the authors' code: every row noised
 
 
 def test_constant_mode_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi0_as_the_bc_row(tmp_path,
@@ -134,9 +129,8 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(two_
     assert np.allclose(by_frames.p, frames / frames.sum())  # their lever runs
     cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(two_workers,
                                                                        "lineage_0/round_1/calibration.json")))
-    mixed = dagger.intervention_sampler(replace(TINY, round_shares="frames", raw_mix=0.5), "fixed_4", [D, small],
-                                        cal, stats)
-    assert np.allclose(mixed.p, np.repeat(frames / frames.sum(), 2) * 0.5)
+    noised = dagger.intervention_sampler(replace(TINY, round_shares="frames"), "fixed_4", [D, small], cal, stats)
+    assert np.allclose(noised.p, frames / frames.sum())
     args, cfg = dagger.parse_args(["--profile", "smoke", "--finetune", "constant", "--round-shares", "frames"])
     assert (cfg.finetune, cfg.round_shares) == ("constant", "frames")
     assert cfg.name == "smoke_constant_frame_shares"
@@ -145,7 +139,6 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(two_
 @pytest.mark.parametrize("overrides,match", [
     (dict(finetune="restart"), "finetune must be 'continue'"),  # deleted: measured, not adopted
     (dict(round_shares="steps"), "round_shares must be 'equal'"),
-    (dict(raw_mix=1.0), "raw_mix must be in"),
     (dict(network="gru"), "network must be one of"),
     (dict(start="home"), "not a start of the planar env"),
     (dict(env="engine3d", start="fixed"), "not a start of the engine3d env"),
