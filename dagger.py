@@ -167,10 +167,6 @@ class Config:
     image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
     #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
     image_size: int = 32  # pixels of the square camera image (with image_obs)
-    # Where episodes start (an env option; None: the env's default). planar: 'random' (the authors' evaluation
-    # starts: uniform over the joint limits, collision-free, often folded) or 'fixed' (their demonstration
-    # config's q); engine3d: 'random' (the authors') or 'home' (near a home pose)
-    start: str | None = None
     goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
     #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
@@ -885,10 +881,8 @@ def calibration_config(cfg):
 
 
 def env_options(cfg):
-    """envs.make_env keyword arguments of this run (image observations and the UR5's starts are env options)."""
+    """envs.make_env keyword arguments of this run (image observations and the UR5's goal angle are env options)."""
     options = {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
-    if cfg.start is not None:
-        options["start"] = cfg.start
     if cfg.goal_angle is not None:
         options["goal_angle_tolerance"] = cfg.goal_angle
     return options

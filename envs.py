@@ -90,8 +90,6 @@ import pymunk
 # ----------------------------------------------------------------------------------------------
 # The planar reacher's configuration (Table I)
 # ----------------------------------------------------------------------------------------------
-PLANAR_STARTS = ("random", "fixed")  # PlanarConfig.start
-
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
@@ -113,14 +111,10 @@ class PlanarConfig:
     n_obstacles: int = 2  # obstacle blocks per scene
     target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
     obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    # The start (PLANAR_STARTS). 'random': all joints uniform within their limits until the arm is
-    # collision-free (the authors' env reset and evaluation config, q_start null; often folded: "the robot
-    # must untangle its links"); 'fixed': every scenario starts at fixed_start (one demonstration config of
-    # theirs). BC reaches 62.7 % with the fixed start and 54.0 % with random starts (U-Net, 500 demos, 30k
-    # steps; benchmarks/README.md), but from the fixed start DAgger has little to fix: the Table I profiles
-    # use the authors' random starts (measured there, "Table I where DAgger has something to fix").
-    start: str = "random"
-    fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
+    # The start: all joints uniform within their limits until the arm is collision-free (the authors' env
+    # reset and evaluation config, q_start null; often folded: "the robot must untangle its links"). Their
+    # fixed demonstration start gave BC more (62.7 % against 54.0 %) but left DAgger little to fix: measured,
+    # not adopted (benchmarks/README.md, "Table I where DAgger has something to fix").
 
     # --- not in the paper ---
     # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
@@ -372,8 +366,6 @@ class PlanarReacher(ArmEnv):
         if len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3:
             raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}, "
                              f"link_widths={cfg.link_widths}")
-        if cfg.start not in PLANAR_STARTS:
-            raise ValueError(f"PlanarConfig.start must be one of {PLANAR_STARTS}, got {cfg.start!r}")
         if not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0):
             raise ValueError(f"PlanarConfig needs dt, speed_limit, episode_seconds > 0, got {cfg.dt}, "
                              f"{cfg.speed_limit}, {cfg.episode_seconds}")
@@ -643,9 +635,9 @@ class PlanarReacher(ArmEnv):
 
         Rejection sampling with one rng stream, so the scenario is a deterministic function of seed.
         A scene is re-drawn when blocks overlap, when its target has fewer than
-        min_goal_configurations collision-free IK solutions, or when no start is found: a 'random'
-        start is the first of 64 uniform draws within the joint limits that is collision-free and
-        not already at the target; a 'fixed' start must itself satisfy both.
+        min_goal_configurations collision-free IK solutions, or when no start is found: the start
+        is the first of 64 uniform draws within the joint limits that is collision-free and not
+        already at the target.
         """
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
@@ -660,10 +652,7 @@ class PlanarReacher(ArmEnv):
             goal_qs = self.goal_configurations()
             if len(goal_qs) < self.cfg.min_goal_configurations:
                 continue
-            if self.cfg.start == "random":
-                candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
-            else:
-                candidates = np.asarray(self.cfg.fixed_start, dtype=np.float64)[None]
+            candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
             ok = ~self.in_collision(candidates) & ~self.goal_reached(candidates)
             if not ok.any():
                 continue
@@ -835,11 +824,11 @@ class EngineConfig:
     # robot, two boxes drawn per seed on the table. 'pipes': this project's earlier family (a
     # housing whose bay, lever and pipes are drawn per seed around a reaching posture).
     scene: str = "authors"
-    # Start of an episode ('authors' scene only). 'random' (theirs): all six joints uniform within
-    # the joint limits until the arm is clear of everything by start_clearance (SS
-    # splatsim/utils/trajectory_generation.py, _get_random_collision_free_q, used when the config's
-    # q_start is null); 'home': home_q plus a uniform jitter of +-home_jitter per joint.
-    start: str = "random"
+    # Start of an episode ('authors' scene; _draw_start): all six joints uniform within the joint limits
+    # until the arm is clear of everything by start_clearance (theirs: SS splatsim/utils/
+    # trajectory_generation.py, _get_random_collision_free_q, used when the config's q_start is null).
+    # Starts near a home pose made BC 98 %: measured, not adopted (benchmarks/README.md, "BC at the earlier
+    # mid recipe on the authors' cell: the start decided").
     # The paper's policy sees images (Sec. V): True ends the observation with the camera image
     # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
     # it in info['image'].
@@ -880,8 +869,6 @@ class EngineConfig:
     box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
     box_radius: tuple = (0.09, 0.09)  # m
     box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
-    home_q: tuple = (-math.pi / 2, -2.2, 1.9, -1.3, -math.pi / 2, 0.0)  # rad, start='home' (not theirs)
-    home_jitter: float = 0.3  # rad, per joint, start='home'
     # m, a start keeps this from everything: the authors' planning obstacle clearance
     # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
     start_clearance: float = 0.02
@@ -930,7 +917,6 @@ ENGINE_CAMERA = dict(eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2), fov=55
 # sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
 ENGINE_CAMERA_AUTHORS = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 ENGINE_SCENES = ("authors", "pipes")  # EngineConfig.scene
-ENGINE_STARTS = ("random", "home")  # EngineConfig.start
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
 # Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
@@ -955,7 +941,7 @@ class EngineReach3D(ArmEnv):
         (benchmarks/README.md, "The UR5 engine-lever task"): one engine with its lever at a fixed
         place, the goal the TCP of their goal posture (the witness), a wall behind the robot (a
         half-space, not an obstacle row), the table (the ground), and two boxes lying on the table,
-        drawn per seed. Starts: uniform within the joint limits (theirs) or near a home pose.
+        drawn per seed. Starts: uniform within the joint limits (theirs).
       * 'pipes': the earlier family, drawn per seed around a collision-free reaching posture (the
         witness): a housing (frame of beams), an engine block, a T-handle lever at the witness's
         tool tip, one pipe hugging its forearm or wrist a few centimetres away (the narrow
@@ -996,8 +982,6 @@ class EngineReach3D(ArmEnv):
         self.dof = 6
         if cfg.scene not in ENGINE_SCENES:
             raise ValueError(f"EngineConfig.scene must be one of {ENGINE_SCENES}, got {cfg.scene!r}")
-        if cfg.start not in ENGINE_STARTS:
-            raise ValueError(f"EngineConfig.start must be one of {ENGINE_STARTS}, got {cfg.start!r}")
         if cfg.goal_angle_tolerance is not None and not (0.0 < cfg.goal_angle_tolerance <= 180.0
                                                          and cfg.scene == "authors"):
             raise ValueError(f"EngineConfig.goal_angle_tolerance must be None (position only) or, with "
@@ -1575,17 +1559,11 @@ class EngineReach3D(ArmEnv):
     def _draw_start(self, rng, n=256):
         """A start for scene='authors': (6,) or None if none of n draws is acceptable.
 
-        start='random' (the authors'): all joints uniform within the joint limits; 'home': home_q
-        plus U(-home_jitter, home_jitter) per joint, clipped to the limits. The first draw that is
-        clear of everything by start_clearance with its TCP at least start_goal_min_dist from the
-        goal is taken.
+        The authors': all joints uniform within the joint limits. The first draw that is clear of
+        everything by start_clearance with its TCP at least start_goal_min_dist from the goal is taken.
         """
         cfg = self.cfg
-        if cfg.start == "random":
-            q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
-        else:
-            q = np.asarray(cfg.home_q) + rng.uniform(-cfg.home_jitter, cfg.home_jitter, size=(n, self.dof))
-            q = np.clip(q, self._lo, self._hi)
+        q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
         far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
         ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
         return q[np.argmax(ok)] if ok.any() else None

@@ -9,7 +9,7 @@ Measures, over the evaluation scenes:
   * the oracle (oracle.py): expert success, planning CPU time and demo length over the scenes.
 
 Usage:  python benchmarks/bench_engine3d.py [--seconds 1.0] [--scenes 100] [--no-oracle] [--max-time S]
-                                           [--scene authors|pipes] [--start random|home] [--no-speed]
+                                           [--scene authors|pipes] [--no-speed]
 Rates are given per wall-clock second and per CPU second of this process (what one core delivers
 when other jobs share the machine).
 """
@@ -140,12 +140,10 @@ def main():
     parser.add_argument("--max-time", type=float, default=None,
                         help="OracleConfig.max_time (s per RRT attempt); default: the oracle's own")
     parser.add_argument("--scene", default="authors", choices=["authors", "pipes"], help="EngineConfig.scene")
-    parser.add_argument("--start", default="random", choices=["random", "home"],
-                        help="EngineConfig.start (scene 'authors' only)")
     parser.add_argument("--no-speed", action="store_true", help="skip the speed measurements")
     args = parser.parse_args()
-    env = make_env("engine3d", scene=args.scene, start=args.start)
-    print(f"EngineConfig(scene={args.scene!r}, start={args.start!r})")
+    env = make_env("engine3d", scene=args.scene)
+    print(f"EngineConfig(scene={args.scene!r})")
     rng = np.random.default_rng(0)
     rows = [] if args.no_speed else speed_rows(env, args.seconds, 3, rng)
     reasons = []

@@ -32,9 +32,6 @@ def parse_args(argv, profiles, methods):
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
-    p.add_argument("--start", default=None, choices=sorted(set(envs.ENGINE_STARTS) | set(envs.PLANAR_STARTS)),
-                   help="where episodes start: random (the authors', uniform and collision-free), fixed (planar: "
-                        "their demonstration config's q) or home (engine3d: near a home pose)")
     p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
                    help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
                         "orientation (the authors' rule: 10), and the oracle ends at that posture")
@@ -95,8 +92,6 @@ def parse_args(argv, profiles, methods):
         over["methods"] = parse_methods(p, args.methods, methods)
     if args.image_obs:
         over["image_obs"] = True
-    if args.start:
-        over["start"] = args.start
     if args.goal_angle is not None:
         over["goal_angle"] = args.goal_angle
     if args.collect_on:
@@ -153,12 +148,11 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, short
+    (another env, image observations, goal angle, collection scenarios, fine-tuning, round shares, short
     interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
-    name += f"_{args.start}_start" if args.start else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""

@@ -24,7 +24,7 @@ PROFILES = {
     # (benchmarks/README.md, "The quick profile today").
     "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
-                    start="random", finetune="continue",
+                    finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
     # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, Table I's whole fixed sweep
@@ -38,7 +38,7 @@ PROFILES = {
     # (benchmarks/README.md, "The mid run with Table I's whole sweep").
     "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                  start="random", finetune="continue",
+                  finetune="continue",
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
                   eval_scenarios=100, eval_repeats=3),
     # All of Table I on the 2-core machine: the mid recipe with the paper's five rounds and every row (the fixed
@@ -49,7 +49,7 @@ PROFILES = {
     # benchmarks/README.md, "All of Table I: one whole table1 lineage").
     "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5, episodes_per_round=100,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                     start="random", finetune="continue",
+                     finetune="continue",
                      methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
                               "per_step", "closed_loop"),
                      eval_scenarios=100, eval_repeats=3),
@@ -96,10 +96,6 @@ def check_config(cfg, methods):
     if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
         raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
                          f"within (0, 180] (the authors' 10), or None for position-only success")
-    starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
-    if cfg.start is not None and cfg.start not in starts:
-        raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
-                         f"{', '.join(starts)}")
     if cfg.finetune not in ("continue", "constant"):
         raise ValueError(f"finetune must be 'continue' (the authors' planar run) or 'constant' (their lever run), "
                          f"got {cfg.finetune!r}")

@@ -46,6 +46,7 @@ ANY_VALUE = None
 RETIRED_FIELDS = {
     "finetune_lr": (None,),  # finetune='constant' runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
     "raw_mix": (0.0,),  # a noised arm noises every intervention frame it draws (the authors' code)
+    "start": (None, "random"),  # the authors' random starts (None: the env's default, 'random')
 }
 
 

@@ -1,5 +1,5 @@
 """dagger.py's fine-tuning recipe: continuing pi_0's schedule (the authors' planar run) or at a constant lr (their
-lever run), the BC row, what a noised arm draws, the arms in worker processes, the planar start option; the noise
+lever run), the BC row, what a noised arm draws, the arms in worker processes; the noise
 each noised arm's sampler is built with (Eqs. 14-16 of its own round's calibration, Table I's fixed sigmas)."""
 import json
 import os
@@ -140,19 +140,10 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(two_
     (dict(finetune="restart"), "finetune must be 'continue'"),  # deleted: measured, not adopted
     (dict(round_shares="steps"), "round_shares must be 'equal'"),
     (dict(network="gru"), "network must be one of"),
-    (dict(start="home"), "not a start of the planar env"),
-    (dict(env="engine3d", start="fixed"), "not a start of the engine3d env"),
 ])
 def test_bad_recipe_fields_raise(overrides, match):
     with pytest.raises(ValueError, match=match):
         replace(TINY, **overrides)
-
-
-def test_planar_start_option_reaches_the_env():
-    assert dagger.make_run_env(replace(TINY, start="fixed")).cfg.start == "fixed"
-    assert dagger.make_run_env(TINY).cfg.start == "random"                          # the authors' starts
-    args, cfg = dagger.parse_args(["--profile", "smoke", "--start", "fixed"])
-    assert cfg.start == "fixed" and cfg.name.endswith("_fixed_start")
 
 
 def test_short_interventions_padded_are_kept_with_their_padded_steps_out_of_the_loss(two_workers, tmp_path,

@@ -266,7 +266,7 @@ def test_failure_rollout_runs_in_groups_and_closes_each_group_before_the_next(mo
                                                               down_dims=(16, 32), n_groups=4, step_embed_dim=32))
     path = str(tmp_path / "p.pt")
     policy.save(path)
-    args = argparse.Namespace(env="planar", start=None, repeats=2, seed=0)
+    args = argparse.Namespace(env="planar", repeats=2, seed=0)
     rows, angles, scene = failures.roll_out(path, args)
     assert len(rows) == 6 and all(r[0] in ("success", "timeout") or r[0].startswith("collision") for r in rows)
     assert most[0] == 2 and open_now[0] == 0  # groups of 2, every simulator closed

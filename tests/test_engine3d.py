@@ -3,7 +3,7 @@
 FK against hand-computed DH poses, closed-form IK round trips, collision truth on hand-built
 configurations, pybullet (the simulator) vs the vectorized numpy check, scenario determinism,
 batched == looped, step semantics, images, bad input; the two scene families ('authors': the
-authors' small-engine cell, the default; 'pipes': the earlier generated bay) and the two starts.
+authors' small-engine cell, the default; 'pipes': the earlier generated bay) and the starts.
 """
 import math
 
@@ -239,8 +239,8 @@ def test_pipes_scenes_are_valid_and_need_planning():
 
 
 def test_authors_scene_is_one_engine_and_lever_with_two_boxes_drawn_per_seed():
-    env = EngineReach3D()  # the default: scene='authors', start='random'
-    assert env.cfg.scene == "authors" and env.cfg.start == "random"
+    env = EngineReach3D()  # the default: scene='authors'
+    assert env.cfg.scene == "authors"
     goal_q = np.asarray(env.cfg.goal_q)
     fixed, boxes = None, []
     for seed in env.eval_seeds()[:8]:
@@ -286,28 +286,22 @@ def test_the_wall_is_a_half_space_in_numpy_and_pybullet():
     assert not free.in_collision(q).any()  # without the wall nothing collides
 
 
-@pytest.mark.parametrize("start", ["random", "home"])
-def test_starts_are_clear_far_from_the_goal_and_spread_as_configured(start):
-    env = EngineReach3D(EngineConfig(start=start))
+def test_starts_are_clear_far_from_the_goal_and_spread_over_the_joint_limits():
+    env = EngineReach3D()
     starts = []
     for seed in env.train_seeds(12):
         env.reset(seed=seed)
         assert not env.in_collision(env.q, margin=env.cfg.start_clearance)
         assert np.linalg.norm(env.ee(env.q) - env.goal) >= env.cfg.start_goal_min_dist
         starts.append(env.q)
-    starts = np.array(starts)
-    spread = np.abs(starts - np.asarray(env.cfg.home_q)).max()
-    if start == "home":
-        assert spread <= env.cfg.home_jitter + 1e-12
-    else:  # uniform within the limits: far wider than the home jitter on some joint
-        assert spread > 1.0 and starts.std(axis=0).max() > 1.0
+    assert np.array(starts).std(axis=0).max() > 1.0  # the authors' starts: uniform within the limits
 
 
 def test_make_env_builds_the_engine_env_with_config_fields():
     env = make_env("engine3d", max_steps=50, image_size=32)
     assert isinstance(env, EngineReach3D) and env.max_steps == 50 and env.cfg.image_size == 32
     assert make_env("engine3d").max_steps == 333  # the authors' 1000 frames at 30 Hz, at 10 Hz
-    assert make_env("engine3d", scene="pipes", start="home").cfg.scene == "pipes"
+    assert make_env("engine3d", scene="pipes").cfg.scene == "pipes"
     assert env.dof == 6 and env.obs_dim == 2 * 6 + 3 + 7 * env.cfg.n_max_obstacles
 
 
@@ -438,11 +432,9 @@ def test_render_draws_3d_and_2d(scene_env):
 
 
 # ---- bad input -----------------------------------------------------------------------------------
-def test_bad_scene_or_start_names_the_value():
+def test_bad_scene_names_the_value():
     with pytest.raises(ValueError, match="scene"):
         EngineReach3D(EngineConfig(scene="bay"))
-    with pytest.raises(ValueError, match="start"):
-        EngineReach3D(EngineConfig(start="fixed"))
 
 
 def test_bad_input_raises_value_error(scene_env):
