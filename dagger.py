@@ -113,11 +113,6 @@ class Config:
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
-    # Where HG-DAgger collects (PAPER_SETUP.md §4): 'eval', the authors' protocol -- each round rolls the
-    # lineage's current policy on the evaluation scenarios, skips those its evaluation solved every time,
-    # and records interventions on the rest, so the evaluation scenarios enter the training data; or
-    # 'train', the stricter variant -- episodes_per_round fresh training scenarios.
-    collect_on: str = "eval"
     # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
     # runs at 10 Hz by default (envs.PlanarConfig.dt): the same seconds are 20 and 10 steps.
     horizon: int = 20  # steps: H, actions per chunk (interventions shorter than H are discarded, Sec. IV-C)
@@ -171,7 +166,6 @@ class Config:
     #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
-    episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
     #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
@@ -183,7 +177,7 @@ class Config:
     calib_blend_segments: int = 0  # 0: every intervention segment long enough to be kept starts one blended rollout
     #                                per ratio (the authors: one per source intervention); n: the n longest
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
-    # collect_on='eval' the evaluation scenarios are not held out): a second table; eval_scenarios x eval_repeats
+    # the authors' protocol HG-DAgger collects on the evaluation scenarios): a second table; eval_scenarios x eval_repeats
     eval_unseen: bool = True
 
     def __post_init__(self):
@@ -278,9 +272,10 @@ def demo_statistics(cfg, demos):
 def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     """D_k, HG-DAgger rollouts of the lineage's current policy (PAPER_SETUP.md §4).
 
-    collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
-    evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
-    scenarios. Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
+    The authors' protocol: each round rolls the policy on the evaluation scenarios, skipping those its own
+    evaluation (policy_success, (scenarios, repeats) bool) solved every time, and records interventions on the
+    rest, so the evaluation scenarios enter the training data (the unseen scenarios are the held-out check:
+    evaluate_policy). Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
     episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
     folder and seeds).
     """
@@ -291,16 +286,11 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
 
     def collect():
         env = make_run_env(cfg)
-        if cfg.collect_on == "eval":
-            seeds = env.eval_seeds()[: cfg.eval_scenarios]
-            solved = np.asarray(policy_success, bool).all(axis=1)
-            run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
-                    f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
-            seeds = np.asarray(seeds)[~solved]
-        else:  # fresh scenarios for every (lineage, round), after D0's seed range
-            start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
-            seeds = env.train_seeds(cfg.episodes_per_round, start=start)
-            run.log(f"{label}: HG-DAgger collection on {len(seeds)} fresh training scenarios")
+        seeds = env.eval_seeds()[: cfg.eval_scenarios]
+        solved = np.asarray(policy_success, bool).all(axis=1)
+        run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
+                f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
+        seeds = np.asarray(seeds)[~solved]
         t0, env_list = time.time(), []
         for s in seeds:
             e = make_run_env(cfg)
@@ -624,7 +614,7 @@ def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration
 def evaluate_policy(run, name, policy, label, unseen=None):
     """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name` (the same
     sampling draws for every method: paired). With unseen (default cfg.eval_unseen) also on the unseen
-    scenarios, never trained on, into <name>_unseen.json (not in the paper: under collect_on='eval' HG-DAgger
+    scenarios, never trained on, into <name>_unseen.json (not in the paper: under the authors' protocol HG-DAgger
     collects on the evaluation scenarios, so they are not held out)."""
     ok = run.stage(name, lambda: evaluation(run, policy, label, "eval"))
     if run.cfg.eval_unseen if unseen is None else unseen:

@@ -163,7 +163,7 @@ def train_seeds(n, start=0):
 
 
 # Not in the paper: under the authors' protocol HG-DAgger collects on the evaluation scenarios
-# (dagger.Config.collect_on = 'eval'), so those are not held out. These 100 scenarios are: no stage of
+# (dagger.collect_interventions), so those are not held out. These 100 scenarios are: no stage of
 # any run collects, demonstrates or calibrates on them (dagger.py evaluates every policy on them too).
 UNSEEN_SEED_START = 20_000
 N_UNSEEN_SEEDS = 100

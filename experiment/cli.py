@@ -37,10 +37,6 @@ def parse_args(argv, profiles, methods):
                         "orientation (the authors' rule: 10), and the oracle ends at that posture")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(methods)} (BC and HG-DAgger always run)")
-    p.add_argument("--collect-on", default=None, choices=("eval", "train"),
-                   help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
-                        "the policy does not solve, so they enter the training data) or train (fresh training "
-                        "scenarios, the stricter variant)")
     p.add_argument("--finetune", default=None, choices=("continue", "constant"),
                    help="how every arm is fine-tuned from pi_0: continue (pi_0's optimizer along one cosine, the "
                         "authors' planar runs) or constant (pi_0's optimizer at a constant lr / 10, their lever "
@@ -94,8 +90,6 @@ def parse_args(argv, profiles, methods):
         over["image_obs"] = True
     if args.goal_angle is not None:
         over["goal_angle"] = args.goal_angle
-    if args.collect_on:
-        over["collect_on"] = args.collect_on
     if args.finetune:
         over["finetune"] = args.finetune
     if args.round_shares:
@@ -148,13 +142,12 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, goal angle, collection scenarios, fine-tuning, round shares, short
+    (another env, image observations, goal angle, fine-tuning, round shares, short
     interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
-    name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
     name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
     name += "_pad_short" if over.get("short_interventions", cfg.short_interventions) != cfg.short_interventions else ""

@@ -47,6 +47,8 @@ RETIRED_FIELDS = {
     "finetune_lr": (None,),  # finetune='constant' runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
     "raw_mix": (0.0,),  # a noised arm noises every intervention frame it draws (the authors' code)
     "start": (None, "random"),  # the authors' random starts (None: the env's default, 'random')
+    "collect_on": ("eval",),  # HG-DAgger collects on the evaluation scenarios (the authors' protocol)
+    "episodes_per_round": ANY_VALUE,  # read only by collect_on='train'
 }
 
 

@@ -18,7 +18,7 @@ import envs
 import relabel
 from experiment import cli, report, run_folder
 
-TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, episodes_per_round=3, K=5, down_dims=(8, 16),
+TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
                      methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                      calib_blend_segments=1, calib_samples=2, eval_scenarios=3, eval_repeats=1)
@@ -309,7 +309,7 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
     """Every stage with the UR5 env and camera images: demos, BC, HG-DAgger with the 6-dof oracle,
     calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""
     cfg = replace(TINY, name="tiny_images", env="engine3d", image_obs=True, image_size=16, n_demos=2,
-                  episodes_per_round=2, eval_scenarios=2, methods=("bc", "hg_dagger", "pooled"))
+                  eval_scenarios=2, methods=("bc", "hg_dagger", "pooled"))
     root = dagger.run_experiment(cfg, str(tmp_path / "images"))
     results = json.load(open(os.path.join(root, "results.json")))
     assert set(results["success"]) == {"bc", "hg_dagger", "pooled"}
@@ -538,7 +538,7 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     none is refused by a folder another command made (e.g. --methods right after the default run), --help
     prints the options."""
     smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
-                    episodes_per_round=2, n_demos=2, bc_steps=10, finetune_steps=6, image_size=16)
+                    n_demos=2, bc_steps=10, finetune_steps=6, image_size=16)
     monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
     monkeypatch.chdir(tmp_path)
     commands = readme_commands()
