@@ -153,7 +153,6 @@ class Config:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
     calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4; Sec. IV-D)
-    calib_rollouts_per_beta: int = 1  # blended rollouts per blend ratio (paper: 1; see calibrate.CalibrationConfig)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
     tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
@@ -174,8 +173,6 @@ class Config:
     network: str = "unet"
     mlp_width: int = 256
     mlp_blocks: int = 3
-    calib_blend_segments: int = 0  # 0: every intervention segment long enough to be kept starts one blended rollout
-    #                                per ratio (the authors: one per source intervention); n: the n longest
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
     # the authors' protocol HG-DAgger collects on the evaluation scenarios): a second table; eval_scenarios x eval_repeats
     eval_unseen: bool = True
@@ -863,10 +860,9 @@ def unseen_name(name):
 
 
 def calibration_config(cfg):
-    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts (one blended
+    rollout per ratio from every long enough intervention segment, calibrate.blend_schedule)."""
     return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                       blend_segments=cfg.calib_blend_segments,
-                                       rollouts_per_beta=cfg.calib_rollouts_per_beta,
                                        unguided="unguided_pooled" in cfg.methods)
 
 

@@ -10,15 +10,15 @@ import envs
 
 PROFILES = {
     # CI: every stage and every output file, tiny sizes (about a minute). The calibration keeps the paper's
-    # blend protocol (calib_blend_segments=0: one rollout per ratio from every intervention segment long
-    # enough to keep, 9 in the smoke round), so CI fits W by Eq. (12): with one segment each ratio had one
+    # blend protocol (one rollout per ratio from every intervention segment long enough to keep, 9 in the
+    # smoke round), so CI fits W by Eq. (12): with one segment (calib_blend_segments=1) each ratio had one
     # rollout, fewer than min_survivors = 3, and W always fell back to the open-loop error. Measured: 46 of
     # 117 rollouts kept, 6 ratios fitted; the calibration 2 s -> 4 s, the run 1 min 45 s -> 1 min 52 s on
     # the 2-core machine (tests/test_calibrate.py::test_the_smoke_profile_calibration_fits_W).
     "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, K=10,
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                    calib_blend_segments=0, calib_samples=4, eval_scenarios=8, eval_repeats=1),
+                    calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 6 min 55 s - 9 min 5 s wall over three seeds on the 2-core machine, --workers 2
     # (benchmarks/README.md, "The quick profile today").
@@ -86,8 +86,7 @@ def check_config(cfg, methods):
         raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
     cfg.down_dims = tuple(int(d) for d in cfg.down_dims)
     for key in ("n_demos", "rounds", "lineages", "horizon", "n_act", "K",
-                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
-                "calib_rollouts_per_beta"):
+                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
     if cfg.image_obs and cfg.env != "engine3d":

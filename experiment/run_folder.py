@@ -49,6 +49,8 @@ RETIRED_FIELDS = {
     "start": (None, "random"),  # the authors' random starts (None: the env's default, 'random')
     "collect_on": ("eval",),  # HG-DAgger collects on the evaluation scenarios (the authors' protocol)
     "episodes_per_round": ANY_VALUE,  # read only by collect_on='train'
+    "calib_rollouts_per_beta": (1,),  # one blended rollout per ratio and segment (the authors')
+    "calib_blend_segments": (0,),  # every long enough intervention segment starts blended rollouts
 }
 
 

@@ -20,7 +20,7 @@ from experiment import run_folder
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
                      methods=("bc", "hg_dagger", "fixed_4", "pooled"), finetune="continue",
-                     calib_blend_segments=1, calib_samples=2, eval_scenarios=3, eval_repeats=1, eval_unseen=False)
+                     calib_samples=2, eval_scenarios=3, eval_repeats=1, eval_unseen=False)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from experiment import cli, report, run_folder
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
                      methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                     calib_blend_segments=1, calib_samples=2, eval_scenarios=3, eval_repeats=1)
+                     calib_samples=2, eval_scenarios=3, eval_repeats=1)
 
 OUTPUTS = ["config.json", "log.txt", "results.json", "results.csv", "table.md", "data/D0.npz",
            "checkpoints/bc.pt", "eval/bc.json", "lineage_0/round_1/D.npz",
