@@ -67,15 +67,12 @@ class CalibrationConfig:
     # The authors roll out one blended rollout per source intervention episode at every ratio, average the
     # settling errors of each ratio's kept rollouts (RMS), and fit only ratios with >= min_survivors of them
     # (PCD measure_w_lever.py); their fit bounds W to [1, 60] of their median steps and R to [0.001, 100].
-    blend_segments: int = 0              # 0: every expert segment long enough to be kept (>= min_rollout_steps)
-                                         # starts one rollout per ratio; n > 0: the n longest of them
+    # Here: one rollout per ratio from every expert segment long enough to be kept (blend_schedule).
     min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
     W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
     r_bounds: tuple = (1e-3, 1e2)        # the gain ratio r = K*/K_theta's range (authors' bounds on R)
     # not in the paper
     unguided: bool = False               # also Sigma_bar from unguided closed-loop rollouts (`unguided_pooled`)
-    rollouts_per_beta: int = 1           # rollouts per ratio and segment (the authors: 1)
-    discard_collisions: bool = False     # also discard rollouts that touch an obstacle (see _closed_loop)
     bootstrap: int = 200                 # resamples of the kept (s, x) for W's 95 % interval (authors' code)
     bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
     unguided_segments: int = 8           # intervention segments rolled out unguided for it (longest first)
@@ -165,34 +162,31 @@ class BlendRollouts:
     betas: np.ndarray           # (B,) blend ratios
     s: np.ndarray               # (B,) sigma^2_{k_sw} = 1 - alphabar_{k_sw}
     x: np.ndarray               # (B,) settling error (radians, nearest-state distance)
-    kept: np.ndarray            # (B,) False for discarded rollouts (diverged, too short; or touched, if discard_collisions)
+    kept: np.ndarray            # (B,) False for discarded rollouts (diverged, too short)
     rollouts: Rollouts
 
 
 def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationConfig.n_act,
                    generator: torch.Generator | None = None, diverge_rad: float = 0.4,
-                   segment: tuple[int, int] | None = None, discard_collisions: bool = False,
-                   cfg: CalibrationConfig | None = None) -> BlendRollouts:
+                   segment: tuple[int, int] | None = None, cfg: CalibrationConfig | None = None) -> BlendRollouts:
     """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
 
     From the segment's first state (default: the episode's longest expert segment) every decision
     executes the first n_act actions of partial_denoise(policy, obs, expert chunk at the cursor, beta).
     Rollouts whose nearest-state distance reaches diverge_rad (radians; the authors' 15 median steps are
     0.264 rad on the planar arm, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps
-    are not kept ("we discard the blended trajectories that diverge"); contacts only with
-    discard_collisions (`_closed_loop`).
+    are not kept ("we discard the blended trajectories that diverge"); contacts are recorded, never
+    discarded (`_closed_loop`).
     """
     H = policy_horizon(policy)
     if segment is None:
         segment = _longest_segment(episode, H)
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_rad,
-                  discard_collisions, cfg)
+    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_rad, cfg)
 
 
 def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_rad: float,
-           discard_collisions: bool = False, cfg: CalibrationConfig | None = None,
-           record_contacts: bool = True) -> BlendRollouts:
+           cfg: CalibrationConfig | None = None, record_contacts: bool = True) -> BlendRollouts:
     """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians);
     record_contacts=False skips the contact check where no contact decides anything (`_closed_loop`)."""
     cfg = cfg or CalibrationConfig()
@@ -203,9 +197,8 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
 
     # every rollout runs its segment's full length, as the authors' blended episodes do: one that crossed
     # the divergence radius is discarded, but its settling error is still measured (Fig. 4 shows it)
-    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_rad,
-                        discard_collisions, cfg.settle_window, cfg.min_rollout_steps, stop_on_divergence=False,
-                        record_contacts=record_contacts or discard_collisions)
+    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_rad, cfg.settle_window,
+                        cfg.min_rollout_steps, stop_on_divergence=False, record_contacts=record_contacts)
     # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
     # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
@@ -395,7 +388,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float,
     # averaged per ratio (the authors' cells)
     blend_beta, chosen = blend_schedule(episodes, H, cfg)
     blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold, cfg.discard_collisions, cfg, record_contacts=False)
+                   generator, threshold, cfg, record_contacts=False)
     s, x, kept = blend.s, blend.x, blend.kept
     cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
     say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
@@ -812,20 +805,14 @@ def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[in
 
 def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
     """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
-    cfg.rollouts_per_beta rollouts from each expert segment long enough to be kept (>= min_rollout_steps;
-    the n = cfg.blend_segments longest if n > 0); if none is that long, from the longest segment (its
-    rollouts are then too short: the fit falls back, and says so)."""
-    if not isinstance(cfg.rollouts_per_beta, (int, np.integer)) or cfg.rollouts_per_beta < 1:
-        raise ValueError(f"CalibrationConfig.rollouts_per_beta must be an int >= 1, got {cfg.rollouts_per_beta!r}")
-    if not isinstance(cfg.blend_segments, (int, np.integer)) or cfg.blend_segments < 0:
-        raise ValueError(f"CalibrationConfig.blend_segments must be an int >= 0 (0: every long enough segment), "
-                         f"got {cfg.blend_segments!r}")
+    one rollout from each expert segment long enough to be kept (>= min_rollout_steps; the authors: one per
+    source intervention); if none is that long, from the longest segment (its rollouts are then too short:
+    the fit falls back, and says so)."""
     segs = _segments_longest_first(episodes, horizon)
     if not segs:
         raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
-    long_enough = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
-    segs = long_enough[:cfg.blend_segments] if cfg.blend_segments else long_enough
-    jobs = [(beta, seg) for beta in cfg.betas for seg in segs for _ in range(cfg.rollouts_per_beta)]
+    segs = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
+    jobs = [(beta, seg) for beta in cfg.betas for seg in segs]
     return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
 
 
@@ -867,10 +854,9 @@ class Rollouts:
     trajectory: np.ndarray      # (B, L + 1, dof) joint positions
     reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
     n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
-    n_recorded: np.ndarray      # (B,) steps executed (a rollout stops early on divergence, or on contact)
+    n_recorded: np.ndarray      # (B,) steps executed (a rollout may stop early on divergence)
     diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
-    collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself at some step
-    discard_collisions: bool = False    # True: a contact counts as leaving the route (see _closed_loop)
+    collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself at some step (recorded only)
     cursor: np.ndarray | None = None    # (B, L + 1) expert index the monotone projection assigned to each step
     nearest_error: np.ndarray | None = None   # (B, L + 1) distance to the nearest expert state in the window (rad)
     min_steps: int = 0                  # rollouts that recorded fewer steps are discarded
@@ -887,12 +873,11 @@ class Rollouts:
     @property
     def discarded(self) -> np.ndarray:
         """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
-        return self.diverged | self.too_short | (self.collided & self.discard_collisions)
+        return self.diverged | self.too_short
 
 
 def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                 diverge_rad: float, stop_on_collision: bool = False,
-                 window: int = CalibrationConfig.settle_window, min_steps: int = 0,
+                 diverge_rad: float, window: int = CalibrationConfig.settle_window, min_steps: int = 0,
                  stop_on_divergence: bool = True, record_contacts: bool = True) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
@@ -906,10 +891,10 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
     changes (rollouts grouped by seed).
     A rollout stops at the first step whose nearest-state distance reaches diverge_rad
     (radians) - it has left the expert's route - unless stop_on_divergence is False (it is then only
-    marked diverged and runs on), and, if stop_on_collision, at its first contact. record_contacts=False
+    marked diverged and runs on). record_contacts=False
     (only where contacts decide nothing) moves the arm by the env's motion rule without its contact check,
     the costliest part of a step: the same trajectories, `collided` all False.
-    By default a contact is only recorded: the env's state is kinematic (env.step moves the arm
+    A contact is only recorded: the env's state is kinematic (env.step moves the arm
     whether or not it touches), so the deviation from the expert stays well defined, and in these
     cluttered scenes the oracle's paths pass obstacles so closely that a deviation of a few median
     steps already grazes one - measured on the planar env, 12 of 13 blend rollouts of a trained
@@ -985,13 +970,12 @@ def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizo
                     c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
                     cursor[b, i:], nearest_error[b, i:] = c, err
                     diverged[b] |= err >= diverge_rad
-                    if (diverged[b] and stop_on_divergence) or (collided[b] and stop_on_collision):
+                    if diverged[b] and stop_on_divergence:
                         live[b] = False
                         break
                 q[b], q_prev[b] = env.q, env.q_prev
                 obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, stop_on_collision,
-                    cursor, nearest_error, min_steps)
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, cursor, nearest_error, min_steps)
 
 
 def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1013,7 +997,7 @@ def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: in
 
 def unguided_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
                       generator: torch.Generator | None = None, diverge_rad: float = 0.4,
-                      max_segments: int | None = None, discard_collisions: bool = False) -> np.ndarray | None:
+                      max_segments: int | None = None) -> np.ndarray | None:
     """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
 
     Not the paper's "closed-loop pooled" row (that is a chain of rounds collected by the calibrated policy,
@@ -1023,7 +1007,7 @@ def unguided_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationCo
     step contributes the outer product of its state deviation from the time-matched expert state,
     d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
     first diverged step (nearest-state distance at diverge_rad, radians, as in `blend_rollouts`;
-    that step excluded; with discard_collisions also at its first contact), so a policy that takes
+    that step excluded), so a policy that takes
     another route only contributes its deviations while it still follows the expert's. Scale the
     result with `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All
     rollouts run batched (one policy.sample call per decision). Returns None if no rollout executed
@@ -1037,16 +1021,14 @@ def unguided_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationCo
     def chunk_fn(obs, expert, rows):                 # unguided: the expert chunk is ignored
         return policy.sample(obs, generator=generator)
 
-    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_rad,
-                        discard_collisions)
-    # executed steps 1..n of each rollout, without the step that diverged or collided
-    cut = roll.diverged | (roll.collided & roll.discard_collisions)          # (B,) last step was a bad one
-    last = roll.n_recorded - cut.astype(np.int64)
+    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_rad)
+    # executed steps 1..n of each rollout, without the step that diverged
+    last = roll.n_recorded - roll.diverged.astype(np.int64)
     steps = np.arange(roll.trajectory.shape[1])[None]
     used = (steps >= 1) & (steps <= last[:, None])                           # (B, L + 1)
     d = roll.deviation[used]                                                 # (n, dof)
     if len(d) == 0:
-        return None                              # every rollout diverged or collided on its first step
+        return None                              # every rollout diverged on its first step
     return np.einsum("ti,tj->ij", d, d) / len(d)                              # Eq. (15), pooled
 
 
@@ -1060,7 +1042,7 @@ def unguided_pooled(env, policy, episodes: list[dict], W: float, pooled: np.ndar
         return None, ""
     say("unguided closed-loop rollouts for the unguided_pooled control")
     sigma_bar_cl = unguided_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
-                                     cfg.unguided_segments, cfg.discard_collisions)
+                                     cfg.unguided_segments)
     if sigma_bar_cl is None:                      # documented fallback: no usable closed-loop step
         return pooled.copy(), "; closed loop: every rollout failed at once, open-loop pooled used"
     return calibrated_sigma(sigma_bar_cl, W), ""

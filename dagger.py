@@ -113,11 +113,6 @@ class Config:
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
-    # Where HG-DAgger collects (PAPER_SETUP.md §4): 'eval', the authors' protocol -- each round rolls the
-    # lineage's current policy on the evaluation scenarios, skips those its evaluation solved every time,
-    # and records interventions on the rest, so the evaluation scenarios enter the training data; or
-    # 'train', the stricter variant -- episodes_per_round fresh training scenarios.
-    collect_on: str = "eval"
     # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
     # runs at 10 Hz by default (envs.PlanarConfig.dt): the same seconds are 20 and 10 steps.
     horizon: int = 20  # steps: H, actions per chunk (interventions shorter than H are discarded, Sec. IV-C)
@@ -149,22 +144,15 @@ class Config:
     replicates: str = "lineages"
     # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
     # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
-    # alone) continues BC's AdamW state along its tail; 'restart', a fresh optimizer with its own warm-up
-    # and cosine over finetune_steps (the BC row is then pi_0 itself, with finetune_steps fewer steps); or
-    # 'constant', the authors' lever runs (PCD lib_repro.sh lever_train: +20k steps at a constant 1e-6 after
-    # BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps, every arm continues its AdamW state at a
-    # constant finetune_lr (None: lr / 10) for finetune_steps more; the BC row is pi_0 itself, as theirs.
+    # alone) continues BC's AdamW state along its tail; or 'constant', the authors' lever runs (PCD lib_repro.sh
+    # lever_train: +20k steps at a constant 1e-6 after BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps,
+    # every arm continues its AdamW state at a constant lr / 10 for finetune_steps more; the BC row is pi_0
+    # itself, as theirs.
     finetune: str = "continue"
-    # The share of a noised arm's intervention rows taken as recorded (the expert's own chunks), the rest
-    # noised and relabelled. The authors' code: 0 (every drawn intervention frame noised; their raw_mix knob);
-    # the paper's text co-trains on the recorded interventions and their noised copies: 0.5. Measured on mid's
-    # round 1 (benchmarks/README.md, "The co-training mix"): 0.5 gave fixed sigma = 2 +0.9 and pooled -2.4 points.
-    raw_mix: float = 0.0
     # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
     obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
     obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
     calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4; Sec. IV-D)
-    calib_rollouts_per_beta: int = 1  # blended rollouts per blend ratio (paper: 1; see calibrate.CalibrationConfig)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
     tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
@@ -173,15 +161,10 @@ class Config:
     image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
     #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
     image_size: int = 32  # pixels of the square camera image (with image_obs)
-    # Where episodes start (an env option; None: the env's default). planar: 'random' (the authors' evaluation
-    # starts: uniform over the joint limits, collision-free, often folded) or 'fixed' (their demonstration
-    # config's q); engine3d: 'random' (the authors') or 'home' (near a home pose)
-    start: str | None = None
     goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
     #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
-    episodes_per_round: int = 100  # collect_on='train': HG-DAgger rollouts on fresh training scenarios per round
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
     joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
     #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
@@ -190,12 +173,8 @@ class Config:
     network: str = "unet"
     mlp_width: int = 256
     mlp_blocks: int = 3
-    finetune_lr: float | None = None  # finetune='restart': peak lr of every fine-tuning run (None: lr). Fine-tuning restarts the
-    #   warm-up and cosine schedule from pi_0's converged weights; a peak below BC's keeps pi_0's skill
-    calib_blend_segments: int = 0  # 0: every intervention segment long enough to be kept starts one blended rollout
-    #                                per ratio (the authors: one per source intervention); n: the n longest
     # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
-    # collect_on='eval' the evaluation scenarios are not held out): a second table; eval_scenarios x eval_repeats
+    # the authors' protocol HG-DAgger collects on the evaluation scenarios): a second table; eval_scenarios x eval_repeats
     eval_unseen: bool = True
 
     def __post_init__(self):
@@ -250,8 +229,8 @@ def behavior_cloning(run, demos):
         policy, continuing = make_policy(cfg, make_run_env(cfg)), cfg.finetune == "continue"
         tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
                           schedule_steps=cfg.bc_steps + cfg.finetune_steps if continuing else 0)
-        # the arms continue pi_0's optimizer under 'continue' and 'constant': keep its state
-        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=cfg.finetune != "restart")
+        # every arm continues pi_0's optimizer: keep its state
+        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
 
     return run.stage("checkpoints/bc.pt", train_pi0)
 
@@ -262,7 +241,7 @@ def bc_row_arm(root, cfg_fields):
     the same steps), else pi_0 itself; evaluated."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    if cfg.finetune != "continue":  # 'restart' and 'constant' (the authors' lever table): pi_0 itself
+    if cfg.finetune == "constant":  # the authors' lever table: pi_0 itself
         evaluate_policy(run, "eval/bc.json", run.load("checkpoints/bc.pt"), "bc (pi_0)")
         return
 
@@ -290,9 +269,10 @@ def demo_statistics(cfg, demos):
 def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     """D_k, HG-DAgger rollouts of the lineage's current policy (PAPER_SETUP.md §4).
 
-    collect_on='eval' (the authors' protocol): the evaluation scenarios, skipping those the policy's own
-    evaluation (policy_success, (scenarios, repeats) bool) solved every time; 'train': fresh training
-    scenarios. Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
+    The authors' protocol: each round rolls the policy on the evaluation scenarios, skipping those its own
+    evaluation (policy_success, (scenarios, repeats) bool) solved every time, and records interventions on the
+    rest, so the evaluation scenarios enter the training data (the unseen scenarios are the held-out check:
+    evaluate_policy). Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
     episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
     folder and seeds).
     """
@@ -303,16 +283,11 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
 
     def collect():
         env = make_run_env(cfg)
-        if cfg.collect_on == "eval":
-            seeds = env.eval_seeds()[: cfg.eval_scenarios]
-            solved = np.asarray(policy_success, bool).all(axis=1)
-            run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
-                    f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
-            seeds = np.asarray(seeds)[~solved]
-        else:  # fresh scenarios for every (lineage, round), after D0's seed range
-            start = cfg.n_demos * 2 + (lineage * cfg.rounds + (k - 1)) * cfg.episodes_per_round
-            seeds = env.train_seeds(cfg.episodes_per_round, start=start)
-            run.log(f"{label}: HG-DAgger collection on {len(seeds)} fresh training scenarios")
+        seeds = env.eval_seeds()[: cfg.eval_scenarios]
+        solved = np.asarray(policy_success, bool).all(axis=1)
+        run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
+                f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
+        seeds = np.asarray(seeds)[~solved]
         t0, env_list = time.time(), []
         for s in seeds:
             e = make_run_env(cfg)
@@ -522,22 +497,22 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares (round_shares='frames': in
-    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's noised and relabelled
-    (relabel.AugmentationSampler), raw_mix of each round's share as recorded."""
+    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's every drawn frame noised
+    and relabelled (relabel.AugmentationSampler), as in the authors' code. (The paper's text also co-trains on
+    the recorded chunks: measured, not adopted, benchmarks/README.md, "The co-training mix".)"""
     samplers, weights, offset = [], [], 0
     frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
     shares = [f / sum(frames) for f in frames] if cfg.round_shares == "frames" else [1.0] * len(rounds_data)
-    for D, share in zip(rounds_data, shares):  # a noised arm takes raw_mix of its round's share as recorded
-        if method == "hg_dagger" or cfg.raw_mix > 0:
+    for D, share in zip(rounds_data, shares):
+        if method == "hg_dagger":
             samplers.append(relabel.ChunkSampler(D, cfg.horizon, pad=cfg.short_interventions == "pad"))
-            weights.append(share * (1.0 if method == "hg_dagger" else cfg.raw_mix))
-        if method != "hg_dagger":
+        else:
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
             samplers.append(relabel.AugmentationSampler(
                 D, lambda: make_run_env(cfg), stats, kind, sigma,
                 relabel.RelabelConfig(horizon=cfg.horizon, pad_short=cfg.short_interventions == "pad")))
-            weights.append(share * (1.0 - cfg.raw_mix))
+        weights.append(share)
         offset += len(D)
     return relabel.MixtureSampler(samplers, weights)
 
@@ -555,7 +530,7 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
         run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
                 f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
                 f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
-                                                  f", {1 - cfg.raw_mix:.0%} of them noised and relabelled")
+                                                  ", every drawn frame noised and relabelled")
                 + (" (continuing pi_0's optimizer and schedule)" if cfg.finetune == "continue" else ""))
         return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
                                  cfg.intervention_fraction)
@@ -566,19 +541,14 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
 def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
     """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name` by cfg.finetune: 'continue' goes on with pi_0's
     AdamW state along its cosine to bc_steps + finetune_steps (the authors' planar run); 'constant' goes on with
-    it at a constant finetune_lr (None: lr / 10; their lever run); 'restart' runs finetune_steps more with a
-    fresh optimizer, warm-up and cosine (peak finetune_lr or lr)."""
+    it at a constant lr / 10 (their lever run: 1e-6 after BC's 1e-5 peak)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
     total = cfg.bc_steps + cfg.finetune_steps
     if cfg.finetune == "continue":
         tc = train_config(cfg, policy, total, seed, schedule_steps=total, aug_fraction=aug_fraction)
-        return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
-    if cfg.finetune == "constant":
-        tc = train_config(cfg, policy, total, seed, lr=cfg.finetune_lr or cfg.lr / 10, aug_fraction=aug_fraction,
-                          constant_lr=True)
-        return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
-    tc = train_config(cfg, policy, cfg.finetune_steps, seed, lr=cfg.finetune_lr, aug_fraction=aug_fraction)
-    return run.train(name, policy, obs, chunks, tc, sampler)
+    else:
+        tc = train_config(cfg, policy, total, seed, lr=cfg.lr / 10, aug_fraction=aug_fraction, constant_lr=True)
+    return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
 
 
 def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, constant_lr=False):
@@ -641,7 +611,7 @@ def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration
 def evaluate_policy(run, name, policy, label, unseen=None):
     """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name` (the same
     sampling draws for every method: paired). With unseen (default cfg.eval_unseen) also on the unseen
-    scenarios, never trained on, into <name>_unseen.json (not in the paper: under collect_on='eval' HG-DAgger
+    scenarios, never trained on, into <name>_unseen.json (not in the paper: under the authors' protocol HG-DAgger
     collects on the evaluation scenarios, so they are not held out)."""
     ok = run.stage(name, lambda: evaluation(run, policy, label, "eval"))
     if run.cfg.eval_unseen if unseen is None else unseen:
@@ -880,7 +850,7 @@ def degenerate(a, b):
 
 
 def pi0_eval_name(cfg):
-    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'restart'."""
+    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'constant'."""
     return "eval/pi0.json" if cfg.finetune == "continue" else "eval/bc.json"
 
 
@@ -890,18 +860,15 @@ def unseen_name(name):
 
 
 def calibration_config(cfg):
-    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts (one blended
+    rollout per ratio from every long enough intervention segment, calibrate.blend_schedule)."""
     return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                       blend_segments=cfg.calib_blend_segments,
-                                       rollouts_per_beta=cfg.calib_rollouts_per_beta,
                                        unguided="unguided_pooled" in cfg.methods)
 
 
 def env_options(cfg):
-    """envs.make_env keyword arguments of this run (image observations and the UR5's starts are env options)."""
+    """envs.make_env keyword arguments of this run (image observations and the UR5's goal angle are env options)."""
     options = {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
-    if cfg.start is not None:
-        options["start"] = cfg.start
     if cfg.goal_angle is not None:
         options["goal_angle_tolerance"] = cfg.goal_angle
     return options

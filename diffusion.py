@@ -51,7 +51,6 @@ class PolicyConfig:
     horizon: int = 16            # H: actions per predicted chunk (steps)
     n_act: int = 8               # actions of a chunk executed before re-planning (steps; used by the rollout loop)
     K: int = 100                 # diffusion steps (the authors': 100)
-    schedule: str = "squaredcos" # 'squaredcos' (the authors'); 'linear' is a research option (behind the banner)
     # The epsilon network: 'unet', the authors' 1-D conv U-Net (ConditionalUnet1D); 'mlp', a residual MLP with
     # the same FiLM interface (ResidualMLP; not the authors': ~8x the training samples per CPU second)
     network: str = "unet"
@@ -136,25 +135,19 @@ class Schedule:
         return Schedule(**{name: value.to(device) for name, value in self.__dict__.items()})
 
 
-def make_schedule(K=100, kind="squaredcos"):
-    """The DDPM coefficients for K steps (computed in float64, stored as float32 tensors)."""
+def make_schedule(K=100):
+    """The DDPM coefficients of the squared-cosine schedule (the authors') for K steps (computed in float64,
+    stored as float32 tensors)."""
     if not isinstance(K, (int, np.integer)) or K < 1:
         raise ValueError(f"K must be a positive int, got {K!r}")
-    if kind == "squaredcos":
-        # Nichol & Dhariwal (2021): alphabar(t) = f(t) / f(0), f(t) = cos^2((t + s) / (1 + s) * pi / 2).
-        # s = 0.008 keeps beta_1 from being vanishingly small; the cap 0.999 avoids the singular last step
-        # (f(1) = 0 would give beta_K = 1). This is diffusers' 'squaredcos_cap_v2', used by diffusion policy.
-        # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
-        s = 0.008
-        t = np.arange(K + 1, dtype=np.float64) / K
-        f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
-        betas = np.minimum(1.0 - f[1:] / f[:-1], 0.999)
-        # <<< exercise 1
-    elif kind == "linear":
-        betas = _linear_betas(K)                                       # a research option (behind the banner)
-    else:
-        raise ValueError(f"schedule kind must be 'squaredcos' or 'linear', got {kind!r}")
+    # Nichol & Dhariwal (2021): alphabar(t) = f(t) / f(0), f(t) = cos^2((t + s) / (1 + s) * pi / 2).
+    # s = 0.008 keeps beta_1 from being vanishingly small; the cap 0.999 avoids the singular last step
+    # (f(1) = 0 would give beta_K = 1). This is diffusers' 'squaredcos_cap_v2', used by diffusion policy.
     # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
+    s = 0.008
+    t = np.arange(K + 1, dtype=np.float64) / K
+    f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
+    betas = np.minimum(1.0 - f[1:] / f[:-1], 0.999)
     alphas = 1.0 - betas
     alphas_cumprod = np.cumprod(alphas)
     alphas_cumprod_prev = np.concatenate([[1.0], alphas_cumprod[:-1]])
@@ -239,7 +232,7 @@ class DiffusionPolicy(nn.Module):
             self.net = NETWORKS[cfg.network](cfg)                      # eps_theta (behind the banner)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         _register_normalizer(self)                                     # min-max buffers (behind the banner)
-        self.schedule = make_schedule(cfg.K, cfg.schedule)
+        self.schedule = make_schedule(cfg.K)
         self.to(device)
 
     # Plumbing (the details behind the banner): device, normalization to [-1, 1], FiLM pieces, noise, files.
@@ -249,7 +242,7 @@ class DiffusionPolicy(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):     # .to(device): the schedule (derived, not a buffer) follows
         super()._apply(fn, *args, **kwargs)
-        self.schedule = make_schedule(self.cfg.K, self.cfg.schedule).to(self.obs_center.device)
+        self.schedule = make_schedule(self.cfg.K).to(self.obs_center.device)
         return self
 
     def fit_normalizer(self, obs, actions):    # min-max fit on obs (N, obs_dim), actions (N, H, dof), joint units
@@ -476,8 +469,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
 # ==== Beyond the paper (safe to skip) ====================================================
 # Config notes, argument checks, the epsilon network (the authors' U-Net) and the image CNN, the min-max
 # normalizer, the per-row indexing of the schedule (_per_row), the noise draws of a reverse process, the
-# masked loss, train()'s learning-rate schedule, EMA and progress lines, the linear schedule (a research
-# option), checkpoint files and train()'s resume plumbing, the toy data.
+# masked loss, train()'s learning-rate schedule, EMA and progress lines, checkpoint files and train()'s resume
+# plumbing, the toy data.
 
 
 # ----------------------------------------------------------------------------------------------
@@ -526,8 +519,6 @@ def _check_policy_config(cfg):
                          f"got {cfg.kernel_size}")
     if cfg.n_act > cfg.horizon:
         raise ValueError(f"PolicyConfig.n_act={cfg.n_act} must be <= horizon={cfg.horizon}")
-    if cfg.schedule not in ("squaredcos", "linear"):
-        raise ValueError(f"PolicyConfig.schedule must be 'squaredcos' or 'linear', got {cfg.schedule!r}")
     if cfg.step_embed_dim % 2:
         raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {cfg.step_embed_dim}")
     cfg.image_shape = tuple(int(n) for n in cfg.image_shape)
@@ -1057,21 +1048,6 @@ class _Progress:
 
 
 # ----------------------------------------------------------------------------------------------
-# A research option: the linear schedule of DDPM, rescaled to K steps
-
-
-def _linear_betas(K):
-    """beta_k for make_schedule(K, 'linear'). Ho et al.'s 1e-4 .. 0.02 are for K = 1000; scaled by 1000 / K
-    (Nichol & Dhariwal) so that alphabar_K ~ 4e-5 for any K and the reverse process may start from N(0, I).
-    Unscaled at K = 100, alphabar_K would be 0.37: the last level would still be mostly signal."""
-    scale = 1000.0 / K
-    betas = np.linspace(scale * 1e-4, scale * 0.02, K, dtype=np.float64)
-    if betas.max() >= 1.0:
-        raise ValueError(f"the linear schedule needs K >= 21 (beta_K = {betas.max():.3f} >= 1), got K={K}")
-    return betas
-
-
-# ----------------------------------------------------------------------------------------------
 # Checkpoint files and train()'s resume plumbing
 
 
@@ -1123,7 +1099,12 @@ def _load_policy(cls, path, device="cpu"):
     """DiffusionPolicy.load: the policy saved at path. FileNotFoundError if there is none;
     CheckpointDamagedError (a ValueError) if the file is truncated or not a checkpoint of this code."""
     payload = _read_checkpoint(path)
-    policy = cls(PolicyConfig(**payload["config"]), device=device)
+    config = dict(payload["config"])
+    # a checkpoint written before PolicyConfig.schedule was deleted names it: only the authors' schedule remains
+    if config.pop("schedule", "squaredcos") != "squaredcos":
+        raise ValueError(f"{path!r} was trained with the linear noise schedule, deleted since (the squared-cosine "
+                         f"schedule is the only one): retrain the policy")
+    policy = cls(PolicyConfig(**config), device=device)
     policy.load_state_dict(payload["state_dict"])
     return policy
 

@@ -90,8 +90,6 @@ import pymunk
 # ----------------------------------------------------------------------------------------------
 # The planar reacher's configuration (Table I)
 # ----------------------------------------------------------------------------------------------
-PLANAR_STARTS = ("random", "fixed")  # PlanarConfig.start
-
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
@@ -113,14 +111,10 @@ class PlanarConfig:
     n_obstacles: int = 2  # obstacle blocks per scene
     target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
     obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    # The start (PLANAR_STARTS). 'random': all joints uniform within their limits until the arm is
-    # collision-free (the authors' env reset and evaluation config, q_start null; often folded: "the robot
-    # must untangle its links"); 'fixed': every scenario starts at fixed_start (one demonstration config of
-    # theirs). BC reaches 62.7 % with the fixed start and 54.0 % with random starts (U-Net, 500 demos, 30k
-    # steps; benchmarks/README.md), but from the fixed start DAgger has little to fix: the Table I profiles
-    # use the authors' random starts (measured there, "Table I where DAgger has something to fix").
-    start: str = "random"
-    fixed_start: tuple = (-1.391, 1.577, -0.402)  # rad (SS configs/traj_configs/planar_3joint.json)
+    # The start: all joints uniform within their limits until the arm is collision-free (the authors' env
+    # reset and evaluation config, q_start null; often folded: "the robot must untangle its links"). Their
+    # fixed demonstration start gave BC more (62.7 % against 54.0 %) but left DAgger little to fix: measured,
+    # not adopted (benchmarks/README.md, "Table I where DAgger has something to fix").
 
     # --- not in the paper ---
     # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
@@ -169,7 +163,7 @@ def train_seeds(n, start=0):
 
 
 # Not in the paper: under the authors' protocol HG-DAgger collects on the evaluation scenarios
-# (dagger.Config.collect_on = 'eval'), so those are not held out. These 100 scenarios are: no stage of
+# (dagger.collect_interventions), so those are not held out. These 100 scenarios are: no stage of
 # any run collects, demonstrates or calibrates on them (dagger.py evaluates every policy on them too).
 UNSEEN_SEED_START = 20_000
 N_UNSEEN_SEEDS = 100
@@ -372,8 +366,6 @@ class PlanarReacher(ArmEnv):
         if len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3:
             raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}, "
                              f"link_widths={cfg.link_widths}")
-        if cfg.start not in PLANAR_STARTS:
-            raise ValueError(f"PlanarConfig.start must be one of {PLANAR_STARTS}, got {cfg.start!r}")
         if not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0):
             raise ValueError(f"PlanarConfig needs dt, speed_limit, episode_seconds > 0, got {cfg.dt}, "
                              f"{cfg.speed_limit}, {cfg.episode_seconds}")
@@ -643,9 +635,9 @@ class PlanarReacher(ArmEnv):
 
         Rejection sampling with one rng stream, so the scenario is a deterministic function of seed.
         A scene is re-drawn when blocks overlap, when its target has fewer than
-        min_goal_configurations collision-free IK solutions, or when no start is found: a 'random'
-        start is the first of 64 uniform draws within the joint limits that is collision-free and
-        not already at the target; a 'fixed' start must itself satisfy both.
+        min_goal_configurations collision-free IK solutions, or when no start is found: the start
+        is the first of 64 uniform draws within the joint limits that is collision-free and not
+        already at the target.
         """
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
@@ -660,10 +652,7 @@ class PlanarReacher(ArmEnv):
             goal_qs = self.goal_configurations()
             if len(goal_qs) < self.cfg.min_goal_configurations:
                 continue
-            if self.cfg.start == "random":
-                candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
-            else:
-                candidates = np.asarray(self.cfg.fixed_start, dtype=np.float64)[None]
+            candidates = rng.uniform(self._lo, self._hi, size=(64, self.dof))
             ok = ~self.in_collision(candidates) & ~self.goal_reached(candidates)
             if not ok.any():
                 continue
@@ -830,16 +819,14 @@ class EngineConfig:
     # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
     # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
     max_steps: int = 333  # steps
-    # The scene family. 'authors': their small-engine cell (benchmarks/README.md, "The UR5
-    # engine-lever task"): one engine with its lever at a fixed place, a table, a wall behind the
-    # robot, two boxes drawn per seed on the table. 'pipes': this project's earlier family (a
-    # housing whose bay, lever and pipes are drawn per seed around a reaching posture).
-    scene: str = "authors"
-    # Start of an episode ('authors' scene only). 'random' (theirs): all six joints uniform within
-    # the joint limits until the arm is clear of everything by start_clearance (SS
-    # splatsim/utils/trajectory_generation.py, _get_random_collision_free_q, used when the config's
-    # q_start is null); 'home': home_q plus a uniform jitter of +-home_jitter per joint.
-    start: str = "random"
+    # The scene: the authors' small-engine cell (benchmarks/README.md, "The UR5 engine-lever task"): one
+    # engine with its lever at a fixed place, a table, a wall behind the robot, two boxes drawn per seed on
+    # the table. (This project's earlier generated bay of pipes, where BC stayed near 0 %, was replaced by it.)
+    # Start of an episode (_draw_start): all six joints uniform within the joint limits
+    # until the arm is clear of everything by start_clearance (theirs: SS splatsim/utils/
+    # trajectory_generation.py, _get_random_collision_free_q, used when the config's q_start is null).
+    # Starts near a home pose made BC 98 %: measured, not adopted (benchmarks/README.md, "BC at the earlier
+    # mid recipe on the authors' cell: the start decided").
     # The paper's policy sees images (Sec. V): True ends the observation with the camera image
     # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
     # it in info['image'].
@@ -858,7 +845,7 @@ class EngineConfig:
     # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
     n_substeps: int = 4  # states per step
     n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
-    # --- scene='authors' (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
+    # --- the scene (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
     #     DH base frame is their URDF base frame turned 180 deg about z, (x, y) -> (-x, -y); the
     #     table top is our ground z = 0 ---
     # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
@@ -880,32 +867,15 @@ class EngineConfig:
     box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
     box_radius: tuple = (0.09, 0.09)  # m
     box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
-    home_q: tuple = (-math.pi / 2, -2.2, 1.9, -1.3, -math.pi / 2, 0.0)  # rad, start='home' (not theirs)
-    home_jitter: float = 0.3  # rad, per joint, start='home'
     # m, a start keeps this from everything: the authors' planning obstacle clearance
     # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
     start_clearance: float = 0.02
-    # --- scene='pipes' (EngineReach3D._draw_pipes_scene). The paper scans a real mockup; here the
-    # scene is drawn per seed. The bay lies along -x, where the arm points at q1 = 0.
-    bay_x: tuple = (-0.95, -0.35)  # m, far and near faces of the housing
-    bay_y: tuple = (-0.40, 0.26)  # m, its sides (centred on the wrist's -0.109 m DH offset)
-    bay_height: float = 0.50  # m, top rails of the housing
-    lever_box: tuple = ((-0.66, -0.46), (-0.28, 0.12), (0.10, 0.32))  # m, x / y / z range of the goal
     lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
     #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
-    # Pipes. With these defaults the oracle solves 99 of the 100 eval scenes (median 4.4 CPU s per
-    # demo) and the straight line from the start to every free goal configuration collides in 76
-    # (bench_engine3d.py). Tighter pipes (two passage pipes 0.04-0.09 m away, 1-3 clutter pipes)
-    # made planning ~1.6x slower on 8 scenes; no pipes at all ~2.3x faster.
-    passage_clearance: tuple = (0.06, 0.12)  # m, gap between a passage pipe and the witness posture
-    n_passage_pipes: tuple = (1, 1)  # min, max pipes hugging the witness posture (the narrow passage)
-    passage_links: tuple = (2, 3)  # arm capsules they hug (forearm, wrist 1)
-    n_clutter_pipes: tuple = (1, 2)  # min, max pipes across the bay's opening
-    clutter_clearance: float = 0.08  # m, clutter pipes keep at least this gap to the witness posture
     min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
     #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
     #   a needle's eye that no planner (or IK from random seeds) finds reliably
-    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal (both scenes)
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
 
@@ -923,14 +893,10 @@ UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  #
 # The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
 # wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
-# The fixed camera of image observations and figures: beside and above the robot, into the bay.
-ENGINE_CAMERA = dict(eye=(0.55, -1.25, 1.05), target=(-0.55, -0.05, 0.2), fov=55.0)  # m, m, deg
-# scene='authors': in front of the robot (the side away from the wall), above the table, looking at
-# the engine and the goal (the authors' debug camera looks from the same side, SS
-# sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
-ENGINE_CAMERA_AUTHORS = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
-ENGINE_SCENES = ("authors", "pipes")  # EngineConfig.scene
-ENGINE_STARTS = ("random", "home")  # EngineConfig.start
+# The fixed camera of image observations and figures: in front of the robot (the side away from the
+# wall), above the table, looking at the engine and the goal (the authors' debug camera looks from the
+# same side, SS sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
+ENGINE_CAMERA = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
 # Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
@@ -950,17 +916,11 @@ class EngineReach3D(ArmEnv):
     """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
     The paper renders its mockup with Gaussian splats; this project has no scan, so the scene is
-    pybullet's own geometry, capsules. Two scene families (EngineConfig.scene):
-      * 'authors' (the default): the authors' small-engine cell as their code sets it up
-        (benchmarks/README.md, "The UR5 engine-lever task"): one engine with its lever at a fixed
-        place, the goal the TCP of their goal posture (the witness), a wall behind the robot (a
-        half-space, not an obstacle row), the table (the ground), and two boxes lying on the table,
-        drawn per seed. Starts: uniform within the joint limits (theirs) or near a home pose.
-      * 'pipes': the earlier family, drawn per seed around a collision-free reaching posture (the
-        witness): a housing (frame of beams), an engine block, a T-handle lever at the witness's
-        tool tip, one pipe hugging its forearm or wrist a few centimetres away (the narrow
-        passage), others across the bay's opening. The straight joint-space line from the start
-        to any goal posture collides in most scenes (benchmarks/bench_engine3d.py --scene pipes).
+    pybullet's own geometry, capsules: the authors' small-engine cell as their code sets it up
+    (benchmarks/README.md, "The UR5 engine-lever task"): one engine with its lever at a fixed place,
+    the goal the TCP of their goal posture (the witness), a wall behind the robot (a half-space, not
+    an obstacle row), the table (the ground), and two boxes lying on the table, drawn per seed.
+    Starts: uniform within the joint limits (theirs).
 
     One geometry definition (capsules: segment + radius, in `self.obstacles` and `link_segments`)
     feeds both
@@ -994,17 +954,11 @@ class EngineReach3D(ArmEnv):
         _import_pybullet()  # the simulator, loaded with the first UR5 env
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
-        if cfg.scene not in ENGINE_SCENES:
-            raise ValueError(f"EngineConfig.scene must be one of {ENGINE_SCENES}, got {cfg.scene!r}")
-        if cfg.start not in ENGINE_STARTS:
-            raise ValueError(f"EngineConfig.start must be one of {ENGINE_STARTS}, got {cfg.start!r}")
-        if cfg.goal_angle_tolerance is not None and not (0.0 < cfg.goal_angle_tolerance <= 180.0
-                                                         and cfg.scene == "authors"):
-            raise ValueError(f"EngineConfig.goal_angle_tolerance must be None (position only) or, with "
-                             f"scene='authors' (its goal posture goal_q), degrees in (0, 180] (the authors' 10); "
-                             f"got {cfg.goal_angle_tolerance!r} with scene={cfg.scene!r}")
-        # the wall of the authors' cell: a half-space y >= wall_y (None: no wall)
-        self._wall_y = float(cfg.wall_y) if cfg.scene == "authors" else None
+        if cfg.goal_angle_tolerance is not None and not 0.0 < cfg.goal_angle_tolerance <= 180.0:
+            raise ValueError(f"EngineConfig.goal_angle_tolerance must be None (position only) or degrees in "
+                             f"(0, 180] about the goal posture goal_q (the authors' 10); "
+                             f"got {cfg.goal_angle_tolerance!r}")
+        self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
         self.goal_is_pose = cfg.goal_angle_tolerance is not None
         self._goal_frame = ur5_frames(np.asarray(cfg.goal_q, dtype=np.float64)[None])[0, 6]  # (4, 4) flange
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
@@ -1024,7 +978,7 @@ class EngineReach3D(ArmEnv):
                                                   else 7 * cfg.n_max_obstacles)
         super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
-        self.obstacle_kinds = []  # 'frame' | 'engine' | 'lever' | 'pipe', for drawing
+        self.obstacle_kinds = []  # 'engine' | 'lever' | 'pipe' | 'box', for drawing
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
@@ -1095,7 +1049,7 @@ class EngineReach3D(ArmEnv):
 
         The minimum over: every arm capsule vs every obstacle capsule (segment distance minus the
         two radii), the self-collision pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the
-        ground plane z = 0, and (scene='authors') every arm capsule vs the wall y = wall_y.
+        ground plane z = 0, and every arm capsule vs the wall y = wall_y.
         Negative = penetration.
         """
         q, single = _as_batch(q, self.dof)
@@ -1119,11 +1073,9 @@ class EngineReach3D(ArmEnv):
         return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
 
     def _wall_clearance(self, a0, a1):
-        """(B,) distance from the arm's capsules to the wall's face y = wall_y (+inf: no wall).
+        """(B,) distance from the arm's capsules to the wall's face y = wall_y.
 
         A capsule's distance to a plane is smallest at one of its two end points."""
-        if self._wall_y is None:
-            return np.full(a0.shape[1], np.inf)
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
     def _clearance(self, q):
@@ -1201,8 +1153,8 @@ class EngineReach3D(ArmEnv):
         """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
 
         reset() calls this with a generated scene; tests and figures may call it with a built one.
-        kinds: one of 'frame', 'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default
-        pipe). The wall of scene='authors' is not an obstacle row: it belongs to the scene family.
+        kinds: one of 'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default pipe).
+        The wall is not an obstacle row: it belongs to the scene.
         Derives everything both collision checks need from this one array.
         """
         self._set_obstacles(obstacles, kinds)
@@ -1224,7 +1176,7 @@ class EngineReach3D(ArmEnv):
         if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 6] <= 0):
             raise ValueError("set_scene: obstacles must be finite with radius > 0")
         kinds = ["pipe"] * len(obstacles) if kinds is None else list(kinds)
-        valid = ("frame", "engine", "lever", "pipe", "box")
+        valid = ("engine", "lever", "pipe", "box")
         if len(kinds) != len(obstacles) or any(k not in valid for k in kinds):
             raise ValueError(f"set_scene: kinds must give one of {valid} per obstacle, got {kinds}")
         self.obstacles, self.obstacle_kinds = obstacles, kinds
@@ -1263,15 +1215,14 @@ class EngineReach3D(ArmEnv):
                                               physicsClientId=cid)
         for body in self._link_bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
             pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
-        colors = {"frame": [0.45, 0.45, 0.48, 1], "engine": [0.25, 0.25, 0.28, 1],
+        colors = {"engine": [0.25, 0.25, 0.28, 1],
                   "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1], "box": [0.62, 0.45, 0.3, 1]}
-        if self._wall_y is not None:  # a 0.5 m thick slab whose face is the plane y = wall_y
-            half = [1.5, 0.25, 0.75]
-            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
-            visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1],
-                                          physicsClientId=cid)
-            pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]],
-                               physicsClientId=cid)
+        half = [1.5, 0.25, 0.75]  # the wall: a 0.5 m thick slab whose face is the plane y = wall_y
+        shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1],
+                                      physicsClientId=cid)
+        pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]],
+                           physicsClientId=cid)
         for (x0, y0, z0, x1, y1, z1, radius), kind in zip(self.obstacles, self.obstacle_kinds):
             a, b = np.array([x0, y0, z0]), np.array([x1, y1, z1])
             body = self._capsule_body(float(np.linalg.norm(b - a)), float(radius), colors[kind], mass=0.0)
@@ -1386,41 +1337,12 @@ class EngineReach3D(ArmEnv):
         q = q[np.all((q >= self._lo) & (q <= self._hi), axis=1)]
         return q[~self.in_collision(q)] if len(q) else q
 
-    def _sample_witness(self, rng, fixed):
-        """A collision-free posture reaching into the bay, tool pointing down: (q (6,), TCP, frame6).
-
-        Joint ranges of a reach over the housing's near face and down into it (elbow up); among
-        256 draws the first whose TCP lies in lever_box with the tool axis pointing down
-        (z6_z < -0.5) and which is free of the housing and engine (`fixed`) is taken.
-        """
-        lo = np.array([-0.5, -1.8, 0.8, -2.9, -2.4, -1.2])
-        hi = np.array([0.5, -0.7, 2.4, -0.6, -0.7, 1.2])
-        q = rng.uniform(lo, hi, size=(256, self.dof))
-        frames = ur5_frames(q)
-        tcp = frames[:, 6, :3, 3] + self.cfg.tool_length * frames[:, 6, :3, 2]
-        box = np.array(self.cfg.lever_box)  # (3, 2)
-        ok = np.all((tcp >= box[:, 0]) & (tcp <= box[:, 1]), axis=1) & (frames[:, 6, 2, 2] < -0.5)
-        if not ok.any():
-            return None
-        idx = np.flatnonzero(ok)
-        self._set_obstacles(fixed)
-        free = idx[~self.in_collision(q[idx])]
-        if len(free) == 0:
-            return None
-        k = free[0]
-        return q[k], tcp[k], frames[k, 6]
-
-    def _pipe_clear_of(self, pipe, witness_seg, min_gap):
-        """True if capsule pipe (7,) is at least min_gap from every witness arm capsule."""
-        d = segment_distance_3d(witness_seg[:, 0].T, witness_seg[:, 1].T, pipe[:3, None], pipe[3:6, None])
-        return bool(np.all(d - self.link_radii - pipe[6] >= min_gap))
-
     def _draw_authors_scene(self, rng):
         """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
 
         Fixed: the engine (cfg.engine_parts), the goal posture cfg.goal_q and its TCP (the goal),
         a T-handle lever just beyond the TCP along the tool axis with its shaft running on into
-        the engine (as in the pipes scene), and the wall (not a row: EngineReach3D._wall_y).
+        the engine, and the wall (not a row: EngineReach3D._wall_y).
         Drawn: the two boxes, each a capsule lying on the table, centre uniform in its box_x x box_y
         range, length and radius scaled by one factor from box_scale. The scene is re-drawn by reset
         if the goal posture collides.
@@ -1447,79 +1369,8 @@ class EngineReach3D(ArmEnv):
             kinds.append("box")
         return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
 
-    def _draw_pipes_scene(self, rng):
-        """One candidate scene: (obstacles (N, 7), kinds, goal (3,), witness (6,)) or None.
-
-        Housing: four posts and four top rails around the bay, shifted by a few cm; an engine
-        block (a fat capsule along y) with a valve cover on top. Witness: a free posture reaching
-        over the near rail into the bay. Lever: a T-handle just beyond the witness TCP along its
-        tool axis, its shaft running on into the engine. Pipes: n_passage_pipes hug the witness's
-        forearm or wrist 1 at passage_clearance (the narrow passage the arm has to thread); the
-        clutter pipes cross the bay's opening at random heights and angles, kept at least
-        clutter_clearance from the witness.
-        """
-        cfg = self.cfg
-        shift = np.array([*rng.uniform(-0.03, 0.03, size=2), 0.0])  # move the housing in x, y
-        (x_far, x_near), (y_lo, y_hi), top = cfg.bay_x, cfg.bay_y, cfg.bay_height
-        obstacles, kinds = [], []
-
-        def add(a, b, radius, kind):
-            obstacles.append([*a, *b, radius])
-            kinds.append(kind)
-
-        beam = 0.025  # m, radius of the housing's beams
-        corners = [np.array([x, y, 0.0]) + shift for x in (x_near, x_far) for y in (y_lo, y_hi)]
-        for c in corners:  # posts
-            add(c, c + [0, 0, top], beam, "frame")
-        for i, j in [(0, 1), (2, 3), (0, 2), (1, 3)]:  # top rails: near, far, sides
-            add(corners[i] + [0, 0, top], corners[j] + [0, 0, top], beam, "frame")
-        block_x = x_far + 0.17 + shift[0]
-        add((block_x, y_lo + 0.12, 0.15), (block_x, y_hi - 0.12, 0.15), 0.15, "engine")  # block
-        add((block_x - 0.02, y_lo + 0.15, 0.34), (block_x - 0.02, y_hi - 0.15, 0.34), 0.07, "engine")
-        witness = self._sample_witness(rng, np.asarray(obstacles))
-        if witness is None:
-            return None
-        q_goal, goal, frame6 = witness
-        tool_axis, handle_axis = frame6[:3, 2], frame6[:3, 1]
-        handle = goal + cfg.lever_offset * tool_axis  # T-handle across the fingers' grasp
-        add(handle - 0.05 * handle_axis, handle + 0.05 * handle_axis, 0.02, "lever")
-        add(handle, handle + 0.25 * tool_axis, 0.015, "lever")  # shaft, on into the engine
-        witness_seg = self.link_segments(q_goal)[0]  # (8, 2, 3)
-        n_passage = rng.integers(cfg.n_passage_pipes[0], cfg.n_passage_pipes[1] + 1)
-        for _ in range(n_passage):  # tangent to a link of the witness posture, a few cm away
-            for _attempt in range(20):
-                link = rng.choice(cfg.passage_links)
-                a, b = witness_seg[link]
-                axis = (b - a) / np.linalg.norm(b - a)
-                normal = rng.normal(size=3)
-                normal -= normal.dot(axis) * axis
-                normal /= np.linalg.norm(normal)
-                radius = rng.uniform(0.02, 0.035)
-                gap = rng.uniform(*cfg.passage_clearance)
-                offset = self.link_radii[link] + radius + gap  # centre-line distance from the link
-                centre = a + rng.uniform(0.2, 0.8) * (b - a) + offset * normal
-                along = np.cross(axis, normal)  # perpendicular to the link and to the offset
-                half = rng.uniform(0.15, 0.3)
-                pipe = np.array([*(centre - half * along), *(centre + half * along), radius])
-                if self._pipe_clear_of(pipe, witness_seg, cfg.passage_clearance[0]):
-                    add(pipe[:3], pipe[3:6], radius, "pipe")
-                    break
-        n_clutter = rng.integers(cfg.n_clutter_pipes[0], cfg.n_clutter_pipes[1] + 1)
-        for _ in range(n_clutter):  # across the opening of the bay, from side to side
-            for _attempt in range(20):
-                radius = rng.uniform(0.025, 0.04)
-                z = rng.uniform(top - 0.1, top + 0.25, size=2)
-                x = rng.uniform(x_far, x_near + 0.05, size=2)
-                a = np.array([x[0], y_lo, z[0]]) + shift
-                b = np.array([x[1], y_hi, z[1]]) + shift
-                pipe = np.array([*a, *b, radius])
-                if self._pipe_clear_of(pipe, witness_seg, cfg.clutter_clearance):
-                    add(a, b, radius, "pipe")
-                    break
-        return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
-
     def reset(self, seed=None):
-        """Draw the scenario of `seed` (the scene of cfg.scene, then the start) and put the arm there.
+        """Draw the scenario of `seed` (the scene, then the start) and put the arm there.
 
         Rejection sampling with one rng stream, so the scene is a deterministic function of seed.
         The goal always has a collision-free configuration (the witness posture the scene is built
@@ -1533,35 +1384,15 @@ class EngineReach3D(ArmEnv):
         rng = np.random.default_rng(int(seed))
         cfg = self.cfg
         while True:
-            scene = (self._draw_authors_scene if cfg.scene == "authors" else self._draw_pipes_scene)(rng)
-            if scene is None:
-                continue
-            obstacles, kinds, goal, self.witness = scene
+            obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
             self._set_obstacles(obstacles, kinds)
             self._goal = goal
             if self.in_collision(self.witness):
                 continue
             if len(self.tcp_goal_configurations()) < cfg.min_goal_configurations:  # either success rule:
                 continue  # the same scenes
-            if cfg.scene == "authors":
-                start = self._draw_start(rng)
-                if start is None:
-                    continue
-                break
-            # pipes: arm turned away from the bay, elbow up, wrist anywhere sensible
-            side = rng.choice([-1.0, 1.0])
-            lo = np.array([0.9, -2.1, 0.6, -2.8, -2.6, -1.5])
-            hi = np.array([2.4, -1.0, 2.4, -0.4, -0.6, 1.5])
-            candidates = rng.uniform(lo, hi, size=(64, self.dof))
-            candidates[:, 0] *= side
-            tcp = self.ee(candidates)
-            x_near, (y_lo, y_hi) = cfg.bay_x[1], cfg.bay_y
-            inside = ((tcp[:, 0] < x_near + 0.1) & (tcp[:, 1] > y_lo - 0.1) & (tcp[:, 1] < y_hi + 0.1)
-                      & (tcp[:, 2] < cfg.bay_height + 0.1))
-            far = np.linalg.norm(tcp - self._goal, axis=1) >= cfg.start_goal_min_dist
-            ok = far & ~inside & ~self.in_collision(candidates)
-            if ok.any():
-                start = candidates[np.argmax(ok)]
+            start = self._draw_start(rng)
+            if start is not None:
                 break
         self.seed = int(seed)
         self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
@@ -1573,19 +1404,13 @@ class EngineReach3D(ArmEnv):
         return obs, info
 
     def _draw_start(self, rng, n=256):
-        """A start for scene='authors': (6,) or None if none of n draws is acceptable.
+        """A start: (6,) or None if none of n draws is acceptable.
 
-        start='random' (the authors'): all joints uniform within the joint limits; 'home': home_q
-        plus U(-home_jitter, home_jitter) per joint, clipped to the limits. The first draw that is
-        clear of everything by start_clearance with its TCP at least start_goal_min_dist from the
-        goal is taken.
+        The authors': all joints uniform within the joint limits. The first draw that is clear of
+        everything by start_clearance with its TCP at least start_goal_min_dist from the goal is taken.
         """
         cfg = self.cfg
-        if cfg.start == "random":
-            q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
-        else:
-            q = np.asarray(cfg.home_q) + rng.uniform(-cfg.home_jitter, cfg.home_jitter, size=(n, self.dof))
-            q = np.clip(q, self._lo, self._hi)
+        q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
         far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
         ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
         return q[np.argmax(ok)] if ok.any() else None
@@ -1660,11 +1485,11 @@ class EngineReach3D(ArmEnv):
         """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current).
 
         pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed) from the fixed
-        camera ENGINE_CAMERA, beside and above the robot, looking into the bay.
+        camera ENGINE_CAMERA, in front of the robot, looking at the engine.
         """
         q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
-        cam = ENGINE_CAMERA_AUTHORS if self.cfg.scene == "authors" else ENGINE_CAMERA
+        cam = ENGINE_CAMERA
         view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
         projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
         _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection,
@@ -1684,21 +1509,16 @@ class EngineReach3D(ArmEnv):
             ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
             ax.set_axis_off()
             return ax
-        widths = {"frame": 3, "engine": 14, "lever": 2, "pipe": 4, "box": 10}
-        colors = {"frame": "0.45", "engine": "0.2", "lever": "tab:red", "pipe": "tab:orange", "box": "tab:brown"}
+        widths = {"engine": 14, "lever": 2, "pipe": 4, "box": 10}
+        colors = {"engine": "0.2", "lever": "tab:red", "pipe": "tab:orange", "box": "tab:brown"}
         if show_scene:
             for (x0, y0, z0, x1, y1, z1, _), kind in zip(self.obstacles, self.obstacle_kinds):
                 ax.plot([x0, x1], [y0, y1], [z0, z1], color=colors[kind], linewidth=widths[kind])
             ax.scatter(*self._goal, color="tab:green", s=40)
-            if self._wall_y is not None:  # the wall's outline
-                x, z = [-0.7, 0.7, 0.7, -0.7, -0.7], [0, 0, 1.0, 1.0, 0]
-                ax.plot(x, [self._wall_y] * 5, z, color="0.6")
-            if self.cfg.scene == "authors":  # the cell lies toward +x (the engine) and -y (the boxes)
-                ax.set_xlim(-0.7, 0.6)
-                ax.set_ylim(-1.0, 0.3)
-            else:  # the bay lies along -x
-                ax.set_xlim(-1.0, 0.3)
-                ax.set_ylim(-0.65, 0.65)
+            x, z = [-0.7, 0.7, 0.7, -0.7, -0.7], [0, 0, 1.0, 1.0, 0]  # the wall's outline
+            ax.plot(x, [self._wall_y] * 5, z, color="0.6")
+            ax.set_xlim(-0.7, 0.6)  # the cell lies toward +x (the engine) and -y (the boxes)
+            ax.set_ylim(-1.0, 0.3)
             ax.set_zlim(0.0, 1.0)
             ax.set_box_aspect((1.3, 1.3, 1.0))
         for seg in self.link_segments(np.atleast_2d(q)):

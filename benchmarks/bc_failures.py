@@ -14,7 +14,7 @@ histogram side by side: when the collisions happen (the first second, 1-3 s, 3-1
 the first second, and the timeouts -- the paper's lever policies fail mostly in the first second.
 
 Usage:  python benchmarks/bc_failures.py CHECKPOINT [CHECKPOINT ...] [--labels BC HG pooled]
-                                         [--env planar|engine3d] [--start random|home] [--repeats 3] [--seed 123]
+                                         [--env planar|engine3d] [--repeats 3] [--seed 123]
 """
 import argparse
 import os
@@ -118,8 +118,7 @@ def roll_out(checkpoint, args):
     jobs = [int(s) for _ in range(args.repeats) for s in envs.eval_seeds()]
     gen = torch.Generator().manual_seed(args.seed)
     rows, angles, scene = [], [], None
-    for e, ep in dagger.rollouts_in_groups(policy, args.env, jobs, policy.cfg.n_act, gen,
-                                           {"start": args.start} if args.start else None):
+    for e, ep in dagger.rollouts_in_groups(policy, args.env, jobs, policy.cfg.n_act, gen):
         e.reset(seed=ep["seed"])
         rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
         if scene is None:
@@ -135,7 +134,6 @@ def main():
     parser.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT")
     parser.add_argument("--labels", nargs="+", default=None, help="a name per checkpoint for the histogram")
     parser.add_argument("--env", default="planar", choices=sorted(envs.ENVIRONMENTS))
-    parser.add_argument("--start", default=None, choices=envs.ENGINE_STARTS, help="engine3d: the start rule")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=123)
     args = parser.parse_args()

@@ -56,8 +56,6 @@ def main():
     parser.add_argument("--seeds", type=int, default=5, help="--run: calibration seeds (the first is the run's)")
     parser.add_argument("--lineage", type=int, default=0, help="--run: the lineage")
     parser.add_argument("--round", type=int, default=1, help="--run: the round k (its HG-DAgger policy, D_1..D_k)")
-    parser.add_argument("--blend-segments", type=int, default=None,
-                        help="--run: override the profile's calib_blend_segments (0: every long enough segment)")
     parser.add_argument("--betas", default=None, metavar="B1,B2,...",
                         help="--run: the blend ratios instead of calibrate's 13 (e.g. the authors' lever set "
                              "0.1,0.2,0.3,0.5,0.75,0.9)")
@@ -65,7 +63,7 @@ def main():
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.run:
-        return w_spread(args.run, args.seeds, args.lineage, args.round, args.blend_segments, parse_betas(args.betas))
+        return w_spread(args.run, args.seeds, args.lineage, args.round, parse_betas(args.betas))
 
     env = make_env("planar")
     expert, seed = oracle.Oracle(), 0
@@ -101,13 +99,14 @@ def main():
     gen = torch.Generator().manual_seed(0)
     H = policy.cfg.horizon
     segs = cal._segments_longest_first(interventions, H)
-    chosen = [segs[i % min(len(segs), cfg.blend_segments)] for i in range(len(cfg.betas))]
+    blend_beta, chosen = cal.blend_schedule(interventions, H, cfg)  # as calibrate starts them
     rows = []
     steps, w, c = timed(lambda: cal.open_loop_sigma(policy, interventions, cfg.stride, cfg.n_samples, gen))
     rows.append(("open-loop Sigma_hat (Eq. 1)", f"{len(steps.timestep)} steps x {cfg.n_samples} samples", w, c))
     blend, w, c = timed(lambda: cal._blend(env, policy, [(interventions[e], s) for e, s in chosen],
-                                           np.asarray(cfg.betas), cfg.n_act, gen, threshold))
-    rows.append(("blend rollouts", f"13 betas, {int(blend.rollouts.n_recorded.sum())} env steps, "
+                                           blend_beta, cfg.n_act, gen, threshold, cfg, record_contacts=False))
+    rows.append(("blend rollouts", f"13 betas x {len(chosen) // 13} segments, "
+                 f"{int(blend.rollouts.n_recorded.sum())} env steps, "
                  f"{int(blend.kept.sum())} kept", w, c))
     _, w, c = timed(lambda: cal.unguided_sigma(env, policy, interventions, cfg.n_act, gen, threshold,
                                                    cfg.unguided_segments))
@@ -137,23 +136,23 @@ def parse_betas(text):
     return betas
 
 
-def w_spread(root, n_seeds, lineage, k, blend_segments=None, betas=None):
+def w_spread(root, n_seeds, lineage, k, betas=None):
     """W of one round recalibrated with n_seeds calibration seeds: a table per seed and the spread line.
     betas: other blend ratios than calibrate's (the authors' six on the lever), or None."""
     import dataclasses
     import dagger
-    from experiment.run_folder import Run, read_json, stage_seed
+    from experiment.run_folder import Run, read_json, stage_seed, without_retired_fields
     if n_seeds < 2:
         raise SystemExit(f"--seeds {n_seeds}: a spread needs at least 2 seeds")
     saved = read_json(os.path.join(root, "config.json"))
     known = {f.name for f in dataclasses.fields(dagger.Config)}
+    # fields deleted since the folder was made: checked to hold the value that remains, dropped
+    saved = without_retired_fields(os.path.join(root, "config.json"), saved)
     cfg = dagger.Config(**{key: value for key, value in saved.items() if key in known})
     run = Run(root, cfg)  # reads the folder's stages; the settings below change only this measurement
     profile = dagger.PROFILES.get(cfg.name)
     if profile is not None:  # today's calibration settings of the run's profile (the folder may predate them)
         cfg = dataclasses.replace(cfg, **{f: getattr(profile, f) for f in known if f.startswith("calib_")})
-    if blend_segments is not None:
-        cfg = dataclasses.replace(cfg, calib_blend_segments=blend_segments)
     where = f"lineage_{lineage}/round_{k}"
     if not os.path.exists(os.path.join(root, where, "checkpoints", "hg_dagger.pt")):
         raise SystemExit(f"{root}: {where}/checkpoints/hg_dagger.pt is not there; finish that round first")

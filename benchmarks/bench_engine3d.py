@@ -9,7 +9,7 @@ Measures, over the evaluation scenes:
   * the oracle (oracle.py): expert success, planning CPU time and demo length over the scenes.
 
 Usage:  python benchmarks/bench_engine3d.py [--seconds 1.0] [--scenes 100] [--no-oracle] [--max-time S]
-                                           [--scene authors|pipes] [--start random|home] [--no-speed]
+                                           [--no-speed]
 Rates are given per wall-clock second and per CPU second of this process (what one core delivers
 when other jobs share the machine).
 """
@@ -66,7 +66,7 @@ def speed_rows(env, seconds, n_scenes, rng):
         rows.append((f"render_image {size}x{size} (TinyRenderer)",
                      rate(lambda: env.render_image(start, size), 1, seconds), "images/s",
                      "the image observation (32: EngineConfig.image_size's default)" if size == 32 else ""))
-    rows.append(("memory per env (its pybullet client)", [memory_per_env(20, scene=env.cfg.scene)], "MB",
+    rows.append(("memory per env (its pybullet client)", [memory_per_env(20)], "MB",
                  "why dagger.evaluate runs UR5 episodes in groups of 100"))
     return rows
 
@@ -139,13 +139,9 @@ def main():
     parser.add_argument("--no-oracle", action="store_true", help="speed measurements only")
     parser.add_argument("--max-time", type=float, default=None,
                         help="OracleConfig.max_time (s per RRT attempt); default: the oracle's own")
-    parser.add_argument("--scene", default="authors", choices=["authors", "pipes"], help="EngineConfig.scene")
-    parser.add_argument("--start", default="random", choices=["random", "home"],
-                        help="EngineConfig.start (scene 'authors' only)")
     parser.add_argument("--no-speed", action="store_true", help="skip the speed measurements")
     args = parser.parse_args()
-    env = make_env("engine3d", scene=args.scene, start=args.start)
-    print(f"EngineConfig(scene={args.scene!r}, start={args.start!r})")
+    env = make_env("engine3d")
     rng = np.random.default_rng(0)
     rows = [] if args.no_speed else speed_rows(env, args.seconds, 3, rng)
     reasons = []

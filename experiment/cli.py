@@ -32,22 +32,15 @@ def parse_args(argv, profiles, methods):
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
     p.add_argument("--image-obs", action="store_true",
                    help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
-    p.add_argument("--start", default=None, choices=sorted(set(envs.ENGINE_STARTS) | set(envs.PLANAR_STARTS)),
-                   help="where episodes start: random (the authors', uniform and collision-free), fixed (planar: "
-                        "their demonstration config's q) or home (engine3d: near a home pose)")
     p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
                    help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
                         "orientation (the authors' rule: 10), and the oracle ends at that posture")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(methods)} (BC and HG-DAgger always run)")
-    p.add_argument("--collect-on", default=None, choices=("eval", "train"),
-                   help="where HG-DAgger collects: eval (default, the paper's protocol: the evaluation scenarios "
-                        "the policy does not solve, so they enter the training data) or train (fresh training "
-                        "scenarios, the stricter variant)")
-    p.add_argument("--finetune", default=None, choices=("continue", "constant", "restart"),
+    p.add_argument("--finetune", default=None, choices=("continue", "constant"),
                    help="how every arm is fine-tuned from pi_0: continue (pi_0's optimizer along one cosine, the "
-                        "authors' planar runs), constant (pi_0's optimizer at a constant lr / 10, their lever "
-                        "runs) or restart (a fresh warm-up and cosine); default: the profile's")
+                        "authors' planar runs) or constant (pi_0's optimizer at a constant lr / 10, their lever "
+                        "runs); default: the profile's")
     p.add_argument("--round-shares", default=None, choices=("equal", "frames"),
                    help="the intervention share of a batch split over rounds equally (the authors' planar runs) "
                         "or by frame count (their lever runs); default: the profile's")
@@ -95,12 +88,8 @@ def parse_args(argv, profiles, methods):
         over["methods"] = parse_methods(p, args.methods, methods)
     if args.image_obs:
         over["image_obs"] = True
-    if args.start:
-        over["start"] = args.start
     if args.goal_angle is not None:
         over["goal_angle"] = args.goal_angle
-    if args.collect_on:
-        over["collect_on"] = args.collect_on
     if args.finetune:
         over["finetune"] = args.finetune
     if args.round_shares:
@@ -153,14 +142,12 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, short
+    (another env, image observations, goal angle, fine-tuning, round shares, short
     interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
     name += "_images" if args.image_obs else ""
-    name += f"_{args.start}_start" if args.start else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
-    name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
     name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
     name += "_pad_short" if over.get("short_interventions", cfg.short_interventions) != cfg.short_interventions else ""

@@ -10,21 +10,21 @@ import envs
 
 PROFILES = {
     # CI: every stage and every output file, tiny sizes (about 2 minutes). The calibration keeps the paper's
-    # blend protocol (calib_blend_segments=0: one rollout per ratio from every intervention segment long
-    # enough to keep, 9 in the smoke round), so CI fits W by Eq. (12): with one segment each ratio had one
+    # blend protocol (one rollout per ratio from every intervention segment long enough to keep, 9 in the
+    # smoke round), so CI fits W by Eq. (12): with one segment (calib_blend_segments=1) each ratio had one
     # rollout, fewer than min_survivors = 3, and W always fell back to the open-loop error. Measured: 46 of
     # 117 rollouts kept, 6 ratios fitted; the calibration 2 s -> 4 s, the run 1 min 45 s -> 1 min 52 s on
     # the 2-core machine (tests/test_calibrate.py::test_the_smoke_profile_calibration_fits_W).
-    "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, episodes_per_round=8, K=10,
+    "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, K=10,
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                    calib_blend_segments=0, calib_samples=4, eval_scenarios=8, eval_repeats=1),
+                    calib_samples=4, eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 6 min 55 s - 9 min 5 s wall over three seeds on the 2-core machine, --workers 2
     # (benchmarks/README.md, "The quick profile today").
-    "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, episodes_per_round=30, oracle_attempts=1,
+    "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
-                    start="random", finetune="continue",
+                    finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
     # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, Table I's whole fixed sweep
@@ -36,9 +36,9 @@ PROFILES = {
     # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured with sigma 2-16 and
     # pooled (2026-11-25): prepare 7 min, lineages 0-2 side by side 77 min, 3-4 side by side 55 min: 2 h 19 min
     # (benchmarks/README.md, "The mid run with Table I's whole sweep").
-    "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5, episodes_per_round=100,
+    "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                  start="random", finetune="continue",
+                  finetune="continue",
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
                   eval_scenarios=100, eval_repeats=3),
     # All of Table I on the 2-core machine: the mid recipe with the paper's five rounds and every row (the fixed
@@ -47,9 +47,9 @@ PROFILES = {
     # lineage folders join with --report), then --report. Measured (2026-11-25): prepare 7 min, one lineage 1 h 48 min
     # with --workers 2; five lineages 7.2 h projected on 2 cores (python benchmarks/table1_cost.py --run runs/table1;
     # benchmarks/README.md, "All of Table I: one whole table1 lineage").
-    "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5, episodes_per_round=100,
+    "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                     start="random", finetune="continue",
+                     finetune="continue",
                      methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
                               "per_step", "closed_loop"),
                      eval_scenarios=100, eval_repeats=3),
@@ -62,7 +62,7 @@ PROFILES = {
     # side, --report (README). Measured (2026-11-25): a cell 10.5 min of fine-tuning + 1 min of evaluations,
     # lineages 0 and 1 side by side 2 h (25 min of it lost to a side job); ~2 h 50 min end to end projected
     # (benchmarks/README.md, "The Table II analogue today").
-    "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3, episodes_per_round=100,
+    "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3,
                      K=20, down_dims=(16, 32, 64), batch_size=256, lr=1e-3, bc_steps=10_000,
                      finetune_steps=10_000, finetune="continue",
                      methods=("bc", "hg_dagger", "fixed_4", "fixed_8", "pooled"),
@@ -85,9 +85,8 @@ def check_config(cfg, methods):
     if cfg.env not in envs.ENVIRONMENTS:
         raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
     cfg.down_dims = tuple(int(d) for d in cfg.down_dims)
-    for key in ("n_demos", "rounds", "lineages", "episodes_per_round", "horizon", "n_act", "K",
-                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats",
-                "calib_rollouts_per_beta"):
+    for key in ("n_demos", "rounds", "lineages", "horizon", "n_act", "K",
+                "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
     if cfg.image_obs and cfg.env != "engine3d":
@@ -96,16 +95,9 @@ def check_config(cfg, methods):
     if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
         raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
                          f"within (0, 180] (the authors' 10), or None for position-only success")
-    starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
-    if cfg.start is not None and cfg.start not in starts:
-        raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
-                         f"{', '.join(starts)}")
-    if cfg.finetune not in ("continue", "restart", "constant"):
-        raise ValueError(f"finetune must be 'continue' (the authors' planar run), 'constant' (their lever run) or "
-                         f"'restart', got {cfg.finetune!r}")
-    if cfg.finetune == "continue" and cfg.finetune_lr is not None:
-        raise ValueError(f"finetune_lr={cfg.finetune_lr} is for finetune='restart' or 'constant'; 'continue' "
-                         f"follows BC's own schedule (lr)")
+    if cfg.finetune not in ("continue", "constant"):
+        raise ValueError(f"finetune must be 'continue' (the authors' planar run) or 'constant' (their lever run), "
+                         f"got {cfg.finetune!r}")
     if cfg.replicates not in ("lineages", "seeds"):
         raise ValueError(f"replicates must be 'lineages' (independent chains) or 'seeds' (training seeds on lineage "
                          f"0's interventions), got {cfg.replicates!r}")
@@ -118,15 +110,10 @@ def check_config(cfg, methods):
     if cfg.round_shares not in ("equal", "frames"):
         raise ValueError(f"round_shares must be 'equal' (the authors' planar runs) or 'frames' (their lever "
                          f"runs), got {cfg.round_shares!r}")
-    if not 0.0 <= cfg.raw_mix < 1.0:
-        raise ValueError(f"raw_mix must be in [0, 1) (the share of recorded intervention rows in a noised "
-                         f"arm), got {cfg.raw_mix}")
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
     if cfg.image_size < 8:
         raise ValueError(f"image_size must be >= 8 pixels, got {cfg.image_size}")
-    if cfg.collect_on not in ("eval", "train"):
-        raise ValueError(f"collect_on must be 'eval' (the paper's protocol) or 'train', got {cfg.collect_on!r}")
     if not 0.0 < cfg.intervention_fraction < 1.0:
         raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
     if cfg.eval_scenarios > 100:

@@ -193,14 +193,11 @@ def table_rows(cfg, table):
 
 
 def scenario_words(cfg, scenarios="eval"):
-    """What the table's scenarios are: under collect_on='eval' the evaluation scenarios are the ones HG-DAgger
-    collected on (the authors' protocol), not held out; the unseen ones never enter any training data."""
+    """What the table's scenarios are: the evaluation scenarios are the ones HG-DAgger collected on (the
+    authors' protocol), not held out; the unseen ones never enter any training data."""
     if scenarios == "unseen":
         return f"{cfg.eval_scenarios} unseen scenarios (never trained on)"
-    if cfg.collect_on == "eval":
-        return (f"the {cfg.eval_scenarios} evaluation scenarios, on which HG-DAgger collected "
-                f"(the authors' protocol)")
-    return f"{cfg.eval_scenarios} held-out evaluation scenarios (HG-DAgger collected on fresh training scenarios)"
+    return f"the {cfg.eval_scenarios} evaluation scenarios, on which HG-DAgger collected (the authors' protocol)"
 
 
 def format_table(cfg, table, stats, unseen=None):
@@ -522,9 +519,8 @@ def write_markdown_report(run, text, stats, stats_unseen):
     lines = [f"# {cfg.name}: Policy-Calibrated DAgger on the {cfg.env} env", "",
              f"Profile settings: {cfg.n_demos} demonstrations, BC {cfg.bc_steps} steps, {cfg.rounds} round(s), "
              f"{cfg.lineages} lineage(s), fine-tuning {cfg.finetune_steps} steps per cell, interventions "
-             f"collected on the {'evaluation' if cfg.collect_on == 'eval' else 'fresh training'} scenarios"
-             + (" (the paper's protocol: the evaluation scenarios enter the training data)" if cfg.collect_on == "eval"
-                else "")
+             f"collected on the evaluation scenarios (the paper's protocol: the evaluation scenarios enter the "
+             f"training data)"
              + (f"; every policy is also evaluated on {scenario_words(cfg, 'unseen')}" if cfg.eval_unseen else "")
              + ".", "", "## Table", "", text.rstrip(), ""]
     words = paired_words(stats)

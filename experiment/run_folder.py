@@ -37,6 +37,22 @@ class RunFolderError(ValueError):
 # seed depends on their number). Any other difference is refused (ConfigMismatch).
 FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
 
+# Config fields deleted since run folders and results files were made: options that were measured and not adopted
+# (their numbers are in benchmarks/README.md). A stored config (config.json, a lineage.json, a --join file, a
+# --copy-from folder) still names them; each must hold a value whose behaviour is the one that remains -- the
+# values listed -- and is then dropped before the comparison. Another value ran code that is gone: refused
+# (ConfigMismatch), naming the field. ANY_VALUE: a field that only a deleted option read (its value changed nothing).
+ANY_VALUE = None
+RETIRED_FIELDS = {
+    "finetune_lr": (None,),  # finetune='constant' runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
+    "raw_mix": (0.0,),  # a noised arm noises every intervention frame it draws (the authors' code)
+    "start": (None, "random"),  # the authors' random starts (None: the env's default, 'random')
+    "collect_on": ("eval",),  # HG-DAgger collects on the evaluation scenarios (the authors' protocol)
+    "episodes_per_round": ANY_VALUE,  # read only by collect_on='train'
+    "calib_rollouts_per_beta": (1,),  # one blended rollout per ratio and segment (the authors')
+    "calib_blend_segments": (0,),  # every long enough intervention segment starts blended rollouts
+}
+
 
 class Run:
     """One run folder and the config it was made with (any dataclass config: this module never imports it)."""
@@ -351,8 +367,22 @@ def folder_pi0(run):
     return None
 
 
+def without_retired_fields(where, stored):
+    """The stored config `stored` (a dict) without its RETIRED_FIELDS, each checked to hold a value of the
+    behaviour that remains; ConfigMismatch naming `where` and the field otherwise."""
+    for key, allowed in RETIRED_FIELDS.items():
+        if key in stored and allowed is not ANY_VALUE and stored[key] not in allowed:
+            raise ConfigMismatch(
+                f"{where} was made with {key} = {stored[key]!r}, an option deleted since (measured and not adopted: "
+                f"benchmarks/README.md); this code runs only {key} = "
+                + " / ".join(repr(v) for v in allowed) + ". Use the commit that made it to run or report it.")
+    return {key: value for key, value in stored.items() if key not in RETIRED_FIELDS}
+
+
 def check_same_config(root, old, cfg, advice=None):
-    """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside)."""
+    """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside;
+    RETIRED_FIELDS checked and dropped: without_retired_fields)."""
+    old = without_retired_fields(root, old)
     saved = asdict(cfg)
     for key, value in saved.items():  # JSON keeps tuples as lists
         if isinstance(value, tuple):

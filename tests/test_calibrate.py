@@ -2,7 +2,6 @@
 
 import json
 import math
-from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -481,16 +480,13 @@ def _line_into_an_obstacle(env, seeds, past=3, speed=0.8):
     raise AssertionError("no straight line meets an obstacle")
 
 
-def test_contacts_are_recorded_and_discarded_only_on_request(planar):
+def test_contacts_are_recorded_never_discarded(planar):
     env, _, policy = planar
     # an expert path that runs 3 steps into an obstacle: at beta = 0 the rollout retraces it exactly
     ep, first_contact = _line_into_an_obstacle(env, env.train_seeds(80))
     kept = cal.blend_rollouts(env, policy, ep, [0.0])
     assert kept.rollouts.collided[0] and kept.kept[0] and kept.x[0] == 0.0
-    assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1                    # ran through the contact
-    dropped = cal.blend_rollouts(env, policy, ep, [0.0], discard_collisions=True)
-    assert dropped.rollouts.collided[0] and not dropped.kept[0]
-    assert dropped.rollouts.n_recorded[0] == first_contact                    # stopped at the contact
+    assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1 > first_contact    # ran through the contact
 
 
 def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
@@ -578,7 +574,7 @@ def test_ratio_cells_average_the_kept_rollouts_per_ratio_and_need_three():
 
 def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
     """One rollout per ratio from each expert segment the settling window can use (>= min_rollout_steps),
-    longest first; blend_segments=n keeps the n longest; rollouts_per_beta repeats each."""
+    longest first."""
     def episode(lengths):
         expert = np.concatenate([np.r_[np.ones(n, bool), np.zeros(5, bool)] for n in lengths])
         return {"expert": expert}
@@ -588,28 +584,8 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
     lengths = sorted({(e, b - a) for e, (a, b) in jobs}, key=lambda item: -item[1])
     assert [n for _, n in lengths] == [40, 30, 25]                           # the 12-step one is too short
     assert len(beta) == 13 * 3 and all(np.sum(beta == b) == 3 for b in cfg.betas)
-    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=20, blend_segments=2))
-    assert {b - a for _, (a, b) in jobs} == {40, 30} and len(beta) == 26
-    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=20, rollouts_per_beta=2))
-    assert len(beta) == 13 * 3 * 2
     beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=50))
     assert {b - a for _, (a, b) in jobs} == {40} and len(beta) == 13          # none long enough: the longest
-    with pytest.raises(ValueError, match="blend_segments must be an int >= 0"):
-        cal.blend_schedule(episodes, 10, cal.CalibrationConfig(blend_segments=-1))
-
-
-def test_rollouts_per_beta_repeats_every_ratio_on_every_segment(planar):
-    env, episodes, policy = planar
-    unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=False, rollouts_per_beta=2, bootstrap=20)
-    c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
-    once = cal.calibrate(env, policy, episodes, unit, replace(cfg, rollouts_per_beta=1),
-                         torch.Generator().manual_seed(0))
-    assert len(c.blend_beta) == 2 * len(once.blend_beta)
-    pairs = list(zip(c.blend_beta.tolist(), c.blend_episode.tolist(), c.blend_start.tolist()))
-    assert all(pairs.count(p) == 2 for p in pairs)                           # each (ratio, segment) twice
-    with pytest.raises(ValueError, match="rollouts_per_beta must be an int >= 1"):
-        cal.calibrate(env, policy, episodes, unit, cal.CalibrationConfig(rollouts_per_beta=0))
 
 
 def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
@@ -757,7 +733,7 @@ def test_the_smoke_profile_calibration_fits_W():
     open-loop error: the smoke profile's calibration config (dagger.calibration_config) on a small round of 4
     intervention segments long enough to keep (the smoke round had 9) and a policy whose rollouts all stay on
     the route (OffsetPolicy at the smoke's K, H and n_act). Catches a smoke profile that starts fewer than
-    min_survivors = 3 blended rollouts per ratio (calib_blend_segments=1 did: 1 each, W never fitted in CI)."""
+    min_survivors = 3 blended rollouts per ratio (one segment a ratio did: 1 each, W never fitted in CI)."""
     smoke = dagger.PROFILES["smoke"]
     cfg = dagger.calibration_config(smoke)
     env = RailEnv()

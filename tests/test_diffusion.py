@@ -43,7 +43,7 @@ def cosine_alphabar(t, s=0.008):
 
 def test_squaredcos_schedule_matches_closed_form():
     K = 100
-    sch = make_schedule(K, "squaredcos")
+    sch = make_schedule(K)
     abar = sch.alphas_cumprod.double().numpy()
     # Before the cap, alphabar_{k+1} = f((k+1)/K) / f(0) (code index k = paper step k + 1).
     for k in (0, 10, 50, 90, 97):
@@ -58,28 +58,16 @@ def test_squaredcos_schedule_matches_closed_form():
     assert np.allclose(np.cumprod(sch.alphas.double().numpy()), abar, rtol=1e-5)
 
 
-def test_linear_schedule_end_values():
-    sch = make_schedule(1000, "linear")                 # Ho et al.'s values at K = 1000
-    assert sch.betas[0].item() == pytest.approx(1e-4)
-    assert sch.betas[-1].item() == pytest.approx(0.02)
-    sch100 = make_schedule(100, "linear")               # scaled by 1000 / K
-    assert sch100.betas[0].item() == pytest.approx(1e-3)
-    assert sch100.betas[-1].item() == pytest.approx(0.2)
-    for s in (sch, sch100):
-        assert np.all(np.diff(s.alphas_cumprod.numpy()) < 0)
-        assert s.alphas_cumprod[-1].item() < 1e-4      # the reverse process may start from N(0, I)
-
-
-@pytest.mark.parametrize("K,kind", [(0, "linear"), (100, "cosine"), (10, "linear")])
-def test_bad_schedule_raises(K, kind):
-    with pytest.raises(ValueError):
-        make_schedule(K, kind)
+@pytest.mark.parametrize("K", [0, -3, 2.5])
+def test_bad_schedule_raises(K):
+    with pytest.raises(ValueError, match="K must be a positive int"):
+        make_schedule(K)
 
 
 # ---------------------------------------------------------------------------------------------- Eq. (5)
 
 def test_q_sample_equals_iterating_eq5():
-    sch = make_schedule(100, "squaredcos")
+    sch = make_schedule(100)
     gen = torch.Generator().manual_seed(0)
     n, k = 200_000, 30                                  # code level 30 = paper step 31
     a0 = torch.tensor([0.7, -0.4])
@@ -100,27 +88,26 @@ def test_q_sample_equals_iterating_eq5():
 
 def test_posterior_matches_gaussian_product():
     """q(a_{k-1} | a_k, a_0) ∝ q(a_k | a_{k-1}) q(a_{k-1} | a_0): multiply the two Gaussians directly."""
-    for kind in ("squaredcos", "linear"):
-        sch = make_schedule(100, kind)
-        b, al = sch.betas.double(), sch.alphas.double()
-        abar_prev = sch.alphas_cumprod_prev.double()
-        for k in range(1, 100):
-            # In a_{k-1}: q(a_k | a_{k-1}) has precision alpha/beta and mean a_k / sqrt(alpha);
-            # q(a_{k-1} | a_0) has precision 1 / (1 - abar_prev) and mean sqrt(abar_prev) a_0.
-            precision = al[k] / b[k] + 1 / (1 - abar_prev[k])
-            assert sch.posterior_variance[k].item() == pytest.approx(1 / precision.item(), rel=1e-4)
-            coef_a0 = abar_prev[k].sqrt() / (1 - abar_prev[k]) / precision
-            coef_ak = al[k].sqrt() / b[k] / precision
-            assert sch.posterior_mean_coef1[k].item() == pytest.approx(coef_a0.item(), rel=1e-4)
-            assert sch.posterior_mean_coef2[k].item() == pytest.approx(coef_ak.item(), rel=1e-4)
-        # code k = 0 (paper step 1): a_0 is known exactly once a_1 and a_0 are given.
-        assert sch.posterior_variance[0].item() == 0.0
-        assert sch.posterior_mean_coef1[0].item() == pytest.approx(1.0)
-        assert sch.posterior_mean_coef2[0].item() == pytest.approx(0.0, abs=1e-7)
+    sch = make_schedule(100)
+    b, al = sch.betas.double(), sch.alphas.double()
+    abar_prev = sch.alphas_cumprod_prev.double()
+    for k in range(1, 100):
+        # In a_{k-1}: q(a_k | a_{k-1}) has precision alpha/beta and mean a_k / sqrt(alpha);
+        # q(a_{k-1} | a_0) has precision 1 / (1 - abar_prev) and mean sqrt(abar_prev) a_0.
+        precision = al[k] / b[k] + 1 / (1 - abar_prev[k])
+        assert sch.posterior_variance[k].item() == pytest.approx(1 / precision.item(), rel=1e-4)
+        coef_a0 = abar_prev[k].sqrt() / (1 - abar_prev[k]) / precision
+        coef_ak = al[k].sqrt() / b[k] / precision
+        assert sch.posterior_mean_coef1[k].item() == pytest.approx(coef_a0.item(), rel=1e-4)
+        assert sch.posterior_mean_coef2[k].item() == pytest.approx(coef_ak.item(), rel=1e-4)
+    # code k = 0 (paper step 1): a_0 is known exactly once a_1 and a_0 are given.
+    assert sch.posterior_variance[0].item() == 0.0
+    assert sch.posterior_mean_coef1[0].item() == pytest.approx(1.0)
+    assert sch.posterior_mean_coef2[0].item() == pytest.approx(0.0, abs=1e-7)
 
 
 def test_p_sample_without_clip_is_eq6():
-    sch = make_schedule(100, "squaredcos")
+    sch = make_schedule(100)
     gen = torch.Generator().manual_seed(1)
     a_k, eps, z = (torch.randn(64, 4, 2, generator=gen) for _ in range(3))
     k = torch.randint(1, 100, (64,), generator=gen)
@@ -220,6 +207,18 @@ def test_save_load_round_trip(toy_trained, tmp_path):
     torch.save({"format": "diffusion-policy-v1", "config": {}, "state_dict": {}}, tmp_path / "mlp.pt")
     with pytest.raises(ValueError, match="residual-MLP"):
         DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
+
+
+def test_a_checkpoint_written_before_the_schedule_option_was_deleted_loads_if_squared_cosine(toy_trained, tmp_path):
+    """Checkpoints written before PolicyConfig.schedule was deleted name their schedule: 'squaredcos' (every
+    profile's) loads as before; 'linear' ran a schedule that is gone and is refused, naming the file."""
+    toy_trained.save(str(tmp_path / "policy.pt"))
+    payload = torch.load(tmp_path / "policy.pt", weights_only=True)
+    for schedule in ("squaredcos", "linear"):
+        torch.save({**payload, "config": {**payload["config"], "schedule": schedule}}, tmp_path / f"{schedule}.pt")
+    assert DiffusionPolicy.load(str(tmp_path / "squaredcos.pt")).cfg == toy_trained.cfg
+    with pytest.raises(ValueError, match=r"linear\.pt.*linear noise schedule"):
+        DiffusionPolicy.load(str(tmp_path / "linear.pt"))
 
 
 def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
@@ -335,8 +334,6 @@ def test_bad_inputs_raise():
         train(policy, np.zeros((5, 2)), np.zeros((6, 4, 2)), TrainConfig(steps=1))
     with pytest.raises(ValueError):
         train(policy, np.zeros((5, 2)), np.zeros((5, 4, 2)), TrainConfig(steps=1, aug_fraction=0.5))
-    with pytest.raises(ValueError):
-        PolicyConfig(obs_dim=2, dof=2, schedule="cosine")
     with pytest.raises(ValueError):
         PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=8)
     with pytest.raises(ValueError):

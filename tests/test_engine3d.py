@@ -2,8 +2,8 @@
 
 FK against hand-computed DH poses, closed-form IK round trips, collision truth on hand-built
 configurations, pybullet (the simulator) vs the vectorized numpy check, scenario determinism,
-batched == looped, step semantics, images, bad input; the two scene families ('authors': the
-authors' small-engine cell, the default; 'pipes': the earlier generated bay) and the two starts.
+batched == looped, step semantics, images, bad input; the scene (the authors' small-engine cell)
+and the starts.
 """
 import math
 
@@ -174,9 +174,8 @@ def test_in_collision_equals_exact_clearance_with_margins(scene_env):
         np.testing.assert_array_equal(scene_env.in_collision(q, margin=margin), clearance < margin)
 
 
-@pytest.mark.parametrize("scene", ["authors", "pipes"])
-def test_pybullet_agrees_with_numpy_on_random_configurations(scene):
-    env = EngineReach3D(EngineConfig(scene=scene))
+def test_pybullet_agrees_with_numpy_on_random_configurations():
+    env = EngineReach3D()
     rng = np.random.default_rng(4)
     n_hit = 0
     for seed in env.eval_seeds()[:3]:
@@ -222,25 +221,8 @@ def test_reset_is_deterministic_and_seeds_differ():
     assert obs_a.dtype == np.float32 and obs_a.shape == (a.obs_dim,)
 
 
-def test_pipes_scenes_are_valid_and_need_planning():
-    env = EngineReach3D(EngineConfig(scene="pipes"))
-    straight_collides = 0
-    for seed in env.eval_seeds()[:6]:
-        env.reset(seed=seed)
-        assert not env.in_collision(env.q) and not env.in_collision(env.witness)
-        assert np.linalg.norm(env.ee(env.witness) - env.goal) < 1e-9
-        assert np.linalg.norm(env.ee(env.q) - env.goal) >= env.cfg.start_goal_min_dist
-        assert len(env.obstacles) <= env.cfg.n_max_obstacles
-        line = env.q + np.linspace(0, 1, 400)[:, None] * (env.witness - env.q)
-        straight_collides += env.in_collision(line).any()
-    assert straight_collides >= 3  # the straight joint-space line is usually blocked
-    assert set(env.obstacle_kinds) >= {"frame", "engine", "lever", "pipe"} and "box" not in env.obstacle_kinds
-    assert env._wall_y is None  # no wall in the pipes scenes
-
-
 def test_authors_scene_is_one_engine_and_lever_with_two_boxes_drawn_per_seed():
-    env = EngineReach3D()  # the default: scene='authors', start='random'
-    assert env.cfg.scene == "authors" and env.cfg.start == "random"
+    env = EngineReach3D()
     goal_q = np.asarray(env.cfg.goal_q)
     fixed, boxes = None, []
     for seed in env.eval_seeds()[:8]:
@@ -276,7 +258,7 @@ def test_the_wall_is_a_half_space_in_numpy_and_pybullet():
     q[:, 0] = q1
     seg = env.link_segments(q)  # (B, 8, 2, 3)
     expected = (env.cfg.wall_y - seg[..., 1].max(axis=2) - env.link_radii).min(axis=1)
-    free = EngineReach3D(EngineConfig(scene="pipes"))
+    free = EngineReach3D(EngineConfig(wall_y=100.0))  # the wall 100 m away: only the ground and the arm
     free.set_scene(np.zeros((0, 7)))
     np.testing.assert_allclose(env.clearance(q), np.minimum(expected, free.clearance(q)), atol=1e-12)
     hit = env.in_collision(q)
@@ -286,28 +268,21 @@ def test_the_wall_is_a_half_space_in_numpy_and_pybullet():
     assert not free.in_collision(q).any()  # without the wall nothing collides
 
 
-@pytest.mark.parametrize("start", ["random", "home"])
-def test_starts_are_clear_far_from_the_goal_and_spread_as_configured(start):
-    env = EngineReach3D(EngineConfig(start=start))
+def test_starts_are_clear_far_from_the_goal_and_spread_over_the_joint_limits():
+    env = EngineReach3D()
     starts = []
     for seed in env.train_seeds(12):
         env.reset(seed=seed)
         assert not env.in_collision(env.q, margin=env.cfg.start_clearance)
         assert np.linalg.norm(env.ee(env.q) - env.goal) >= env.cfg.start_goal_min_dist
         starts.append(env.q)
-    starts = np.array(starts)
-    spread = np.abs(starts - np.asarray(env.cfg.home_q)).max()
-    if start == "home":
-        assert spread <= env.cfg.home_jitter + 1e-12
-    else:  # uniform within the limits: far wider than the home jitter on some joint
-        assert spread > 1.0 and starts.std(axis=0).max() > 1.0
+    assert np.array(starts).std(axis=0).max() > 1.0  # the authors' starts: uniform within the limits
 
 
 def test_make_env_builds_the_engine_env_with_config_fields():
     env = make_env("engine3d", max_steps=50, image_size=32)
     assert isinstance(env, EngineReach3D) and env.max_steps == 50 and env.cfg.image_size == 32
     assert make_env("engine3d").max_steps == 333  # the authors' 1000 frames at 30 Hz, at 10 Hz
-    assert make_env("engine3d", scene="pipes", start="home").cfg.scene == "pipes"
     assert env.dof == 6 and env.obs_dim == 2 * 6 + 3 + 7 * env.cfg.n_max_obstacles
 
 
@@ -438,13 +413,6 @@ def test_render_draws_3d_and_2d(scene_env):
 
 
 # ---- bad input -----------------------------------------------------------------------------------
-def test_bad_scene_or_start_names_the_value():
-    with pytest.raises(ValueError, match="scene"):
-        EngineReach3D(EngineConfig(scene="bay"))
-    with pytest.raises(ValueError, match="start"):
-        EngineReach3D(EngineConfig(start="fixed"))
-
-
 def test_bad_input_raises_value_error(scene_env):
     with pytest.raises(ValueError, match="shape"):
         scene_env.step(np.zeros(3))
@@ -516,7 +484,6 @@ def test_orientation_rule_keeps_the_scenes_and_asks_for_the_goal_posture():
     assert episode["success"] and posed.tool_angle(end) <= 10.0
     plain.close()
     posed.close()
-    for bad in ({"goal_angle_tolerance": 0.0}, {"goal_angle_tolerance": 200.0},
-                {"goal_angle_tolerance": 10.0, "scene": "pipes"}):
+    for bad in ({"goal_angle_tolerance": 0.0}, {"goal_angle_tolerance": 200.0}):
         with pytest.raises(ValueError, match="goal_angle_tolerance must be None"):
             make_env("engine3d", **bad)

@@ -74,7 +74,7 @@ def test_switch_step_rounds_to_nearest():
 
 def test_noise_fraction_is_one_minus_alphabar_at_switch_step():
     from diffusion import make_schedule
-    sch = make_schedule(100, "squaredcos")
+    sch = make_schedule(100)
     assert noise_fraction(sch, 0.0) == 0.0
     for beta in (0.05, 0.3, 0.9, 1.0):
         k_sw = switch_step(beta, 100)

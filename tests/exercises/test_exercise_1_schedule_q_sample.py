@@ -17,7 +17,7 @@ def squaredcos_alphabar(K, s=0.008):
 
 @pytest.mark.parametrize("K", [10, 100])
 def test_squaredcos_schedule(K):
-    sch = make_schedule(K, "squaredcos")
+    sch = make_schedule(K)
     betas, abar = sch.betas.double().numpy(), sch.alphas_cumprod.double().numpy()
     assert sch.K == K and np.all(betas > 0) and np.all(betas <= 0.999 + 1e-6)   # float32 storage
     assert np.allclose(abar[:-1], squaredcos_alphabar(K)[:-1], rtol=1e-5, atol=1e-7)   # the capped last step aside
@@ -26,13 +26,6 @@ def test_squaredcos_schedule(K):
     assert np.allclose(abar, np.cumprod(1 - betas), rtol=1e-5)
     prev = sch.alphas_cumprod_prev.double().numpy()
     assert prev[0] == 1.0 and np.allclose(prev[1:], abar[:-1])            # alphabar_0 = 1: the clean chunk
-
-
-def test_linear_schedule_uses_the_same_derived_arrays():
-    sch = make_schedule(100, "linear")
-    betas = sch.betas.double().numpy()
-    assert betas[0] == pytest.approx(1e-3, rel=1e-5) and betas[-1] == pytest.approx(0.2, rel=1e-5)
-    assert np.allclose(sch.alphas_cumprod.double().numpy(), np.cumprod(1 - betas), rtol=1e-5)
 
 
 def test_q_sample_closed_form_per_row():
