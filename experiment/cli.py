@@ -29,9 +29,10 @@ def parse_args(argv, profiles, methods):
                         "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 5 lineages x 2 "
                         "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
-    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
-    p.add_argument("--image-obs", action="store_true",
-                   help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
+    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS),
+                   help="environment (default planar): planar, engine3d, or a research variant's, e.g. engine3d_image "
+                        "(experiment/image_obs.py: the UR5 policy sees a camera image through a small CNN instead of "
+                        "the obstacle list)")
     p.add_argument("--start", default=None, choices=sorted(set(envs.ENGINE_STARTS) | set(envs.PLANAR_STARTS)),
                    help="where episodes start: random (the authors', uniform and collision-free), fixed (planar: "
                         "their demonstration config's q) or home (engine3d: near a home pose)")
@@ -93,8 +94,6 @@ def parse_args(argv, profiles, methods):
         over["env"] = args.env
     if args.methods:
         over["methods"] = parse_methods(p, args.methods, methods)
-    if args.image_obs:
-        over["image_obs"] = True
     if args.start:
         over["start"] = args.start
     if args.goal_angle is not None:
@@ -153,11 +152,10 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, start, goal angle, collection scenarios, fine-tuning, round shares, short
+    (another env, start, goal angle, collection scenarios, fine-tuning, round shares, short
     interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
-    name += "_images" if args.image_obs else ""
     name += f"_{args.start}_start" if args.start else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
     name += "_collect_train" if over.get("collect_on", cfg.collect_on) == "train" else ""

@@ -90,11 +90,8 @@ def check_config(cfg, methods):
                 "calib_rollouts_per_beta"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
-    if cfg.image_obs and cfg.env != "engine3d":
-        raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
-                         f"got env={cfg.env!r}")
-    if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
-        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
+    if cfg.goal_angle is not None and (envs.paper_env(cfg.env) != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
+        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env (and its variants) only, in degrees "
                          f"within (0, 180] (the authors' 10), or None for position-only success")
     starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
     if cfg.start is not None and cfg.start not in starts:
@@ -123,8 +120,6 @@ def check_config(cfg, methods):
                          f"arm), got {cfg.raw_mix}")
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
-    if cfg.image_size < 8:
-        raise ValueError(f"image_size must be >= 8 pixels, got {cfg.image_size}")
     if cfg.collect_on not in ("eval", "train"):
         raise ValueError(f"collect_on must be 'eval' (the paper's protocol) or 'train', got {cfg.collect_on!r}")
     if not 0.0 < cfg.intervention_fraction < 1.0:
