@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import diffusion  # noqa: E402
-from experiment.run_folder import Run, read_json, timing_name, write_json  # noqa: E402
+from experiment.run_folder import Run, drop_retired_fields, read_json, timing_name, write_json  # noqa: E402
 from experiment.workers import in_parallel  # noqa: E402
 
 # dagger.Config fields each candidate changes in the base profile. The continued ones train pi_0 for bc_steps of
@@ -111,7 +111,7 @@ def cpu_seconds_per_step(cfg, demos, steps=TIMED_STEPS):
 def result_row(out, name):
     """The table row of a finished candidate, from its folder (config, CPU per step, evaluations, timings, pi_0)."""
     root = os.path.join(out, name)
-    cfg = dagger.Config(**read_json(os.path.join(root, "config.json")))
+    cfg = dagger.Config(**drop_retired_fields(root, read_json(os.path.join(root, "config.json"))))
     pi0 = Run(root, cfg).load("checkpoints/bc.pt")
     seconds = cfg.bc_steps * read_json(os.path.join(root, "cpu_per_step.json"))["seconds"]  # pi_0's training, CPU
     pi0_eval = dagger.pi0_eval_name(cfg)

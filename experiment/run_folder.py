@@ -37,6 +37,13 @@ class RunFolderError(ValueError):
 # seed depends on their number). Any other difference is refused (ConfigMismatch).
 FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
 
+# Config fields a stored config (a run folder's config.json, a lineage's record, a lineage results file) may still
+# hold after they left the Config, each with the only value it may hold: the config comparisons drop them (so the
+# committed results in benchmarks/results/ still join), and refuse another value, naming the field (RETIRED_ADVICE).
+RETIRED_FIELDS = {"image_obs": False, "image_size": 32}
+RETIRED_ADVICE = {"image_obs": "camera images are the env variant --env engine3d_image now (experiment/image_obs.py)",
+                  "image_size": "the camera image's size is engine3d_image's own (experiment/image_obs.py)"}
+
 
 class Run:
     """One run folder and the config it was made with (any dataclass config: this module never imports it)."""
@@ -352,7 +359,9 @@ def folder_pi0(run):
 
 
 def check_same_config(root, old, cfg, advice=None):
-    """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside)."""
+    """ConfigMismatch naming every field that differs from the folder's config (FOLDER_FREE_FIELDS aside; a
+    RETIRED_FIELDS field is dropped at its one value and refused at any other)."""
+    old = drop_retired_fields(root, old)
     saved = asdict(cfg)
     for key, value in saved.items():  # JSON keeps tuples as lists
         if isinstance(value, tuple):
@@ -368,6 +377,17 @@ def check_same_config(root, old, cfg, advice=None):
             + ", ".join(f"{k} = {old.get(k, defaults[k])!r} there, {saved[k]!r} now" for k in sorted(changed))
             + ".\n" + (advice or f"Either give this run its own folder (--out runs/<new name>), or delete {root} "
                                     "to start it afresh (its finished stages are lost)."))
+
+
+def drop_retired_fields(root, old):
+    """The stored config `old` without its RETIRED_FIELDS; ConfigMismatch if one holds another value than the only
+    one it may (that run cannot be reproduced by this code)."""
+    for key, value in RETIRED_FIELDS.items():
+        if key in old and old[key] != value:
+            advice = RETIRED_ADVICE.get(key, "see RETIRED_FIELDS in experiment/run_folder.py")
+            raise ConfigMismatch(f"{root} holds a run made with {key} = {old[key]!r}, a config field that no longer "
+                                 f"exists: {advice}. Run it again in a folder of its own.")
+    return {k: v for k, v in old.items() if k not in RETIRED_FIELDS}
 
 
 # An evaluation file (dagger.evaluation): eval/<name>.json under the folder or a round, <name>_unseen.json on the

@@ -1,7 +1,8 @@
 """The image-observation variant (experiment/image_obs.py): the UR5 env 'engine3d_image' whose observation ends
 with a camera image, the CNN 'image_cnn' the policy reads it with, and how the variant plugs into the core --
 the env and encoder tables, the policy's config and checkpoint, the augmentation's recorded images, the command
-line, worker processes -- without a core function knowing images."""
+line, worker processes, the run folder's retired config fields -- without a core function knowing images."""
+import gzip
 import json
 import os
 from dataclasses import dataclass, fields, replace
@@ -288,3 +289,34 @@ def test_planar_runs_draw_no_policy_view(tmp_path):
     env = envs.make_env("planar")
     assert env.plot_policy_view({"obs": np.zeros((3, env.obs_dim))}, str(tmp_path / "view.png")) is False
     assert not os.path.exists(tmp_path / "view.png")
+
+
+# ---- the run folder: configs stored with the retired fields --------------------------------------------------------
+def test_stored_configs_with_the_retired_image_fields_compare_at_their_one_value(tmp_path):
+    """config.json (a resumed folder), a lineage's record and --join / --copy-from compare configs through
+    check_same_config: image_obs false / image_size 32 (what every config held) are dropped, other values refused
+    naming the field and the new way."""
+    assert run_folder.RETIRED_FIELDS == {"image_obs": False, "image_size": 32}
+    root = str(tmp_path / "run")
+    run_folder.Run(root, TINY)
+    path = os.path.join(root, "config.json")
+    stored = json.load(open(path))
+    json.dump({**stored, "image_obs": False, "image_size": 32}, open(path, "w"))
+    run_folder.Run(root, TINY)                                        # the folder resumes
+    json.dump({**stored, "image_obs": True, "image_size": 32}, open(path, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match="image_obs = True.*--env engine3d_image"):
+        run_folder.Run(root, TINY)
+    json.dump({**stored, "image_obs": False, "image_size": 16}, open(path, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match="image_size = 16"):
+        run_folder.Run(root, TINY)
+
+
+def test_a_committed_lineage_file_with_the_retired_fields_joins(tmp_path):
+    """benchmarks/results/ holds lineage files written with image_obs / image_size in their configs."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "results",
+                        "table2", "lineage_0.json.gz")
+    with gzip.open(path, "rt") as f:
+        stored = json.load(f)["config"]
+    assert stored["image_obs"] is False and stored["image_size"] == 32
+    run = run_folder.Run(str(tmp_path / "table2"), dagger.PROFILES["table2"])
+    assert run_folder.join_lineage(run, path) == 0
