@@ -1106,12 +1106,24 @@ def _read_checkpoint(path):
     return payload
 
 
+# PolicyConfig fields that a checkpoint of an earlier version holds, with the one value this code reads it at: the
+# camera-image observations moved to a research variant (experiment/image_obs.py: obs_encoder 'image_cnn').
+RETIRED_POLICY_FIELDS = {"image_shape": (), "image_features": 64}
+
+
 def _load_policy(cls, path, device="cpu"):
     """DiffusionPolicy.load: the policy saved at path. FileNotFoundError if there is none;
     CheckpointDamagedError (a ValueError) if the file is truncated or not a checkpoint of this code. Its network
     is rebuilt from its config: a variant's obs_encoder must be registered (its module imported) first."""
     payload = _read_checkpoint(path)
-    policy = cls(PolicyConfig(**payload["config"]), device=device)
+    config = dict(payload["config"])
+    for name, value in RETIRED_POLICY_FIELDS.items():
+        stored = config.pop(name, value)
+        if (tuple(stored) if isinstance(stored, list) else stored) != value:
+            raise ValueError(f"{path!r} is a policy of an earlier version with {name}={stored!r}: its image encoder "
+                             f"is now the research variant experiment/image_obs.py (obs_encoder 'image_cnn', "
+                             f"python dagger.py --env engine3d_image): retrain the policy")
+    policy = cls(PolicyConfig(**config), device=device)
     policy.load_state_dict(payload["state_dict"])
     return policy
 

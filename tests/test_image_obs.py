@@ -204,6 +204,25 @@ def test_the_encoder_leaves_image_free_policies_unchanged_and_checks_its_argumen
         PolicyConfig(obs_dim=100, dof=2, obs_encoder="depth_cnn")
 
 
+def test_checkpoints_of_earlier_versions_load_without_an_image_and_are_refused_with_one(tmp_path):
+    """Before the variant moved out, PolicyConfig held image_shape / image_features: a checkpoint without an
+    image (image_shape ()) loads as it is; one with an image names the variant and asks for a retrain."""
+    policy = tiny_policy(obs_dim=6)
+    path = str(tmp_path / "old.pt")
+    policy.save(path)
+    payload = torch.load(path, weights_only=True)
+    payload["config"].update(image_shape=(), image_features=64)
+    torch.save(payload, path)
+    loaded = DiffusionPolicy.load(path)
+    obs = np.zeros((2, 6), np.float32)
+    assert np.array_equal(loaded.sample(obs, generator=torch.Generator().manual_seed(0)),
+                          policy.sample(obs, generator=torch.Generator().manual_seed(0)))
+    payload["config"].update(image_shape=(1, 8, 8))
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match="image_shape=.*engine3d_image.*retrain"):
+        DiffusionPolicy.load(path)
+
+
 # ---- the augmentation ----------------------------------------------------------------------------------------------
 def test_sampler_reuses_the_recorded_image_for_noised_states():
     """Sec. V: with image observations a noised state keeps the original state's image; only the joint
