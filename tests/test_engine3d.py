@@ -328,6 +328,22 @@ def test_batched_equals_looped(scene_env):
                                   np.stack([scene_env.make_obs(a, b) for a, b in zip(q, q_prev)]))
 
 
+def test_make_obs_layout(scene_env):
+    """The docstring's layout: q, q_prev, the goal, then n_max_obstacles slots of 7 numbers, the absent ones zero
+    (make_obs; its first part, _joint_goal_obs, is shared with the image variant, tests/test_image_obs.py)."""
+    q = np.stack([scene_env.q, scene_env.witness])
+    q_prev = q - 0.01
+    obs = scene_env.make_obs(q, q_prev)
+    assert obs.shape == (2, 127) and obs.dtype == np.float32
+    np.testing.assert_array_equal(obs[:, :6], q.astype(np.float32))
+    np.testing.assert_array_equal(obs[:, 6:12], q_prev.astype(np.float32))
+    np.testing.assert_array_equal(obs[:, 12:15], np.tile(scene_env.goal, (2, 1)).astype(np.float32))
+    slots, n = obs[0, 15:].reshape(scene_env.cfg.n_max_obstacles, 7), len(scene_env.obstacles)
+    np.testing.assert_array_equal(slots[:n], scene_env.obstacles.astype(np.float32))
+    assert n > 0 and not slots[n:].any()
+    np.testing.assert_array_equal(scene_env.make_obs(q[1], q_prev[1]), obs[1])  # (dof,) -> (obs_dim,)
+
+
 # ---- stepping ------------------------------------------------------------------------------------
 def test_step_speed_limit_joint_limits_and_q_prev():
     env = EngineReach3D()
