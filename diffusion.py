@@ -66,7 +66,7 @@ class PolicyConfig:
     joint_obs: bool = False      # obs starts with (q_t, q_{t-1}): chunks relative to q_t, velocity as an input
     # not in the paper
     obs_encoder: str = "flat"    # how the network reads the observation: an OBS_ENCODERS name ('flat': as numbers)
-    obs_encoder_args: dict = field(default_factory=dict)   # the encoder's keyword arguments (a variant's env gives both)
+    obs_encoder_args: dict = field(default_factory=dict)   # its keyword arguments (a variant's env gives both)
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):

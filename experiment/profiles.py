@@ -91,8 +91,8 @@ def check_config(cfg, methods):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
     if cfg.goal_angle is not None and (envs.paper_env(cfg.env) != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
-        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env (and its variants) only, in degrees "
-                         f"within (0, 180] (the authors' 10), or None for position-only success")
+        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env (and its variants) only, in "
+                         f"degrees within (0, 180] (the authors' 10), or None for position-only success")
     starts = envs.PLANAR_STARTS if cfg.env == "planar" else envs.ENGINE_STARTS
     if cfg.start is not None and cfg.start not in starts:
         raise ValueError(f"start: {cfg.start!r} is not a start of the {cfg.env} env; valid: "
