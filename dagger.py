@@ -16,7 +16,9 @@ Paper map (paper.tex):
   Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost, summarize
 
 The experiment's plumbing -- the run folder (stages, resume, atomic writes), worker processes, the command
-line, the result files and report.md -- is in experiment/; a student may skip it. Every step below wraps
+line, the result files and report.md -- is in experiment/; a student may skip it. So are the research variants,
+which register themselves in the core's tables when imported here (experiment/image_obs.py: `--env
+engine3d_image`, the UR5 policy on camera images). Every step below wraps
 its work in one `run.stage(name, compute)`: if the stage's file is in runs/<name>/, it is loaded, else it
 is computed and written, so a stopped run resumes from its last finished stage.
 
@@ -41,6 +43,7 @@ import oracle as oracle_mod
 import partial_denoise
 import relabel
 from experiment import cli, profiles, report
+from experiment import image_obs  # noqa: F401 (a research variant: registers its env and encoder on import)
 from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, stage_seed
 from experiment.workers import InBackground, in_parallel
 
@@ -108,7 +111,7 @@ ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
 @dataclass
 class Config:
     # --- the paper's experiment (Sec. V; the authors' values in PAPER_SETUP.md) ---
-    env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II)
+    env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II); a variant's: 'engine3d_image' (camera images)
     methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
@@ -158,9 +161,6 @@ class Config:
     tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
     # --- not in the paper ---
     name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
-    image_obs: bool = False  # engine3d only: the policy sees a camera image (and the joints, the goal) instead
-    #                          of the obstacle list, through a small CNN (the paper's UR5 policy sees images)
-    image_size: int = 32  # pixels of the square camera image (with image_obs)
     goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
     #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
@@ -563,8 +563,8 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 def observation_noise(cfg, policy_cfg):
     """Per-entry std (obs_dim,) of the training observation noise, raw units (PAPER_SETUP.md §2): the
-    joints at t and t-1 get obs_noise_joints rad, the other low-dimensional numbers obs_noise_env m, image
-    pixels none."""
+    joints at t and t-1 get obs_noise_joints rad, the other low-dimensional numbers obs_noise_env m, the entries
+    an observation encoder owns (a variant's camera image) none."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = cfg.obs_noise_joints
     std[2 * policy_cfg.dof:policy_cfg.low_dim] = cfg.obs_noise_env
@@ -633,14 +633,14 @@ def evaluation(run, policy, label, scenarios):
 
 # Episodes run in lockstep at most this many at a time, per env. Each EngineReach3D holds its own pybullet
 # client, ~30 MB (measured): 300 evaluation episodes at once would take 9 GB; 100 take 3 GB.
-MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}
+MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}  # by the paper's env (envs.paper_env)
 
 
 def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, max_parallel="env default",
              log=None):
     """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
 
-    env_options: keyword arguments of envs.make_env (e.g. image_obs=True), the same as in training.
+    env_options: keyword arguments of envs.make_env (e.g. start='random'), the same as in training.
 
     The len(seeds) * repeats episodes run in lockstep (one policy call per decision), in groups of at most
     max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once) to bound memory. The sampling
@@ -661,7 +661,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=Non
     caller reads its pairs (e.g. to classify how an episode ended) and are closed before the next group starts,
     so memory stays that of one group."""
     if max_parallel == "env default":
-        max_parallel = MAX_PARALLEL_ENVS.get(env_name)
+        max_parallel = MAX_PARALLEL_ENVS.get(envs.paper_env(env_name))
     group = max_parallel or max(1, len(jobs))
     for start in range(0, len(jobs), group):
         env_list = []
@@ -734,8 +734,7 @@ def make_figures(run, demos, stats):
     else:
         env.reset(seed=int(demos[0]["seed"]))
         envs.render_scene_image(env, fig("fig5_environment.png"))
-        if cfg.image_obs:
-            envs.plot_policy_view(env, demos[0], fig("fig5_policy_view.png"))
+    env.plot_policy_view(demos[0], fig("fig5_policy_view.png"))  # a variant's camera input; the paper's envs: none
     if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")
         return
@@ -867,8 +866,8 @@ def calibration_config(cfg):
 
 
 def env_options(cfg):
-    """envs.make_env keyword arguments of this run (image observations and the UR5's goal angle are env options)."""
-    options = {"image_obs": True, "image_size": cfg.image_size} if cfg.image_obs else {}
+    """envs.make_env keyword arguments of this run (the UR5's goal angle is an env option)."""
+    options = {}
     if cfg.goal_angle is not None:
         options["goal_angle_tolerance"] = cfg.goal_angle
     return options
@@ -886,10 +885,12 @@ def make_oracle(cfg, *keys):
 
 
 def make_policy(cfg, env):
-    """A fresh diffusion policy for this run's env and network (diffusion.PolicyConfig)."""
+    """A fresh diffusion policy for this run's env and network (diffusion.PolicyConfig); the env says how the
+    policy reads its observation (env.obs_encoder)."""
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, down_dims=cfg.down_dims, joint_obs=cfg.joint_obs, image_shape=env.image_shape,
-                                network=cfg.network, mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks,
+                                K=cfg.K, down_dims=cfg.down_dims, joint_obs=cfg.joint_obs, network=cfg.network,
+                                mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
+                                obs_encoder_args=dict(env.obs_encoder_args),
                                 seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
 

@@ -10,7 +10,9 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - action chunks of horizon H; the label rule (Sec. IV-C) ............... expert_runs, label_mask,
                                                                            chunk_dataset
   - BC, co-training, fine-tuning (Sec. IV-A steps 1, 4, 6) ............... train
-  - image observations of the UR5 task (Sec. V) .......................... ImageEncoder (behind the banner)
+  - how the network reads the observation ................................ OBS_ENCODERS (behind the banner;
+                                                                           the UR5's camera images, Sec. V, are a
+                                                                           variant's: experiment/image_obs.py)
 
 Index convention (read this once, it is used everywhere):
   The paper numbers the diffusion steps k = 1..K, with alphabar_k = prod_{s=1..k} alpha_s and
@@ -32,7 +34,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
@@ -62,25 +64,24 @@ class PolicyConfig:
     step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
     joint_obs: bool = False      # obs starts with (q_t, q_{t-1}): chunks relative to q_t, velocity as an input
     # not in the paper
-    image_shape: tuple = ()      # (C, H, W): obs ends with a C*H*W image in [0, 1] (ImageEncoder); () = none
-    image_features: int = 64     # size of the CNN's image code
+    obs_encoder: str = "flat"    # how the network reads the observation: an OBS_ENCODERS name ('flat': as numbers)
+    obs_encoder_args: dict = field(default_factory=dict)   # its keyword arguments (a variant's env gives both)
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
         _check_policy_config(self)                                     # ValueError on a bad knob (behind the banner)
 
     @property
-    def image_dim(self):         # entries of the observation that are image pixels (its last ones); 0: no image
-        return int(np.prod(self.image_shape)) if self.image_shape else 0
+    def encoder_sizes(self):     # (observation entries at its end the encoder reads, features it gives for them)
+        return OBS_ENCODERS[self.obs_encoder].sizes(**self.obs_encoder_args)
 
     @property
-    def low_dim(self):           # entries of the observation before the image: joints, goal, obstacles
-        return self.obs_dim - self.image_dim
+    def low_dim(self):           # entries of the observation min-max normalized: all before the encoder's
+        return self.obs_dim - self.encoder_sizes[0]
 
     @property
-    def cond_input_dim(self):    # observation features for FiLM: low-dim obs, velocity (joint_obs), image code
-        return (self.low_dim + (self.dof if self.joint_obs else 0)
-                + (self.image_features if self.image_shape else 0))
+    def cond_input_dim(self):    # observation features for FiLM: low-dim obs, velocity (joint_obs), encoder's
+        return self.low_dim + (self.dof if self.joint_obs else 0) + self.encoder_sizes[1]
 
 
 @dataclass
@@ -467,7 +468,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
 
 
 # ==== Beyond the paper (safe to skip) ====================================================
-# Config notes, argument checks, the epsilon network (the authors' U-Net) and the image CNN, the min-max
+# Config notes, argument checks, the epsilon network (the authors' U-Net), the observation encoders, the min-max
 # normalizer, the per-row indexing of the schedule (_per_row), the noise draws of a reverse process, the
 # masked loss, train()'s learning-rate schedule, EMA and progress lines, checkpoint files and train()'s resume
 # plumbing, the toy data.
@@ -482,8 +483,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
 # PolicyConfig.kernel_size: odd, so that padding kernel_size // 2 keeps the chunk's length.
 # PolicyConfig.joint_obs: the observation starts with (q_t, q_{t-1}) as in envs.py; chunks are learned
 #   relative to q_t and the network also sees the joint velocity q_t - q_{t-1} (why: at _fit_min_max).
-# PolicyConfig.image_shape: the last C*H*W observation entries are a channel-first image in [0, 1] that
-#   ImageEncoder encodes; the envs give it as env.image_shape.
+# PolicyConfig.obs_encoder: see OBS_ENCODERS; the envs give it as env.obs_encoder, env.obs_encoder_args.
 # TrainConfig.obs_noise: raw observation units, rad on the joints and m on the environment numbers (the
 #   authors: 0.01 rad and 0.005 m); a float for every entry or one std per entry (obs_dim,). 0 = none.
 # TrainConfig.ema_decay: the authors use no EMA; with 0.999 the average spans ~1/(1 - decay) = 1000
@@ -495,7 +495,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
 
 
 def _check_policy_config(cfg):
-    """PolicyConfig.__post_init__: ValueError on a bad field; makes down_dims and image_shape int tuples."""
+    """PolicyConfig.__post_init__: ValueError on a bad field; makes down_dims an int tuple."""
     if cfg.network not in NETWORKS:
         raise ValueError(f"PolicyConfig.network must be one of {', '.join(NETWORKS)}, got {cfg.network!r}")
     for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim",
@@ -521,16 +521,18 @@ def _check_policy_config(cfg):
         raise ValueError(f"PolicyConfig.n_act={cfg.n_act} must be <= horizon={cfg.horizon}")
     if cfg.step_embed_dim % 2:
         raise ValueError(f"PolicyConfig.step_embed_dim must be even, got {cfg.step_embed_dim}")
-    cfg.image_shape = tuple(int(n) for n in cfg.image_shape)
-    if cfg.image_shape and (len(cfg.image_shape) != 3 or min(cfg.image_shape[1:]) < 8
-                            or cfg.image_shape[0] < 1):
-        raise ValueError(f"PolicyConfig.image_shape must be () or (channels, height, width) with height and "
-                         f"width >= 8 (three stride-2 convolutions), got {cfg.image_shape}")
-    if cfg.image_shape and cfg.image_dim >= cfg.obs_dim:
-        raise ValueError(f"PolicyConfig.image_shape {cfg.image_shape} holds {cfg.image_dim} numbers; the "
-                         f"observation (obs_dim={cfg.obs_dim}) must be longer (joint positions come first)")
-    if not isinstance(cfg.image_features, (int, np.integer)) or cfg.image_features < 1:
-        raise ValueError(f"PolicyConfig.image_features must be a positive int, got {cfg.image_features!r}")
+    if cfg.obs_encoder not in OBS_ENCODERS:
+        raise ValueError(f"PolicyConfig.obs_encoder must be one of {', '.join(OBS_ENCODERS)}, got {cfg.obs_encoder!r} "
+                         f"(a research variant registers its encoder when its module is imported, e.g. "
+                         f"experiment.image_obs: 'image_cnn')")
+    try:
+        encoded = cfg.encoder_sizes[0]                                 # the encoder checks its own arguments
+    except TypeError as err:                                           # an argument it does not take
+        raise ValueError(f"PolicyConfig.obs_encoder_args {cfg.obs_encoder_args!r} do not fit the obs_encoder "
+                         f"{cfg.obs_encoder!r}: {err}") from None
+    if encoded >= cfg.obs_dim:
+        raise ValueError(f"PolicyConfig.obs_encoder {cfg.obs_encoder!r} reads {encoded} entries at the observation's "
+                         f"end; the observation (obs_dim={cfg.obs_dim}) must be longer (joint positions come first)")
     if cfg.joint_obs and cfg.low_dim < 2 * cfg.dof:
         raise ValueError(f"PolicyConfig.joint_obs needs obs_dim >= 2 * dof = {2 * cfg.dof} (obs starts with "
                          f"q_t, q_t-1), got obs_dim={cfg.obs_dim}; use joint_obs=False")
@@ -667,8 +669,8 @@ class FiLMNetwork(nn.Module):
 
     Every residual block's FiLM is film(Mish([step features, obs features])). Splitting the weight
     W = [W_s | W_o] along its input gives film = (W_s Mish(step) + b) + W_o Mish(obs): step_table() computes
-    the first term for all K steps at once, obs_terms() the second once per sampling call (the image CNN
-    included), and forward(a, film) takes their sum, all blocks' (scale, bias) in one row (film_size wide).
+    the first term for all K steps at once, obs_terms() the second once per sampling call (the observation
+    encoder included), and forward(a, film) takes their sum, all blocks' (scale, bias) in one row (film_size wide).
     A subclass builds its blocks between _init_step_features() and _init_film(), and lists them in
     residual_blocks() in the order its forward() uses them.
     """
@@ -683,9 +685,8 @@ class FiLMNetwork(nn.Module):
     def _init_film(self, cfg):
         self.film_sizes = [b.film.out_features for b in self.residual_blocks()]
         self.film_size = sum(self.film_sizes)
-        self.image_shape, self.n_pixels = cfg.image_shape, cfg.image_dim
-        if cfg.image_shape:  # built last: without an image the other weights are initialised as before
-            self.image_encoder = ImageEncoder(cfg.image_shape, cfg.image_features)
+        # built last, so an encoder with weights leaves the others' initialisation as without it
+        self.obs_encoder = OBS_ENCODERS[cfg.obs_encoder](**cfg.obs_encoder_args)
 
     def residual_blocks(self):
         raise NotImplementedError
@@ -698,12 +699,8 @@ class FiLMNetwork(nn.Module):
         return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
 
     def obs_features(self, obs_norm):
-        """normalize_obs's output (B, ...) -> (B, cond_input_dim). With an image, obs_norm's last C*H*W
-        entries are its pixels: the CNN replaces them by its code."""
-        if not self.n_pixels:
-            return obs_norm
-        image = obs_norm[:, -self.n_pixels:].reshape(-1, *self.image_shape)   # (B, C, H, W)
-        return torch.cat([obs_norm[:, :-self.n_pixels], self.image_encoder(image)], dim=1)
+        """normalize_obs's output (B, ...) -> (B, cond_input_dim): the observation encoder's (OBS_ENCODERS)."""
+        return self.obs_encoder(obs_norm)
 
     def obs_terms(self, obs_norm):
         """(B, F): the observation part W_o Mish(obs features) of every block's FiLM."""
@@ -841,34 +838,30 @@ NETWORKS = {"unet": ConditionalUnet1D, "mlp": ResidualMLP}
 
 
 # ----------------------------------------------------------------------------------------------
-# Image observations (the UR5 policy sees images, Sec. V; envs.EngineConfig(image_obs=True))
+# Observation encoders: how the network reads the observation (PolicyConfig.obs_encoder)
 #
-# The observation stays one flat vector; with PolicyConfig.image_shape = (C, H, W) its last C*H*W entries
-# are an image (channel-first, flattened, pixels in [0, 1]). ImageEncoder turns it into image_features
-# numbers that join the low-dimensional part as observation features (ConditionalUnet1D.obs_features).
-# Being part of FiLM's observation term, the CNN runs once per sampling call, not once per diffusion step.
-# The paper does not specify its image encoder; this one is ours, small enough to train on a CPU.
+# The observation is one flat vector. An encoder may own the last entries of it (`sizes`: how many, and how many
+# features it gives in their place): normalize_obs min-max normalizes the entries before them and hands its own
+# entries on as they are, at the end of its output (after the velocity, joint_obs); the encoder's forward maps
+# that whole row to the FiLM network's observation features (cond_input_dim of them). Being part of FiLM's
+# observation term, it runs once per sampling call, not once per diffusion step. The paper's path reads the
+# observation as numbers ('flat'); a research variant registers its own encoder here when its module is imported
+# (experiment/image_obs.py: 'image_cnn', a CNN over a camera image at the observation's end).
 
 
-class ImageEncoder(nn.Module):
-    """A small CNN for image observations: (B, C, H, W) in [-1, 1] -> (B, features).
+class FlatObservation(nn.Module):
+    """OBS_ENCODERS['flat']: the normalized observation (and velocity) are the observation features as they are."""
 
-    Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
-    layer. Small on purpose: it trains with the rest of the policy on a CPU (benchmarks/bench_diffusion.py).
-    """
+    @staticmethod
+    def sizes():
+        """(entries at the observation's end this encoder owns, features it gives for them): none."""
+        return 0, 0
 
-    def __init__(self, shape, features):
-        super().__init__()
-        channels, height, width = shape
-        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 5, stride=2, padding=2), nn.SiLU(),
-                                  nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.SiLU(),
-                                  nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.SiLU())
-        for _ in range(3):  # each convolution above maps a side n to ceil(n / 2)
-            height, width = (height + 1) // 2, (width + 1) // 2
-        self.fc = nn.Linear(32 * height * width, features)
+    def forward(self, obs_norm):
+        return obs_norm
 
-    def forward(self, image):
-        return nn.functional.silu(self.fc(self.conv(image).flatten(1)))
+
+OBS_ENCODERS = {"flat": FlatObservation}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -898,20 +891,16 @@ def _register_normalizer(policy):
 
 def _normalize_obs(policy, obs):
     """DiffusionPolicy.normalize_obs: raw observations (B, obs_dim) -> the network's observation input: the
-    normalized low-dimensional observation, then the normalized velocity (dof) if joint_obs, then the image
-    pixels if any (the CNN reads them from the end, ConditionalUnet1D.obs_features). Without an image:
-    (B, cfg.cond_input_dim)."""
+    normalized low-dimensional observation, then the normalized velocity (dof) if joint_obs, then the entries
+    the observation encoder owns, as they are (their normalizer stays the identity: the encoder reads them,
+    FiLMNetwork.obs_features). With the 'flat' encoder: (B, cfg.cond_input_dim)."""
     cfg = policy.cfg
     o = (obs - policy.obs_center) / policy.obs_half
-    if not cfg.joint_obs and not cfg.image_shape:
+    if not cfg.joint_obs:
         return o
-    parts = [o[:, :cfg.low_dim]]
-    if cfg.joint_obs:
-        d = cfg.dof
-        parts.append((obs[:, :d] - obs[:, d:2 * d] - policy.vel_center) / policy.vel_half)
-    if cfg.image_shape:
-        parts.append(o[:, cfg.low_dim:])
-    return torch.cat(parts, dim=1)
+    d, low = cfg.dof, cfg.low_dim
+    velocity = (obs[:, :d] - obs[:, d:2 * d] - policy.vel_center) / policy.vel_half
+    return torch.cat([o[:, :low], velocity, o[:, low:]], dim=1)       # the encoder's entries stay at the end
 
 
 def _action_origin(policy, obs):
@@ -928,7 +917,7 @@ def _fit_min_max(policy, obs, actions):
     (joint_obs) and the actions (relative to q_t with joint_obs) into the policy's buffers. Without joint_obs
     the actions may also be any (M, dof) set of actions."""
     cfg = policy.cfg
-    obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]  # the pixels need no float64 copy
+    obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]  # the encoder's entries are not fitted
     obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
     actions = np.asarray(actions, dtype=np.float64)
     if actions.ndim == 3 or cfg.joint_obs:
@@ -951,8 +940,6 @@ def _fit_min_max(policy, obs, actions):
         n = x.shape[1]
         getattr(policy, f"{prefix}_center")[:n].copy_(torch.as_tensor((hi + lo) / 2))
         getattr(policy, f"{prefix}_half")[:n].copy_(torch.as_tensor(half))
-    policy.obs_center[cfg.low_dim:] = 0.5                             # image pixels: [0, 1] -> [-1, 1]
-    policy.obs_half[cfg.low_dim:] = 0.5
     policy.normalizer_fitted.fill_(True)
 
 
@@ -1095,15 +1082,27 @@ def _read_checkpoint(path):
     return payload
 
 
+# PolicyConfig fields that a checkpoint of an earlier version holds, with the one value this code reads it at: the
+# camera-image observations moved to a research variant (experiment/image_obs.py: obs_encoder 'image_cnn').
+RETIRED_POLICY_FIELDS = {"image_shape": (), "image_features": 64}
+
+
 def _load_policy(cls, path, device="cpu"):
     """DiffusionPolicy.load: the policy saved at path. FileNotFoundError if there is none;
-    CheckpointDamagedError (a ValueError) if the file is truncated or not a checkpoint of this code."""
+    CheckpointDamagedError (a ValueError) if the file is truncated or not a checkpoint of this code. Its network
+    is rebuilt from its config: a variant's obs_encoder must be registered (its module imported) first."""
     payload = _read_checkpoint(path)
     config = dict(payload["config"])
     # a checkpoint written before PolicyConfig.schedule was deleted names it: only the authors' schedule remains
     if config.pop("schedule", "squaredcos") != "squaredcos":
         raise ValueError(f"{path!r} was trained with the linear noise schedule, deleted since (the squared-cosine "
                          f"schedule is the only one): retrain the policy")
+    for name, value in RETIRED_POLICY_FIELDS.items():
+        stored = config.pop(name, value)
+        if (tuple(stored) if isinstance(stored, list) else stored) != value:
+            raise ValueError(f"{path!r} is a policy of an earlier version with {name}={stored!r}: its image encoder "
+                             f"is now the research variant experiment/image_obs.py (obs_encoder 'image_cnn', "
+                             f"python dagger.py --env engine3d_image): retrain the policy")
     policy = cls(PolicyConfig(**config), device=device)
     policy.load_state_dict(payload["state_dict"])
     return policy

@@ -30,8 +30,11 @@ Every environment in this file has the same interface (gymnasium conventions, no
     env.q, env.q_prev                         # current / previous joint positions (read-only)
     env.set_state(q, q_prev=None, step_count=0)
     env.clip_action(q, action)                # step's motion rule: the next joint positions
-    env.make_obs(q, q_prev, image=None)       # batched observations for the current scenario
-    env.image_shape                           # () or (3, S, S): the image at the end of each obs
+    env.make_obs(q, q_prev)                   # batched observations for the current scenario
+    env.make_obs_near(q, q_prev, recorded)    # ... of states drawn near recorded ones (relabel.py)
+    env.obs_encoder, env.obs_encoder_args     # how a policy reads the observation ('flat', {}:
+                                              # as numbers; diffusion.PolicyConfig.obs_encoder)
+    env.plot_policy_view(episode, path)       # a figure of what the policy sees (none here)
     env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy);
                                               # margin (m) inflates every pair's contact distance
     env.fk(q)                                 # (B, n_points, dim) joint points, base .. end effector
@@ -51,9 +54,9 @@ is the simulator's (slow) version of in_collision.
 EngineReach3D: the UR5 reaching an engine lever through a narrow, cluttered passage (Sec. V,
 Table II), with pybullet (DIRECT mode) as the simulator and the same vectorized numpy check beside
 it, in 3-D. Extras: set_scene(obstacles, goal, kinds), clearance(q) (signed distance),
-pybullet_in_collision(q), render_image(q) (a small RGB camera image from pybullet's TinyRenderer),
-render_scene_image(env, path). With EngineConfig(image_obs=True) the observation ends with that
-image (obs_image(obs) reads it back), for the policy's CNN encoder.
+pybullet_in_collision(q), camera_image(q) (an RGB image from pybullet's TinyRenderer),
+render_scene_image(env, path). A research variant whose policy sees that camera image instead of the
+obstacle list registers its own env, 'engine3d_image' (experiment/image_obs.py).
 
 Step semantics: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
 Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
@@ -289,6 +292,25 @@ class ArmEnv:
         truncated = (not terminated) and self.step_count >= self.max_steps
         info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
         return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
+
+    # ---- what a policy reads: the plug-in points of an env variant (experiment/image_obs.py) ---
+    # The observation is numbers throughout (the layouts in each env's docstring): a policy reads it flat
+    # (diffusion.PolicyConfig.obs_encoder 'flat'). A variant whose observation ends in something else, a camera
+    # image, names its encoder (diffusion.OBS_ENCODERS) and the encoder's keyword arguments here.
+    obs_encoder = "flat"
+    obs_encoder_args = {}  # read only: dagger.make_policy copies it into the policy's config
+
+    def make_obs_near(self, q, q_prev, recorded):
+        """Observations of states (q, q_prev) drawn near recorded states whose observations are `recorded`
+        (relabel.py's noised states): here make_obs(q, q_prev), everything recomputed at the new state. A variant
+        whose observation holds what only a render of the recorded state shows (a camera image) keeps that part
+        of `recorded`, the paper's approximation for images (Sec. V)."""
+        return self.make_obs(q, q_prev)
+
+    def plot_policy_view(self, episode, path):
+        """A figure of what the policy sees along `episode`, where that is more than the numbers of the
+        observation (a variant's camera image); none here: returns False (nothing written)."""
+        return False
 
     # ---- the end effector --------------------------------------------------------------------
     def ee(self, q):
@@ -664,15 +686,10 @@ class PlanarReacher(ArmEnv):
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
     # ---- observations and the simulator's check used by step ---------------------------
-    image_shape = ()  # no image observations in the planar env (EngineReach3D has the option)
-
-    def make_obs(self, q, q_prev, image=None):
+    def make_obs(self, q, q_prev):
         """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
 
-        The end effector is computed from q (forward kinematics). `image` exists for EngineReach3D's
-        image observations; here it must be None."""
-        if image is not None:
-            raise ValueError("make_obs: the planar env has no image observations; pass image=None")
+        The end effector is computed from q (forward kinematics)."""
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         q_prev = np.broadcast_to(q_prev, q.shape)
@@ -729,8 +746,10 @@ class PlanarReacher(ArmEnv):
 # ----------------------------------------------------------------------------------------------
 # Environments by name
 # ----------------------------------------------------------------------------------------------
-# name -> (env class, its config); the UR5 env registers itself after its class ("engine3d")
+# name -> (env class, its config); the UR5 env registers itself after its class ("engine3d"), a research variant
+# on import of its module (experiment/image_obs.py: "engine3d_image", a subclass of EngineReach3D)
 ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}
+PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by env (its unit, its table) names these
 
 
 def make_env(name="planar", **config):
@@ -739,6 +758,14 @@ def make_env(name="planar", **config):
         raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
     env_class, config_class = ENVIRONMENTS[name]
     return env_class(config_class(**config))
+
+
+def paper_env(env):
+    """The paper's env (PAPER_ENVS) that env is or derives from -- a variant's env subclasses one, and is that
+    env for the paper's unit, table and sizes -- or None. env: a name of ENVIRONMENTS or an env object."""
+    env_class = ENVIRONMENTS.get(env, (None,))[0] if isinstance(env, str) else type(env)
+    return next((name for name in PAPER_ENVS
+                 if env_class is not None and issubclass(env_class, ENVIRONMENTS[name][0])), None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -764,16 +791,14 @@ def median_step(episodes):
 # UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
 # of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
 # 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
-PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by env name
+PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
 
 
 def paper_median_step(env):
     """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
     paper has none (then only radians and our median steps can be given)."""
-    if not isinstance(env, str):
-        env = next((name for name, (env_class, _) in ENVIRONMENTS.items() if isinstance(env, env_class)), None)
-    return PAPER_MEDIAN_STEP.get(env)
+    return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
 # ==== The UR5 engine lever (Table II) =====================================================
@@ -827,12 +852,6 @@ class EngineConfig:
     # trajectory_generation.py, _get_random_collision_free_q, used when the config's q_start is null).
     # Starts near a home pose made BC 98 %: measured, not adopted (benchmarks/README.md, "BC at the earlier
     # mid recipe on the authors' cell: the start decided").
-    # The paper's policy sees images (Sec. V): True ends the observation with the camera image
-    # instead of the obstacle list (layout in EngineReach3D's docstring), and reset/step also put
-    # it in info['image'].
-    image_obs: bool = False
-    image_size: int = 32  # pixels, square camera image for image observations. Observations are float32
-    #   vectors kept for every step of every episode: 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
 
     # --- not in the paper ---
     tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
@@ -893,9 +912,9 @@ UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  #
 # The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
 # wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
-# The fixed camera of image observations and figures: in front of the robot (the side away from the
-# wall), above the table, looking at the engine and the goal (the authors' debug camera looks from the
-# same side, SS sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
+# The fixed camera of figures (and of the image variant's observations, experiment/image_obs.py): in
+# front of the robot (the side away from the wall), above the table, looking at the engine and the goal
+# (the authors' debug camera looks from the same side, SS sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
 ENGINE_CAMERA = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
@@ -936,16 +955,8 @@ class EngineReach3D(ArmEnv):
         [6:12]    q_prev  joint positions one step earlier (rad)
         [12:15]   goal    TCP goal (x, y, z) in m
         [15:127]  obstacles, n_max_obstacles slots of (x0, y0, z0, x1, y1, z1, radius) in m
-    With EngineConfig(image_obs=True) (the paper's policy sees images, Sec. V) the obstacle slots are
-    replaced by the camera image, and obs_dim = 15 + 3 S^2 (3,087 at S = 32):
-        [15:]     image   render_image(q): RGB (S, S, 3) from a fixed camera with pybullet's
-                          TinyRenderer, stored channel-first (3, S, S), flattened, scaled to [0, 1]
-    so the observation stays one flat float32 vector: every consumer (datasets, rollouts, the
-    augmentation) handles it unchanged, and diffusion.PolicyConfig(image_shape=env.image_shape) gives
-    the policy a CNN encoder for the last 3 S^2 entries. The clutter is then seen only in the image;
-    the lever's position stays given as coordinates. make_obs(q, q_prev, image=...) takes the image
-    part from given rows instead of rendering: relabel.py uses it so that noised states reuse the
-    original image (the paper's approximation, Sec. V). obs_image(obs) reads the image back.
+    The paper's policy sees images instead of the obstacles (Sec. V): that layout is a research variant's
+    env, 'engine3d_image' (experiment/image_obs.py), a subclass that replaces [15:] by a camera image.
     """
 
     dim = 3  # workspace dimension
@@ -971,11 +982,7 @@ class EngineReach3D(ArmEnv):
         self.max_steps = int(cfg.max_steps)
         self.dt = float(cfg.dt)
         self.goal_tolerance = float(cfg.goal_tolerance)
-        if cfg.image_obs and (not isinstance(cfg.image_size, (int, np.integer)) or cfg.image_size < 8):
-            raise ValueError(f"EngineConfig.image_size must be an int >= 8 pixels, got {cfg.image_size!r}")
-        self.image_shape = (3, int(cfg.image_size), int(cfg.image_size)) if cfg.image_obs else ()
-        self.obs_dim = 2 * self.dof + self.dim + (int(np.prod(self.image_shape)) if cfg.image_obs
-                                                  else 7 * cfg.n_max_obstacles)
+        self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
         super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
         self.obstacle_kinds = []  # 'engine' | 'lever' | 'pipe' | 'box', for drawing
@@ -1397,11 +1404,7 @@ class EngineReach3D(ArmEnv):
         self.seed = int(seed)
         self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
         self.set_state(start)
-        info = {"q": self.q, "goal": self.goal, "seed": self.seed}
-        obs = self.make_obs(self._q, self._q_prev)
-        if cfg.image_obs:
-            info["image"] = self.obs_image(obs)
-        return obs, info
+        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
     def _draw_start(self, rng, n=256):
         """A start: (6,) or None if none of n draws is acceptable.
@@ -1416,71 +1419,29 @@ class EngineReach3D(ArmEnv):
         return q[np.argmax(ok)] if ok.any() else None
 
     # ---- observations, stepping --------------------------------------------------------------
-    def make_obs(self, q, q_prev, image=None):
-        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
+    def make_obs(self, q, q_prev):
+        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
+        obs, _, single = self._joint_goal_obs(q, q_prev)
+        obs[:, 2 * self.dof + self.dim:] = self._obstacle_obs
+        return obs[0] if single else obs
 
-        With image observations the image part is rendered with the arm at each q, unless `image`
-        gives it: rows (B, 3 S^2), or one row (3 S^2,) or (1, 3 S^2) for all, in the observation's
-        layout (e.g. obs[..., -3 S^2:] of recorded observations). Without image observations image
-        must be None.
-        """
+    def _joint_goal_obs(self, q, q_prev):
+        """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:15], the rest
+        for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d, low = self.dof, 2 * self.dof + self.dim
+        d = self.dof
         obs[:, :d] = q
         obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
-        obs[:, 2 * d:low] = self._goal
-        if not self.cfg.image_obs:
-            if image is not None:
-                raise ValueError("make_obs: image given, but this env has no image observations "
-                                 "(EngineConfig(image_obs=True) turns them on); pass image=None")
-            obs[:, low:] = self._obstacle_obs
-        elif image is None:  # render the camera image with the arm at every q
-            for i in range(len(q)):
-                obs[i, low:] = self.render_image(q[i]).transpose(2, 0, 1).reshape(-1) / np.float32(255)
-        else:
-            image = np.asarray(image, dtype=np.float32)
-            n_pix = self.obs_dim - low
-            if image.shape not in ((n_pix,), (1, n_pix), (len(q), n_pix)):
-                raise ValueError(f"make_obs: image must have shape ({n_pix},), (1, {n_pix}) or "
-                                 f"({len(q)}, {n_pix}) (the image part of observations), got {image.shape}")
-            obs[:, low:] = image
-        return obs[0] if single else obs
-
-    def obs_image(self, obs):
-        """The camera image in observations: (..., obs_dim) -> (..., S, S, 3) uint8 (image_obs only)."""
-        if not self.cfg.image_obs:
-            raise ValueError("obs_image: this env's observations hold no image (EngineConfig(image_obs=True))")
-        obs = np.asarray(obs)
-        if obs.shape[-1] != self.obs_dim:
-            raise ValueError(f"obs_image: observations must end in obs_dim={self.obs_dim}, got {obs.shape}")
-        pixels = obs[..., 2 * self.dof + self.dim:].reshape(*obs.shape[:-1], *self.image_shape)
-        return np.round(np.moveaxis(pixels, -3, -1) * 255).astype(np.uint8)
-
-    def step(self, action):
-        """ArmEnv.step, judged by pybullet contacts at n_substeps states of the step (see
-        EngineConfig.n_substeps); with cfg.image_obs, info['image'] is the camera image."""
-        obs, reward, terminated, truncated, info = super().step(action)
-        if self.cfg.image_obs:
-            info["image"] = self.obs_image(obs)
-        return obs, reward, terminated, truncated, info
+        obs[:, 2 * d:2 * d + self.dim] = self._goal
+        return obs, q, single
 
     def simulator_in_collision(self, q):
         """The simulator's contact check used by step: pybullet."""
         return self.pybullet_in_collision(q)
 
     # ---- images and drawing ------------------------------------------------------------------
-    def render_image(self, q=None, size=None):
-        """The image observation: RGB (size, size, 3) uint8 with the arm at q (default: current).
-
-        size defaults to cfg.image_size (32). See camera_image.
-        """
-        size = int(size or self.cfg.image_size)
-        if size < 8:
-            raise ValueError(f"render_image: size must be >= 8 pixels, got {size}")
-        return self.camera_image(q, size, size)
-
     def camera_image(self, q=None, width=640, height=480):
         """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current).
 
@@ -1554,26 +1515,6 @@ def render_scene_image(env, path, q=None, width=640, height=480):
     image = env.camera_image(q, width, height)
     imsave(path, image)
     return image
-
-
-def plot_policy_view(env, episode, path, n_frames=4):
-    """What an image policy sees: the camera image inside the observations of one demonstration, at a few
-    steps from start to goal, beside the same camera at full resolution (engine3d with image_obs)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    steps = np.linspace(0, len(episode["obs"]) - 1, n_frames).round().astype(int)
-    fig, axes = plt.subplots(1, n_frames + 1, figsize=(2.6 * (n_frames + 1), 2.8))
-    axes[0].imshow(env.camera_image(episode["q"][0], 320, 320))
-    axes[0].set_title("camera, 320 x 320")
-    size = env.image_shape[1]
-    for ax, t in zip(axes[1:], steps):
-        ax.imshow(env.obs_image(episode["obs"][t]), interpolation="nearest")
-        ax.set_title(f"policy input, step {t}\n{size} x {size}")
-    for ax in axes:
-        ax.axis("off")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ env's units in DemoStats. The small Gaussian observation noise of Sec. V (last p
 here: it is diffusion.TrainConfig.obs_noise, for every batch.
 
 The env is passed in and used only through the env interface of envs.py: env.dof, env.joint_limits,
-env.max_step, env.in_collision, env.make_obs, env.reset(seed=...), env.set_state, and for the figure
+env.max_step, env.in_collision, env.make_obs_near, env.reset(seed=...), env.set_state, and for the figure
 env.ee, env.ee_jacobian, env.draw_noise_ellipses, env.render. Which steps teach is the label rule in
 diffusion.label_mask. Imports: numpy and that rule (matplotlib inside `plot_recovery`).
 """
@@ -356,8 +356,9 @@ class AugmentationSampler:
 
     A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free,
     within limits); v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs(q̃, q̃ - v) in the
-    episode's scenario (PAPER_SETUP.md §6); chunk, mask = `corrective_labels`. With image observations the
-    noised state reuses the recorded image of state t, only the joints change (the paper's Sec. V).
+    episode's scenario (PAPER_SETUP.md §6), given the recorded observation of state t (env.make_obs_near: an env
+    whose observation is a camera image keeps the recorded image, the paper's Sec. V); chunk, mask =
+    `corrective_labels`.
     Pairs are made in batches into a pool that each call draws from (`_refresh_pool`, beyond the banner);
     all randomness comes from each call's rng: the same seed and calls give the same pairs."""
 
@@ -386,7 +387,7 @@ class AugmentationSampler:
         self.n_kept += r.size
         if r.size == 0:
             return _no_pairs(self.cfg.horizon, self.center.shape[1])
-        # obs = env.make_obs(q̃, q̃ - v) per scenario, with the recorded image of state t (Sec. V)
+        # obs = env.make_obs(q̃, q̃ - v) per scenario, near the recorded observation of state t (env.make_obs_near)
         return _observe(self, r, q_tilde, v), chunks.astype(np.float32), mask
 
     def _label_rows(self, rows: np.ndarray, rng: np.random.Generator, limits):
@@ -660,7 +661,7 @@ def _build_table(sampler: AugmentationSampler, episodes: Sequence[dict], sigma) 
     """The sampler's flat table of labelable intervention steps (see AugmentationSampler.__init__)."""
     H, noise, stats = sampler.cfg.horizon, sampler.noise, sampler.stats
     traj, center, vel, t_glob, end_glob, factors, seeds, ep_of, offset = [], [], [], [], [], [], [], [], 0
-    sampler._episode_obs = [ep["obs"] for ep in episodes]  # recorded images are reused (references, no copy)
+    sampler._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
     for e, ep in enumerate(episodes):
         q, expert = _check_episode(ep)
         t, seg_end = label_steps(expert, H, sampler.cfg.pad_short)
@@ -722,18 +723,14 @@ def _label_with_redraws(sampler: AugmentationSampler, rows: np.ndarray, rng: np.
 
 def _observe(sampler: AugmentationSampler, rows: np.ndarray, q_tilde: np.ndarray, v: np.ndarray) -> np.ndarray:
     """obs (m, obs_dim) float32 of noised states, one batched env call per scenario. The previous
-    frame is rebuilt as q̃ - v (PAPER_SETUP.md §6); make_obs recomputes the end effector from q̃."""
+    frame is rebuilt as q̃ - v (PAPER_SETUP.md §6); make_obs_near recomputes the end effector from q̃, given the
+    recorded observations of the states the rows were drawn around."""
     obs = None
     for seed in np.unique(sampler.seeds[rows]):
         sel = sampler.seeds[rows] == seed
         env, r = sampler._env(int(seed)), rows[sel]
-        n_pix = int(np.prod(env.image_shape)) if getattr(env, "image_shape", ()) else 0
-        if n_pix:  # Sec. V: noised states reuse the original image; only the joints are noised
-            image = np.stack([sampler._episode_obs[e][t, -n_pix:] for e, t in zip(sampler.episode_of[r], sampler.step_of[r])])
-            part = env.make_obs(q_tilde[sel], q_tilde[sel] - v[sel], image=image)
-        else:
-            part = env.make_obs(q_tilde[sel], q_tilde[sel] - v[sel])
-        part = np.asarray(part, dtype=np.float32)
+        recorded = np.stack([sampler._episode_obs[e][t] for e, t in zip(sampler.episode_of[r], sampler.step_of[r])])
+        part = np.asarray(env.make_obs_near(q_tilde[sel], q_tilde[sel] - v[sel], recorded), dtype=np.float32)
         if obs is None:
             obs = np.empty((len(rows), part.shape[1]), np.float32)
         obs[sel] = part

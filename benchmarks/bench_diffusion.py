@@ -15,7 +15,8 @@ Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [-
         python benchmarks/bench_diffusion.py --horizons 20 --mlp 256x3 --down-dims 32,64,128 --full-sample
             (the quick and mid profiles' MLP beside the U-Net they replace)
         python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
-            (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN)
+            (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN of the image
+             variant, experiment/image_obs.py: obs_encoder 'image_cnn')
 Times are CPU seconds of this process (time.process_time): with one torch thread that is the cost itself,
 also on a machine whose cores are shared; the last column, wall / CPU, shows how loaded the machine was.
 Every reverse step costs the same, so by default the sampling column is measured on a few reverse steps
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import experiment.image_obs  # noqa: E402,F401 (registers the image variant's encoder, 'image_cnn')
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train  # noqa: E402
 
 
@@ -56,7 +58,7 @@ def measure(cfg, args):
     rng = np.random.default_rng(0)
     n_labels = 5_000
     obs = rng.uniform(-1, 1, (n_labels, cfg.obs_dim)).astype(np.float32)
-    obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.image_dim))   # pixels in [0, 1]
+    obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.obs_dim - cfg.low_dim))   # an encoder's pixels: [0, 1]
     chunks = rng.uniform(-1, 1, (n_labels, cfg.horizon, cfg.dof)).astype(np.float32)
     policy = DiffusionPolicy(cfg)
     policy.fit_normalizer(obs, chunks)
@@ -117,7 +119,8 @@ def main():
             if args.image_size:
                 S = args.image_size
                 cfg = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof, horizon=horizon,
-                                   n_act=horizon // 2, network=network, image_shape=(3, S, S), **shape)
+                                   n_act=horizon // 2, network=network, obs_encoder="image_cnn",
+                                   obs_encoder_args={"shape": (3, S, S)}, **shape)
                 obs_name = f"image {S}x{S}"
             else:
                 cfg = PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, horizon=horizon, n_act=horizon // 2,

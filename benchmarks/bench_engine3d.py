@@ -63,9 +63,9 @@ def speed_rows(env, seconds, n_scenes, rng):
         env.step(env.q + 0.01 * np.sin(env.step_count + np.arange(env.dof)))
     rows.append(("env.step (pybullet, 4 substeps)", rate(wiggle, 1, seconds), "steps/s", ""))
     for size in (32, 64):
-        rows.append((f"render_image {size}x{size} (TinyRenderer)",
-                     rate(lambda: env.render_image(start, size), 1, seconds), "images/s",
-                     "the image observation (32: EngineConfig.image_size's default)" if size == 32 else ""))
+        rows.append((f"camera_image {size}x{size} (TinyRenderer)",
+                     rate(lambda: env.camera_image(start, size, size), 1, seconds), "images/s",
+                     "engine3d_image's observation (32: its image_size's default)" if size == 32 else ""))
     rows.append(("memory per env (its pybullet client)", [memory_per_env(20)], "MB",
                  "why dagger.evaluate runs UR5 episodes in groups of 100"))
     return rows

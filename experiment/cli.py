@@ -29,9 +29,10 @@ def parse_args(argv, profiles, methods):
                         "machine with 2 worker processes), mid (Table I's analogue: 500 demos, 5 lineages x 2 "
                         "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
-    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS), help="environment (default planar)")
-    p.add_argument("--image-obs", action="store_true",
-                   help="engine3d: the policy sees a camera image through a small CNN instead of the obstacle list")
+    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS),
+                   help="environment (default planar): planar, engine3d, or a research variant's, e.g. engine3d_image "
+                        "(experiment/image_obs.py: the UR5 policy sees a camera image through a small CNN instead of "
+                        "the obstacle list)")
     p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
                    help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
                         "orientation (the authors' rule: 10), and the oracle ends at that posture")
@@ -86,8 +87,6 @@ def parse_args(argv, profiles, methods):
         over["env"] = args.env
     if args.methods:
         over["methods"] = parse_methods(p, args.methods, methods)
-    if args.image_obs:
-        over["image_obs"] = True
     if args.goal_angle is not None:
         over["goal_angle"] = args.goal_angle
     if args.finetune:
@@ -142,11 +141,9 @@ def parse_methods(parser, text, methods):
 
 def folder_name(cfg, over, args):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, image observations, goal angle, fine-tuning, round shares, short
-    interventions, replicates, set of methods)."""
+    (another env, goal angle, fine-tuning, round shares, short interventions, replicates, set of methods)."""
     env = over.get("env", cfg.env)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
-    name += "_images" if args.image_obs else ""
     name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
     name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
     name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""

@@ -89,12 +89,9 @@ def check_config(cfg, methods):
                 "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
-    if cfg.image_obs and cfg.env != "engine3d":
-        raise ValueError(f"image_obs: image observations are an option of the engine3d env only, "
-                         f"got env={cfg.env!r}")
-    if cfg.goal_angle is not None and (cfg.env != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
-        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env only, in degrees "
-                         f"within (0, 180] (the authors' 10), or None for position-only success")
+    if cfg.goal_angle is not None and (envs.paper_env(cfg.env) != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
+        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env (and its variants) only, in "
+                         f"degrees within (0, 180] (the authors' 10), or None for position-only success")
     if cfg.finetune not in ("continue", "constant"):
         raise ValueError(f"finetune must be 'continue' (the authors' planar run) or 'constant' (their lever run), "
                          f"got {cfg.finetune!r}")
@@ -112,8 +109,6 @@ def check_config(cfg, methods):
                          f"runs), got {cfg.round_shares!r}")
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
-    if cfg.image_size < 8:
-        raise ValueError(f"image_size must be >= 8 pixels, got {cfg.image_size}")
     if not 0.0 < cfg.intervention_fraction < 1.0:
         raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
     if cfg.eval_scenarios > 100:

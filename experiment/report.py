@@ -47,9 +47,14 @@ PAPER_TABLES = {
 }
 
 
+def table_number(cfg):
+    """The paper's table of this run's env: 'I' (planar) or 'II' (the UR5 lever, a variant's env of it too)."""
+    return "II" if envs.paper_env(cfg.env) == "engine3d" else "I"
+
+
 def paper_table(cfg):
     """The paper's cells for this run's env, methods and rounds in table_rows' layout ({} if the paper has none)."""
-    paper = PAPER_TABLES.get(cfg.env, {})
+    paper = PAPER_TABLES.get(envs.paper_env(cfg.env), {})  # a variant's env: the paper's env it derives from
     return {m: ([paper[m][0]] if m == "bc" else [paper[m][k] if k < len(paper[m]) else None
                                                    for k in range(cfg.rounds)])
             for m in cfg.methods if m in paper}
@@ -213,7 +218,7 @@ def format_table(cfg, table, stats, unseen=None):
                     "seeds' alone." if getattr(cfg, "replicates", "lineages") == "seeds" else ""))
     paper = paper_table(cfg)
     if paper:
-        lines += ["", f"The paper's Table {'I' if cfg.env == 'planar' else 'II'} for the same rows and rounds (its "
+        lines += ["", f"The paper's Table {table_number(cfg)} for the same rows and rounds (its "
                       f"own env, network and budget: compare orderings and gaps, not levels):", ""]
         lines += table_rows(cfg, paper)
     lines += paired_lines(cfg, stats)
@@ -302,7 +307,7 @@ def calibration_lines(cfg, stats):
     if not stats.get("calibration"):
         return []
     paper = envs.paper_median_step(cfg.env)
-    quoted = PAPER_CALIBRATION.get(cfg.env) if paper is not None else None
+    quoted = PAPER_CALIBRATION.get(envs.paper_env(cfg.env)) if paper is not None else None
     lines = ["", "Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
                  "beside the best fixed sigma of the round in hindsight"
                  + (" (in the paper's unit)" if paper is not None else "") + "; below each, the "
@@ -389,7 +394,7 @@ def plot_success_vs_round(cfg, table, path):
     axes[0, 0].set_title(f"Success vs round ({cfg.env}, this run)")
     if paper:
         paper_span = _draw_success_lines(axes[0, 1], cfg, paper)
-        axes[0, 1].set_title(f"The paper's Table {'I' if cfg.env == 'planar' else 'II'}")
+        axes[0, 1].set_title(f"The paper's Table {table_number(cfg)}")
         half = max(span[1] - span[0], paper_span[1] - paper_span[0]) / 2 + 2  # one y-span for both panels
         for ax, (lo, hi) in ((axes[0, 0], span), (axes[0, 1], paper_span)):
             ax.set_ylim((lo + hi) / 2 - half, (lo + hi) / 2 + half)
@@ -475,7 +480,7 @@ def plot_table(cfg, table, path):
     ax.tick_params(length=0)
     for side in ax.spines.values():
         side.set_visible(False)
-    name = "Table II" if cfg.env == "engine3d" else "Table I"
+    name = f"Table {table_number(cfg)}"
     fig.text(0.5, 1 - 0.1 / height, f"{name} analogue: success rate [%], mean ± SE (n lineages)\n"
              f"darker = higher; boxed = the best of its round", ha="center", va="top", fontsize=9)
     fig.subplots_adjust(left=3.5 / width, right=1 - 0.1 / width, top=1 - 0.85 / height, bottom=0.05 / height)
@@ -505,7 +510,7 @@ FIGURE_CAPTIONS = {
 def figure_caption(name, cfg):
     """FIGURE_CAPTIONS[name], said for the run's env (Table II and the top view for the UR5)."""
     caption = FIGURE_CAPTIONS[name]
-    if cfg.env == "engine3d":
+    if envs.paper_env(cfg.env) == "engine3d":
         caption = caption.replace("Table I as", "Table II as")
         if name[:4] in ("fig1", "fig2", "fig3"):
             caption += " The UR5's end effector is drawn in the top view (x, y in m)."

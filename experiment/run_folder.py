@@ -51,7 +51,11 @@ RETIRED_FIELDS = {
     "episodes_per_round": ANY_VALUE,  # read only by collect_on='train'
     "calib_rollouts_per_beta": (1,),  # one blended rollout per ratio and segment (the authors')
     "calib_blend_segments": (0,),  # every long enough intervention segment starts blended rollouts
+    "image_obs": (False,),  # camera images are an env variant now: --env engine3d_image (experiment/image_obs.py)
+    "image_size": ANY_VALUE,  # read only by image_obs (the variant's image size is its own)
 }
+# What to do instead, for a retired field that became a variant rather than being deleted.
+RETIRED_ADVICE = {"image_obs": "camera images are the env variant --env engine3d_image now (experiment/image_obs.py)"}
 
 
 class Run:
@@ -375,7 +379,8 @@ def without_retired_fields(where, stored):
             raise ConfigMismatch(
                 f"{where} was made with {key} = {stored[key]!r}, an option deleted since (measured and not adopted: "
                 f"benchmarks/README.md); this code runs only {key} = "
-                + " / ".join(repr(v) for v in allowed) + ". Use the commit that made it to run or report it.")
+                + " / ".join(repr(v) for v in allowed) + ". "
+                + (RETIRED_ADVICE[key] + "." if key in RETIRED_ADVICE else "Use the commit that made it to run or report it."))
     return {key: value for key, value in stored.items() if key not in RETIRED_FIELDS}
 
 

@@ -119,7 +119,7 @@ def test_run_folder_refuses_a_different_config(full_run):
     (["--profile", "quick", "--lineage", "3"], "valid lineages are 0..0"),
     (["--rounds", "0"], "rounds must be >= 1"),
     (["--device", "tpu"], "use cpu or cuda"),
-    (["--image-obs"], "option of the engine3d env only"),
+    (["--image-obs"], "unrecognized arguments"),
 ])
 def test_bad_cli_arguments(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -222,42 +222,15 @@ def test_goal_angle_option_names_the_run_and_reaches_the_env():
         dagger.parse_args(["--goal-angle", "10"])  # the planar env has no orientation rule
 
 
-def test_image_obs_flag_names_the_run_and_reaches_the_env():
-    _, cfg = dagger.parse_args(["--env", "engine3d", "--image-obs", "--profile", "smoke"])
-    assert cfg.image_obs and cfg.name == "smoke_engine3d_images"
-    env = dagger.make_run_env(cfg)
-    assert env.image_shape == (3, cfg.image_size, cfg.image_size)
-    policy = dagger.make_policy(cfg, env)
-    assert policy.cfg.image_shape == env.image_shape and policy.cfg.obs_dim == env.obs_dim
-    with pytest.raises(ValueError, match="image_size must be >= 8"):
-        replace(cfg, image_size=4)
-
-
-def test_evaluate_runs_an_image_policy_on_image_observations():
-    """evaluate passes env_options to every env: the policy's obs_dim only matches with the image layout."""
-    cfg = replace(dagger.PROFILES["smoke"], env="engine3d", image_obs=True, image_size=8, K=4, down_dims=(8, 16))
-    env = dagger.make_run_env(cfg)
-    policy = dagger.make_policy(cfg, env)
-    obs, _ = env.reset(seed=int(env.train_seeds(1)[0]))
-    policy.fit_normalizer(obs[None], np.repeat(env.q[None, None], cfg.horizon, axis=1))
-    seen = []
-    sample = policy.sample
-    policy.sample = lambda o, generator=None: seen.append(o.shape) or sample(o, generator)
-    ok = dagger.evaluate(policy, "engine3d", env.eval_seeds()[:2], 1, cfg.n_act, 0, dagger.env_options(cfg))
-    assert ok.shape == (2, 1) and seen and all(shape[1] == env.obs_dim == 15 + 3 * 8 * 8 for shape in seen)
-    with pytest.raises(ValueError, match="obs must have shape"):
-        dagger.evaluate(policy, "engine3d", env.eval_seeds()[:1], 1, cfg.n_act, 0)  # no images: 127 != 207
-
-
 def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_path):
     old = json.load(open(os.path.join(full_run, "config.json")))
-    del old["image_obs"], old["image_size"]  # a run folder written before these fields existed
+    del old["mlp_width"], old["mlp_blocks"]  # a run folder written before these fields existed
     root = tmp_path / "older"
     root.mkdir()
     json.dump(old, open(root / "config.json", "w"))
     run_folder.Run(str(root), TINY)  # no error: the new fields have their defaults
-    with pytest.raises(ValueError, match="image_size"):
-        run_folder.Run(str(root), replace(TINY, image_size=48))
+    with pytest.raises(ValueError, match="mlp_width"):
+        run_folder.Run(str(root), replace(TINY, mlp_width=128))
 
 
 def test_a_retired_field_is_dropped_at_the_value_that_remains_and_another_value_is_refused(full_run, tmp_path):
@@ -304,20 +277,6 @@ def test_every_committed_results_file_matches_the_config_of_the_command_that_rep
         data = run_folder.load_stage_file(os.path.join(where, name), run_folder._read_lineage_file)
         run_folder.check_same_config(name, data["config"], cfg)
 
-
-def test_whole_loop_on_engine3d_with_image_observations(tmp_path):
-    """Every stage with the UR5 env and camera images: demos, BC, HG-DAgger with the 6-dof oracle,
-    calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""
-    cfg = replace(TINY, name="tiny_images", env="engine3d", image_obs=True, image_size=16, n_demos=2,
-                  eval_scenarios=2, methods=("bc", "hg_dagger", "pooled"))
-    root = dagger.run_experiment(cfg, str(tmp_path / "images"))
-    results = json.load(open(os.path.join(root, "results.json")))
-    assert set(results["success"]) == {"bc", "hg_dagger", "pooled"}
-    D0 = dagger.envs.load_episodes(os.path.join(root, "data", "D0.npz"))
-    assert D0[0]["obs"].shape[1] == 15 + 3 * 16 * 16                 # the images are in the data
-    for f in ("fig1_recovery.png", "fig2_method_overview.png", "fig3_partial_denoising.png", "fig4_blend_fit.png",
-              "fig5_environment.png", "fig5_policy_view.png", "table_i.png", "lineage_0/round_1/checkpoints/pooled.pt"):
-        assert os.path.isfile(os.path.join(root, f if "/" in f else os.path.join("figures", f)))
 
 
 def test_evaluate_runs_groups_of_at_most_max_parallel_in_scenario_order(monkeypatch):
@@ -538,7 +497,7 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     none is refused by a folder another command made (e.g. --methods right after the default run), --help
     prints the options."""
     smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
-                    n_demos=2, bc_steps=10, finetune_steps=6, image_size=16)
+                    n_demos=2, bc_steps=10, finetune_steps=6)
     monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
     monkeypatch.chdir(tmp_path)
     commands = readme_commands()

@@ -2,8 +2,8 @@
 
 FK against hand-computed DH poses, closed-form IK round trips, collision truth on hand-built
 configurations, pybullet (the simulator) vs the vectorized numpy check, scenario determinism,
-batched == looped, step semantics, images, bad input; the scene (the authors' small-engine cell)
-and the starts.
+batched == looped, step semantics, drawing, bad input; the scene (the authors' small-engine cell)
+and its random starts.
 """
 import math
 
@@ -280,8 +280,8 @@ def test_starts_are_clear_far_from_the_goal_and_spread_over_the_joint_limits():
 
 
 def test_make_env_builds_the_engine_env_with_config_fields():
-    env = make_env("engine3d", max_steps=50, image_size=32)
-    assert isinstance(env, EngineReach3D) and env.max_steps == 50 and env.cfg.image_size == 32
+    env = make_env("engine3d", max_steps=50)
+    assert isinstance(env, EngineReach3D) and env.max_steps == 50
     assert make_env("engine3d").max_steps == 333  # the authors' 1000 frames at 30 Hz, at 10 Hz
     assert env.dof == 6 and env.obs_dim == 2 * 6 + 3 + 7 * env.cfg.n_max_obstacles
 
@@ -301,6 +301,22 @@ def test_batched_equals_looped(scene_env):
         np.testing.assert_array_equal(batched, np.stack([fn(qi) for qi in q]))
     np.testing.assert_array_equal(scene_env.make_obs(q, q_prev),
                                   np.stack([scene_env.make_obs(a, b) for a, b in zip(q, q_prev)]))
+
+
+def test_make_obs_layout(scene_env):
+    """The docstring's layout: q, q_prev, the goal, then n_max_obstacles slots of 7 numbers, the absent ones zero
+    (make_obs; its first part, _joint_goal_obs, is shared with the image variant, tests/test_image_obs.py)."""
+    q = np.stack([scene_env.q, scene_env.witness])
+    q_prev = q - 0.01
+    obs = scene_env.make_obs(q, q_prev)
+    assert obs.shape == (2, 127) and obs.dtype == np.float32
+    np.testing.assert_array_equal(obs[:, :6], q.astype(np.float32))
+    np.testing.assert_array_equal(obs[:, 6:12], q_prev.astype(np.float32))
+    np.testing.assert_array_equal(obs[:, 12:15], np.tile(scene_env.goal, (2, 1)).astype(np.float32))
+    slots, n = obs[0, 15:].reshape(scene_env.cfg.n_max_obstacles, 7), len(scene_env.obstacles)
+    np.testing.assert_array_equal(slots[:n], scene_env.obstacles.astype(np.float32))
+    assert n > 0 and not slots[n:].any()
+    np.testing.assert_array_equal(scene_env.make_obs(q[1], q_prev[1]), obs[1])  # (dof,) -> (obs_dim,)
 
 
 # ---- stepping ------------------------------------------------------------------------------------
@@ -341,56 +357,7 @@ def test_step_terminates_on_collision_success_and_truncates():
     assert truncated and not terminated and info["step"] == 3
 
 
-# ---- images and drawing --------------------------------------------------------------------------
-def test_render_image_is_small_rgb_and_shows_the_arm(scene_env):
-    a = scene_env.render_image(scene_env.q)
-    b = scene_env.render_image(scene_env.witness)
-    assert a.shape == (32, 32, 3) and a.dtype == np.uint8  # EngineConfig.image_size's default
-    assert np.abs(a.astype(int) - b).sum() > 1000  # the arm moved in the picture
-    env = EngineReach3D(EngineConfig(image_obs=True, image_size=24))
-    _, info = env.reset(seed=10_002)
-    assert info["image"].shape == (24, 24, 3)
-    _, _, _, _, info = env.step(env.q)
-    assert info["image"].shape == (24, 24, 3)
-
-
-def test_image_observations_end_with_the_rendered_camera_image():
-    env = EngineReach3D(EngineConfig(image_obs=True, image_size=16))
-    assert env.image_shape == (3, 16, 16) and env.obs_dim == 15 + 3 * 16 * 16
-    obs, info = env.reset(seed=10_004)
-    assert obs.shape == (env.obs_dim,) and obs.dtype == np.float32
-    assert np.array_equal(obs[:6], env.q.astype(np.float32)) and np.allclose(obs[12:15], env.goal)
-    assert 0.0 <= obs[15:].min() and obs[15:].max() <= 1.0
-    # channel-first in the vector: channel c of pixel (row, col) sits at 15 + c*S*S + row*S + col
-    image = env.render_image(env.q)
-    assert np.array_equal(info["image"], image) and np.array_equal(env.obs_image(obs), image)
-    assert obs[15 + 2 * 256 + 5 * 16 + 7] == np.float32(image[5, 7, 2] / 255)
-    # batched: every row rendered at its own q
-    q = np.stack([env.q, env.witness])
-    batch = env.make_obs(q, q)
-    assert np.array_equal(env.obs_image(batch[1]), env.render_image(env.witness))
-    assert np.abs(batch[0, 15:] - batch[1, 15:]).sum() > 1.0
-    # given image rows are copied, not rendered: the noised-state approximation of Sec. V
-    kept = env.make_obs(q, q, image=batch[:1, 15:])
-    assert np.array_equal(kept[1, 15:], batch[0, 15:]) and np.array_equal(kept[1, :6], env.witness.astype(np.float32))
-
-
-def test_image_obs_bad_input_names_the_value():
-    env = EngineReach3D(EngineConfig(image_obs=True, image_size=16))
-    env.reset(seed=10_004)
-    with pytest.raises(ValueError, match=r"image must have shape \(768,\)"):
-        env.make_obs(env.q, env.q, image=np.zeros(10))
-    with pytest.raises(ValueError, match="image_size must be an int >= 8"):
-        EngineReach3D(EngineConfig(image_obs=True, image_size=4))
-    plain = EngineReach3D()
-    plain.reset(seed=10_004)
-    assert plain.image_shape == () and plain.obs_dim == 127
-    with pytest.raises(ValueError, match="no image observations"):
-        plain.make_obs(plain.q, plain.q, image=np.zeros(768))
-    with pytest.raises(ValueError, match="hold no image"):
-        plain.obs_image(np.zeros(127))
-
-
+# ---- drawing --------------------------------------------------------------------------------------
 def test_render_scene_image_writes_a_png(scene_env, tmp_path):
     from envs import render_scene_image
     path = tmp_path / "scene.png"
@@ -430,8 +397,6 @@ def test_bad_input_raises_value_error(scene_env):
         EngineReach3D().set_scene(np.ones((21, 7)))
     with pytest.raises(ValueError, match="kinds"):
         EngineReach3D().set_scene(np.ones((1, 7)), kinds=["wall"])
-    with pytest.raises(ValueError, match="size"):
-        scene_env.render_image(size=4)
     with pytest.raises(ValueError, match="link_radii"):
         EngineReach3D(EngineConfig(link_radii=(0.1,) * 7))
     with pytest.raises(ValueError, match="before reset"):
