@@ -376,11 +376,11 @@ def without_retired_fields(where, stored):
     behaviour that remains; ConfigMismatch naming `where` and the field otherwise."""
     for key, allowed in RETIRED_FIELDS.items():
         if key in stored and allowed is not ANY_VALUE and stored[key] not in allowed:
-            raise ConfigMismatch(
-                f"{where} was made with {key} = {stored[key]!r}, an option deleted since (measured and not adopted: "
-                f"benchmarks/README.md); this code runs only {key} = "
-                + " / ".join(repr(v) for v in allowed) + ". "
-                + (RETIRED_ADVICE[key] + "." if key in RETIRED_ADVICE else "Use the commit that made it to run or report it."))
+            why = (f"a field that left the Config: {RETIRED_ADVICE[key]}" if key in RETIRED_ADVICE else
+                   "an option deleted since (measured and not adopted: benchmarks/README.md)")
+            raise ConfigMismatch(f"{where} was made with {key} = {stored[key]!r}, {why}; this code runs only {key} = "
+                                 + " / ".join(repr(v) for v in allowed) + ". Use the commit that made it to run or "
+                                 "report it.")
     return {key: value for key, value in stored.items() if key not in RETIRED_FIELDS}
 
 
