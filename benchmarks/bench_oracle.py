@@ -41,7 +41,17 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 import oracle  # noqa: E402
 from envs import make_env  # noqa: E402
-from oracle import Oracle, PlanningFailed, min_time_lower_bound  # noqa: E402
+from oracle import Oracle, PlanningFailed  # noqa: E402
+
+
+def min_time_lower_bound(path, v_max, a_max):
+    """Lower bound (s) on any rest-to-rest traversal of `path` (N, dof): the slowest joint's bang-bang time.
+
+    Joint j travels at least its total variation D_j along the path with |v| <= v_max_j, |a| <= a_max_j: at
+    least the trapezoid time D/v + v/a (or 2 sqrt(D/a) if it never reaches v_max). Jerk limits only add."""
+    travel = np.sum(np.abs(np.diff(np.atleast_2d(path), axis=0)), axis=0)  # (dof,)
+    cruise = travel >= v_max ** 2 / a_max
+    return float(np.where(cruise, travel / v_max + v_max / a_max, 2 * np.sqrt(travel / a_max)).max())
 
 
 def traversal_time(path, v_max, a_max):
