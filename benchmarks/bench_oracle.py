@@ -41,7 +41,9 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 import oracle  # noqa: E402
 from envs import make_env  # noqa: E402
-from oracle import Oracle, PlanningFailed  # noqa: E402
+from oracle import Oracle, OracleConfig, PlanningFailed  # noqa: E402
+
+HORIZON = 20  # the policy's chunk H (dagger.Config.horizon); the oracle only carries it
 
 
 def min_time_lower_bound(path, v_max, a_max):
@@ -82,7 +84,7 @@ def main():
         compare(args.compare, args.n, args.n_3d)
         return
     env = make_env("planar")
-    oracle = Oracle()
+    oracle = Oracle(OracleConfig(horizon=HORIZON))
     v_max, a_max, j_max = oracle.limits(env)
     seeds = env.eval_seeds()[: args.n] if args.seeds == "eval" else env.train_seeds(args.n)
     rows, failures = [], []
@@ -250,7 +252,9 @@ def compare(rev, n_planar, n_3d):
         for seed in env.eval_seeds()[:n]:
             cells = []
             for label, module in oracles.items():
-                expert = module.Oracle()
+                # an older oracle.py's OracleConfig may have no horizon field (or a default for it)
+                fields = module.OracleConfig.__dataclass_fields__
+                expert = module.Oracle(module.OracleConfig(**({"horizon": HORIZON} if "horizon" in fields else {})))
                 counts = count_planning_checks(env, expert)
                 del step_collisions[:]
                 try:

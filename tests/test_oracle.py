@@ -18,6 +18,12 @@ V_MAX = 0.5
 A_MAX = V_MAX / (4 * DT)
 J_MAX = A_MAX / (2 * DT)
 LIMITS_2D = (np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
+H = 20  # the policy's chunk (dagger.Config.horizon, which dagger passes to OracleConfig)
+
+
+def make_oracle(**options):
+    """Oracle(OracleConfig) with the chunk length H and the given options."""
+    return Oracle(OracleConfig(horizon=H, **options))
 
 
 # ---- toy collision functions (test doubles) --------------------------------------------------
@@ -298,7 +304,7 @@ def env():
 @pytest.fixture(scope="module")
 def demo(env):
     seed = env.eval_seeds()[0]
-    return Oracle().demonstrate(env, seed)
+    return make_oracle().demonstrate(env, seed)
 
 
 def test_solve_ik_reaches_goal_and_is_collision_free(env):
@@ -324,16 +330,16 @@ def test_demonstrate_gives_a_valid_successful_expert_episode(env, demo):
     assert np.abs(demo["action"] - demo["q"]).max() <= env.max_step * (1 + 1e-9)
     visited = np.concatenate([demo["q"], demo["action"][-1:]])
     assert env.goal_reached(visited[-1:])[0]
-    v_max, a_max, j_max = Oracle().limits(env)
+    v_max, a_max, j_max = make_oracle().limits(env)
     # the env ends the episode on reaching the goal, possibly before the plan has come to rest
     assert_limits(visited, np.zeros(env.dof), v_max, a_max, j_max, env.dt, at_rest=False)
     # collision-free under a check 10x denser than the planner's
-    res = edge_resolution(env, 0.1 * Oracle().sweep(env))
+    res = edge_resolution(env, 0.1 * make_oracle().sweep(env))
     assert not path_in_collision(visited, env.in_collision, res)
 
 
 def test_demonstrate_is_deterministic(env, demo):
-    again = Oracle().demonstrate(env, env.eval_seeds()[0])
+    again = make_oracle().demonstrate(env, env.eval_seeds()[0])
     for key in ("q", "action", "obs"):
         np.testing.assert_array_equal(again[key], demo[key])
 
@@ -347,13 +353,12 @@ def test_plan_fails_cleanly_when_the_goal_is_walled_off(env):
     assert not env.in_collision(q_start) and np.all(env.goal_configurations()[:, 0] > 0)
     t0 = time.perf_counter()
     with pytest.raises(PlanningFailed):
-        Oracle(OracleConfig(max_iters=50)).plan(env, q_start, None, np.random.default_rng(0))
+        make_oracle(max_iters=50).plan(env, q_start, None, np.random.default_rng(0))
     assert time.perf_counter() - t0 < 30.0  # returned, did not hang
 
 
 def test_gate_triggers_on_collision_and_stall_not_on_safe_progress(env, demo):
-    oracle_ = Oracle(OracleConfig(gate_lookahead=None))  # the whole pending chunk
-    H = 16  # the policy's chunk
+    oracle_ = make_oracle(gate_lookahead=None)  # the whole pending chunk
     env.reset(seed=demo["seed"])
     gate = oracle_.gate(env)
     # safe, progressing: the expert's own next H targets after half the demo was driven
@@ -378,14 +383,14 @@ def test_gate_triggers_on_collision_and_stall_not_on_safe_progress(env, demo):
 
 
 def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
-    oracle_ = Oracle()
+    oracle_ = make_oracle()
     t = 20  # mid-motion: the expert moves at speed here
     env.reset(seed=demo["seed"])
     env.set_state(demo["q"][t], demo["q"][t - 1])
     v0 = (demo["q"][t] - demo["q"][t - 1]) / env.dt
     assert np.abs(v0).max() > 0.5 * env.max_step / env.dt
     actions = oracle_.intervention(env)
-    assert len(actions) >= 16  # at least a policy chunk (H = 16): dagger drops shorter interventions
+    assert len(actions) >= oracle_.cfg.horizon  # dagger drops interventions shorter than H
     again = oracle_.intervention(env)
     np.testing.assert_array_equal(actions, again)  # same state -> same plan
     traj = np.concatenate([env.q[None], actions])
@@ -418,21 +423,21 @@ def test_gate_looks_gate_lookahead_steps_ahead_at_gate_clearance(env):
             lo, hi = env.joint_limits
             if np.any(chunk < lo) or np.any(chunk > hi):
                 continue
-            near = Oracle(OracleConfig(gate_lookahead=None))
+            near = make_oracle(gate_lookahead=None)
             hit = [near.chunk_collides(env, chunk[:j]) for j in range(1, 21)]
             if not any(hit) or hit.index(True) + 1 <= 4:
                 continue
             j = hit.index(True) + 1  # first prefix length that comes too close
-            assert not Oracle(OracleConfig(gate_lookahead=j - 1)).chunk_collides(env, chunk)
-            assert Oracle(OracleConfig(gate_lookahead=j)).chunk_collides(env, chunk)
-            wide = Oracle(OracleConfig(gate_lookahead=None, gate_clearance=0.05))  # a wider band: sooner
+            assert not make_oracle(gate_lookahead=j - 1).chunk_collides(env, chunk)
+            assert make_oracle(gate_lookahead=j).chunk_collides(env, chunk)
+            wide = make_oracle(gate_lookahead=None, gate_clearance=0.05)  # a wider band: sooner
             assert wide.chunk_collides(env, chunk[:j]) and any(wide.chunk_collides(env, chunk[:i]) for i in range(1, j))
             return
     raise AssertionError("no straight chunk that comes close to an obstacle after a few steps")
 
 
 def test_gate_time_triggers_and_the_cap_on_interventions(env, demo):
-    cfg = OracleConfig(time_trigger_first=5, time_trigger_every=(3, 3), max_interventions=2,
+    cfg = OracleConfig(horizon=H, time_trigger_first=5, time_trigger_every=(3, 3), max_interventions=2,
                        stall_window=1000, gate_lookahead=1)
     oracle_ = Oracle(cfg)
     env.reset(seed=demo["seed"])
@@ -470,7 +475,7 @@ def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_ind
     path -- RRT-Connect's, then shortcut's, then smooth_corners' -- at least verify_margin
     clear, re-checked 100x more densely than the planner checks."""
     env = envs.make_env(name)
-    expert = Oracle()
+    expert = make_oracle()
     sweep = expert.sweep(env)
     margin, verify = expert.cfg.margin * sweep, expert.cfg.verify_margin * sweep
     resolution = edge_resolution(env, 2 * (margin - verify))
@@ -502,9 +507,9 @@ def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_ind
 
 def test_oracle_rejects_margins_that_break_the_edge_validation_argument():
     with pytest.raises(ValueError, match="margin > verify_margin"):
-        Oracle(OracleConfig(margin=0.5))  # checks 0 apart
+        make_oracle(margin=0.5)  # checks 0 apart
     with pytest.raises(ValueError, match="verify_margin"):
-        Oracle(OracleConfig(verify_margin=0.25))  # grazes between verification checks
+        make_oracle(verify_margin=0.25)  # grazes between verification checks
 
 
 def test_plot_demonstration_writes_png(env, demo, tmp_path):
