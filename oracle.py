@@ -195,8 +195,9 @@ def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
 def path_in_collision(path, in_collision, resolution):
     """True if the first state of the polyline path (N, dof) or any of its edges collides."""
     path = np.atleast_2d(path)
-    return bool(in_collision(path[:1])[0]) or not np.all(edges_free(path[:-1], path[1:], in_collision,
-                                                                    resolution))
+    if in_collision(path[:1])[0]:
+        return True
+    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
 
 
 def with_margin(env, margin, relax_at=None, relax_radius=0.0):
