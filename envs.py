@@ -173,6 +173,14 @@ class ArmEnv:
             raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
         return int(seed), np.random.default_rng(int(seed))
 
+    def _check_batch(self, q, margin=0.0):
+        """in_collision's and clearance's input: ((B, dof) finite float64, was_single); margin >= 0 m."""
+        q, single = _as_batch(q, self.dof)
+        if not np.all(np.isfinite(q)) or not (np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"in_collision: q must not contain NaN or inf, and margin must be a finite distance "
+                             f">= 0 m, got margin {margin}")
+        return q, single
+
     def set_state(self, q, q_prev=None, step_count=0):
         """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
         q = self._check_q(q, "q")
@@ -342,7 +350,6 @@ class PlanarReacher(ArmEnv):
                                         for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
         super().__init__(cfg.joint_lo, cfg.joint_hi)
-        self.obstacles = np.zeros((0, 5))  # (N, 5): centre x, y, half x, half y, angle
         self.set_scene(np.zeros((0, 5)))
 
     # ---- kinematics and the collision check ---------------------------------------------------
@@ -381,11 +388,7 @@ class PlanarReacher(ArmEnv):
         margin > 0 to keep clear between their checks). Pairs: every arm part with every obstacle, and
         SELF_PAIRS. The target block is not an obstacle.
         """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("in_collision: q contains NaN or inf")
-        if not (np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
+        q, single = self._check_batch(q, margin)
         chunk = 4096  # configurations per pass: the temporaries stay in cache
         hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], self.contact_margin + margin)
                               for i in range(0, len(q), chunk)])
@@ -520,10 +523,9 @@ class PlanarReacher(ArmEnv):
     def goal_configurations(self, n_angles=None):
         """Collision-free joint configurations whose end effector is exactly at the goal. (M, 3).
 
-        Closed-form IK of the 3-link chain (the last link reaches to the end effector): for each
-        orientation phi of the last link the wrist is at goal - l3 (cos phi, sin phi), and the
-        2-link IK of the wrist has two elbow solutions. Configurations outside the joint limits or
-        in collision are dropped.
+        Closed-form IK of the 3-link chain: for each orientation phi of the last link the wrist is at
+        goal - l3 (cos phi, sin phi), and its 2-link IK has two elbow solutions. Those outside the joint
+        limits or in collision are dropped.
         """
         goal, n = self._goal, n_angles or self.cfg.n_goal_angles
         l1, l2, l3 = self.chain_lengths
@@ -594,11 +596,9 @@ class PlanarReacher(ArmEnv):
         self.set_state(start)
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
-    # ---- observations and the simulator's check used by step ---------------------------
+    # ---- observations ---------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
-        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
-
-        The end effector is computed from q (forward kinematics)."""
+        """Observations (B, obs_dim) float32 for the current scenario, the end effector from q; (dof,) -> (obs_dim,)."""
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         q_prev = np.broadcast_to(q_prev, q.shape)
@@ -610,18 +610,12 @@ class PlanarReacher(ArmEnv):
         obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
-    def simulator_in_collision(self, q):
-        """The simulator's contact check used by step: pymunk."""
-        return self.pymunk_in_collision(q)
+    simulator_in_collision = pymunk_in_collision  # the contact check that judges a step: the simulator's
 
     # ---- drawing -----------------------------------------------------------------------------
     def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
-        """Draw obstacles, the target and the arm at q (default: current state; (dof,) or (B, dof)).
-
-        Boxes are drawn as polygons in data units, so sizes are to scale. The dashed circle is the
-        success radius around the target. alpha / color style the arm; show_scene=False draws only
-        the arm (for paths over a scene).
-        """
+        """Fig. 5: obstacles, the target (dashed: the success radius) and the arm at q (default: current; (dof,)
+        or (B, dof)) as polygons to scale. alpha / color style the arm; show_scene=False draws only the arm."""
         from matplotlib.patches import Circle, Polygon
 
         if show_scene:
@@ -769,22 +763,18 @@ UR5_D = np.array([0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823])  # m, offsets a
 UR5_A = np.array([0.0, -0.425, -0.39225, 0.0, 0.0, 0.0])  # m, lengths along x_i
 UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  # rad, twists
 
-# The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
-# wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
+# The arm as 8 capsules (EngineReach3D.link_segments): wrist 3 runs from its centre to the flange, the probe
+# from the flange to the TCP.
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
 # The fixed camera of Fig. 5 (and of the image variant's observations): in front of the robot, above the
 # table, looking at the engine and the goal (the authors' debug camera looks from the same side)
 ENGINE_CAMERA = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
-# Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
-# never count. In the wrist, the DH offsets keep some non-consecutive capsules at a FIXED distance,
-# whatever the joint angles: forearm-wrist 2 exactly d4 = 0.109 m apart (radii sum 0.095),
-# wrist 1-wrist 3 exactly d5 = 0.0947 (0.09), wrist 2-probe d6 = 0.0823 (0.07), wrist 1-probe
-# >= d5, wrist 2-fingers >= d6 + tool, wrist 3-fingers >= tool length. They can never touch, and
-# with a planner's inflation margin of a few mm they would flag EVERY configuration, so they are
-# left out too. The pairs that remain can meet when the arm folds (tests/test_engine3d.py checks
-# that the left-out ones stay apart on random configurations):
+# Self-collision pairs: those that can meet when the arm folds. Consecutive capsules share a joint and never
+# count; in the wrist the DH offsets hold some others at a fixed distance whatever the angles (forearm-wrist 2
+# d4 = 0.109 m apart, radii sum 0.095; wrist 1-wrist 3 d5; wrist 2-probe d6; wrist 1-probe, wrist 2 / 3-fingers
+# farther): they never touch, and with a planner's margin of a few mm they would flag every configuration.
 ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs forearm .. fingers
                              + [(1, j) for j in range(3, 8)]  # upper arm vs wrist 1 .. fingers
                              + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
@@ -832,8 +822,6 @@ class EngineReach3D(ArmEnv):
         self.goal_tolerance = float(cfg.goal_tolerance)
         self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
         super().__init__(cfg.joint_lo, cfg.joint_hi)
-        self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
-        self.obstacle_kinds = []  # 'engine' | 'lever' | 'pipe' | 'box', for drawing
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
@@ -883,12 +871,8 @@ class EngineReach3D(ArmEnv):
         return p
 
     def fk(self, q):
-        """Joint points (B, 7, 3): base, shoulder, elbow, wrist 1-3, TCP. (dof,) -> (7, 3).
-
-        One point on the axis of each joint (the origins of the UR5's DH frames 0..5; the DH model
-        puts the shoulder and elbow offsets of the real arm into d4) plus the tool centre point,
-        the end effector. The flange lies on the line from wrist 3 to the TCP.
-        """
+        """Joint points (B, 7, 3): the origins of the DH frames 0..5 (base, shoulder, elbow, wrist 1-3; the DH
+        model puts the real arm's shoulder and elbow offsets into d4) and the TCP, the end effector."""
         q, single = _as_batch(q, self.dof)
         points = self._capsule_points(q)[:, [0, 1, 2, 3, 4, 5, 7]]
         return points[0] if single else points
@@ -900,18 +884,11 @@ class EngineReach3D(ArmEnv):
         return np.stack([p[:, _CAPSULE_START], p[:, _CAPSULE_END]], axis=2)
 
     def clearance(self, q):
-        """Signed distance (B,) from the arm at q to everything it may not touch, in m.
-
-        The minimum over: every arm capsule vs every obstacle capsule (segment distance minus the
-        two radii), the self-collision pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the
-        ground plane z = 0, and every arm capsule vs the wall y = wall_y.
-        Negative = penetration.
-        """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("clearance/in_collision: q contains NaN or inf")
-        # chunks of 256 configurations keep the (chunk, 8, N) temporaries in cache: 2x faster
-        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])
+        """Signed distance (B,) from the arm at q to everything it may not touch, in m (negative: penetration):
+        the minimum over every arm capsule vs every obstacle capsule (segment distance minus the two radii),
+        the pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the ground z = 0, every capsule vs the wall."""
+        q, single = self._check_batch(q)
+        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])  # chunks: in cache
         return d[0] if single else d
 
     def _arm_components(self, q):
@@ -920,17 +897,12 @@ class EngineReach3D(ArmEnv):
         return np.ascontiguousarray(p[:, :, _CAPSULE_START]), np.ascontiguousarray(p[:, :, _CAPSULE_END])
 
     def _ground_clearance(self, a0, a1):
-        """(B,) lowest point of the forearm .. fingers above the ground plane z = 0.
-
-        The base column stands on the ground, and the upper arm cannot reach it: with the shoulder
-        in [-pi, 0] it points upward, its lowest point is always 0.089 - 0.06 m up.
-        """
+        """(B,) lowest point of the forearm .. fingers above the ground z = 0 (the base column stands on it; the
+        upper arm, shoulder in [-pi, 0], points upward: its lowest point is always 0.089 - 0.06 m up)."""
         return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
 
     def _wall_clearance(self, a0, a1):
-        """(B,) distance from the arm's capsules to the wall's face y = wall_y.
-
-        A capsule's distance to a plane is smallest at one of its two end points."""
+        """(B,) distance from the arm's capsules to the wall's face y = wall_y (at a capsule's end point)."""
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
     def _clearance(self, q):
@@ -949,22 +921,14 @@ class EngineReach3D(ArmEnv):
         return d
 
     def in_collision(self, q, margin=0.0):
-        """True where the arm at q penetrates an obstacle, the ground or itself. (B,) bool.
+        """True where the arm at q penetrates an obstacle, the wall, the ground or itself. (B,) bool.
 
-        With margin > 0 (m), True also where anything is closer than margin: the inflated check
-        planners use to keep clear between their collision checks. The same predicate as
-        clearance(q) < margin (a test checks it), computed in two phases for speed:
-          broad phase: axis-aligned bounding boxes of every (config, arm capsule, obstacle or
-            other arm capsule) pair -- a cheap test that rules out ~98% of the obstacle pairs;
-          narrow phase: exact segment-segment distances of the remaining pairs, in one call.
-        The base column never moves (joint 1 turns it about its own axis): its clearance is a
-        constant of the scene, computed once by set_scene.
+        With margin > 0 (m), True also where anything is closer than margin (planners keep clear between
+        their checks). The same predicate as clearance(q) < margin, in two phases for speed: axis-aligned
+        bounding boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column
+        never moves (joint 1 turns it about its own axis): its clearance is set_scene's constant.
         """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("in_collision: q contains NaN or inf")
-        if not (np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
+        q, single = self._check_batch(q, margin)
         chunk = 1024  # configurations per pass: temporaries stay in cache
         hit = np.concatenate([self._in_collision_chunk(q[k:k + chunk], float(margin))
                               for k in range(0, len(q), chunk)])
@@ -1148,12 +1112,9 @@ class EngineReach3D(ArmEnv):
     def _draw_authors_scene(self, rng):
         """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
 
-        Fixed: the engine (cfg.engine_parts), the goal posture cfg.goal_q and its TCP (the goal),
-        a T-handle lever just beyond the TCP along the tool axis with its shaft running on into
-        the engine, and the wall (not a row: EngineReach3D._wall_y).
-        Drawn: the two boxes, each a capsule lying on the table, centre uniform in its box_x x box_y
-        range, length and radius scaled by one factor from box_scale. The scene is re-drawn by reset
-        if the goal posture collides.
+        Fixed: the engine, the goal posture cfg.goal_q and its TCP (the goal), a T-handle lever just beyond
+        the TCP along the tool axis, its shaft running on into the engine. Drawn: the two boxes, each a
+        capsule on the table, centre uniform in its box_x x box_y range, scaled by one factor of box_scale.
         """
         cfg = self.cfg
         q_goal = np.asarray(cfg.goal_q, dtype=np.float64)
@@ -1180,11 +1141,10 @@ class EngineReach3D(ArmEnv):
     def reset(self, seed=None):
         """Draw the scenario of `seed` (the scene, then the start) and put the arm there.
 
-        Rejection sampling with one rng stream, so the scene is a deterministic function of seed.
-        The goal always has a collision-free configuration (the witness posture the scene is built
-        around); scenes whose witness collides, or whose goal has fewer than
-        min_goal_configurations free IK solutions (EngineReach3D's goal set, also in a variant that
-        narrows it: the same scenes), are re-drawn. Starts: see _draw_start.
+        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed. A
+        scene is re-drawn when its witness (the goal posture) collides or its goal has fewer than
+        min_goal_configurations free IK solutions (EngineReach3D's own goal set, also in a variant that
+        narrows it: the same scenes), or when no start is found (_draw_start).
         """
         seed, rng = self._scenario_rng(seed)
         while True:
@@ -1204,18 +1164,15 @@ class EngineReach3D(ArmEnv):
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
     def _draw_start(self, rng, n=256):
-        """A start: (6,) or None if none of n draws is acceptable.
-
-        The authors': all joints uniform within the joint limits. The first draw that is clear of
-        everything by start_clearance with its TCP at least start_goal_min_dist from the goal is taken.
-        """
+        """The authors' start: the first of n draws uniform within the joint limits that is clear of everything
+        by start_clearance, its TCP at least start_goal_min_dist from the goal; (6,) or None."""
         cfg = self.cfg
         q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
         far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
         ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
         return q[np.argmax(ok)] if ok.any() else None
 
-    # ---- observations, stepping --------------------------------------------------------------
+    # ---- observations -------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
         """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
         obs, _, single = self._joint_goal_obs(q, q_prev)
@@ -1234,17 +1191,12 @@ class EngineReach3D(ArmEnv):
         obs[:, 2 * d:2 * d + self.dim] = self._goal
         return obs, q, single
 
-    def simulator_in_collision(self, q):
-        """The simulator's contact check used by step: pybullet."""
-        return self.pybullet_in_collision(q)
+    simulator_in_collision = pybullet_in_collision  # the contact check that judges a step: the simulator's
 
     # ---- images and drawing ------------------------------------------------------------------
     def camera_image(self, q=None, width=640, height=480):
-        """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current).
-
-        pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed) from the fixed
-        camera ENGINE_CAMERA, in front of the robot, looking at the engine.
-        """
+        """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current), from the fixed
+        camera ENGINE_CAMERA with pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed)."""
         q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
         cam = ENGINE_CAMERA
@@ -1284,11 +1236,9 @@ class EngineReach3D(ArmEnv):
 def segment_distance_3d(a0, a1, b0, b1):
     """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
 
-    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the
-    closest points of the infinite lines, clamped to the segments, re-projected once. A zero-length
-    segment (a sphere) goes through the same formulas with its squared length floored at 1e-18.
-    Coordinates come as separate x, y, z arrays (first axis) because every operation below then
-    runs on contiguous memory: 4-5x faster than reducing a trailing axis of size 3.
+    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the closest
+    points of the infinite lines, clamped to the segments, re-projected once (a zero-length segment: its
+    squared length floored at 1e-18). Components first keep every operation on contiguous memory: 4-5x faster.
     """
     (ax, ay, az), (bx, by, bz) = a0, b0
     ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
@@ -1441,12 +1391,9 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their
-# demonstration steps of the L2 norm over the joints of one 30 Hz step, in rad (PCD
-# paper/fig_noise_levels/plot.py: MED_PLANAR = 0.0176, MED_LEVER = 0.0166; the lever's is over the
-# UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
-# of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
-# 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
+# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their demonstration
+# steps of the L2 norm over the joints of one 30 Hz frame (every sigma and W of the paper counts it). Ours
+# (median_step) is per joint at the env's dt. A per-joint sigma in rad: sigma_ours * median_step = sigma_paper * this.
 PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
 
@@ -1461,13 +1408,9 @@ def paper_median_step(env):
 # Episode files (the run folder's datasets) and a stand-in expert for tests and demos
 # ----------------------------------------------------------------------------------------------
 def save_episodes(path, episodes):
-    """Write a list of episode dicts to one .npz: per-step arrays concatenated, plus offsets.
-
-    A key is per-step when its value's first axis is the episode length T in every episode
-    ('obs', 'q', 'action', 'expert', ...): these are concatenated along time and cut back with
-    'offsets'. Other keys ('seed', 'success', a goal vector) must have one shape in all episodes and
-    are stacked per episode. ('seed' is always per-episode.)
-    """
+    """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
+    episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
+    the others ('seed' always, 'success', a goal vector) must have one shape in all episodes: stacked."""
     if len(episodes) == 0:
         raise ValueError("save_episodes: empty episode list")
     lengths = np.array([len(ep["q"]) for ep in episodes], dtype=np.int64)
@@ -1509,13 +1452,9 @@ def load_episodes(path):
 
 
 def straight_line_episode(env, seed, peak=0.04, expert_from=5):
-    """Stand-in expert data for module demos, tests and benchmarks (no oracle needed).
-
-    In scenario `seed` the arm moves in a straight joint-space line from its start toward the goal
-    configuration nearest to it, stopped at 90 % of the way to the first contact, timed with a
-    smoothstep (rest to rest, peak speed `peak` rad/step). Steps from `expert_from` on are marked
-    as expert-driven (an "intervention" that runs to the end of the episode).
-    """
+    """Stand-in expert data for demos, tests and benchmarks (no oracle needed): in scenario `seed` a straight
+    joint-space line from the start toward the nearest goal configuration, stopped at 90 % of the way to the
+    first contact, timed with a smoothstep (peak speed `peak` rad/step); steps from `expert_from` on expert."""
     env.reset(seed=int(seed))
     q0 = env.q
     goals = env.goal_configurations()
