@@ -1,87 +1,32 @@
 """The two environments of the paper's experiments (Sec. V; Tables I and II; Fig. 5).
 
-Where the paper is implemented in this file:
     Sec. V, Table I    the planar 3-link reacher ............... PlanarConfig, PlanarReacher
     Sec. V, Table II   the UR5 reaching an engine lever ........ EngineConfig, EngineReach3D
-    Sec. V             100 fixed evaluation scenarios .......... eval_seeds (train_seeds: disjoint)
-    Sec. V, Fig. 4     the "median step" unit of noise levels .. median_step (the paper's own unit:
-                                                                 PAPER_MEDIAN_STEP, paper_median_step)
+    Sec. V             100 fixed evaluation scenarios .......... eval_seeds (train_seeds, unseen_seeds: disjoint)
+    Sec. V, Fig. 4     the "median step" unit of noise levels .. median_step (the paper's own: paper_median_step)
     Fig. 5             the two scenes .......................... PlanarReacher.render, render_scene_image
-The two envs share ArmEnv (state, the motion rule, the episode step, the end effector).
 
-PlanarReacher: the planar 3-link reacher of Sec. V, built on the authors' setup (their code, read for
-../shared/PAPER_SETUP.md §1): three box links (0.30 / 0.25 / 0.10 m) and an open gripper move in a
-vertical plane among a 5 cm target block and two 7 cm obstacle blocks placed around the shoulder.
-From its start the arm must reach the target within 6 cm without touching an obstacle or itself
-(contact within 5 mm ends the episode); starts are often folded, so the arm must sometimes
-untangle its links first (the paper's description). It runs at 10 Hz (dt = 1/30 gives the authors'
-30 Hz) with their 0.5 rad/s joint speed limit and 33 s episodes.
+Both envs share ArmEnv and one interface (gymnasium conventions without the dependency):
 
-Every environment in this file has the same interface (gymnasium conventions, no dependency):
-
-    env = make_env('planar')                  # or PlanarReacher()
-    env.dof, env.obs_dim                      # joint count, observation length
-    env.max_step                              # per-step joint speed limit (rad/step)
-    env.max_steps                             # episode step limit (truncation)
-    env.dt                                    # seconds per step (for velocities in figures)
-    env.joint_limits                          # (lo (dof,), hi (dof,))
-    obs, info = env.reset(seed=s)             # deterministic scenario from s; info: 'q', 'goal'
-    obs, reward, terminated, truncated, info = env.step(action)   # action: absolute joint target
-    env.q, env.q_prev                         # current / previous joint positions (read-only)
-    env.set_state(q, q_prev=None, step_count=0)
-    env.clip_action(q, action)                # step's motion rule: the next joint positions
-    env.make_obs(q, q_prev)                   # batched observations for the current scenario
-    env.make_obs_near(q, q_prev, recorded)    # ... of states drawn near recorded ones (relabel.py)
-    env.obs_encoder, env.obs_encoder_args     # how a policy reads the observation ('flat', {}:
-                                              # as numbers; diffusion.PolicyConfig.obs_encoder)
-    env.plot_policy_view(episode, path)       # a figure of what the policy sees (none here)
-    env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy);
-                                              # margin (m) inflates every pair's contact distance
-    env.fk(q)                                 # (B, n_points, dim) joint points, base .. end effector
-    env.ee(q)                                 # (B, dim) end effector
-    env.ee_jacobian(q)                        # (B, dim, dof) d ee / d q, central differences
-    env.goal_reached(q)                       # (B,) bool, True = end effector within tolerance
-    env.goal                                  # (dim,) goal of the current scenario
+    env = make_env('planar')                  # or 'engine3d'; keywords: config fields
+    obs, info = env.reset(seed=s)             # the deterministic scenario of s; info: 'q', 'goal', 'seed'
+    obs, reward, terminated, truncated, info = env.step(action)   # action: absolute joint target (dof,)
+    env.dof, env.dim, env.obs_dim             # joints, workspace dimension, observation length
+    env.max_step, env.max_steps, env.dt       # rad per step per joint, episode step limit, s per step
+    env.joint_limits, env.q, env.q_prev, env.goal, env.set_state(q, q_prev=None, step_count=0)
+    env.in_collision(q, margin=0.0)           # (B,) bool, True = in collision (vectorized numpy)
+    env.fk(q), env.ee(q), env.ee_jacobian(q)  # joint points (B, n, dim), end effector (B, dim), d ee / d q
+    env.goal_reached(q)                       # (B,) bool, True = end effector within goal_tolerance
     env.goal_configurations()                 # (M, dof) collision-free closed-form IK of the goal
-    env.goal_is_pose                          # True: the goal includes an orientation, and
-                                              # goal_configurations is its whole set (the oracle's goals)
-    env.render(ax, q=None, alpha=1.0)         # matplotlib drawing of the scene (and arm at q)
-    env.draw_noise_ellipses(ax, q, cov, color)   # joint covariances drawn at the end effector
-    env.eval_seeds(), env.train_seeds(n, start=0), env.unseen_seeds()
-PlanarReacher extras: set_scene(obstacles, goal) installs a hand-built scene; pymunk_in_collision(q)
-is the simulator's (slow) version of in_collision.
+    env.make_obs(q, q_prev), env.clip_action(q, action), env.render(ax), env.draw_noise_ellipses(...)
 
-EngineReach3D: the UR5 reaching an engine lever through a narrow, cluttered passage (Sec. V,
-Table II), with pybullet (DIRECT mode) as the simulator and the same vectorized numpy check beside
-it, in 3-D. Extras: set_scene(obstacles, goal, kinds), clearance(q) (signed distance),
-pybullet_in_collision(q), camera_image(q) (an RGB image from pybullet's TinyRenderer),
-render_scene_image(env, path). A research variant whose policy sees that camera image instead of the
-obstacle list registers its own env, 'engine3d_image' (experiment/image_obs.py).
-
-Step semantics: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi).
-Targets beyond the joint limits are therefore clipped, not errors; NaN/inf/wrong shape raise
-ValueError. An episode ends on success (goal reached, no collision), on collision (terminated),
-or after max_steps steps (truncated).
-
-Geometry (PlanarReacher): every body is an oriented box (centre, half extents, angle). The arm's six
-boxes (three links, a palm, two fingers) are given in their links' frames by PlanarReacher.parts;
-obstacles are one array (N, 5) of (centre x, y, half x, half y, angle). This one definition feeds both
-  * the pymunk space (the simulator): kinematic link bodies carrying pymunk.Poly boxes, static
-    obstacle boxes, every polygon rounded by half the contact margin, contacts from
-    space.shape_query -- used by step();
-  * the vectorized numpy check `in_collision` (exact box distances, `box_distance`) -- used by
-    planners, relabeling and evaluation, which need millions of checks.
-The two agree (tests/test_envs.py): on 12,000 random configurations in 4 scenes, and 1e-7 rad on
-either side of contact-boundary points found by bisection. Known exception, of measure zero: a box
-centred exactly across a link, for which pymunk reports a contact of depth 0 (counted as contact).
-
-The file reads in that order: the planar env first (its config, the scenario seeds, ArmEnv, PlanarReacher,
-make_env, the median step), which is all Table I needs; then, under a banner of its own, the UR5 env of
-Table II (EngineConfig, EngineReach3D, its DH frames and closed-form IK, its figure). pybullet is imported
-only when the first EngineReach3D is made: `import envs` and the planar env never load it. Beyond the paper
-(after the last banner): the vectorized box geometry behind the planar in_collision, episode files
-(save_episodes / load_episodes: one .npz, ragged arrays concatenated with offsets) and
-straight_line_episode, a stand-in expert for tests and demos.
+Step: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi) (targets beyond the limits are clipped,
+NaN / inf / a wrong shape raise ValueError). An episode ends on success (goal reached, no collision), on collision
+(terminated) or after max_steps steps (truncated). The simulator (pymunk planar, pybullet 3-D) judges a step's
+contacts; the same geometry feeds a vectorized numpy check for planners, relabeling and evaluation, which need
+millions of checks, and the two agree (tests/test_envs.py, tests/test_engine3d.py). pybullet is imported with
+the first EngineReach3D: the planar env never loads it. Research variants subclass EngineReach3D and register
+in ENVIRONMENTS on import (experiment/image_obs.py, experiment/oriented_goal.py).
 """
 import math
 from dataclasses import dataclass
@@ -91,57 +36,44 @@ import pymunk
 
 
 # ----------------------------------------------------------------------------------------------
-# The planar reacher's configuration (Table I)
+# The planar reacher's configuration (Table I; the authors' setup: PAPER_SETUP.md §1)
 # ----------------------------------------------------------------------------------------------
 @dataclass
 class PlanarConfig:
-    # --- the arm: the authors' planar_3joint.urdf (PAPER_SETUP.md §1) ---
+    # --- the arm: the authors' planar_3joint.urdf ---
     link_lengths: tuple = (0.30, 0.25, 0.10)  # m, joint to joint (shoulder, elbow, wrist link)
     link_widths: tuple = (0.04, 0.035, 0.03)  # m, thickness of each box link
     gripper_reach: float = 0.15  # m, gripper base (end of the wrist link) to the end-effector point
     joint_lo: tuple = (-math.pi, -math.pi, -math.pi)  # rad, the URDF's limits on every joint
     joint_hi: tuple = (math.pi, math.pi, math.pi)  # rad
-    # --- the task (PAPER_SETUP.md §1): success, contact, episode length, speed limit ---
+    # --- the task: success, contact, episode length, speed limit ---
     speed_limit: float = 0.5  # rad/s per joint; max_step = speed_limit * dt rad per step
     episode_seconds: float = 1000 / 30  # s (the authors' 1000 steps at 30 Hz); max_steps = it / dt
     goal_tolerance: float = 0.06  # m, success: end effector within this distance of the target centre
     contact_margin: float = 0.005  # m, bodies closer than this are in collision (the authors' 5 mm)
-    # --- the scene (PAPER_SETUP.md §1): a target block and two obstacle blocks placed polar
-    #     around the shoulder; a scene is re-drawn if blocks overlap, the start collides or the
-    #     target cannot be reached collision-free ---
+    # --- the scene: a target block and two obstacle blocks placed polar around the shoulder; re-drawn if
+    #     blocks overlap or the target has too few collision-free configurations. The start: all joints
+    #     uniform within their limits until collision-free (the authors' reset; often folded) ---
     target_size: float = 0.05  # m, the target cube (touching it is not a collision)
     obstacle_size: float = 0.07  # m, each obstacle cube
     n_obstacles: int = 2  # obstacle blocks per scene
     target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
     obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    # The start: all joints uniform within their limits until the arm is collision-free (the authors' env
-    # reset and evaluation config, q_start null; often folded: "the robot must untangle its links"). Their
-    # fixed demonstration start gave BC more (62.7 % against 54.0 %) but left DAgger little to fix: measured,
-    # not adopted (benchmarks/README.md, "Table I where DAgger has something to fix").
-
-    # --- not in the paper ---
-    # The gripper (a Robotiq 2F-85 held open, fixed to the wrist link) as three boxes in the wrist
-    # link's frame: a palm and two fingers. The sizes are this project's approximation of its
-    # 85 mm-aperture outline (the URDF's meshes are not read here); the end-effector point lies
-    # between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre).
+    # --- not in the paper: the gripper (a Robotiq 2F-85 held open) as a palm and two fingers in the wrist
+    #     link's frame, this project's approximation of its 85 mm outline; the end-effector point lies
+    #     between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre) ---
     palm_size: tuple = (0.07, 0.09)  # m, (length along the link, width across it)
     finger_size: tuple = (0.08, 0.015)  # m, each finger; the pair spans 0.07 .. 0.15 past the base
     finger_gap: float = 0.075  # m, clear width between the two fingers (fixed open)
     base: tuple = (0.0, 0.0)  # m, the shoulder pivot in the (x, z) plane of the arm
-    # Timing. The authors run 30 Hz. We keep their speed limit and their seconds and run 10 Hz by
-    # default: a third of the env steps and policy calls on a CPU, the same motion (dt = 1/30 s
-    # gives the authors' rate).
-    dt: float = 0.1  # s per step
-    # States checked for contact within one step (the end state and evenly spaced ones before it).
-    # At the speed limit the farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m
-    # a step at 10 Hz, 0.02 m between checks: less than the thinnest band a part must cross to pass
-    # through something (a 1.5 cm finger and the 3.5 cm link 2: 5 cm), so nothing tunnels.
+    dt: float = 0.1  # s per step: 10 Hz, a third of the authors' 30 Hz steps on a CPU (1/30 gives theirs)
+    # States checked for contact within one step (the end state and evenly spaced ones before it). The
+    # farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m a step, 0.02 m between checks:
+    # less than the thinnest band a part must cross (a 1.5 cm finger and the 3.5 cm link 2: 5 cm).
     n_substeps: int = 4  # states per step
     block_clearance: float = 0.02  # m, blocks closer than this to each other overlap (re-draw)
     n_goal_angles: int = 180  # last-link orientations tried when searching goal configurations
-    # A scene is kept only if at least this many of the 2 n_goal_angles closed-form IK candidates
-    # of the target centre are collision-free (the solvability check; see goal_configurations).
-    min_goal_configurations: int = 8  # configurations
+    min_goal_configurations: int = 8  # a scene needs this many free IK candidates of the target centre
 
 
 # ----------------------------------------------------------------------------------------------
@@ -150,6 +82,10 @@ class PlanarConfig:
 EVAL_SEED_START = 10_000
 N_EVAL_SEEDS = 100
 TRAIN_SEED_END = EVAL_SEED_START  # training seeds are 0 .. 9_999
+# Not in the paper: HG-DAgger collects on the evaluation scenarios (the authors' protocol), so those are not
+# held out; these 100 are (no stage of any run trains on them; dagger.py evaluates every policy on them too).
+UNSEEN_SEED_START = 20_000
+N_UNSEEN_SEEDS = 100
 
 
 def eval_seeds():
@@ -165,24 +101,16 @@ def train_seeds(n, start=0):
     return list(range(start, start + n))
 
 
-# Not in the paper: under the authors' protocol HG-DAgger collects on the evaluation scenarios
-# (dagger.collect_interventions), so those are not held out. These 100 scenarios are: no stage of
-# any run collects, demonstrates or calibrates on them (dagger.py evaluates every policy on them too).
-UNSEEN_SEED_START = 20_000
-N_UNSEEN_SEEDS = 100
-
-
 def unseen_seeds():
-    """100 scenarios no policy ever trains on: seeds 20_000 .. 20_099 (disjoint from the training and
-    evaluation seeds)."""
+    """100 scenarios no policy ever trains on: seeds 20_000 .. 20_099."""
     return list(range(UNSEEN_SEED_START, UNSEEN_SEED_START + N_UNSEEN_SEEDS))
 
 
 # ----------------------------------------------------------------------------------------------
-# What every arm env shares: state, the motion rule, the episode step, the end effector
+# What both arm envs share: state, the motion rule, the episode step, the end effector
 # ----------------------------------------------------------------------------------------------
 def _as_batch(q, dof, name="q"):
-    """(dof,) or (B, dof) finite array -> ((B, dof) float64, was_single)."""
+    """(dof,) or (B, dof) array -> ((B, dof) float64, was_single)."""
     q = np.asarray(q, dtype=np.float64)
     single = q.ndim == 1
     if single:
@@ -195,23 +123,27 @@ def _as_batch(q, dof, name="q"):
 class ArmEnv:
     """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
 
-    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps and calls
-    ArmEnv.__init__ with its joint limits, and supplies what differs: fk, in_collision,
-    simulator_in_collision (the simulator's contacts that judge a step), make_obs, reset, render.
+    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__
+    with its joint limits, and supplies fk, in_collision, simulator_in_collision (the simulator's contacts
+    that judge a step), make_obs, reset, render.
     """
+
+    # How a policy reads the observation: flat numbers (diffusion.OBS_ENCODERS 'flat'). A variant whose
+    # observation ends in a camera image names its encoder and arguments here (experiment/image_obs.py).
+    obs_encoder = "flat"
+    obs_encoder_args = {}  # read only: dagger.make_policy copies it into the policy's config
+    goal_is_pose = False  # the goal is a position; True: goal_configurations is the whole goal set (oracle.py)
 
     def __init__(self, joint_lo, joint_hi):
         self._lo = np.asarray(joint_lo, dtype=np.float64)
         self._hi = np.asarray(joint_hi, dtype=np.float64)
-        # scenario state (set by reset)
-        self.seed = None
+        self.seed = None  # the scenario (set by reset)
         self._goal = np.zeros(self.dim)
         self._q = np.zeros(self.dof)
         self._q_prev = np.zeros(self.dof)
         self.step_count = 0
         self._has_state = False  # step() needs reset() or set_state() first
 
-    # ---- read-only state ---------------------------------------------------------------------
     @property
     def joint_limits(self):
         return self._lo.copy(), self._hi.copy()
@@ -228,20 +160,26 @@ class ArmEnv:
     def goal(self):
         return self._goal.copy()
 
-    @staticmethod
-    def eval_seeds():
-        """The 100 evaluation seeds (module function eval_seeds)."""
-        return eval_seeds()
+    # the module's seed ranges, also as methods of every env (env.eval_seeds())
+    eval_seeds = staticmethod(eval_seeds)
+    train_seeds = staticmethod(train_seeds)
+    unseen_seeds = staticmethod(unseen_seeds)
 
-    @staticmethod
-    def train_seeds(n, start=0):
-        """n training seeds from start (module function train_seeds)."""
-        return train_seeds(n, start)
+    def _scenario_rng(self, seed):
+        """(seed, its rng) for reset: a non-negative int, or None for fresh entropy (then recorded)."""
+        if seed is None:
+            seed = int(np.random.default_rng().integers(0, 2 ** 31))
+        if not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
+        return int(seed), np.random.default_rng(int(seed))
 
-    @staticmethod
-    def unseen_seeds():
-        """The 100 scenarios never trained on (module function unseen_seeds)."""
-        return unseen_seeds()
+    def _check_batch(self, q, margin=0.0):
+        """in_collision's and clearance's input: ((B, dof) finite float64, was_single); margin >= 0 m."""
+        q, single = _as_batch(q, self.dof)
+        if not np.all(np.isfinite(q)) or not (np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"in_collision: q must not contain NaN or inf, and margin must be a finite distance "
+                             f">= 0 m, got margin {margin}")
+        return q, single
 
     def set_state(self, q, q_prev=None, step_count=0):
         """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
@@ -253,10 +191,8 @@ class ArmEnv:
 
     def _check_q(self, q, name):
         q = np.asarray(q, dtype=np.float64)
-        if q.shape != (self.dof,):
-            raise ValueError(f"{name} must have shape ({self.dof},), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            raise ValueError(f"{name} must be finite, got {q}")
+        if q.shape != (self.dof,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"{name} must be a finite array of shape ({self.dof},), got {q!r}")
         if np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9):
             raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
         return q.copy()
@@ -269,18 +205,15 @@ class ArmEnv:
     def step(self, action):
         """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
 
-        Collision is judged by the simulator's contacts (simulator_in_collision: pymunk for the
-        planar env, pybullet for the 3-D one) at the end state and at n_substeps - 1 evenly spaced
-        states before it (see PlanarConfig.n_substeps: nothing tunnels through an obstacle).
+        Collision is judged by the simulator's contacts (simulator_in_collision) at the end state and at
+        n_substeps - 1 evenly spaced states before it (nothing tunnels: PlanarConfig.n_substeps).
         reward = 1 on success else 0 (the method does not use rewards).
         """
         if not self._has_state:
             raise ValueError("step called before reset (or set_state)")
         action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.dof,):
-            raise ValueError(f"action must have shape ({self.dof},), got {action.shape}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite (no NaN/inf), got {action}")
+        if action.shape != (self.dof,) or not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be a finite array of shape ({self.dof},), got {action!r}")
         q_next = self.clip_action(self._q, action)
         fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
         sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
@@ -293,26 +226,17 @@ class ArmEnv:
         info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
         return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
 
-    # ---- what a policy reads: the plug-in points of an env variant (experiment/image_obs.py) ---
-    # The observation is numbers throughout (the layouts in each env's docstring): a policy reads it flat
-    # (diffusion.PolicyConfig.obs_encoder 'flat'). A variant whose observation ends in something else, a camera
-    # image, names its encoder (diffusion.OBS_ENCODERS) and the encoder's keyword arguments here.
-    obs_encoder = "flat"
-    obs_encoder_args = {}  # read only: dagger.make_policy copies it into the policy's config
-
     def make_obs_near(self, q, q_prev, recorded):
-        """Observations of states (q, q_prev) drawn near recorded states whose observations are `recorded`
-        (relabel.py's noised states): here make_obs(q, q_prev), everything recomputed at the new state. A variant
-        whose observation holds what only a render of the recorded state shows (a camera image) keeps that part
-        of `recorded`, the paper's approximation for images (Sec. V)."""
+        """Observations of states (q, q_prev) drawn near recorded ones (relabel.py's noised states): make_obs,
+        everything recomputed at the new state. (An image variant keeps the recorded image instead.)"""
         return self.make_obs(q, q_prev)
 
     def plot_policy_view(self, episode, path):
-        """A figure of what the policy sees along `episode`, where that is more than the numbers of the
-        observation (a variant's camera image); none here: returns False (nothing written)."""
+        """A figure of what the policy sees beyond the observation's numbers (a variant's camera image);
+        none here: returns False (nothing written)."""
         return False
 
-    # ---- the end effector --------------------------------------------------------------------
+    # ---- the end effector and the goal ---------------------------------------------------------
     def ee(self, q):
         """End-effector positions (B, dim); (dof,) -> (dim,). The last point of fk."""
         return self.fk(q)[..., -1, :]
@@ -326,6 +250,11 @@ class ArmEnv:
         minus = self.ee((q[:, None] - offsets).reshape(-1, dof)).reshape(B, dof, -1)
         return ((plus - minus) / (2 * h)).transpose(0, 2, 1)                  # (B, dim, dof)
 
+    def goal_reached(self, q):
+        """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
+        return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
+
+    # ---- drawing helpers of the figures (calibrate.py, relabel.py, partial_denoise.py) ---------
     def square_view(self, axes, points, margin=0.0):
         """Square limits around workspace points (N, 2) in m, plus `margin` m and 10 %, on one axis or a list
         of them (square: the figures' equal aspect then fills the panel)."""
@@ -334,12 +263,6 @@ class ArmEnv:
         for ax in (axes if isinstance(axes, (list, tuple, np.ndarray)) else [axes]):
             ax.set_xlim(center[0] - half, center[0] + half)
             ax.set_ylim(center[1] - half, center[1] + half)
-
-    goal_is_pose = False  # the goal is a position (EngineReach3D: a pose with its orientation rule)
-
-    def goal_reached(self, q):
-        """True where the end effector is within goal_tolerance of the goal. (B,) bool."""
-        return np.linalg.norm(self.ee(q) - self._goal, axis=-1) <= self.goal_tolerance
 
     def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3, plane=(0, 1)):
         """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end
@@ -362,6 +285,14 @@ class ArmEnv:
 class PlanarReacher(ArmEnv):
     """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Table I, Fig. 5).
 
+    From its start (often folded: the arm must untangle its links) the arm must reach the target within 6 cm
+    without touching an obstacle or itself (contact within 5 mm ends the episode). Every body is an oriented
+    box: the arm's six (three links, a palm, two fingers) in their links' frames (`parts`), the obstacles one
+    array (N, 5) of (centre x, y, half x, half y, angle). That one definition feeds the pymunk space (the
+    simulator of step: every polygon rounded by half the contact margin) and the vectorized numpy check
+    in_collision (exact box distances, box_distance). They agree on 12,000 random configurations and 1e-7 rad
+    either side of the contact boundary; a box centred exactly across a link counts as contact in both.
+
     Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
     observation.environment_state, PAPER_SETUP.md §1):
         [0:3]    q        current joint positions (rad)
@@ -369,8 +300,7 @@ class PlanarReacher(ArmEnv):
         [6:8]    target   centre of the target block (x, z) in m
         [8:10]   obstacle 1 centre (x, z) in m
         [10:12]  obstacle 2 centre (x, z) in m
-        [12:14]  end effector (x, z) in m: forward kinematics of q, so any state, noised ones
-                 included, gets its own (relabel.py relies on this)
+        [12:14]  end effector (x, z) in m: forward kinematics of q (a noised state gets its own)
     The arm moves in the vertical (x, z) plane of the URDF; arrays call the second axis y.
     """
 
@@ -385,12 +315,11 @@ class PlanarReacher(ArmEnv):
 
     def __init__(self, config: PlanarConfig | None = None):
         self.cfg = cfg = config or PlanarConfig()
-        if len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3:
-            raise ValueError(f"PlanarReacher models a 3-link arm, got link_lengths={cfg.link_lengths}, "
-                             f"link_widths={cfg.link_widths}")
-        if not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0):
-            raise ValueError(f"PlanarConfig needs dt, speed_limit, episode_seconds > 0, got {cfg.dt}, "
-                             f"{cfg.speed_limit}, {cfg.episode_seconds}")
+        if (len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3
+                or not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0)):
+            raise ValueError(f"PlanarConfig needs 3 link_lengths and link_widths and dt, speed_limit, episode_seconds"
+                             f" > 0, got {cfg.link_lengths}, {cfg.link_widths}, {cfg.dt}, {cfg.speed_limit}, "
+                             f"{cfg.episode_seconds}")
         self.dof = 3
         self.link_lengths = np.asarray(cfg.link_lengths, dtype=np.float64)
         self.base = np.asarray(cfg.base, dtype=np.float64)
@@ -399,8 +328,7 @@ class PlanarReacher(ArmEnv):
         self.max_steps = int(round(cfg.episode_seconds / cfg.dt))  # 333 at 10 Hz, 1000 at 30 Hz
         self.goal_tolerance = float(cfg.goal_tolerance)
         self.contact_margin = float(cfg.contact_margin)
-        # Half the thinnest link's thickness: planners derive their check spacing from it (oracle.py).
-        self.link_radius = 0.5 * float(min(cfg.link_widths))
+        self.link_radius = 0.5 * float(min(cfg.link_widths))  # oracle.py's check spacing derives from it
         # The end effector lies gripper_reach past the wrist link: a 3-link chain of reach 0.80 m.
         self.chain_lengths = np.array([*self.link_lengths[:2], self.link_lengths[2] + cfg.gripper_reach])
         l3 = self.link_lengths[2]
@@ -414,19 +342,17 @@ class PlanarReacher(ArmEnv):
             [2, l3 + palm_len + 0.5 * finger_len, finger_side, 0.5 * finger_len, 0.5 * finger_w],
             [2, l3 + palm_len + 0.5 * finger_len, -finger_side, 0.5 * finger_len, 0.5 * finger_w],
         ])
-        # R_j (dof,): no point of the arm is farther than this from joint j (the links beyond j
-        # stretched straight, plus the farthest box corner of each part from its own joint), so a
-        # joint step dq moves any point by at most sum_j R_j |dq_j| (oracle.py's check spacing).
+        # R_j (dof,): no arm point is farther than this from joint j (the links beyond j straight, plus each
+        # part's farthest corner), so a joint step dq moves any point <= sum_j R_j |dq_j| (oracle.py).
         corner = np.hypot(np.abs(self.parts[:, 1]) + self.parts[:, 3], np.abs(self.parts[:, 2]) + self.parts[:, 4])
         link = self.parts[:, 0].astype(int)
         self.lever_arms = np.array([max(self.link_lengths[j:k].sum() + corner[p]
                                         for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
         super().__init__(cfg.joint_lo, cfg.joint_hi)
-        self.obstacles = np.zeros((0, 5))  # (N, 5): centre x, y, half x, half y, angle
         self.set_scene(np.zeros((0, 5)))
 
-    # ---- kinematics and geometry -------------------------------------------------------------
+    # ---- kinematics and the collision check ---------------------------------------------------
     def fk(self, q):
         """Chain points (B, 4, 2): shoulder, elbow, wrist, end effector. (dof,) -> (4, 2)."""
         q, single = _as_batch(q, self.dof)
@@ -458,17 +384,12 @@ class PlanarReacher(ArmEnv):
     def in_collision(self, q, margin=0.0):
         """True where configuration q touches an obstacle or itself. (B,) bool.
 
-        A pair of boxes is in contact when their distance is below contact_margin (the authors'
-        5 mm) + margin (planners pass margin > 0 to keep clear between their checks). Pairs: every
-        arm part with every obstacle, and SELF_PAIRS. The target block is not an obstacle.
-        Large batches run in chunks so the temporaries stay in cache.
+        Two boxes touch when closer than contact_margin (the authors' 5 mm) + margin (planners pass
+        margin > 0 to keep clear between their checks). Pairs: every arm part with every obstacle, and
+        SELF_PAIRS. The target block is not an obstacle.
         """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("in_collision: q contains NaN or inf")
-        if not (np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
-        chunk = 4096  # configurations per pass
+        q, single = self._check_batch(q, margin)
+        chunk = 4096  # configurations per pass: the temporaries stay in cache
         hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], self.contact_margin + margin)
                               for i in range(0, len(q), chunk)])
         return hit[0] if single else hit
@@ -500,15 +421,14 @@ class PlanarReacher(ArmEnv):
     def set_scene(self, obstacles, goal=None):
         """Install a scene: obstacles (N, 5) rows (centre x, y, half x, half y, angle), goal (2,).
 
-        reset() calls this with a generated scene; tests and figures may call it with a built one.
-        Derives everything both collision checks need from this one array.
+        reset() calls this with a generated scene; tests and figures with a built one. Both collision
+        checks derive what they need from this one array.
         """
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
-        if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0):
-            raise ValueError("set_scene: obstacles must be finite with half extents > 0")
-        if len(obstacles) > self.cfg.n_obstacles:
-            raise ValueError(f"set_scene: {len(obstacles)} obstacles, the observation holds at most "
-                             f"n_obstacles={self.cfg.n_obstacles}")
+        if (not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0)
+                or len(obstacles) > self.cfg.n_obstacles):
+            raise ValueError(f"set_scene: obstacles must be finite with half extents > 0, at most n_obstacles="
+                             f"{self.cfg.n_obstacles} (the observation's slots), got {obstacles.tolist()}")
         self.obstacles = obstacles
         if goal is not None:
             self._goal = np.asarray(goal, dtype=np.float64).reshape(self.dim).copy()
@@ -534,14 +454,11 @@ class PlanarReacher(ArmEnv):
             shape = pymunk.Poly(self._link_bodies[int(link)], corners, radius=rounding)
             space.add(shape)
             self._part_shapes.append(shape)
-        self._obstacle_shapes = []
         for cx, cy, hx, hy, angle in self.obstacles:
             c, s = math.cos(angle), math.sin(angle)
             corners = [(cx + sx * hx * c - sy * hy * s, cy + sx * hx * s + sy * hy * c)
                        for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-            shape = pymunk.Poly(space.static_body, corners, radius=rounding)
-            space.add(shape)
-            self._obstacle_shapes.append(shape)
+            space.add(pymunk.Poly(space.static_body, corners, radius=rounding))
         space.reindex_static()  # compute the static shapes' world geometry once
         self._space = space
         self._pairs_that_count = {frozenset(p) for p in self.SELF_PAIRS}
@@ -603,16 +520,14 @@ class PlanarReacher(ArmEnv):
         obstacles = np.c_[centres, np.full((cfg.n_obstacles, 2), h), np.zeros(cfg.n_obstacles)]
         return obstacles, goal
 
-    def goal_configurations(self, goal=None, n_angles=None):
+    def goal_configurations(self, n_angles=None):
         """Collision-free joint configurations whose end effector is exactly at the goal. (M, 3).
 
-        Closed-form IK of the 3-link chain (the last link reaches to the end effector): for each
-        orientation phi of the last link the wrist is at goal - l3 (cos phi, sin phi), and the
-        2-link IK of the wrist has two elbow solutions. Configurations outside the joint limits or
-        in collision are dropped.
+        Closed-form IK of the 3-link chain: for each orientation phi of the last link the wrist is at
+        goal - l3 (cos phi, sin phi), and its 2-link IK has two elbow solutions. Those outside the joint
+        limits or in collision are dropped.
         """
-        goal = self._goal if goal is None else np.asarray(goal, dtype=np.float64)
-        n = n_angles or self.cfg.n_goal_angles
+        goal, n = self._goal, n_angles or self.cfg.n_goal_angles
         l1, l2, l3 = self.chain_lengths
         phi = np.linspace(-math.pi, math.pi, n, endpoint=False)
         wx = goal[0] - self.base[0] - l3 * np.cos(phi)  # (n,) wrist positions
@@ -637,8 +552,8 @@ class PlanarReacher(ArmEnv):
         Joint 0 has hard limits at +-pi (no wrap-around), and an obstacle within link 1's reach
         blocks link 1 at some angles whatever the other joints do. The angles where link 1 alone is
         collision-free form intervals; the start's and at least one goal configuration's joint 0
-        must lie in the same one. (Measured: this removes the scenes where the arm is walled in
-        by its own joint limit, the main kind of unsolvable scene that the other checks keep.)
+        must lie in the same one (it removes the scenes where the arm is walled in by its own joint
+        limit, the main kind of unsolvable scene the other checks keep).
         """
         q0 = np.linspace(self._lo[0], self._hi[0], n)
         cx, cy, c, s, hx, hy = (x[:1] for x in self.part_boxes(np.c_[q0, np.zeros((n, 2))]))
@@ -659,13 +574,9 @@ class PlanarReacher(ArmEnv):
         A scene is re-drawn when blocks overlap, when its target has fewer than
         min_goal_configurations collision-free IK solutions, or when no start is found: the start
         is the first of 64 uniform draws within the joint limits that is collision-free and not
-        already at the target.
+        already at the target, and whose shoulder can turn to a goal configuration.
         """
-        if seed is None:
-            seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
-        if not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
-        rng = np.random.default_rng(int(seed))
+        seed, rng = self._scenario_rng(seed)
         while True:
             scene = self._draw_scene(rng)
             if scene is None:
@@ -681,15 +592,13 @@ class PlanarReacher(ArmEnv):
             start = candidates[np.argmax(ok)]
             if self._shoulder_can_reach(start, goal_qs):
                 break
-        self.seed = int(seed)
+        self.seed = seed
         self.set_state(start)
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
-    # ---- observations and the simulator's check used by step ---------------------------
+    # ---- observations ---------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
-        """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,).
-
-        The end effector is computed from q (forward kinematics)."""
+        """Observations (B, obs_dim) float32 for the current scenario, the end effector from q; (dof,) -> (obs_dim,)."""
         q, single = _as_batch(q, self.dof, "q")
         q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
         q_prev = np.broadcast_to(q_prev, q.shape)
@@ -701,18 +610,12 @@ class PlanarReacher(ArmEnv):
         obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
-    def simulator_in_collision(self, q):
-        """The simulator's contact check used by step: pymunk."""
-        return self.pymunk_in_collision(q)
+    simulator_in_collision = pymunk_in_collision  # the contact check that judges a step: the simulator's
 
     # ---- drawing -----------------------------------------------------------------------------
     def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
-        """Draw obstacles, the target and the arm at q (default: current state; (dof,) or (B, dof)).
-
-        Boxes are drawn as polygons in data units, so sizes are to scale. The dashed circle is the
-        success radius around the target. alpha / color style the arm; show_scene=False draws only
-        the arm (for paths over a scene).
-        """
+        """Fig. 5: obstacles, the target (dashed: the success radius) and the arm at q (default: current; (dof,)
+        or (B, dof)) as polygons to scale. alpha / color style the arm; show_scene=False draws only the arm."""
         from matplotlib.patches import Circle, Polygon
 
         if show_scene:
@@ -744,141 +647,86 @@ class PlanarReacher(ArmEnv):
 
 
 # ----------------------------------------------------------------------------------------------
-# Environments by name
+# The planar check's box geometry (numpy): a box is its centre (x, y), cos and sin of its angle, and
+# half extents (hx, hy) along its own axes. Arrays broadcast over any leading shape.
 # ----------------------------------------------------------------------------------------------
-# name -> (env class, its config); the UR5 env registers itself after its class ("engine3d"), a research variant
-# on import of its module (experiment/image_obs.py: "engine3d_image", a subclass of EngineReach3D)
-ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}
-PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by env (its unit, its table) names these
+def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
+    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
+    dx, dy = px - cx, py - cy
+    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
+    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
+    return np.sqrt(lx * lx + ly * ly)
 
 
-def make_env(name="planar", **config):
-    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
-    if name not in ENVIRONMENTS:
-        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
-    env_class, config_class = ENVIRONMENTS[name]
-    return env_class(config_class(**config))
+def box_corners(cx, cy, cos, sin, hx, hy):
+    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
+    xs, ys = [], []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        xs.append(cx + sx * hx * cos - sy * hy * sin)
+        ys.append(cy + sx * hx * sin + sy * hy * cos)
+    return xs, ys
 
 
-def paper_env(env):
-    """The paper's env (PAPER_ENVS) that env is or derives from -- a variant's env subclasses one, and is that
-    env for the paper's unit, table and sizes -- or None. env: a name of ENVIRONMENTS or an env object."""
-    env_class = ENVIRONMENTS.get(env, (None,))[0] if isinstance(env, str) else type(env)
-    return next((name for name in PAPER_ENVS
-                 if env_class is not None and issubclass(env_class, ENVIRONMENTS[name][0])), None)
+def box_distance(a, b):
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
 
-
-# ----------------------------------------------------------------------------------------------
-# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
-# ----------------------------------------------------------------------------------------------
-def median_step(episodes):
-    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
-
-    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
-    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
+    Two facts of 2-D convex geometry make this short and exact:
+      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
+      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
+        smallest of the 8 corner-to-box distances.
     """
-    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
-    steps = np.concatenate(steps) if steps else np.zeros(0)
-    steps = steps[steps > 0]
-    if len(steps) == 0:
-        raise ValueError("median_step: the episodes contain no joint motion")
-    return float(np.median(steps))
+    acx, acy, ac, as_, ahx, ahy = a
+    bcx, bcy, bc, bs, bhx, bhy = b
+    dx, dy = bcx - acx, bcy - acy
+    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
+    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
+        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
+        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
+        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
+    d = np.full(overlap.shape, np.inf)
+    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
+        for x, y in zip(xs, ys):
+            d = np.minimum(d, point_box_distance(x, y, *box))
+    return np.where(overlap, 0.0, d)
 
 
-# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their
-# demonstration steps of the L2 norm over the joints of one 30 Hz step, in rad (PCD
-# paper/fig_noise_levels/plot.py: MED_PLANAR = 0.0176, MED_LEVER = 0.0166; the lever's is over the
-# UR5's 6 arm joints, as paper/tables_repro/analysis/measure_w_lever.py measures it). Every sigma and W
-# of the paper counts it. Ours (median_step above) is per joint at the env's dt: on a planar D0 at
-# 10 Hz 0.0245 rad, 1.39x theirs. A per-joint sigma in rad is sigma_ours * median_step = sigma_paper * this.
-PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
-PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
-
-
-def paper_median_step(env):
-    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
-    paper has none (then only radians and our median steps can be given)."""
-    return PAPER_MEDIAN_STEP.get(paper_env(env))
-
-
-# ==== The UR5 engine lever (Table II) =====================================================
-# The second environment: the UR5 reaching an engine lever, simulated with pybullet. Table I's planar
-# profiles never make it, and pybullet is imported only when they do (`_import_pybullet`).
-
-pb = None  # the pybullet module, once the first EngineReach3D has imported it
-
-
-def _import_pybullet():
-    """pybullet, imported on first use into this module's `pb` (the planar env never needs it)."""
-    global pb
-    if pb is None:
-        import pybullet
-        pb = pybullet
-    return pb
-
-
+# ----------------------------------------------------------------------------------------------
+# The UR5 engine lever's configuration (Table II; the authors' small-engine cell, benchmarks/README.md,
+# "The UR5 engine-lever task"). Their cell in our frame: the UR5's DH base frame is their URDF base frame
+# turned 180 deg about z, (x, y) -> (-x, -y); the table top is our ground z = 0.
+# ----------------------------------------------------------------------------------------------
 @dataclass
 class EngineConfig:
-    # --- the UR5 of Sec. V (radii from the UR5 datasheet's outer diameters: ~0.12 m shoulder and
-    #     upper arm housings, ~0.10 m forearm, ~0.09 m wrists) ---
+    # --- the UR5 (radii from its datasheet's outer diameters: ~0.12 m shoulder and upper arm housings,
+    #     ~0.10 m forearm, ~0.09 m wrists) ---
     link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
-    # rad. The UR5 allows +-2 pi on every joint; one turn per joint is enough here and keeps the
-    # planner from searching equivalent copies of each configuration. Shoulder in [-pi, 0] keeps
-    # the upper arm above the shoulder (never into the table); the elbow stops at +-160 deg before
-    # the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
+    # rad. One turn per joint (the UR5 allows +-2 pi) keeps the planner from searching copies of each
+    # configuration; the shoulder in [-pi, 0] keeps the upper arm above the table; the elbow stops at
+    # +-160 deg before the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
     joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
     joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
     # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
     dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
-    # m, TCP within this distance of the goal = reached. The authors' success rule: the EE within
-    # 3 cm AND 10 deg of one fixed pose (SS sim_robot_pybullet_small_engine.py, TaskConfig); the
-    # orientation part is the option below, off by default: with it BC at the table2 recipe reaches 88 %
-    # (one end posture), without it 49 %, inside the paper's range (benchmarks/README.md, "The 10° rule").
+    # m, success: the TCP within this distance of the goal (the authors' rule also asks 10 deg of the
+    # goal posture's orientation: the variant experiment/oriented_goal.py; benchmarks/README.md, "The 10° rule")
     goal_tolerance: float = 0.03
-    # deg or None. The orientation part of the authors' rule: with a value (theirs: 10), success also
-    # needs the flange within this angle of goal_q's orientation, and goal_configurations (the oracle's
-    # goal set) becomes the IK branches of goal_q's own pose -- one goal posture, as their demos have.
-    # None (the default): position only, and the goal set spans every free tool orientation.
-    goal_angle_tolerance: float | None = None
-    # Episode step limit: the authors evaluate 1000 frames at 30 Hz (33 s; PCD
-    # paper/tables_repro/lib_repro.sh, eval_lever --env.episode_length=1000); the same seconds here.
-    max_steps: int = 333  # steps
-    # The scene: the authors' small-engine cell (benchmarks/README.md, "The UR5 engine-lever task"): one
-    # engine with its lever at a fixed place, a table, a wall behind the robot, two boxes drawn per seed on
-    # the table. (This project's earlier generated bay of pipes, where BC stayed near 0 %, was replaced by it.)
-    # Start of an episode (_draw_start): all six joints uniform within the joint limits
-    # until the arm is clear of everything by start_clearance (theirs: SS splatsim/utils/
-    # trajectory_generation.py, _get_random_collision_free_q, used when the config's q_start is null).
-    # Starts near a home pose made BC 98 %: measured, not adopted (benchmarks/README.md, "BC at the earlier
-    # mid recipe on the authors' cell: the start decided").
-
-    # --- not in the paper ---
-    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
-    finger_half_width: float = 0.045  # m, the fingers are a bar along x6 across the probe's tip;
-    #                                   they make joint 6 matter (all else is symmetric about z6)
-    # States checked for contact per step (the end state and evenly spaced states before it). At
-    # max_step on every joint a point of the arm moves at most 0.05 rad x sum_j R_j = 0.05 x 4.12 m
-    # = 0.21 m per step (R_j: the fk chain length beyond joint j, 1.29 .. 0.18 m), i.e. 0.052 m
-    # between checks -- less than the thinnest band a centre line must cross to pass through an
-    # obstacle, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m, so nothing tunnels.
-    n_substeps: int = 4  # states per step
-    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); scenes have <= 15
-    # --- the scene (EngineReach3D._draw_authors_scene). Their cell in our frame: the UR5's
-    #     DH base frame is their URDF base frame turned 180 deg about z, (x, y) -> (-x, -y); the
-    #     table top is our ground z = 0 ---
+    max_steps: int = 333  # steps: the authors evaluate 1000 frames at 30 Hz (33 s), the same seconds here
+    # m, a start keeps this from everything (the authors' planning obstacle clearance); starts are all six
+    # joints uniform within the limits until clear (theirs, _get_random_collision_free_q; _draw_start)
+    start_clearance: float = 0.02
+    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
+    # --- the scene (EngineReach3D._draw_authors_scene) ---
     # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
-    # goal is its TCP, (0.151, -0.373, 0.206) m here, the tool pointing along +x at the engine.
+    # goal is its TCP, (0.151, -0.373, 0.206) m, the tool pointing along +x at the engine.
     goal_q: tuple = (1.223, -1.587, 2.082, -0.925, -0.496, -1.124)
-    # The small engine, fixed (theirs: randomize_pose=False at (-0.48, 0.36) m, a ~0.34 x 0.38 x
-    # 0.34 m splat): a block capsule and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
+    # The small engine, fixed (theirs: a ~0.34 x 0.38 x 0.34 m splat at (-0.48, 0.36) m): a block capsule
+    # and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
     engine_parts: tuple = ((0.50, -0.46, 0.15, 0.50, -0.26, 0.15, 0.15),
                            (0.47, -0.45, 0.36, 0.47, -0.28, 0.36, 0.06))
-    wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs:
-    #                        a 3.0 x 0.05 x 1.5 m cuboid at y = -0.225 in their frame)
-    # The two boxes on the table, drawn per seed (theirs: box1 x in [0.15, 0.5], y in [0.3, 0.5], turned
-    # 90 deg; box2 x in [-0.4, 0.3], y in [0.6, 0.8]; each scaled 0.9-1.1; their sizes are splat
-    # scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
+    wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs: a cuboid)
+    # The two boxes on the table, drawn per seed (theirs: their ranges, each scaled 0.9-1.1; their sizes are
+    # splat scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
     # its axis ('x' or 'y'), length (m) and radius (m, = half its height), scaled by box_scale.
     box_x: tuple = ((-0.50, -0.15), (-0.30, 0.40))  # m
     box_y: tuple = ((-0.50, -0.30), (-0.80, -0.60))  # m
@@ -886,22 +734,28 @@ class EngineConfig:
     box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
     box_radius: tuple = (0.09, 0.09)  # m
     box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
-    # m, a start keeps this from everything: the authors' planning obstacle clearance
-    # (SS configs/traj_configs/upright_robot_small_engine_curtain.json, obstacle_clearance)
-    start_clearance: float = 0.02
     lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
     #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
-    min_goal_configurations: int = 40  # a scene is kept only if at least this many of the
-    #   goal_configurations candidates are free: a goal reachable from a sliver of joint space is
-    #   a needle's eye that no planner (or IK from random seeds) finds reliably
-    start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
+    # A scene is kept only if at least this many goal_configurations are free: a goal reachable from a
+    # sliver of joint space is a needle's eye no planner (or IK from random seeds) finds reliably.
+    min_goal_configurations: int = 40
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
+    # --- not in the paper ---
+    tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
+    finger_half_width: float = 0.045  # m, the fingers: a bar along x6 across the probe's tip (joint 6 matters)
+    # States checked for contact per step. At max_step on every joint an arm point moves <= 0.05 rad x
+    # sum_j R_j (the fk chain beyond joint j, 4.12 m in all) = 0.21 m, 0.052 m between checks: less than the
+    # thinnest band to pass through, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m. Nothing tunnels.
+    n_substeps: int = 4  # states per step
+    n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); the authors' scenes have 6
 
 
 # ----------------------------------------------------------------------------------------------
 # UR5 engine-lever reaching (Sec. V, Table II)
 # ----------------------------------------------------------------------------------------------
+pb = None  # the pybullet module, imported by the first EngineReach3D (the planar env never needs it)
+
 # UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
 # ("DH parameters for calculations of kinematics and dynamics", universal-robots.com, UR5 row).
 # Frame i follows frame i-1 by T_i = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i); frame 6 is the flange.
@@ -909,23 +763,18 @@ UR5_D = np.array([0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823])  # m, offsets a
 UR5_A = np.array([0.0, -0.425, -0.39225, 0.0, 0.0, 0.0])  # m, lengths along x_i
 UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  # rad, twists
 
-# The arm as 8 capsules (EngineReach3D.link_segments): base column, upper arm, forearm, wrist 1,
-# wrist 2, wrist 3 (centre to flange), tool probe (flange to TCP), finger bar.
+# The arm as 8 capsules (EngineReach3D.link_segments): wrist 3 runs from its centre to the flange, the probe
+# from the flange to the TCP.
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
-# The fixed camera of figures (and of the image variant's observations, experiment/image_obs.py): in
-# front of the robot (the side away from the wall), above the table, looking at the engine and the goal
-# (the authors' debug camera looks from the same side, SS sim_robot_pybullet_small_engine.py, PYBULLET_CAMERA_*)
+# The fixed camera of Fig. 5 (and of the image variant's observations): in front of the robot, above the
+# table, looking at the engine and the goal (the authors' debug camera looks from the same side)
 ENGINE_CAMERA = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
-# Self-collision pairs. Capsules that share a joint (consecutive in the chain) always overlap and
-# never count. In the wrist, the DH offsets keep some non-consecutive capsules at a FIXED distance,
-# whatever the joint angles: forearm-wrist 2 exactly d4 = 0.109 m apart (radii sum 0.095),
-# wrist 1-wrist 3 exactly d5 = 0.0947 (0.09), wrist 2-probe d6 = 0.0823 (0.07), wrist 1-probe
-# >= d5, wrist 2-fingers >= d6 + tool, wrist 3-fingers >= tool length. They can never touch, and
-# with a planner's inflation margin of a few mm they would flag EVERY configuration, so they are
-# left out too. The pairs that remain can meet when the arm folds (tests/test_engine3d.py checks
-# that the left-out ones stay apart on random configurations):
+# Self-collision pairs: those that can meet when the arm folds. Consecutive capsules share a joint and never
+# count; in the wrist the DH offsets hold some others at a fixed distance whatever the angles (forearm-wrist 2
+# d4 = 0.109 m apart, radii sum 0.095; wrist 1-wrist 3 d5; wrist 2-probe d6; wrist 1-probe, wrist 2 / 3-fingers
+# farther): they never touch, and with a planner's margin of a few mm they would flag every configuration.
 ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs forearm .. fingers
                              + [(1, j) for j in range(3, 8)]  # upper arm vs wrist 1 .. fingers
                              + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
@@ -934,58 +783,45 @@ ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs for
 class EngineReach3D(ArmEnv):
     """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
-    The paper renders its mockup with Gaussian splats; this project has no scan, so the scene is
-    pybullet's own geometry, capsules: the authors' small-engine cell as their code sets it up
-    (benchmarks/README.md, "The UR5 engine-lever task"): one engine with its lever at a fixed place,
-    the goal the TCP of their goal posture (the witness), a wall behind the robot (a half-space, not
-    an obstacle row), the table (the ground), and two boxes lying on the table, drawn per seed.
-    Starts: uniform within the joint limits (theirs).
-
-    One geometry definition (capsules: segment + radius, in `self.obstacles` and `link_segments`)
-    feeds both
-      * pybullet in DIRECT mode (the simulator): one body per arm capsule placed by our own FK,
-        static obstacle bodies, a ground plane; contacts from pybullet -- used by step();
-      * the vectorized numpy check `in_collision` (segment-segment distances) -- used by the
-        planner, relabeling and evaluation.
-    They agree on every random configuration tested, and 1e-6 rad on either side of points on the
-    contact boundary (tests/test_engine3d.py): capsule-capsule distances are exact in both.
+    The paper renders its mockup with Gaussian splats; without a scan the scene here is capsules: the
+    authors' small-engine cell as their code sets it up, one engine with its lever at a fixed place, the
+    goal the TCP of their goal posture (the witness), a wall behind the robot (a half-space y >= wall_y,
+    not an obstacle row), the table (the ground z = 0) and two boxes on the table, drawn per seed. Starts:
+    uniform within the joint limits (theirs). One geometry (capsules: segment + radius, `self.obstacles`
+    and `link_segments`) feeds pybullet in DIRECT mode (the simulator of step: one body per arm capsule
+    placed by our own FK) and the vectorized numpy check in_collision (segment-segment distances); both
+    are exact, and they agree on random configurations and 1e-6 rad either side of the contact boundary.
 
     Observation layout (float32, obs_dim = 2 dof + 3 + 7 n_max_obstacles = 127):
         [0:6]     q       current joint positions (rad)
         [6:12]    q_prev  joint positions one step earlier (rad)
         [12:15]   goal    TCP goal (x, y, z) in m
         [15:127]  obstacles, n_max_obstacles slots of (x0, y0, z0, x1, y1, z1, radius) in m
-    The paper's policy sees images instead of the obstacles (Sec. V): that layout is a research variant's
-    env, 'engine3d_image' (experiment/image_obs.py), a subclass that replaces [15:] by a camera image.
+    The paper's policy sees a camera image instead of the obstacles: the variant 'engine3d_image'
+    (experiment/image_obs.py) replaces [15:] by it.
     """
 
     dim = 3  # workspace dimension
 
     def __init__(self, config: EngineConfig | None = None):
-        _import_pybullet()  # the simulator, loaded with the first UR5 env
+        global pb
+        if pb is None:  # the simulator, imported with the first UR5 env
+            import pybullet
+            pb = pybullet
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
-        if cfg.goal_angle_tolerance is not None and not 0.0 < cfg.goal_angle_tolerance <= 180.0:
-            raise ValueError(f"EngineConfig.goal_angle_tolerance must be None (position only) or degrees in "
-                             f"(0, 180] about the goal posture goal_q (the authors' 10); "
-                             f"got {cfg.goal_angle_tolerance!r}")
         self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
-        self.goal_is_pose = cfg.goal_angle_tolerance is not None
-        self._goal_frame = ur5_frames(np.asarray(cfg.goal_q, dtype=np.float64)[None])[0, 6]  # (4, 4) flange
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
         if self.link_radii.shape != (len(ENGINE_LINK_NAMES),) or np.any(self.link_radii <= 0):
             raise ValueError(f"link_radii must be {len(ENGINE_LINK_NAMES)} positive radii "
                              f"({', '.join(ENGINE_LINK_NAMES)}), got {cfg.link_radii}")
-        # the thinnest arm capsule: planners derive their edge-check spacing from it (oracle.py)
-        self.link_radius = float(self.link_radii.min())
+        self.link_radius = float(self.link_radii.min())  # oracle.py's check spacing derives from it
         self.max_step = float(cfg.max_step)
         self.max_steps = int(cfg.max_steps)
         self.dt = float(cfg.dt)
         self.goal_tolerance = float(cfg.goal_tolerance)
         self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
         super().__init__(cfg.joint_lo, cfg.joint_hi)
-        self.obstacles = np.zeros((0, 7))  # (N, 7): x0, y0, z0, x1, y1, z1, radius
-        self.obstacle_kinds = []  # 'engine' | 'lever' | 'pipe' | 'box', for drawing
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
@@ -1035,12 +871,8 @@ class EngineReach3D(ArmEnv):
         return p
 
     def fk(self, q):
-        """Joint points (B, 7, 3): base, shoulder, elbow, wrist 1-3, TCP. (dof,) -> (7, 3).
-
-        One point on the axis of each joint (the origins of the UR5's DH frames 0..5; the DH model
-        puts the shoulder and elbow offsets of the real arm into d4) plus the tool centre point,
-        the end effector. The flange lies on the line from wrist 3 to the TCP.
-        """
+        """Joint points (B, 7, 3): the origins of the DH frames 0..5 (base, shoulder, elbow, wrist 1-3; the DH
+        model puts the real arm's shoulder and elbow offsets into d4) and the TCP, the end effector."""
         q, single = _as_batch(q, self.dof)
         points = self._capsule_points(q)[:, [0, 1, 2, 3, 4, 5, 7]]
         return points[0] if single else points
@@ -1052,18 +884,11 @@ class EngineReach3D(ArmEnv):
         return np.stack([p[:, _CAPSULE_START], p[:, _CAPSULE_END]], axis=2)
 
     def clearance(self, q):
-        """Signed distance (B,) from the arm at q to everything it may not touch, in m.
-
-        The minimum over: every arm capsule vs every obstacle capsule (segment distance minus the
-        two radii), the self-collision pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the
-        ground plane z = 0, and every arm capsule vs the wall y = wall_y.
-        Negative = penetration.
-        """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("clearance/in_collision: q contains NaN or inf")
-        # chunks of 256 configurations keep the (chunk, 8, N) temporaries in cache: 2x faster
-        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])
+        """Signed distance (B,) from the arm at q to everything it may not touch, in m (negative: penetration):
+        the minimum over every arm capsule vs every obstacle capsule (segment distance minus the two radii),
+        the pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the ground z = 0, every capsule vs the wall."""
+        q, single = self._check_batch(q)
+        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])  # chunks: in cache
         return d[0] if single else d
 
     def _arm_components(self, q):
@@ -1072,17 +897,12 @@ class EngineReach3D(ArmEnv):
         return np.ascontiguousarray(p[:, :, _CAPSULE_START]), np.ascontiguousarray(p[:, :, _CAPSULE_END])
 
     def _ground_clearance(self, a0, a1):
-        """(B,) lowest point of the forearm .. fingers above the ground plane z = 0.
-
-        The base column stands on the ground, and the upper arm cannot reach it: with the shoulder
-        in [-pi, 0] it points upward, its lowest point is always 0.089 - 0.06 m up.
-        """
+        """(B,) lowest point of the forearm .. fingers above the ground z = 0 (the base column stands on it; the
+        upper arm, shoulder in [-pi, 0], points upward: its lowest point is always 0.089 - 0.06 m up)."""
         return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
 
     def _wall_clearance(self, a0, a1):
-        """(B,) distance from the arm's capsules to the wall's face y = wall_y.
-
-        A capsule's distance to a plane is smallest at one of its two end points."""
+        """(B,) distance from the arm's capsules to the wall's face y = wall_y (at a capsule's end point)."""
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
     def _clearance(self, q):
@@ -1101,22 +921,14 @@ class EngineReach3D(ArmEnv):
         return d
 
     def in_collision(self, q, margin=0.0):
-        """True where the arm at q penetrates an obstacle, the ground or itself. (B,) bool.
+        """True where the arm at q penetrates an obstacle, the wall, the ground or itself. (B,) bool.
 
-        With margin > 0 (m), True also where anything is closer than margin: the inflated check
-        planners use to keep clear between their collision checks. The same predicate as
-        clearance(q) < margin (a test checks it), computed in two phases for speed:
-          broad phase: axis-aligned bounding boxes of every (config, arm capsule, obstacle or
-            other arm capsule) pair -- a cheap test that rules out ~98% of the obstacle pairs;
-          narrow phase: exact segment-segment distances of the remaining pairs, in one call.
-        The base column never moves (joint 1 turns it about its own axis): its clearance is a
-        constant of the scene, computed once by set_scene.
+        With margin > 0 (m), True also where anything is closer than margin (planners keep clear between
+        their checks). The same predicate as clearance(q) < margin, in two phases for speed: axis-aligned
+        bounding boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column
+        never moves (joint 1 turns it about its own axis): its clearance is set_scene's constant.
         """
-        q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)):
-            raise ValueError("in_collision: q contains NaN or inf")
-        if not (np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"in_collision: margin must be a finite distance >= 0 m, got {margin}")
+        q, single = self._check_batch(q, margin)
         chunk = 1024  # configurations per pass: temporaries stay in cache
         hit = np.concatenate([self._in_collision_chunk(q[k:k + chunk], float(margin))
                               for k in range(0, len(q), chunk)])
@@ -1159,10 +971,9 @@ class EngineReach3D(ArmEnv):
     def set_scene(self, obstacles, goal=None, kinds=None):
         """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
 
-        reset() calls this with a generated scene; tests and figures may call it with a built one.
-        kinds: one of 'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default pipe).
-        The wall is not an obstacle row: it belongs to the scene.
-        Derives everything both collision checks need from this one array.
+        reset() calls this with a generated scene; tests and figures with a built one. kinds: one of
+        'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default pipe). The wall is not a row.
+        Both collision checks derive what they need from this one array.
         """
         self._set_obstacles(obstacles, kinds)
         if goal is not None:
@@ -1177,15 +988,13 @@ class EngineReach3D(ArmEnv):
     def _set_obstacles(self, obstacles, kinds=None):
         """Obstacle array and the broad-phase geometry of in_collision (no pybullet rebuild)."""
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 7)
-        if len(obstacles) > self.cfg.n_max_obstacles:
-            raise ValueError(f"set_scene: {len(obstacles)} obstacles, the observation holds at "
-                             f"most n_max_obstacles={self.cfg.n_max_obstacles}")
-        if not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 6] <= 0):
-            raise ValueError("set_scene: obstacles must be finite with radius > 0")
         kinds = ["pipe"] * len(obstacles) if kinds is None else list(kinds)
         valid = ("engine", "lever", "pipe", "box")
-        if len(kinds) != len(obstacles) or any(k not in valid for k in kinds):
-            raise ValueError(f"set_scene: kinds must give one of {valid} per obstacle, got {kinds}")
+        if (len(obstacles) > self.cfg.n_max_obstacles or not np.all(np.isfinite(obstacles))
+                or np.any(obstacles[:, 6] <= 0) or len(kinds) != len(obstacles) or any(k not in valid for k in kinds)):
+            raise ValueError(f"set_scene: obstacles must be finite rows with radius > 0, at most n_max_obstacles="
+                             f"{self.cfg.n_max_obstacles} (the observation's slots), and kinds one of {valid} per "
+                             f"obstacle; got {len(obstacles)} obstacles, kinds {kinds}")
         self.obstacles, self.obstacle_kinds = obstacles, kinds
         start, end, radius = obstacles[:, 0:3].T, obstacles[:, 3:6].T, obstacles[:, 6]  # (3, N)
         self._geom = dict(start=start.copy(), end=end.copy(),
@@ -1275,58 +1084,14 @@ class EngineReach3D(ArmEnv):
         return out[0] if single else out
 
     # ---- scenarios ---------------------------------------------------------------------------
-    def goal_configurations(self, goal=None, n_directions=None, n_rolls=None):
-        """Collision-free joint configurations that reach the goal. (M, 6).
-
-        Position-only success (goal_angle_tolerance None): every tool orientation
-        (tcp_goal_configurations); with the orientation rule: goal_q's own pose and that pose tilted
-        by half the tolerance about +-x, y, z of the flange (goal_pose_configurations).
-        """
-        if not self.goal_is_pose:
-            return self.tcp_goal_configurations(goal, n_directions, n_rolls)
-        return self.goal_pose_configurations()
-
-    def goal_pose_configurations(self):
-        """The closed-form IK branches of goal_q's flange pose and of 6 tilts of it by half the angle
-        tolerance, TCP on the goal; within the limits, collision-free and goal_reached. (M, 6)."""
-        frame = self._goal_frame
-        tilt = math.radians(self.cfg.goal_angle_tolerance) / 2
-        turns = [np.eye(3)] + [axis_rotation(a, tilt) for a in np.vstack([np.eye(3), -np.eye(3)])]
-        flange = np.tile(np.eye(4), (len(turns), 1, 1))
-        flange[:, :3, :3] = frame[:3, :3] @ np.array(turns)
-        flange[:, :3, 3] = self._goal - self.cfg.tool_length * flange[:, :3, 2]  # TCP on the goal
-        q = ur5_ik(flange).reshape(-1, self.dof)
-        q = q[~np.isnan(q).any(axis=1)]
-        q = q[np.all((q >= self._lo) & (q <= self._hi), axis=1)]
-        q = q[~self.in_collision(q)] if len(q) else q
-        return q[self.goal_reached(q)] if len(q) else q
-
-    def tool_angle(self, q):
-        """Degrees between the flange's orientation at q and at the goal posture goal_q. (B,) or float."""
-        q = np.asarray(q, dtype=np.float64)
-        R = ur5_frames(q.reshape(-1, self.dof))[:, 6, :3, :3]
-        cos = (np.einsum("bij,ij->b", R, self._goal_frame[:3, :3]) - 1) / 2  # (trace(R^T R_goal) - 1) / 2
-        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-        return angle.reshape(q.shape[:-1]) if q.ndim > 1 else float(angle[0])
-
-    def goal_reached(self, q):
-        """True where the TCP is within goal_tolerance of the goal and, with goal_angle_tolerance, the
-        flange within that angle of the goal posture's orientation (the authors' 3 cm and 10 deg). (B,)"""
-        near = super().goal_reached(q)
-        if not self.goal_is_pose:
-            return near
-        return near & (self.tool_angle(q) <= self.cfg.goal_angle_tolerance)
-
-    def tcp_goal_configurations(self, goal=None, n_directions=None, n_rolls=None):
+    def goal_configurations(self):
         """Collision-free joint configurations with the TCP exactly at the goal. (M, 6).
 
-        Closed-form IK (ur5_ik) for a fixed set of tool orientations: n_directions tool axes z6
-        spread over the sphere, each with n_rolls rotations of the fingers about it, and up to 8
+        Closed-form IK (ur5_ik) for a fixed set of tool orientations: n_goal_directions tool axes z6
+        spread over the sphere, each with n_goal_rolls rotations of the fingers about it, and up to 8
         arm branches per orientation. Solutions outside the joint limits or in collision are dropped.
         """
-        goal = self._goal if goal is None else np.asarray(goal, dtype=np.float64)
-        n_dir = n_directions or self.cfg.n_goal_directions
-        n_roll = n_rolls or self.cfg.n_goal_rolls
+        goal, n_dir, n_roll = self._goal, self.cfg.n_goal_directions, self.cfg.n_goal_rolls
         axes = fibonacci_sphere(n_dir)  # (D, 3) tool axes z6
         helper = np.where(np.abs(axes[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
         x0 = np.cross(helper, axes)
@@ -1347,12 +1112,9 @@ class EngineReach3D(ArmEnv):
     def _draw_authors_scene(self, rng):
         """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
 
-        Fixed: the engine (cfg.engine_parts), the goal posture cfg.goal_q and its TCP (the goal),
-        a T-handle lever just beyond the TCP along the tool axis with its shaft running on into
-        the engine, and the wall (not a row: EngineReach3D._wall_y).
-        Drawn: the two boxes, each a capsule lying on the table, centre uniform in its box_x x box_y
-        range, length and radius scaled by one factor from box_scale. The scene is re-drawn by reset
-        if the goal posture collides.
+        Fixed: the engine, the goal posture cfg.goal_q and its TCP (the goal), a T-handle lever just beyond
+        the TCP along the tool axis, its shaft running on into the engine. Drawn: the two boxes, each a
+        capsule on the table, centre uniform in its box_x x box_y range, scaled by one factor of box_scale.
         """
         cfg = self.cfg
         q_goal = np.asarray(cfg.goal_q, dtype=np.float64)
@@ -1379,46 +1141,38 @@ class EngineReach3D(ArmEnv):
     def reset(self, seed=None):
         """Draw the scenario of `seed` (the scene, then the start) and put the arm there.
 
-        Rejection sampling with one rng stream, so the scene is a deterministic function of seed.
-        The goal always has a collision-free configuration (the witness posture the scene is built
-        around); scenes whose witness collides, or whose goal has fewer than
-        min_goal_configurations free IK solutions, are re-drawn. Starts: see _draw_start.
+        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed. A
+        scene is re-drawn when its witness (the goal posture) collides or its goal has fewer than
+        min_goal_configurations free IK solutions (EngineReach3D's own goal set, also in a variant that
+        narrows it: the same scenes), or when no start is found (_draw_start).
         """
-        if seed is None:
-            seed = int(np.random.default_rng().integers(0, 2 ** 31))  # fresh entropy, recorded
-        if not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
-        rng = np.random.default_rng(int(seed))
-        cfg = self.cfg
+        seed, rng = self._scenario_rng(seed)
         while True:
             obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
             self._set_obstacles(obstacles, kinds)
             self._goal = goal
             if self.in_collision(self.witness):
                 continue
-            if len(self.tcp_goal_configurations()) < cfg.min_goal_configurations:  # either success rule:
-                continue  # the same scenes
+            if len(EngineReach3D.goal_configurations(self)) < self.cfg.min_goal_configurations:
+                continue
             start = self._draw_start(rng)
             if start is not None:
                 break
-        self.seed = int(seed)
+        self.seed = seed
         self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
         self.set_state(start)
         return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
     def _draw_start(self, rng, n=256):
-        """A start: (6,) or None if none of n draws is acceptable.
-
-        The authors': all joints uniform within the joint limits. The first draw that is clear of
-        everything by start_clearance with its TCP at least start_goal_min_dist from the goal is taken.
-        """
+        """The authors' start: the first of n draws uniform within the joint limits that is clear of everything
+        by start_clearance, its TCP at least start_goal_min_dist from the goal; (6,) or None."""
         cfg = self.cfg
         q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
         far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
         ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
         return q[np.argmax(ok)] if ok.any() else None
 
-    # ---- observations, stepping --------------------------------------------------------------
+    # ---- observations -------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
         """Observations (B, obs_dim) float32 for the current scenario; (dof,) -> (obs_dim,)."""
         obs, _, single = self._joint_goal_obs(q, q_prev)
@@ -1437,17 +1191,12 @@ class EngineReach3D(ArmEnv):
         obs[:, 2 * d:2 * d + self.dim] = self._goal
         return obs, q, single
 
-    def simulator_in_collision(self, q):
-        """The simulator's contact check used by step: pybullet."""
-        return self.pybullet_in_collision(q)
+    simulator_in_collision = pybullet_in_collision  # the contact check that judges a step: the simulator's
 
     # ---- images and drawing ------------------------------------------------------------------
     def camera_image(self, q=None, width=640, height=480):
-        """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current).
-
-        pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed) from the fixed
-        camera ENGINE_CAMERA, in front of the robot, looking at the engine.
-        """
+        """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current), from the fixed
+        camera ENGINE_CAMERA with pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed)."""
         q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
         cam = ENGINE_CAMERA
@@ -1459,33 +1208,12 @@ class EngineReach3D(ArmEnv):
                                              physicsClientId=self._client)
         return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[..., :3]
 
-    def render(self, ax, q=None, alpha=1.0, color="tab:blue", show_scene=True):
-        """Draw the scene and the arm at q (default: current state; (dof,) or (B, dof)).
-
-        On a 3-D axis (projection='3d') capsules are drawn as thick lines; on a 2-D axis the
-        pybullet camera image of the scene (arm at the first q) is shown with imshow.
-        """
+    def render(self, ax, q=None):
+        """Draw the scene with the arm at q (default: current; (dof,) or (B, dof): the first) on a matplotlib
+        axis: the camera image of camera_image (Fig. 5)."""
         q = self._q if q is None else np.asarray(q, dtype=np.float64)
-        if not hasattr(ax, "get_zlim"):
-            ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
-            ax.set_axis_off()
-            return ax
-        widths = {"engine": 14, "lever": 2, "pipe": 4, "box": 10}
-        colors = {"engine": "0.2", "lever": "tab:red", "pipe": "tab:orange", "box": "tab:brown"}
-        if show_scene:
-            for (x0, y0, z0, x1, y1, z1, _), kind in zip(self.obstacles, self.obstacle_kinds):
-                ax.plot([x0, x1], [y0, y1], [z0, z1], color=colors[kind], linewidth=widths[kind])
-            ax.scatter(*self._goal, color="tab:green", s=40)
-            x, z = [-0.7, 0.7, 0.7, -0.7, -0.7], [0, 0, 1.0, 1.0, 0]  # the wall's outline
-            ax.plot(x, [self._wall_y] * 5, z, color="0.6")
-            ax.set_xlim(-0.7, 0.6)  # the cell lies toward +x (the engine) and -y (the boxes)
-            ax.set_ylim(-1.0, 0.3)
-            ax.set_zlim(0.0, 1.0)
-            ax.set_box_aspect((1.3, 1.3, 1.0))
-        for seg in self.link_segments(np.atleast_2d(q)):
-            for (a, b), radius in zip(seg, self.link_radii):
-                ax.plot(*np.stack([a, b], axis=1), color=color, alpha=alpha,
-                        linewidth=max(1.0, 60 * radius), solid_capstyle="round")
+        ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
+        ax.set_axis_off()
         return ax
 
     def close(self):
@@ -1502,32 +1230,15 @@ class EngineReach3D(ArmEnv):
             pass
 
 
-ENVIRONMENTS["engine3d"] = (EngineReach3D, EngineConfig)
-
-
-# ----------------------------------------------------------------------------------------------
-# Figures (Fig. 5): the scenes
-# ----------------------------------------------------------------------------------------------
-def render_scene_image(env, path, q=None, width=640, height=480):
-    """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
-    from matplotlib.image import imsave
-
-    image = env.camera_image(q, width, height)
-    imsave(path, image)
-    return image
-
-
 # ----------------------------------------------------------------------------------------------
 # Capsule geometry and UR5 kinematics (EngineReach3D)
 # ----------------------------------------------------------------------------------------------
 def segment_distance_3d(a0, a1, b0, b1):
     """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
 
-    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the
-    closest points of the infinite lines, clamped to the segments, re-projected once. A zero-length
-    segment (a sphere) goes through the same formulas with its squared length floored at 1e-18.
-    Coordinates come as separate x, y, z arrays (first axis) because every operation below then
-    runs on contiguous memory: 4-5x faster than reducing a trailing axis of size 3.
+    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the closest
+    points of the infinite lines, clamped to the segments, re-projected once (a zero-length segment: its
+    squared length floored at 1e-18). Components first keep every operation on contiguous memory: 4-5x faster.
     """
     (ax, ay, az), (bx, by, bz) = a0, b0
     ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
@@ -1620,13 +1331,6 @@ def ur5_ik(flange):
     return out.reshape(P, 8, 6)
 
 
-def axis_rotation(axis, angle):
-    """The 3 x 3 rotation by `angle` rad about the unit vector `axis` (Rodrigues' formula)."""
-    x, y, z = axis
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
-
-
 def fibonacci_sphere(n):
     """n unit vectors (n, 3) spread evenly over the sphere (golden-angle spiral)."""
     z = 1.0 - 2.0 * (np.arange(n) + 0.5) / n
@@ -1645,66 +1349,68 @@ def _quaternion_z_to(direction):
     return quat / np.linalg.norm(quat, axis=1, keepdims=True)
 
 
-# ==== Beyond the paper (safe to skip) ====================================================
-# The vectorized numpy geometry behind the planar in_collision (the simulator's contact checks, fast
-# enough for the millions of checks of planning and relabeling), episode files and a stand-in expert for
-# tests and demos.
+# ----------------------------------------------------------------------------------------------
+# Environments by name
+# ----------------------------------------------------------------------------------------------
+# name -> (env class, its config); a research variant adds its own on import of its module (a subclass of
+# EngineReach3D: experiment/image_obs.py 'engine3d_image', experiment/oriented_goal.py 'engine3d_oriented')
+ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig), "engine3d": (EngineReach3D, EngineConfig)}
+PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by env (its unit, its table) names these
+
+
+def make_env(name="planar", **config):
+    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
+    if name not in ENVIRONMENTS:
+        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
+    env_class, config_class = ENVIRONMENTS[name]
+    return env_class(config_class(**config))
+
+
+def paper_env(env):
+    """The paper's env (PAPER_ENVS) that env is or derives from -- a variant's env subclasses one, and is that
+    env for the paper's unit, table and sizes -- or None. env: a name of ENVIRONMENTS or an env object."""
+    env_class = ENVIRONMENTS.get(env, (None,))[0] if isinstance(env, str) else type(env)
+    return next((name for name in PAPER_ENVS
+                 if env_class is not None and issubclass(env_class, ENVIRONMENTS[name][0])), None)
+
 
 # ----------------------------------------------------------------------------------------------
-# Vectorized box geometry (numpy). Every body is an oriented box: centre (x, y), half extents
-# (hx, hy) along its own axes, and angle. Arrays broadcast over any leading shape.
+# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
 # ----------------------------------------------------------------------------------------------
-def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
-    """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
-    dx, dy = px - cx, py - cy
-    lx = np.maximum(np.abs(dx * cos + dy * sin) - hx, 0.0)  # local x = p . u
-    ly = np.maximum(np.abs(-dx * sin + dy * cos) - hy, 0.0)  # local y = p . n
-    return np.sqrt(lx * lx + ly * ly)
+def median_step(episodes):
+    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
 
-
-def box_corners(cx, cy, cos, sin, hx, hy):
-    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
-    xs, ys = [], []
-    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
-        xs.append(cx + sx * hx * cos - sy * hy * sin)
-        ys.append(cy + sx * hx * sin + sy * hy * cos)
-    return xs, ys
-
-
-def box_distance(a, b):
-    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
-
-    Two facts of 2-D convex geometry make this short and exact:
-      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
-      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
-        smallest of the 8 corner-to-box distances.
+    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
+    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
     """
-    acx, acy, ac, as_, ahx, ahy = a
-    bcx, bcy, bc, bs, bhx, bhy = b
-    dx, dy = bcx - acx, bcy - acy
-    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
-    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
-        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
-        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
-        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
-    d = np.full(overlap.shape, np.inf)
-    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
-        for x, y in zip(xs, ys):
-            d = np.minimum(d, point_box_distance(x, y, *box))
-    return np.where(overlap, 0.0, d)
+    steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    steps = steps[steps > 0]
+    if len(steps) == 0:
+        raise ValueError("median_step: the episodes contain no joint motion")
+    return float(np.median(steps))
+
+
+# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their demonstration
+# steps of the L2 norm over the joints of one 30 Hz frame (every sigma and W of the paper counts it). Ours
+# (median_step) is per joint at the env's dt. A per-joint sigma in rad: sigma_ours * median_step = sigma_paper * this.
+PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
+PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
+
+
+def paper_median_step(env):
+    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
+    paper has none (then only radians and our median steps can be given)."""
+    return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
 # ----------------------------------------------------------------------------------------------
-# Episode files and a stand-in expert
+# Episode files (the run folder's datasets) and a stand-in expert for tests and demos
 # ----------------------------------------------------------------------------------------------
 def save_episodes(path, episodes):
-    """Write a list of episode dicts to one .npz: per-step arrays concatenated, plus offsets.
-
-    A key is per-step when its value's first axis is the episode length T in every episode
-    ('obs', 'q', 'action', 'expert', ...): these are concatenated along time and cut back with
-    'offsets'. Other keys ('seed', 'success', a goal vector) must have one shape in all episodes and
-    are stacked per episode. ('seed' is always per-episode.)
-    """
+    """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
+    episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
+    the others ('seed' always, 'success', a goal vector) must have one shape in all episodes: stacked."""
     if len(episodes) == 0:
         raise ValueError("save_episodes: empty episode list")
     lengths = np.array([len(ep["q"]) for ep in episodes], dtype=np.int64)
@@ -1725,11 +1431,8 @@ def save_episodes(path, episodes):
 
 
 def load_episodes(path):
-    """Inverse of save_episodes: a list of episode dicts."""
-    try:
-        data = np.load(path)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"load_episodes: no episode file at {path}") from None
+    """Inverse of save_episodes: a list of episode dicts (FileNotFoundError naming a missing path)."""
+    data = np.load(path)
     offsets = data["offsets"]
     episodes = [dict() for _ in range(len(offsets) - 1)]
     for name in data.files:
@@ -1749,13 +1452,9 @@ def load_episodes(path):
 
 
 def straight_line_episode(env, seed, peak=0.04, expert_from=5):
-    """Stand-in expert data for module demos, tests and benchmarks (no oracle needed).
-
-    In scenario `seed` the arm moves in a straight joint-space line from its start toward the goal
-    configuration nearest to it, stopped at 90 % of the way to the first contact, timed with a
-    smoothstep (rest to rest, peak speed `peak` rad/step). Steps from `expert_from` on are marked
-    as expert-driven (an "intervention" that runs to the end of the episode).
-    """
+    """Stand-in expert data for demos, tests and benchmarks (no oracle needed): in scenario `seed` a straight
+    joint-space line from the start toward the nearest goal configuration, stopped at 90 % of the way to the
+    first contact, timed with a smoothstep (peak speed `peak` rad/step); steps from `expert_from` on expert."""
     env.reset(seed=int(seed))
     q0 = env.q
     goals = env.goal_configurations()
@@ -1768,6 +1467,17 @@ def straight_line_episode(env, seed, peak=0.04, expert_from=5):
     prev = np.concatenate([q[:1], q[:-1]])
     return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
             "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 5: the UR5's scene (the planar one: PlanarReacher.render under a demonstration, oracle.py)
+# ----------------------------------------------------------------------------------------------
+def render_scene_image(env, path, q=None, width=640, height=480):
+    """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
+    from matplotlib.image import imsave
+    image = env.camera_image(q, width, height)
+    imsave(path, image)
+    return image
 
 
 if __name__ == "__main__":

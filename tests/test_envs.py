@@ -555,15 +555,14 @@ def test_render_draws_scene_and_arms():
 
 
 def test_both_envs_share_the_arm_env_machinery():
-    """State, the motion rule, the episode step, the end effector and the default of an env variant's plug-in
-    points (make_obs_near, plot_policy_view) are written once, in ArmEnv."""
+    """State, the motion rule, the episode step, the end effector, the goal test and the default of an env
+    variant's plug-in points (make_obs_near, plot_policy_view) are written once, in ArmEnv."""
     from envs import ArmEnv, EngineReach3D
     for cls in (PlanarReacher, EngineReach3D):
         assert issubclass(cls, ArmEnv)
         for name in ("joint_limits", "q", "q_prev", "goal", "set_state", "clip_action", "step", "ee",
-                     "ee_jacobian", "draw_noise_ellipses", "make_obs_near", "plot_policy_view"):
+                     "ee_jacobian", "goal_reached", "draw_noise_ellipses", "make_obs_near", "plot_policy_view"):
             assert getattr(cls, name) is getattr(ArmEnv, name), (cls.__name__, name)
-    assert PlanarReacher.goal_reached is ArmEnv.goal_reached  # EngineReach3D's adds the orientation rule
 
 
 def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
