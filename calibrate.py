@@ -197,15 +197,14 @@ class BlendRollouts:
 
 
 def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas, cfg: CalibrationConfig,
-                   generator: torch.Generator | None, diverge_rad: float,
-                   record_contacts: bool = True) -> BlendRollouts:
+                   generator: torch.Generator | None, diverge_rad: float) -> BlendRollouts:
     """One closed-loop rollout per job (episode, segment), job b partial-denoised toward the expert at betas[b].
 
     Every decision executes the first cfg.n_act actions of partial_denoise(policy, obs, expert chunk at the
     cursor, beta), for all live rollouts in one call. Rollouts whose nearest-state distance reaches
     diverge_rad (radians, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps are not
     kept ("we discard the blended trajectories that diverge"), but run their segment's full length, as the
-    authors' do: Fig. 4 shows their settling error. record_contacts: see `closed_loop_rollouts`.
+    authors' rollouts do: Fig. 4 shows their settling error.
     """
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
@@ -215,7 +214,7 @@ def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas,
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
 
     roll = closed_loop_rollouts(env, jobs, chunk_fn, policy_horizon(policy), cfg.n_act, diverge_rad,
-                                cfg.settle_window, cfg.min_rollout_steps, record_contacts=record_contacts)
+                                cfg.settle_window, cfg.min_rollout_steps)
     # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
     # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
@@ -232,7 +231,6 @@ class Rollouts:
     n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
     n_recorded: np.ndarray      # (B,) steps executed (a rollout may stop early on divergence)
     diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
-    collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself (recorded only)
     cursor: np.ndarray          # (B, L + 1) expert index the monotone projection assigned to each step
     nearest_error: np.ndarray   # (B, L + 1) distance to the nearest expert state in the window (rad)
     min_steps: int = 0          # rollouts that recorded fewer steps are discarded
@@ -245,18 +243,18 @@ class Rollouts:
 
 def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
                          diverge_rad: float, window: int = CalibrationConfig.settle_window, min_steps: int = 0,
-                         stop_on_divergence: bool = False, record_contacts: bool = True) -> Rollouts:
+                         stop_on_divergence: bool = False) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
     Rollout b starts at the segment's first recorded state and runs for the segment's length; after every
     env step its cursor on the segment moves by `advance_cursor`. At every decision (each n_act steps)
     chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE call
-    (expert = the expert's chunk from the cursor on); each executes its first n_act actions. One env serves
-    all rollouts (set_state per rollout, reset(seed) only when the scenario changes). A rollout whose
-    nearest-state distance reaches diverge_rad is marked diverged (stop_on_divergence: and stops there,
-    experiment/unguided.py). A contact is only recorded (the env is kinematic, so the deviation stays
-    defined; in these cluttered scenes a deviation of a few median steps already grazes an obstacle);
-    record_contacts=False skips the contact check, the costliest part of a step, where none decides anything.
+    (expert = the expert's chunk from the cursor on); each executes its first n_act actions by the env's
+    motion rule (env.clip_action). One env serves all rollouts (set_state per rollout, reset(seed) only when
+    the scenario changes). A rollout whose nearest-state distance reaches diverge_rad is marked diverged
+    (stop_on_divergence: and stops there, experiment/unguided.py). Contacts are not checked: the env is
+    kinematic, and in these cluttered scenes a deviation of a few median steps already grazes an obstacle,
+    so discarding on contact would keep only the luckiest rollouts (benchmarks/README.md, the estimator now).
     """
     B = len(jobs)
     lengths, refs, q0, q_prev0 = [], [], [], []
@@ -278,7 +276,6 @@ def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn
     cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
     nearest_error = np.zeros((B, L + 1))                                     # (B, L + 1), 0 at the start
     diverged = np.zeros(B, dtype=bool)
-    collided = np.zeros(B, dtype=bool)
     live = np.ones(B, dtype=bool)
     seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
     scenario = [None]                                                        # seed the env holds now
@@ -316,11 +313,7 @@ def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn
                     continue
                 env.set_state(q[b], q_prev[b])
                 for j in range(min(n_act, n_steps[b] - t)):
-                    if record_contacts:
-                        _, _, _, _, info = env.step(chunk[j])  # runs the segment's length: success,
-                        collided[b] |= bool(info["collision"])  # like contact, does not end the rollout
-                    else:                                       # the same motion rule, no contact check
-                        env.set_state(env.clip_action(env.q, chunk[j]), env.q)
+                    env.set_state(env.clip_action(env.q, chunk[j]), env.q)   # env.step's motion, no contact check
                     i = t + j + 1
                     traj[b, i:] = env.q
                     n_recorded[b] = i
@@ -332,7 +325,7 @@ def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn
                         break
                 q[b], q_prev[b] = env.q, env.q_prev
                 obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, cursor, nearest_error, min_steps)
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, cursor, nearest_error, min_steps)
 
 
 def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
@@ -622,10 +615,10 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
     say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
 
     # Step 2 (Fig. 2b): blended rollouts, one per ratio from every long enough segment, all batched,
-    # averaged per ratio (the authors' cells); contacts decide nothing here
+    # averaged per ratio (the authors' cells)
     blend_beta, chosen = blend_schedule(episodes, H, cfg)
     blend = blend_rollouts(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg,
-                           generator, threshold, record_contacts=False)
+                           generator, threshold)
     s, x, kept = blend.s, blend.x, blend.kept
     cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
     say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "

@@ -106,7 +106,7 @@ def main():
                                                     n_act=cfg.n_act))
     rows.append(("open-loop Sigma_hat (Eq. 1)", f"{len(steps.timestep)} steps x {cfg.n_samples} samples", w, c))
     blend, w, c = timed(lambda: cal.blend_rollouts(env, policy, [(interventions[e], s) for e, s in chosen],
-                                                   blend_beta, cfg, gen, threshold, record_contacts=False))
+                                                   blend_beta, cfg, gen, threshold))
     rows.append(("blend rollouts", f"13 betas x {len(chosen) // 13} segments, "
                  f"{int(blend.rollouts.n_recorded.sum())} env steps, "
                  f"{int(blend.kept.sum())} kept", w, c))

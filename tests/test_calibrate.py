@@ -254,7 +254,7 @@ def _tracked(trajectory, expert, min_steps=20):
     n = len(trajectory) - 1
     reference = expert[np.minimum(np.arange(n + 1), len(expert) - 1)]
     return cal.Rollouts(trajectory[None], reference[None], np.array([n]), np.array([n]), np.zeros(1, bool),
-                        np.zeros(1, bool), cursor=cursor[None], nearest_error=error[None], min_steps=min_steps)
+                        cursor=cursor[None], nearest_error=error[None], min_steps=min_steps)
 
 
 def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one():
@@ -288,7 +288,7 @@ def test_settling_error_is_the_rms_over_the_inclusive_window_of_recorded_steps()
         error[b, n + 1:] = n                                                      # padded with the last
     B = len(n_recorded)
     zeros = np.zeros((B, L + 1, 3))
-    roll = cal.Rollouts(zeros, zeros, np.full(B, L), n_recorded, np.zeros(B, bool), np.zeros(B, bool),
+    roll = cal.Rollouts(zeros, zeros, np.full(B, L), n_recorded, np.zeros(B, bool),
                         cursor=np.zeros((B, L + 1), np.int64), nearest_error=error)
     rms = lambda steps: math.sqrt(np.mean(np.square(steps, dtype=np.float64)))    # noqa: E731
     expected = [rms(np.arange(13, 41)),    # settled: steps 13..40, 28 of them
@@ -496,12 +496,13 @@ def _line_into_an_obstacle(env, seeds, past=3, speed=0.8):
     raise AssertionError("no straight line meets an obstacle")
 
 
-def test_contacts_are_recorded_never_discarded(planar):
+def test_contacts_never_discard_a_rollout(planar):
     env, _, policy = planar
     # an expert path that runs 3 steps into an obstacle: at beta = 0 the rollout retraces it exactly
     ep, first_contact = _line_into_an_obstacle(env, env.train_seeds(80))
     kept = cal.blend_rollouts(env, policy, [(ep, _longest(ep))], [0.0], CFG, None, 0.4)
-    assert kept.rollouts.collided[0] and kept.kept[0] and kept.x[0] == 0.0
+    assert env.in_collision(kept.rollouts.trajectory[0]).any()                # it touched the obstacle ...
+    assert kept.kept[0] and kept.x[0] == 0.0                                 # ... and was kept
     assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1 > first_contact    # ran through the contact
 
 
