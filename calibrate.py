@@ -14,23 +14,13 @@ The paper measures both offline, without an expert in the loop (Sec. IV-D). In t
    fitted for the policy's settling error W and the gain ratio r = K*/K_theta (Fig. 4).
 4. `dart_alpha`, `dart_sigma`, `calibrated_sigma`, `pooled_sigma` - alpha = T ||W||^2 (Eq. 13) in
    Eq. (2) gives Sigma^alpha_t (Eq. 14, Fig. 2c) and the pooled Sigma_bar^alpha (Eqs. 15-16, Fig. 2d).
-5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`
-   (the record, its report and JSON: after the banner).
+5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`.
 6. Figures: `plot_method_overview` (Fig. 2) and `plot_blend_fit` (Fig. 4).
 
-Beyond the paper (after the banner): the fit's robust refinement, W's bootstrap interval and cap,
-the batched closed-loop simulator behind the rollouts (with the authors' monotone time matching),
-Sigma_bar from unguided closed-loop rollouts (`unguided_sigma`: a control, not Table I's closed-loop row,
-which is a chain of rounds in dagger.py), the expert-data helpers (`expert_chunk`,
-`label_starts`, `expert_segments`: the label rule of diffusion.label_mask), input checks, figure plumbing.
-
-Units: joint deviations, W and covariances in radians (rad^2), so relabel.py draws states from them
-directly; step counts in env steps (0.1 s). Reports and figures are in median steps, the median
-per-step joint displacement of the base demos (`envs.median_step`), and beside them in radians and in
-the paper's own median step (`envs.paper_median_step`, 0.0176 rad planar: the unit of every sigma and W
-the paper quotes; ours is 1.39x it on a planar D0, so compare with the paper only in its unit).
-`diverge_threshold` counts the paper's median steps (`diverge_radius`); functions that take the
-threshold in radians call it `diverge_rad`.
+Units: joint deviations, W and covariances in radians (rad^2); step counts in env steps (0.1 s). Reports
+and figures are in our median steps (`envs.median_step`) and beside them in radians and in the paper's
+median step (`envs.paper_median_step`, 0.0176 rad planar: the unit of every sigma and W the paper quotes;
+PAPER_SETUP.md §1). `diverge_threshold` counts the paper's median steps; `diverge_rad` is radians.
 """
 
 from __future__ import annotations
@@ -52,11 +42,11 @@ from partial_denoise import noise_fraction, partial_denoise
 
 @dataclass
 class CalibrationConfig:
-    """Sec. IV-D as the authors ran it (PAPER_SETUP.md Sec. 5), converted from their 30 Hz to our
-    env's 10 Hz (envs dt = 0.1 s): a count of their frames becomes a third as many of our steps."""
+    """Sec. IV-D as the authors ran it (PAPER_SETUP.md §5), their 30 Hz frames converted to our 10 Hz steps
+    (a third as many)."""
+    n_samples: int                       # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
+    n_act: int                           # steps executed per decision, and compared in Eq. (1) (authors: 32 frames)
     stride: int = 2                      # steps: Sigma_hat_t at every other valid step (Fig. 2a)
-    n_samples: int = 4                   # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
-    n_act: int = 10                      # steps executed per decision, and compared in Eq. (1) (authors: 32 frames)
     betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each
     settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
     settle_start: int = 13               # steps: settling error = RMS over steps [settle_start, settle_end] of
@@ -64,43 +54,56 @@ class CalibrationConfig:
     diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout whose nearest-state
                                          # distance reaches this has diverged and is discarded (`diverge_radius`)
     min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
-    # The authors roll out one blended rollout per source intervention episode at every ratio, average the
-    # settling errors of each ratio's kept rollouts (RMS), and fit only ratios with >= min_survivors of them
-    # (PCD measure_w_lever.py); their fit bounds W to [1, 60] of their median steps and R to [0.001, 100].
-    # Here: one rollout per ratio from every expert segment long enough to be kept (blend_schedule).
     min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
     W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
     r_bounds: tuple = (1e-3, 1e2)        # the gain ratio r = K*/K_theta's range (authors' bounds on R)
-    # not in the paper
-    unguided: bool = False               # also Sigma_bar from unguided closed-loop rollouts (`unguided_pooled`)
-    bootstrap: int = 200                 # resamples of the kept (s, x) for W's 95 % interval (authors' code)
+    bootstrap: int = 200                 # resamples of the kept rollouts for W's 95 % interval (authors' code)
     bootstrap_seed: int = 0              # seed of the bootstrap's numpy Generator (deterministic interval)
-    unguided_segments: int = 8           # intervention segments rolled out unguided for it (longest first)
     max_batch: int = 2048                # rows per policy.sample call (memory bound, not a result knob)
 
 
 def diverge_radius(threshold: float, median_step: float, paper_median_step: float | None) -> float:
-    """Radians: the discard threshold `diverge_threshold`, counted in the paper's median steps.
-
-    The authors discard a blended rollout once its joint-space distance (L2 over the joints) to the
-    nearest demo state reaches 15 of their median steps (PAPER_SETUP.md §5): 15 * 0.0176 = 0.264 rad on
-    the planar arm, 15 * 0.0166 = 0.249 rad on the UR5. It is a distance, so the control rate does not
-    enter: the same radians at our 10 Hz. In our planar unit (0.0245 rad) that is 10.8 median steps
-    (15 of ours would be 0.367 rad, 1.39x looser). An env without the paper's unit (paper_median_step
-    None): `threshold` of our median steps.
-    """
+    """Radians: `threshold` of the paper's median steps (15 * 0.0176 = 0.264 rad planar, 0.249 rad UR5; a
+    distance, so our 10 Hz does not change it; PAPER_SETUP.md §5); without a paper unit, of ours."""
     return threshold * (median_step if paper_median_step is None else paper_median_step)
 
 
 def other_units(rad, paper_median_step: float | None, digits: int = 2) -> str:
-    """A length in rad (a number, or one per joint) said in radians and, where the env has one, in the
-    paper's median steps: '0.141 rad = 8.00 paper median steps'. Printed beside our median steps wherever
-    a sigma or W is: the paper's numbers compare in its unit, never in ours (PAPER_SETUP.md §1)."""
+    """A length in rad (a number, or one per joint) in radians and, where the env has one, in the paper's
+    median steps: '0.141 rad = 8.00 paper median steps'."""
     values = np.atleast_1d(np.asarray(rad, dtype=np.float64))
     text = ", ".join(f"{v:.3f}" for v in values) + " rad"
     if paper_median_step is not None:
         text += " = " + ", ".join(f"{v / paper_median_step:.{digits}f}" for v in values) + " paper median steps"
     return text
+
+
+# ----------------------------------------------------------------------------------------------
+# The expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py)
+# ----------------------------------------------------------------------------------------------
+
+def policy_horizon(policy) -> int:
+    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
+    return int(policy.cfg.horizon)
+
+
+def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
+    """The expert runs [start, end) of >= `horizon` steps (diffusion.expert_runs): a demonstration gives
+    one, an intervention episode one per long enough intervention."""
+    return expert_runs(episode["expert"], horizon)
+
+
+def label_starts(episode: dict, horizon: int) -> np.ndarray:
+    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask)."""
+    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
+
+
+def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
+    """actions[t:t+H], actions at or past `end` (default: the episode end) replaced by the last one before
+    it: past an intervention the recorded actions are the policy's (diffusion.chunk_dataset's padding)."""
+    end = len(actions) if end is None else end
+    idx = np.minimum(np.arange(t, t + horizon), end - 1)
+    return actions[idx]                                                     # (H, dof)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -115,20 +118,20 @@ class StepCovariances:
     timestep: np.ndarray        # (M,) step t inside that episode
 
 
-def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: int = 4,
+def open_loop_sigma(policy, episodes: list[dict], stride: int, n_samples: int,
                     generator: torch.Generator | None = None, max_batch: int = 2048,
                     n_act: int | None = None) -> StepCovariances:
     """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
 
-    At step t the policy samples `n_samples` chunks from the recorded obs[t]; with d = sampled chunk -
-    expert chunk actions[t:t+H] over the first n_act steps (the executed ones: the rest is re-planned
-    before it runs; default policy.cfg.n_act), Sigma_hat_t = the mean of d d^T over samples and steps
-    (dof, dof). Uncentered: Eq. (1) compares with the expert, not with the policy's mean.
+    At step t the policy samples `n_samples` chunks from the recorded obs[t]; d = sampled chunk - expert
+    chunk over the first n_act steps (the executed ones; default policy.cfg.n_act). Sigma_hat_t = the mean
+    of d d^T over samples and steps (dof, dof), uncentered: Eq. (1) compares with the expert.
     """
-    _check_sampling(stride, n_samples)
     H = policy_horizon(policy)
     n_act = int(getattr(policy.cfg, "n_act", H)) if n_act is None else int(n_act)
-    _check_n_act(n_act, H)
+    if stride < 1 or n_samples < 1 or not 1 <= n_act <= H:
+        raise ValueError(f"need stride >= 1, n_samples >= 1 and n_act in 1..H = {H}, got stride={stride}, "
+                         f"n_samples={n_samples}, n_act={n_act}")
     obs_rows, chunks, ep_idx, steps = [], [], [], []
     for e, ep in enumerate(episodes):
         starts = label_starts(ep, H)
@@ -139,7 +142,9 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
                 chunks.append(expert_chunk(actions, int(t), H, end))
                 ep_idx.append(e)
                 steps.append(int(t))
-    _check_found_labels(obs_rows, H, episodes)
+    if not obs_rows:
+        raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
+                         "open_loop_sigma needs expert segments of at least H steps")
     # >>> exercise 5: open-loop Sigma_hat_t along the expert data (Eq. 1)
     obs = np.repeat(np.stack(obs_rows).astype(np.float32), n_samples, axis=0)   # (M*n, obs_dim)
     samples = _sample_batched(policy, obs, generator, max_batch).astype(np.float64)
@@ -152,9 +157,34 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int = 2, n_samples: in
     # <<< exercise 5
 
 
+def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
+    """policy.sample over rows of obs in slices of at most max_batch rows (a memory bound)."""
+    parts = [policy.sample(obs[i:i + max_batch], generator=generator)
+             for i in range(0, len(obs), max_batch)]
+    return np.concatenate(parts, axis=0)                                    # (B, H, dof)
+
+
 # ----------------------------------------------------------------------------------------------
 # Step 2: closed-loop rollouts blended toward the expert by partial denoising, their settling error
 # ----------------------------------------------------------------------------------------------
+
+def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
+    """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
+    one rollout from each expert segment long enough to be kept (>= min_rollout_steps; the authors: one per
+    source intervention); if none is, from the longest (too short: the fit falls back, and says so)."""
+    segs = segments_longest_first(episodes, horizon)
+    if not segs:
+        raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
+    segs = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
+    jobs = [(beta, seg) for beta in cfg.betas for seg in segs]
+    return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
+
+
+def segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
+    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
+    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
+    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
+
 
 @dataclass
 class BlendRollouts:
@@ -166,39 +196,25 @@ class BlendRollouts:
     rollouts: Rollouts
 
 
-def blend_rollouts(env, policy, episode: dict, betas, n_act: int = CalibrationConfig.n_act,
-                   generator: torch.Generator | None = None, diverge_rad: float = 0.4,
-                   segment: tuple[int, int] | None = None, cfg: CalibrationConfig | None = None) -> BlendRollouts:
-    """One closed-loop rollout per beta from one expert segment, partial-denoised toward the expert.
+def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas, cfg: CalibrationConfig,
+                   generator: torch.Generator | None, diverge_rad: float) -> BlendRollouts:
+    """One closed-loop rollout per job (episode, segment), job b partial-denoised toward the expert at betas[b].
 
-    From the segment's first state (default: the episode's longest expert segment) every decision
-    executes the first n_act actions of partial_denoise(policy, obs, expert chunk at the cursor, beta).
-    Rollouts whose nearest-state distance reaches diverge_rad (radians; the authors' 15 median steps are
-    0.264 rad on the planar arm, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps
-    are not kept ("we discard the blended trajectories that diverge"); contacts are recorded, never
-    discarded (`_closed_loop`).
+    Every decision executes the first cfg.n_act actions of partial_denoise(policy, obs, expert chunk at the
+    cursor, beta), for all live rollouts in one call. Rollouts whose nearest-state distance reaches
+    diverge_rad (radians, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps are not
+    kept ("we discard the blended trajectories that diverge"), but run their segment's full length, as the
+    authors' rollouts do: Fig. 4 shows their settling error.
     """
-    H = policy_horizon(policy)
-    if segment is None:
-        segment = _longest_segment(episode, H)
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    return _blend(env, policy, [(episode, segment)] * len(betas), betas, n_act, generator, diverge_rad, cfg)
-
-
-def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_rad: float,
-           cfg: CalibrationConfig | None = None, record_contacts: bool = True) -> BlendRollouts:
-    """Blended rollouts for (episode, segment) jobs, job b at blend ratio betas[b] (diverge_rad in radians);
-    record_contacts=False skips the contact check where no contact decides anything (`_closed_loop`)."""
-    cfg = cfg or CalibrationConfig()
-    _check_betas(betas)
+    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
+        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
 
     def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
         return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
 
-    # every rollout runs its segment's full length, as the authors' blended episodes do: one that crossed
-    # the divergence radius is discarded, but its settling error is still measured (Fig. 4 shows it)
-    roll = _closed_loop(env, jobs, chunk_fn, policy_horizon(policy), n_act, diverge_rad, cfg.settle_window,
-                        cfg.min_rollout_steps, stop_on_divergence=False, record_contacts=record_contacts)
+    roll = closed_loop_rollouts(env, jobs, chunk_fn, policy_horizon(policy), cfg.n_act, diverge_rad,
+                                cfg.settle_window, cfg.min_rollout_steps)
     # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
     # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
@@ -206,14 +222,140 @@ def _blend(env, policy, jobs, betas: np.ndarray, n_act: int, generator, diverge_
     return BlendRollouts(betas, s, x, ~roll.discarded, roll)
 
 
+@dataclass
+class Rollouts:
+    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ).
+    Entries of the (B, L + 1[, dof]) arrays past a rollout's n_recorded repeat its last one."""
+    trajectory: np.ndarray      # (B, L + 1, dof) joint positions
+    reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
+    n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
+    n_recorded: np.ndarray      # (B,) steps executed (a rollout may stop early on divergence)
+    diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
+    cursor: np.ndarray          # (B, L + 1) expert index the monotone projection assigned to each step
+    nearest_error: np.ndarray   # (B, L + 1) distance to the nearest expert state in the window (rad)
+    min_steps: int = 0          # rollouts that recorded fewer steps are discarded
+
+    @property
+    def discarded(self) -> np.ndarray:
+        """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
+        return self.diverged | (self.n_recorded < self.min_steps)          # (B,)
+
+
+def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
+                         diverge_rad: float, window: int = CalibrationConfig.settle_window, min_steps: int = 0,
+                         stop_on_divergence: bool = False) -> Rollouts:
+    """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
+
+    Rollout b starts at the segment's first recorded state and runs for the segment's length; after every
+    env step its cursor on the segment moves by `advance_cursor`. At every decision (each n_act steps)
+    chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE call
+    (expert = the expert's chunk from the cursor on); each executes its first n_act actions by the env's
+    motion rule (env.clip_action). One env serves all rollouts (set_state per rollout, reset(seed) only when
+    the scenario changes). A rollout whose nearest-state distance reaches diverge_rad is marked diverged
+    (stop_on_divergence: and stops there, experiment/unguided.py). Contacts are not checked: the env is
+    kinematic, and in these cluttered scenes a deviation of a few median steps already grazes an obstacle,
+    so discarding on contact would keep only the luckiest rollouts (benchmarks/README.md, the estimator now).
+    """
+    B = len(jobs)
+    lengths, refs, q0, q_prev0 = [], [], [], []
+    for episode, (start, end) in jobs:
+        q_exp = np.asarray(episode["q"], dtype=np.float64)
+        n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
+        if n < 1:
+            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
+        lengths.append(n)
+        refs.append(q_exp[start:start + n + 1])       # (n + 1, dof): the expert states the cursor moves on
+        q0.append(q_exp[start])
+        q_prev0.append(q_exp[max(start - 1, 0)])
+    L = max(lengths)
+    reference = np.stack([np.concatenate([r, np.repeat(r[-1:], L + 1 - len(r), axis=0)]) for r in refs])
+    traj = np.repeat(reference[:, :1], L + 1, axis=1)                        # (B, L + 1, dof)
+    q, q_prev = np.stack(q0), np.stack(q_prev0)                               # (B, dof) each
+    n_steps = np.asarray(lengths, dtype=np.int64)
+    n_recorded = np.zeros(B, dtype=np.int64)
+    cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
+    nearest_error = np.zeros((B, L + 1))                                     # (B, L + 1), 0 at the start
+    diverged = np.zeros(B, dtype=bool)
+    live = np.ones(B, dtype=bool)
+    seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
+    scenario = [None]                                                        # seed the env holds now
+
+    def use_scenario(seed):
+        if scenario[0] != seed:
+            env.reset(seed=int(seed))
+            scenario[0] = seed
+
+    obs = np.zeros((B, env.obs_dim), dtype=np.float32)
+    for seed in np.unique(seeds):                                            # first observations
+        use_scenario(seed)
+        rows = np.flatnonzero(seeds == seed)
+        obs[rows] = env.make_obs(q[rows], q_prev[rows])                      # (b, obs_dim)
+        for b in rows:
+            episode, (start, _) = jobs[b]
+            if not np.allclose(obs[b], np.asarray(episode["obs"][start], dtype=np.float32), atol=1e-4):
+                raise ValueError(f"the env's scenario for seed {seed} does not reproduce the recorded "
+                                 f"observation at step {start}: the episode was recorded with another "
+                                 "env version or config; re-record it")
+    for t in range(0, L, n_act):
+        live &= n_steps > t
+        rows = np.flatnonzero(live)
+        if len(rows) == 0:
+            break
+        # the expert chunk from where the cursor is on the segment (not from step start + t)
+        expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
+                                        jobs[b][1][0] + int(cursor[b, t]), horizon, jobs[b][1][1])
+                           for b in rows])                                   # (b, H, dof)
+        chunks = chunk_fn(obs[rows], expert, rows)                           # (b, H, dof), one call
+        for seed in np.unique(seeds[rows]):
+            use_scenario(seed)
+            for b, chunk in zip(rows, chunks):
+                if seeds[b] != seed:
+                    continue
+                env.set_state(q[b], q_prev[b])
+                for j in range(min(n_act, n_steps[b] - t)):
+                    env.set_state(env.clip_action(env.q, chunk[j]), env.q)   # env.step's motion, no contact check
+                    i = t + j + 1
+                    traj[b, i:] = env.q
+                    n_recorded[b] = i
+                    c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
+                    cursor[b, i:], nearest_error[b, i:] = c, err
+                    diverged[b] |= err >= diverge_rad
+                    if diverged[b] and stop_on_divergence:
+                        live[b] = False
+                        break
+                q[b], q_prev[b] = env.q, env.q_prev
+                obs[b] = env.make_obs(q[b], q_prev[b])
+    return Rollouts(traj, reference, n_steps, n_recorded, diverged, cursor, nearest_error, min_steps)
+
+
+def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
+    """One env step of the monotone, windowed nearest-state projection onto the expert segment
+    -> (the new cursor, the distance from q to the nearest expert state around it).
+
+    The paper compares a rollout with the "time-matched" expert; as in the authors' code the match is a
+    cursor that moves toward the nearest expert state in the window, never back and at most one index a
+    step, so a rollout at another pace is compared with where it is on the path.
+    """
+    j, _ = nearest_expert_state(q, expert_q, cursor, window)
+    cursor = min(max(j, cursor), cursor + 1)                                 # monotone, <= 1 index per step
+    _, distance = nearest_expert_state(q, expert_q, cursor, window)
+    return cursor, distance
+
+
+def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
+    """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of the
+    cursor (cut, not padded, at the segment's ends) -> (its index, ||q - q*_j|| in radians)."""
+    lo, hi = max(cursor - window // 2, 0), min(cursor + window // 2 + 1, len(expert_q))
+    dist = np.linalg.norm(expert_q[lo:hi] - q, axis=-1)                       # (w,)
+    j = int(np.argmin(dist))
+    return lo + j, float(dist[j])
+
+
 def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
                    settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
-    """x of Eq. (12) per rollout: sqrt(mean_t e_t^2) over the recorded steps t in [settle_start,
-    settle_end] (before them: the transient), e_t = distance (rad) from q_t to the nearest expert
-    state around the rollout's cursor (`advance_cursor`); the norm, not per joint (`fit_equilibrium`).
-    A rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps.
-    """
-    _check_nearest_error(rollouts)
+    """x of Eq. (12) per rollout: sqrt(mean_t e_t^2) over the recorded steps t in [settle_start, settle_end]
+    (before them: the transient), e_t = the nearest-state distance (rad; the norm, see `fit_equilibrium`).
+    A rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps."""
     x = np.zeros(len(rollouts.n_recorded))
     for b, n in enumerate(rollouts.n_recorded):
         e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
@@ -259,7 +401,10 @@ def equilibrium(s, W, r):
     x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
     """
     s = np.asarray(s, dtype=np.float64)
-    _check_s_and_r(s, r)
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if not r > 0:
+        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     # Eq. (12): x = W s / (s + r (1 - s))
     return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
@@ -274,6 +419,38 @@ class EquilibriumFit:
     rms_residual: float         # RMS of x - equilibrium(s, W, r) over the points used
 
 
+def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
+                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
+    """Least squares for W and r > 0 in Eq. (12) from the finite points (s_i, x_i).
+
+    For a fixed r the model is linear in W: W in closed form (`_best_W`), r on a log grid over r_bounds,
+    the grid's best refined by `refine_fit_robust`. x is the *norm* of the joint deviation: with isotropic
+    gains every joint follows x_j = W_j g(s), so ||x|| = ||W|| g(s) is Eq. (12) again and Eq. (14) needs
+    only ||W||^2. Needs >= 3 finite points with >= 2 distinct s > 0; every x = 0 gives W = 0, r = 1.
+    """
+    s = np.asarray(s, dtype=np.float64).reshape(-1)
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    if s.shape != x.shape:
+        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
+    ok = np.isfinite(s) & np.isfinite(x)
+    s, x = s[ok], x[ok]
+    if np.any((s < 0) | (s > 1)):
+        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
+    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
+        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
+                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
+    if not np.any(x != 0):
+        return EquilibriumFit(0.0, 1.0, len(s), 0.0)
+    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    log_r_grid = np.linspace(math.log(r_bounds[0]), math.log(r_bounds[1]), n_grid)   # (G,)
+    W_grid, sse = _best_W(s, x, np.ones_like(x), np.exp(log_r_grid))   # closed-form W at every r, (G,) each
+    i = int(np.argmin(sse))                        # the grid's best fit: W_grid[i], r = exp(log_r_grid[i])
+    W, r = refine_fit_robust(s, x, log_r_grid, i, huber_k, n_iter)    # refined around it
+    res = x - W * s / (s + r * (1 - s))                               # residuals of Eq. (12)
+    return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
+    # <<< exercise 6
+
+
 def _best_W(s, x, w, r):
     """For each r in r (G,), the weighted least-squares W (closed form) and its weighted SSE."""
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
@@ -284,402 +461,12 @@ def _best_W(s, x, w, r):
     # <<< exercise 6
 
 
-def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
-                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
-    """Least squares for W and r > 0 in Eq. (12) from points (s_i, x_i).
-
-    For a fixed r the model is linear in W: W in closed form (`_best_W`), r on a log grid over
-    r_bounds, the grid's best refined by `refine_fit_robust` (beyond the paper). x is the *norm* of
-    the joint deviation: with isotropic gains (Eqs. 9-10) every joint follows x_j = W_j g(s), so
-    ||x|| = ||W|| g(s) is Eq. (12) again and Eq. (14) needs only ||W||^2 (signed per-joint deviations
-    would partly cancel). W is x extrapolated to s = 1: r_bounds keep it finite (see `bound_W`). Needs
-    >= 3 finite points with >= 2 distinct s > 0 (else ValueError). Every x = 0: W = 0, r = 1 (unidentifiable).
-    """
-    s, x = _fit_points(s, x)                       # the finite points, checked
-    if not np.any(x != 0):
-        return EquilibriumFit(0.0, 1.0, len(s), 0.0)
-    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
-    log_r_grid = np.linspace(math.log(r_bounds[0]), math.log(r_bounds[1]), n_grid)   # (G,)
-    W_grid, sse = _best_W(s, x, np.ones_like(x), np.exp(log_r_grid))   # closed-form W at every r, (G,) each
-    i = int(np.argmin(sse))                        # the grid's best fit: W_grid[i], r = exp(log_r_grid[i])
-    W, r = refine_fit_robust(s, x, log_r_grid, i, huber_k, n_iter)    # refined around it (beyond the paper)
-    res = x - W * s / (s + r * (1 - s))                               # residuals of Eq. (12)
-    return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
-    # <<< exercise 6
-
-
-# ----------------------------------------------------------------------------------------------
-# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
-# ----------------------------------------------------------------------------------------------
-
-def dart_alpha(W, T: int) -> float:
-    """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    return T * float(np.sum(np.square(W)))
-    # <<< exercise 7
-
-
-def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
-    """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
-    return alpha / (T * tr) * sigma_hat
-    # <<< exercise 7
-
-
-def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
-    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
-
-    This is Eq. (2) with alpha from Eq. (13); T cancels. W may be the scalar norm or a vector. A step
-    with tr(Sigma_hat_t) = 0 (the policy reproduced the expert exactly) has no direction to keep: it
-    gets the isotropic ||W||^2 / d I, which keeps tr(Sigma^alpha_t) = ||W||^2.
-    """
-    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    _check_covariances(sigma_hat)
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    w2 = float(np.sum(np.square(W)))
-    d = sigma_hat.shape[-1]
-    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
-    zero = tr <= 1e-300
-    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
-    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
-    return np.where(zero, w2 / d * np.eye(d), scaled)
-    # <<< exercise 7
-
-
-def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
-    """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
-    sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
-    _check_covariance_list(sigma_hats)
-    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
-    return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
-    # <<< exercise 7
-
-
-# ----------------------------------------------------------------------------------------------
-# One calibration per DAgger round
-# ----------------------------------------------------------------------------------------------
-
-def calibrate(env, policy, episodes: list[dict], median_step: float,
-              cfg: CalibrationConfig | None = None,
-              generator: torch.Generator | None = None, log=None) -> Calibration:
-    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
-
-    episodes: the round's intervention episodes D_k (demonstrations work too); median_step in
-    radians; log: an optional callable(str) told when each step is done. If the fit is impossible
-    (fewer than 3 ratios with min_survivors kept rollouts), W falls back to the open-loop error,
-    ||W||^2 = tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note starts with
-    "FALLBACK" (the run's log and table say so); never NaN.
-    """
-    cfg = cfg or CalibrationConfig()
-    _check_median_step(median_step)
-    H = policy_horizon(policy)
-    paper_unit = envs.paper_median_step(env)                                 # rad, or None
-    threshold = diverge_radius(cfg.diverge_threshold, median_step, paper_unit)   # the paper's 15 -> radians
-    say = log or (lambda msg: None)
-
-    # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
-    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
-    say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
-
-    # Step 2 (Fig. 2b): blended rollouts, one per ratio from every long enough segment, all batched,
-    # averaged per ratio (the authors' cells)
-    blend_beta, chosen = blend_schedule(episodes, H, cfg)
-    blend = _blend(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg.n_act,
-                   generator, threshold, cfg, record_contacts=False)
-    s, x, kept = blend.s, blend.x, blend.kept
-    cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
-    say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
-        f"ratios with >= {cfg.min_survivors} of them; fitting W")
-
-    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages, W within the authors' bounds
-    unit = median_step if paper_unit is None else paper_unit
-    W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)               # radians
-    try:
-        # the cells are averages: plain least squares (n_iter=1), as the authors' curve_fit
-        fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
-        r = fit.r
-        W, note = bound_W(fit.W, W_range, unit)                              # beyond the paper
-        W_ci = W_interval(blend_beta, s, x, kept, W_range, cfg)             # beyond the paper
-    except ValueError as err:
-        W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
-        r, note, W_ci = None, f"FALLBACK: no fit, W from the open-loop error ({err})", None
-        say(f"!! {note}")
-
-    # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
-    sigma_alpha = calibrated_sigma(steps.sigma, W)
-    pooled = pooled_sigma(steps.sigma, W)
-
-    # not in the paper: Sigma_bar from unguided closed-loop rollouts, scaled the same way (unguided_pooled)
-    closed, closed_note = unguided_pooled(env, policy, episodes, W, pooled, cfg, generator, threshold, say)
-    note += closed_note
-    return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
-                       sigma_hat=steps.sigma, sigma_alpha=sigma_alpha,
-                       episode_index=steps.episode_index, timestep=steps.timestep, pooled=pooled,
-                       unguided_pooled=closed, blend_beta=blend_beta, blend_s=s, blend_x=x, blend_kept=kept,
-                       blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
-                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci,
-                       paper_median_step=paper_unit)
-
-
-# ----------------------------------------------------------------------------------------------
-# Figures
-# ----------------------------------------------------------------------------------------------
-
-def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
-                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
-                         n_act: int = CalibrationConfig.n_act, diverge_threshold: float = CalibrationConfig.diverge_threshold,
-                         generator: torch.Generator | None = None) -> None:
-    """Fig. 2 (a)-(d) on the episode's longest expert segment, Sigma_hat_t at every `stride`-th label
-    step, blended rollouts at `betas` (diverge_threshold in the paper's median steps). Covariances are 2-sigma
-    ellipses of J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y).
-    """
-    plt = _pyplot()
-    env.reset(seed=int(episode["seed"]))
-    _check_workspace(env)
-    q_exp = np.asarray(episode["q"], dtype=np.float64)
-    # Eq. (1) on this segment as in open_loop_sigma, keeping the samples: steps (m,), samples (m, n, H, dof)
-    (start, end), steps, samples, sigma_hat = _overview_open_loop(policy, episode, n_samples, stride, n_act,
-                                                                  generator)
-    blend = blend_rollouts(env, policy, episode, betas, n_act, generator,
-                           diverge_radius(diverge_threshold, calibration.median_step, calibration.paper_median_step),
-                           (start, end))
-
-    expert_path = _ee_xy(env, q_exp[start:end])                              # (n, 2) end effector
-    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
-    _overview_panels(env, axes, q_exp[start], expert_path)                   # scene or goal, expert path, titles
-
-    # (a) each sampled chunk's executed steps from its state, and Sigma_hat_t
-    for t, chunks in zip(steps, samples):
-        for chunk in chunks:
-            axes[0].plot(*_ee_xy(env, np.concatenate([q_exp[t][None], chunk[:n_act]])).T,
-                         color="tab:orange", lw=0.7, alpha=0.6)
-    env.draw_noise_ellipses(axes[0], q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
-    axes[0].plot([], [], color="tab:orange", label="policy chunks")
-
-    # (b) the blended rollouts, dashed where discarded, with their settling error x
-    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
-    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
-        path_ee = _ee_xy(env, blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
-        axes[1].plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
-                     label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
-                           + ("" if blend.kept[b] else " (discarded)"))
-
-    # (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14); (d) the pooled Sigma_bar^alpha (Eq. 16)
-    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
-                            alpha=0.35)
-    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
-                            "tab:purple", alpha=0.35)
-    _finish_overview(fig, axes, env, episode, calibration, expert_path, blend, path)  # legends, zoom, save
-
-
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
-                   min_survivors: int = CalibrationConfig.min_survivors) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps: every blended rollout (kept: dots;
-    discarded: crosses, at the settling error it reached running its full length), the per-ratio RMS of the
-    kept ones with their spread (the points fitted: filled; too few kept: open), the fitted Eq. (12), W and
-    its 95 % bootstrap interval (an error bar at s = 1). median_step in radians (None: the calibration's)."""
-    plt = _pyplot()
-    c = calibration
-    unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(10.5, 3.8))
-    kept = c.blend_kept
-    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, s=9, color="C0", alpha=0.35, zorder=2,
-               label=f"kept rollouts ({int(kept.sum())})")
-    # the axis ends a little above the divergence radius, so that the fit and W are what one sees; a discarded
-    # rollout whose error runs past the top is drawn at the top edge
-    radius = diverge_radius(CalibrationConfig.diverge_threshold, c.median_step, c.paper_median_step) / unit
-    top = 1.25 * max(radius, float(np.max(c.blend_x[kept], initial=0.0)) / unit, c.W / unit)
-    ax.axhline(radius, color="C3", linestyle=":", linewidth=1,
-               label=f"divergence radius ({CalibrationConfig.diverge_threshold:g} paper median steps)")
-    if np.any(~kept):
-        ax.scatter(c.blend_s[~kept], np.minimum(c.blend_x[~kept] / unit, top * 0.98), s=12, marker="x",
-                   color="C3", alpha=0.5, zorder=2,
-                   label=f"discarded: crossed the radius, or too short ({int((~kept).sum())}; "
-                         f"beyond the axis: at its top)")
-    cells = ratio_cells(c.blend_beta, c.blend_s, c.blend_x, kept, min_survivors)
-    for fitted, face in ((cells.fitted, "C0"), (~cells.fitted & (cells.n > 0), "white")):
-        if fitted.any():
-            ax.errorbar(cells.s[fitted], cells.x[fitted] / unit, yerr=cells.spread[fitted] / unit, fmt="o",
-                        ms=7, mfc=face, mec="C0", ecolor="C0", capsize=3, zorder=3,
-                        label="per-ratio RMS of the kept ± SD" + (" (fitted)" if face == "C0" else
-                                                                 f" (< {min_survivors} kept: not fitted)"))
-    if c.r is not None:
-        s = np.linspace(0.0, 1.0, 201)
-        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
-                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
-    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
-               label=f"W = {c.W / unit:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
-                     + ("" if c.r is not None else " (FALLBACK: no fit)"))
-    if c.W_ci is not None:
-        _draw_W_interval(ax, c.W / unit, c.W_ci[0] / unit, c.W_ci[1] / unit)    # an error bar at s = 1
-    ax.set_ylim(0, top)
-    _second_error_axis(ax, unit, c.paper_median_step)                            # the paper's unit (or rad)
-    _finish_blend_fit(fig, ax, path)                                             # axes, legend, save
-
-
-# ==== Beyond the paper (safe to skip) ====================================================
-# The calibration record; the expert-data helpers; the fit's robust refinement, W's cap and interval;
-# how the blend rollouts are dealt; the batched closed-loop simulator behind every rollout; Sigma_bar from
-# unguided closed-loop rollouts (a control); input checks; figure plumbing.
-
-# ---- the record `calibrate` returns: its report and JSON ---------------------------------------
-
-@dataclass
-class Calibration:
-    """Everything one round's calibration measured (radians; see `report` for median-step units)."""
-    W: float                        # ||W||: settling error of the unguided policy (Eq. 12), radians
-    r: float | None                 # fitted gain ratio K*/K_theta; None when the fit fell back
-    fit_note: str                   # "fit" or "fallback: <why>" (see `calibrate`)
-    median_step: float              # median per-step joint displacement of the base demos (radians)
-    sigma_hat: np.ndarray           # (M, dof, dof) open-loop Sigma_hat_t (Eq. 1)
-    sigma_alpha: np.ndarray         # (M, dof, dof) per-step Sigma^alpha_t (Eq. 14)
-    episode_index: np.ndarray       # (M,) episode of each step
-    timestep: np.ndarray            # (M,) step inside that episode
-    pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
-    unguided_pooled: np.ndarray | None   # (dof, dof) Sigma_bar from unguided rollouts, scaled (a control)
-    blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
-    blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
-    blend_x: np.ndarray             # (B,) their settling errors (radians)
-    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged or too short)
-    blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
-    blend_start: np.ndarray         # (B,) first step of that segment
-    sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
-    W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
-    paper_median_step: float | None = None   # the paper's median step of the env (rad, envs.paper_median_step);
-    #                                          None: the env has none (or written before it was recorded)
-
-    def __post_init__(self):
-        if self.sigma_per_joint is None:
-            self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
-        if self.W_ci is not None:
-            self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
-
-    def to_dict(self) -> dict:
-        """Plain lists and numbers, for json.dump (from_dict also reads dicts written before W_ci)."""
-        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "Calibration":
-        """The inverse of to_dict (calibration.json)."""
-        return cls(**_calibration_fields(data))
-
-    def report(self) -> str:
-        """The paper's summary: per-joint sigma of Sigma_bar^alpha in median steps (Sec. V), then again in
-        radians and in the paper's median steps (its numbers compare only in its unit)."""
-        ci = ("" if self.W_ci is None else
-              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
-              f"{self.W_ci[1] / self.median_step:.2f}, ")
-        lines = [f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
-                 + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
-                 f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)} over "
-                 f"{len(np.unique(self.blend_beta))} ratios, "
-                 f"{int(ratio_cells(self.blend_beta, self.blend_s, self.blend_x, self.blend_kept).fitted.sum())} "
-                 f"with >= {CalibrationConfig.min_survivors} kept (fitted)",
-                 "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
-                 + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint)]
-        if self.unguided_pooled is not None:
-            cl = sigma_in_median_steps(self.unguided_pooled, self.median_step)
-            lines.append("unguided closed-loop pooled per-joint sigma [median steps]: "
-                         + ", ".join(f"{v:.2f}" for v in cl))
-        return "\n".join(lines + self._report_other_units())
-
-    def _report_other_units(self) -> list[str]:
-        """report's lines in radians and the paper's median steps (where the env has one)."""
-        p = self.paper_median_step
-        lines = [f"units: our median step {self.median_step:.4f} rad (per joint, base demos); "
-                 + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {self.median_step / p:.2f}x theirs"
-                    if p is not None else "the paper gives none for this env: radians only")]
-        ci = "" if self.W_ci is None else f" (95 % interval {other_units(self.W_ci, p)})"
-        lines.append(f"W = {other_units(self.W, p)}{ci}")
-        lines.append(f"pooled Sigma_bar^alpha per-joint sigma = {other_units(np.sqrt(np.diag(self.pooled)), p)}")
-        if self.unguided_pooled is not None:
-            cl = np.sqrt(np.diag(self.unguided_pooled))                      # rad
-            lines.append(f"unguided closed-loop pooled per-joint sigma = {other_units(cl, p)}")
-        return lines
-
-
-def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
-    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
-    if not median_step > 0:
-        raise ValueError(f"median_step must be > 0, got {median_step}")
-    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
-
-
-def _calibration_fields(data: dict) -> dict:
-    """Calibration.from_dict's typing: JSON lists back to float, int and bool arrays (a dict written
-    before W_ci existed lacks it: the default None)."""
-    arrays = {"sigma_hat", "sigma_alpha", "pooled", "unguided_pooled", "blend_s", "blend_x",
-              "blend_beta", "sigma_per_joint"}
-    ints = {"episode_index", "timestep", "blend_episode", "blend_start"}
-    kwargs = {}
-    data = {("unguided_pooled" if k == "closed_loop_pooled" else k): v for k, v in data.items()}  # older name
-    for k, v in data.items():
-        if k in arrays and v is not None:
-            v = np.asarray(v, dtype=np.float64)
-        elif k in ints:
-            v = np.asarray(v, dtype=np.int64)
-        elif k == "blend_kept":
-            v = np.asarray(v, dtype=bool)
-        kwargs[k] = v
-    return kwargs
-
-
-# ---- expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py) ----
-
-def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
-    """The expert runs [start, end) that can label chunks of `horizon` steps (the label rule in
-    diffusion.expert_runs): a demonstration gives one (the whole episode), an intervention episode
-    one per intervention of at least `horizon` steps."""
-    return expert_runs(episode["expert"], horizon)
-
-
-def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask, the rule
-    the training data uses)."""
-    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
-
-
-def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
-    """actions[t:t+H] with actions past `end` (default: the episode end) replaced by the last one.
-
-    Past the end of an intervention the recorded actions are the policy's, so the time-matched
-    expert chunk repeats the last expert action instead (diffusion.chunk_dataset's padding).
-    """
-    end = len(actions) if end is None else end
-    idx = np.minimum(np.arange(t, t + horizon), end - 1)
-    return actions[idx]                                                     # (H, dof)
-
-
-def policy_horizon(policy) -> int:
-    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
-    return int(policy.cfg.horizon)
-
-
-def _longest_segment(episode: dict, horizon: int) -> tuple[int, int]:
-    """blend_rollouts' default segment: the episode's longest expert segment (ValueError if none)."""
-    segments = expert_segments(episode, horizon)
-    if not segments:
-        raise ValueError(f"episode (seed {episode.get('seed')}) has no expert segment of >= {horizon} steps")
-    return max(segments, key=lambda se: se[1] - se[0])
-
-
-# ---- the fit: robust refinement, cap, bootstrap interval ------------------------------------
-
-# ---- the fit: robust refinement, cap, bootstrap interval ------------------------------------
-
 def refine_fit_robust(s, x, log_r_grid: np.ndarray, i: int, huber_k: float = 1.345,
                       n_iter: int = 30) -> tuple[float, float]:
-    """fit_equilibrium's refinement of its grid search -> (W, r).
-
-    Golden-section search in log r between the grid neighbours of the best grid point i (W in closed
-    form at each r, `_best_W`), then iteratively reweighted least squares with Huber weights
-    (threshold huber_k times the MAD scale of the residuals): outliers, e.g. a rollout that nearly
-    diverged, are down-weighted, the grid searched again with the new weights, for at most n_iter
-    rounds (n_iter = 1: plain least squares).
-    """
+    """fit_equilibrium's refinement of its grid search -> (W, r): golden-section search in log r between
+    the grid neighbours of the best point i (W in closed form), then iteratively reweighted least squares
+    with Huber weights (huber_k times the MAD scale of the residuals) that down-weight outliers, the grid
+    searched again each round, for at most n_iter rounds (n_iter = 1: plain least squares, as calibrate)."""
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     n_grid = len(log_r_grid)
     w = np.ones_like(x)                                                     # (n,) Huber weights
@@ -719,26 +506,9 @@ def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
     return (a + b) / 2
 
 
-def _fit_points(s, x) -> tuple[np.ndarray, np.ndarray]:
-    """fit_equilibrium's input checks -> the finite points (s, x), float arrays (n,) each."""
-    s = np.asarray(s, dtype=np.float64).reshape(-1)
-    x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if s.shape != x.shape:
-        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
-    ok = np.isfinite(s) & np.isfinite(x)
-    s, x = s[ok], x[ok]
-    if np.any((s < 0) | (s > 1)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
-        raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
-                         f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
-    return s, x
-
-
 def bound_W(W: float, W_range: tuple, unit: float) -> tuple[float, str]:
     """(W, fit note): the fitted W held within W_range (radians; the authors' curve_fit bounds, [1, 60] of
-    their median steps, `unit` rad each). W is Eq. (12)'s x extrapolated to s = 1: when the ratios that
-    survive all sit at small s, the extrapolation is weakly supported, and the bound says so in the note."""
+    their median steps, `unit` rad each). W is x extrapolated to s = 1; the note says when it was held."""
     lo, hi = W_range
     if W > hi or W < lo:
         edge = hi if W > hi else lo
@@ -750,7 +520,7 @@ def bound_W(W: float, W_range: tuple, unit: float) -> tuple[float, str]:
 def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tuple[float, float] | None:
     """W's 95 % bootstrap interval: cfg.bootstrap resamples of the kept rollouts within each ratio (with
     replacement), each averaged per ratio (`ratio_cells`) and fitted like W, held within W_range (radians).
-    How much W moves with the rollouts drawn (a calibration seed's effect). None if nothing could be fitted."""
+    None if nothing could be fitted."""
     betas, s, x, kept = (np.asarray(a) for a in (betas, s, x, kept))
     rng = np.random.default_rng(cfg.bootstrap_seed)
     groups = [np.flatnonzero((betas == b) & kept) for b in np.unique(betas)]
@@ -769,341 +539,199 @@ def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tup
     return float(lo), float(hi)
 
 
-def bootstrap_W(s, x, n_resamples: int = CalibrationConfig.bootstrap,
-                seed: int = CalibrationConfig.bootstrap_seed) -> tuple[float, float] | None:
-    """95 % bootstrap interval of the fitted W: refit Eq. (12) on n_resamples resamples of the points
-    (s_i, x_i) drawn with replacement, and take the 2.5 and 97.5 percentiles of their W.
+# ----------------------------------------------------------------------------------------------
+# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
+# ----------------------------------------------------------------------------------------------
 
-    Deterministic for a fixed seed (numpy Generator). A resample with too few distinct s to fit is
-    skipped. None with fewer than 3 points or when no resample could be fitted.
+def dart_alpha(W, T: int) -> float:
+    """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    return T * float(np.sum(np.square(W)))
+    # <<< exercise 7
+
+
+def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
+    """Eq. (2): Sigma^alpha = alpha / (T tr(Sigma_hat)) Sigma_hat (per matrix of a (..., d, d) stack)."""
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]
+    return alpha / (T * tr) * sigma_hat
+    # <<< exercise 7
+
+
+def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
+    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
+
+    Eq. (2) with alpha from Eq. (13) (T cancels); W the scalar norm or a vector. A step with
+    tr(Sigma_hat_t) = 0 has no direction to keep: it gets ||W||^2 / d I (the same trace).
     """
-    s = np.asarray(s, dtype=np.float64).reshape(-1)
-    x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if len(s) < 3 or n_resamples < 1:
-        return None
-    rng = np.random.default_rng(seed)
-    Ws = []
-    for _ in range(n_resamples):
-        idx = rng.integers(0, len(s), len(s))                                # (n,) with replacement
-        try:
-            Ws.append(fit_equilibrium(s[idx], x[idx]).W)
-        except ValueError:                                                  # e.g. one distinct s drawn
-            continue
-    if not Ws:
-        return None
-    lo, hi = np.percentile(Ws, [2.5, 97.5])
-    return float(lo), float(hi)
+    sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
+    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
+        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    w2 = float(np.sum(np.square(W)))
+    d = sigma_hat.shape[-1]
+    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
+    zero = tr <= 1e-300
+    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
+    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
+    return np.where(zero, w2 / d * np.eye(d), scaled)
+    # <<< exercise 7
 
 
-# ---- which segments the blend rollouts start from ---------------------------------------------
-
-def _segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
-    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
-    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
-    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
-
-
-def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
-    """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
-    one rollout from each expert segment long enough to be kept (>= min_rollout_steps; the authors: one per
-    source intervention); if none is that long, from the longest segment (its rollouts are then too short:
-    the fit falls back, and says so)."""
-    segs = _segments_longest_first(episodes, horizon)
-    if not segs:
-        raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
-    segs = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
-    jobs = [(beta, seg) for beta in cfg.betas for seg in segs]
-    return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
+def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
+    """Eqs. (15)-(16): Sigma_bar = mean_m Sigma_hat_m, then Sigma_bar^alpha = ||W||^2/tr(Sigma_bar) Sigma_bar."""
+    sigma_hats = np.asarray(sigma_hats, dtype=np.float64)
+    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
+        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
+    # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
+    sigma_bar = sigma_hats.mean(axis=0)                                      # Eq. (15)
+    return calibrated_sigma(sigma_bar, W)                                    # Eq. (16)
+    # <<< exercise 7
 
 
-# ---- the batched closed-loop simulator behind blend_rollouts and unguided_sigma -----------------
+# ----------------------------------------------------------------------------------------------
+# One calibration per DAgger round, and its record
+# ----------------------------------------------------------------------------------------------
 
-def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
-    """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of
-    the cursor -> (its index, the joint-space distance ||q - q*_j|| in radians).
+def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: CalibrationConfig,
+              generator: torch.Generator | None = None, log=None) -> Calibration:
+    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
 
-    The window holds only recorded expert states: near the segment's ends it is cut, not padded.
+    episodes: the round's intervention episodes D_k (demonstrations work too); median_step in radians;
+    log: an optional callable(str) told when each step is done. If the fit is impossible (fewer than 3
+    ratios with min_survivors kept rollouts), W falls back to the open-loop error, ||W||^2 = tr(Sigma_bar)
+    (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note starts with "FALLBACK"; never NaN.
     """
-    lo, hi = max(cursor - window // 2, 0), min(cursor + window // 2 + 1, len(expert_q))
-    dist = np.linalg.norm(expert_q[lo:hi] - q, axis=-1)                       # (w,)
-    j = int(np.argmin(dist))
-    return lo + j, float(dist[j])
+    if not median_step > 0:
+        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
+    H = policy_horizon(policy)
+    paper_unit = envs.paper_median_step(env)                                 # rad, or None
+    threshold = diverge_radius(cfg.diverge_threshold, median_step, paper_unit)   # the paper's 15 -> radians
+    say = log or (lambda msg: None)
 
+    # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
+    steps = open_loop_sigma(policy, episodes, cfg.stride, cfg.n_samples, generator, cfg.max_batch, cfg.n_act)
+    say(f"Sigma_hat at {len(steps.sigma)} anchors; blended rollouts next")
 
-def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
-    """One env step of the monotone, windowed nearest-state projection onto the expert segment.
+    # Step 2 (Fig. 2b): blended rollouts, one per ratio from every long enough segment, all batched,
+    # averaged per ratio (the authors' cells)
+    blend_beta, chosen = blend_schedule(episodes, H, cfg)
+    blend = blend_rollouts(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg,
+                           generator, threshold)
+    s, x, kept = blend.s, blend.x, blend.kept
+    cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
+    say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
+        f"ratios with >= {cfg.min_survivors} of them; fitting W")
 
-    The paper compares each rollout with the "time-matched" expert; as in the authors' code, the
-    match is a cursor that moves toward the nearest expert state in the window, but never back and
-    at most one index per step (a rollout that lags holds it, one that runs ahead moves it one index
-    a step), so a rollout that moves at another pace is still compared with where it is on the path.
-    Returns (the new cursor, the distance from q to the nearest expert state around it).
-    """
-    j, _ = nearest_expert_state(q, expert_q, cursor, window)
-    cursor = min(max(j, cursor), cursor + 1)                                 # monotone, <= 1 index per step
-    _, distance = nearest_expert_state(q, expert_q, cursor, window)
-    return cursor, distance
+    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages, W within the authors' bounds
+    unit = median_step if paper_unit is None else paper_unit
+    W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)               # radians
+    try:
+        # the cells are averages: plain least squares (n_iter=1), as the authors' curve_fit
+        fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
+        r = fit.r
+        W, note = bound_W(fit.W, W_range, unit)
+        W_ci = W_interval(blend_beta, s, x, kept, W_range, cfg)
+    except ValueError as err:
+        W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
+        r, note, W_ci = None, f"FALLBACK: no fit, W from the open-loop error ({err})", None
+        say(f"!! {note}")
+
+    # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
+    return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
+                       sigma_hat=steps.sigma, sigma_alpha=calibrated_sigma(steps.sigma, W),
+                       episode_index=steps.episode_index, timestep=steps.timestep,
+                       pooled=pooled_sigma(steps.sigma, W), blend_beta=blend_beta, blend_s=s, blend_x=x,
+                       blend_kept=kept, blend_episode=np.array([e for e, _ in chosen], dtype=np.int64),
+                       blend_start=np.array([seg[0] for _, seg in chosen], dtype=np.int64), W_ci=W_ci,
+                       paper_median_step=paper_unit)
 
 
 @dataclass
-class Rollouts:
-    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ).
+class Calibration:
+    """Everything one round's calibration measured (radians; `report` gives median steps)."""
+    W: float                        # ||W||: settling error of the unguided policy (Eq. 12), radians
+    r: float | None                 # fitted gain ratio K*/K_theta; None when the fit fell back
+    fit_note: str                   # "fit" or "FALLBACK: <why>" (see `calibrate`)
+    median_step: float              # median per-step joint displacement of the base demos (radians)
+    sigma_hat: np.ndarray           # (M, dof, dof) open-loop Sigma_hat_t (Eq. 1)
+    sigma_alpha: np.ndarray         # (M, dof, dof) per-step Sigma^alpha_t (Eq. 14)
+    episode_index: np.ndarray       # (M,) episode of each step
+    timestep: np.ndarray            # (M,) step inside that episode
+    pooled: np.ndarray              # (dof, dof) pooled Sigma_bar^alpha (Eq. 16)
+    blend_beta: np.ndarray          # (B,) blend ratios of the rollouts
+    blend_s: np.ndarray             # (B,) their sigma^2_{k_sw}
+    blend_x: np.ndarray             # (B,) their settling errors (radians)
+    blend_kept: np.ndarray          # (B,) False where the rollout was discarded (diverged or too short)
+    blend_episode: np.ndarray       # (B,) episode of each blend rollout's segment
+    blend_start: np.ndarray         # (B,) first step of that segment
+    sigma_per_joint: np.ndarray | None = None   # (dof,) sqrt(diag pooled) in median steps (derived)
+    W_ci: tuple | None = None       # (lo, hi) 95 % bootstrap interval of W, radians; None on fallback
+    paper_median_step: float | None = None   # the env's paper median step (rad); None: it has none
 
-    Entries of the (B, L + 1) and (B, L + 1, dof) arrays past a rollout's n_recorded repeat its last one.
-    """
-    trajectory: np.ndarray      # (B, L + 1, dof) joint positions
-    reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
-    n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
-    n_recorded: np.ndarray      # (B,) steps executed (a rollout may stop early on divergence)
-    diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
-    collided: np.ndarray        # (B,) True if the rollout touched an obstacle or itself at some step (recorded only)
-    cursor: np.ndarray | None = None    # (B, L + 1) expert index the monotone projection assigned to each step
-    nearest_error: np.ndarray | None = None   # (B, L + 1) distance to the nearest expert state in the window (rad)
-    min_steps: int = 0                  # rollouts that recorded fewer steps are discarded
+    def __post_init__(self):
+        if self.sigma_per_joint is None:
+            self.sigma_per_joint = sigma_in_median_steps(self.pooled, self.median_step)
+        if self.W_ci is not None:
+            self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
 
-    @property
-    def deviation(self) -> np.ndarray:
-        """Deviation from the time-matched expert state (not the nearest one)."""
-        return self.trajectory - self.reference                              # (B, L + 1, dof)
+    def to_dict(self) -> dict:
+        """Plain lists and numbers, for json.dump."""
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
 
-    @property
-    def too_short(self) -> np.ndarray:
-        return self.n_recorded < self.min_steps                              # (B,)
+    @classmethod
+    def from_dict(cls, data: dict) -> "Calibration":
+        """The inverse of to_dict (calibration.json; older files: without W_ci or paper_median_step, and
+        with the unguided control's 'unguided_pooled' / 'closed_loop_pooled', now experiment/unguided.py)."""
+        kwargs = {}
+        for k, v in data.items():
+            if k in ("unguided_pooled", "closed_loop_pooled"):
+                continue
+            if k in ("sigma_hat", "sigma_alpha", "pooled", "blend_s", "blend_x", "blend_beta",
+                     "sigma_per_joint") and v is not None:
+                v = np.asarray(v, dtype=np.float64)
+            elif k in ("episode_index", "timestep", "blend_episode", "blend_start"):
+                v = np.asarray(v, dtype=np.int64)
+            elif k == "blend_kept":
+                v = np.asarray(v, dtype=bool)
+            kwargs[k] = v
+        return cls(**kwargs)
 
-    @property
-    def discarded(self) -> np.ndarray:
-        """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
-        return self.diverged | self.too_short
-
-
-def _closed_loop(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                 diverge_rad: float, window: int = CalibrationConfig.settle_window, min_steps: int = 0,
-                 stop_on_divergence: bool = True, record_contacts: bool = True) -> Rollouts:
-    """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
-
-    Rollout b starts at the segment's first recorded state and runs for the segment's length. After
-    every env step a cursor on the segment advances by `advance_cursor` (monotone, at most one index
-    per step, nearest state within `window` steps). At every decision (each n_act steps)
-    chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE
-    call (expert = the expert's chunk from the cursor on, padded past the segment end); each rollout
-    executes its first n_act actions with env.step. One env serves all rollouts: a rollout's state
-    is put back with set_state, and the scenario is switched with reset(seed) only when the seed
-    changes (rollouts grouped by seed).
-    A rollout stops at the first step whose nearest-state distance reaches diverge_rad
-    (radians) - it has left the expert's route - unless stop_on_divergence is False (it is then only
-    marked diverged and runs on). record_contacts=False
-    (only where contacts decide nothing) moves the arm by the env's motion rule without its contact check,
-    the costliest part of a step: the same trajectories, `collided` all False.
-    A contact is only recorded: the env's state is kinematic (env.step moves the arm
-    whether or not it touches), so the deviation from the expert stays well defined, and in these
-    cluttered scenes the oracle's paths pass obstacles so closely that a deviation of a few median
-    steps already grazes one - measured on the planar env, 12 of 13 blend rollouts of a trained
-    policy touched an obstacle, one at beta = 0.05 with a largest deviation of 3.6 median steps.
-    Stopping (and discarding) them would keep only the luckiest rollouts.
-    """
-    B = len(jobs)
-    lengths, refs, q0, q_prev0 = [], [], [], []
-    for episode, (start, end) in jobs:
-        q_exp = np.asarray(episode["q"], dtype=np.float64)
-        n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
-        if n < 1:
-            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
-        lengths.append(n)
-        refs.append(q_exp[start:start + n + 1])       # (n + 1, dof): the expert states the cursor moves on
-        q0.append(q_exp[start])
-        q_prev0.append(q_exp[max(start - 1, 0)])
-    L = max(lengths)
-    reference = np.stack([np.concatenate([r, np.repeat(r[-1:], L + 1 - len(r), axis=0)]) for r in refs])
-    traj = np.repeat(reference[:, :1], L + 1, axis=1)                        # (B, L + 1, dof)
-    q, q_prev = np.stack(q0), np.stack(q_prev0)                               # (B, dof) each
-    n_steps = np.asarray(lengths, dtype=np.int64)
-    n_recorded = np.zeros(B, dtype=np.int64)
-    cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
-    nearest_error = np.zeros((B, L + 1))                                     # (B, L + 1), 0 at the start
-    diverged = np.zeros(B, dtype=bool)
-    collided = np.zeros(B, dtype=bool)
-    live = np.ones(B, dtype=bool)
-    seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
-    scenario = [None]                                                        # seed the env holds now
-
-    def use_scenario(seed):
-        if scenario[0] != seed:
-            env.reset(seed=int(seed))
-            scenario[0] = seed
-
-    obs = np.zeros((B, env.obs_dim), dtype=np.float32)
-    for seed in np.unique(seeds):                                            # first observations
-        use_scenario(seed)
-        rows = np.flatnonzero(seeds == seed)
-        obs[rows] = env.make_obs(q[rows], q_prev[rows])                      # (b, obs_dim)
-        for b in rows:
-            episode, (start, _) = jobs[b]
-            if not np.allclose(obs[b], np.asarray(episode["obs"][start], dtype=np.float32), atol=1e-4):
-                raise ValueError(f"the env's scenario for seed {seed} does not reproduce the recorded "
-                                 f"observation at step {start}: the episode was recorded with another "
-                                 "env version or config; re-record it")
-    for t in range(0, L, n_act):
-        live &= n_steps > t
-        rows = np.flatnonzero(live)
-        if len(rows) == 0:
-            break
-        # the expert chunk from where the cursor is on the segment (not from step start + t)
-        expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
-                                        jobs[b][1][0] + int(cursor[b, t]), horizon, jobs[b][1][1])
-                           for b in rows])                                   # (b, H, dof)
-        chunks = chunk_fn(obs[rows], expert, rows)                           # (b, H, dof), one call
-        for seed in np.unique(seeds[rows]):
-            use_scenario(seed)
-            for b, chunk in zip(rows, chunks):
-                if seeds[b] != seed:
-                    continue
-                env.set_state(q[b], q_prev[b])
-                for j in range(min(n_act, n_steps[b] - t)):
-                    if record_contacts:
-                        _, _, _, _, info = env.step(chunk[j])  # runs the segment's length: success,
-                        collided[b] |= bool(info["collision"])  # like contact, does not end the rollout
-                    else:                                       # the same motion rule, no contact check
-                        env.set_state(env.clip_action(env.q, chunk[j]), env.q)
-                    i = t + j + 1
-                    traj[b, i:] = env.q
-                    n_recorded[b] = i
-                    c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
-                    cursor[b, i:], nearest_error[b, i:] = c, err
-                    diverged[b] |= err >= diverge_rad
-                    if diverged[b] and stop_on_divergence:
-                        live[b] = False
-                        break
-                q[b], q_prev[b] = env.q, env.q_prev
-                obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, collided, cursor, nearest_error, min_steps)
+    def report(self) -> str:
+        """The paper's summary: W and the per-joint sigma of Sigma_bar^alpha in median steps (Sec. V), then
+        in radians and in the paper's median steps (its numbers compare only in its unit)."""
+        p = self.paper_median_step
+        ci = ("" if self.W_ci is None else
+              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
+              f"{self.W_ci[1] / self.median_step:.2f}, ")
+        fitted = ratio_cells(self.blend_beta, self.blend_s, self.blend_x, self.blend_kept).fitted
+        return "\n".join([
+            f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
+            + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
+            f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)} over "
+            f"{len(np.unique(self.blend_beta))} ratios, {int(fitted.sum())} "
+            f"with >= {CalibrationConfig.min_survivors} kept (fitted)",
+            "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
+            + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint),
+            f"units: our median step {self.median_step:.4f} rad (per joint, base demos); "
+            + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {self.median_step / p:.2f}x theirs"
+               if p is not None else "the paper gives none for this env: radians only"),
+            f"W = {other_units(self.W, p)}" + ("" if self.W_ci is None else
+                                               f" (95 % interval {other_units(self.W_ci, p)})"),
+            f"pooled Sigma_bar^alpha per-joint sigma = {other_units(np.sqrt(np.diag(self.pooled)), p)}"])
 
 
-def project_onto_expert(trajectory: np.ndarray, expert_q: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """`advance_cursor` along a whole recorded trajectory (n + 1, dof), the cursor starting at 0.
-
-    Returns the cursor (n + 1,) and the nearest-state distance (n + 1,) at every step; this is what
-    `_closed_loop` computes online, step by step, for rollouts.
-    """
-    cursor = np.zeros(len(trajectory), dtype=np.int64)
-    distance = np.zeros(len(trajectory))
-    distance[0] = nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
-    for i in range(1, len(trajectory)):
-        cursor[i], distance[i] = advance_cursor(trajectory[i], expert_q, int(cursor[i - 1]), window)
-    return cursor, distance
-
-
-
-# ---- a control: Sigma_bar from unguided closed-loop rollouts ------------------------------------
-
-def unguided_sigma(env, policy, episodes: list[dict], n_act: int = CalibrationConfig.n_act,
-                      generator: torch.Generator | None = None, diverge_rad: float = 0.4,
-                      max_segments: int | None = None) -> np.ndarray | None:
-    """Sigma_bar (unscaled, Eq. 15) measured from closed-loop rollouts instead of open-loop samples.
-
-    Not the paper's "closed-loop pooled" row (that is a chain of rounds collected by the calibrated policy,
-    dagger.closed_loop_chain); an earlier reading of it, kept as a control (dagger's 'unguided_pooled'):
-    from the first state of each intervention segment (longest first, at most max_segments), the
-    *unguided* policy (beta = 1, plain policy.sample) runs in closed loop in the simulator for the segment's length; every executed
-    step contributes the outer product of its state deviation from the time-matched expert state,
-    d_t d_t^T with d_t = q_t - q*_t, and the pooled Sigma_bar is their mean. A rollout is cut at its
-    first diverged step (nearest-state distance at diverge_rad, radians, as in `blend_rollouts`;
-    that step excluded), so a policy that takes
-    another route only contributes its deviations while it still follows the expert's. Scale the
-    result with `calibrated_sigma(sigma_bar, W)` (Eq. 16), as for the open-loop pooled estimate. All
-    rollouts run batched (one policy.sample call per decision). Returns None if no rollout executed
-    a usable step.
-    """
-    H = policy_horizon(policy)
-    segs = _segments_longest_first(episodes, H)[:max_segments or None]
-    if not segs:
-        raise ValueError(f"no expert segment of >= {H} steps in {len(episodes)} episodes")
-
-    def chunk_fn(obs, expert, rows):                 # unguided: the expert chunk is ignored
-        return policy.sample(obs, generator=generator)
-
-    roll = _closed_loop(env, [(episodes[e], seg) for e, seg in segs], chunk_fn, H, n_act, diverge_rad)
-    # executed steps 1..n of each rollout, without the step that diverged
-    last = roll.n_recorded - roll.diverged.astype(np.int64)
-    steps = np.arange(roll.trajectory.shape[1])[None]
-    used = (steps >= 1) & (steps <= last[:, None])                           # (B, L + 1)
-    d = roll.deviation[used]                                                 # (n, dof)
-    if len(d) == 0:
-        return None                              # every rollout diverged on its first step
-    return np.einsum("ti,tj->ij", d, d) / len(d)                              # Eq. (15), pooled
-
-
-
-def unguided_pooled(env, policy, episodes: list[dict], W: float, pooled: np.ndarray, cfg: CalibrationConfig,
-                       generator, threshold: float, say) -> tuple[np.ndarray | None, str]:
-    """calibrate's control: (Sigma_bar from unguided closed-loop rollouts scaled by Eq. (16), or None
-    without cfg.unguided; a note for fit_note). threshold in radians. If every closed-loop rollout
-    fails on its first step, the open-loop pooled Sigma_bar^alpha stands in (and the note says so)."""
-    if not cfg.unguided:
-        return None, ""
-    say("unguided closed-loop rollouts for the unguided_pooled control")
-    sigma_bar_cl = unguided_sigma(env, policy, episodes, cfg.n_act, generator, threshold,
-                                     cfg.unguided_segments)
-    if sigma_bar_cl is None:                      # documented fallback: no usable closed-loop step
-        return pooled.copy(), "; closed loop: every rollout failed at once, open-loop pooled used"
-    return calibrated_sigma(sigma_bar_cl, W), ""
-
-
-# ---- input checks (a clear ValueError naming the bad value) -------------------------------------
-
-def _check_sampling(stride: int, n_samples: int) -> None:
-    if stride < 1 or n_samples < 1:
-        raise ValueError(f"stride and n_samples must be >= 1, got stride={stride}, n_samples={n_samples}")
-
-
-def _check_n_act(n_act: int, H: int) -> None:
-    if not 1 <= n_act <= H:
-        raise ValueError(f"n_act must be in 1..H = {H}, got {n_act}")
-
-
-def _check_found_labels(obs_rows: list, H: int, episodes: list[dict]) -> None:
-    if not obs_rows:
-        raise ValueError(f"no valid expert label of horizon {H} in {len(episodes)} episodes: "
-                         "open_loop_sigma needs expert segments of at least H steps")
-
-
-def _check_betas(betas: np.ndarray) -> None:
-    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
-        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
-
-
-def _check_nearest_error(rollouts: Rollouts) -> None:
-    if rollouts.nearest_error is None:
-        raise ValueError("settling_error needs Rollouts.nearest_error (rollouts from _closed_loop)")
-
-
-def _check_s_and_r(s: np.ndarray, r) -> None:
-    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if not r > 0:
-        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
-
-
-def _check_covariances(sigma_hat: np.ndarray) -> None:
-    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
-        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
-
-
-def _check_covariance_list(sigma_hats: np.ndarray) -> None:
-    if sigma_hats.ndim != 3 or len(sigma_hats) == 0:
-        raise ValueError(f"sigma_hats must be a non-empty (M, d, d) stack, got shape {sigma_hats.shape}")
-
-
-def _check_median_step(median_step: float) -> None:
+def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
+    """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
     if not median_step > 0:
-        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
+        raise ValueError(f"median_step must be > 0, got {median_step}")
+    return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
 
 
-def _check_workspace(env) -> None:
-    if env.dim not in (2, 3):
-        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
-
-
-# ---- figure plumbing ---------------------------------------------------------------------------
+# ----------------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------------
 
 def _pyplot():
     """matplotlib.pyplot on the file-only Agg backend."""
@@ -1118,34 +746,33 @@ def _ee_xy(env, q: np.ndarray) -> np.ndarray:
     return env.ee(q)[..., :2]
 
 
-def _overview_open_loop(policy, episode: dict, n_samples: int, stride: int, n_act: int, generator):
-    """Fig. 2a's data on the episode's longest expert segment: Eq. (1) at every stride-th label step, as
-    in open_loop_sigma, keeping the samples to draw them -> ((start, end), steps (m,), samples
-    (m, n, H, dof), Sigma_hat (m, dof, dof))."""
-    H = policy_horizon(policy)
-    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
-    actions = np.asarray(episode["action"], dtype=np.float64)
-    starts = label_starts(episode, H)
-    steps = starts[(starts >= start) & (starts < end)][::stride]             # (m,)
-    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n_samples, axis=0)
-    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n_samples, H, -1)
-    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
-    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
-    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)      # Eq. (1), (m, dof, dof)
-    return (start, end), steps, samples, sigma_hat
-
-
-def _overview_panels(env, axes, q_start: np.ndarray, expert_path: np.ndarray) -> None:
-    """Fig. 2's four panels before the data: a planar env's scene (env.render at the segment's first
-    state) or a 3-D env's goal (no 2-D drawing of a 3-D arm), the expert path, titles, axes."""
+def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
+                         betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
+                         generator: torch.Generator | None = None) -> None:
+    """Fig. 2 (a)-(d) on the episode's longest expert segment: Sigma_hat_t at every `stride`-th label step,
+    blended rollouts at `betas`, both with the policy's n_act. Covariances are 2-sigma ellipses of
+    J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y), with its goal.
+    """
+    plt = _pyplot()
+    env.reset(seed=int(episode["seed"]))
+    if env.dim not in (2, 3):
+        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
     planar = env.dim == 2
-    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)",
-              r"(b) blended rollouts, partial denoising at $\beta$",
-              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)",
-              r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
+    cfg = CalibrationConfig(n_samples=n_samples, n_act=int(policy.cfg.n_act), stride=stride)
+    q_exp = np.asarray(episode["q"], dtype=np.float64)
+    # Eq. (1) on this segment as in open_loop_sigma, keeping the samples: steps (m,), samples (m, n, H, dof)
+    (start, end), steps, samples, sigma_hat = _overview_open_loop(policy, episode, cfg, generator)
+    radius = diverge_radius(cfg.diverge_threshold, calibration.median_step, calibration.paper_median_step)
+    blend = blend_rollouts(env, policy, [(episode, (start, end))] * len(betas), betas, cfg, generator, radius)
+
+    # each panel: a planar env's scene (env.render at the segment's first state) or a 3-D env's goal, the expert
+    expert_path = _ee_xy(env, q_exp[start:end])                              # (n, 2) end effector
+    fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
+    titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)", r"(b) blended rollouts, partial denoising at $\beta$",
+              r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)", r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
     for ax, title in zip(axes, titles):
         if planar:
-            env.render(ax, q=q_start, alpha=0.5)
+            env.render(ax, q=q_exp[start], alpha=0.5)
         else:
             ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
         ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
@@ -1158,12 +785,29 @@ def _overview_panels(env, axes, q_start: np.ndarray, expert_path: np.ndarray) ->
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
 
+    # (a) each sampled chunk's executed steps from its state, and Sigma_hat_t
+    for t, chunks in zip(steps, samples):
+        for chunk in chunks:
+            axes[0].plot(*_ee_xy(env, np.concatenate([q_exp[t][None], chunk[:cfg.n_act]])).T,
+                         color="tab:orange", lw=0.7, alpha=0.6)
+    env.draw_noise_ellipses(axes[0], q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
+    axes[0].plot([], [], color="tab:orange", label="policy chunks")
 
-def _finish_overview(fig, axes, env, episode: dict, calibration: Calibration, expert_path: np.ndarray,
-                     blend: BlendRollouts, path) -> None:
-    """Fig. 2's per-joint sigma, legends below panels (a)-(b), title, a common zoom on the intervention
-    (the scene around it stays in Fig. 5; a 3-D env's goal kept in view), and the file."""
-    planar = env.dim == 2
+    # (b) the blended rollouts, dashed where discarded, with their settling error x
+    colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
+    for b, (beta, color) in enumerate(zip(blend.betas, colors)):
+        path_ee = _ee_xy(env, blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
+        axes[1].plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
+                     label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
+                           + ("" if blend.kept[b] else " (discarded)"))
+
+    # (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14); (d) the pooled Sigma_bar^alpha (Eq. 16)
+    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
+                            alpha=0.35)
+    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
+                            "tab:purple", alpha=0.35)
+
+    # per-joint sigma, legends below panels (a)-(b), title, a common zoom on the intervention, the file
     per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
     where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
     rad = np.sqrt(np.diag(calibration.pooled))                               # (dof,) per-joint sigma, rad
@@ -1180,26 +824,73 @@ def _finish_overview(fig, axes, env, episode: dict, calibration: Calibration, ex
     env.square_view(list(axes), pts, 0.06)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
-    _pyplot().close(fig)
+    plt.close(fig)
 
 
-def _draw_W_interval(ax, W: float, lo: float, hi: float) -> None:
-    """Fig. 4's W with its 95 % bootstrap interval [lo, hi], an error bar at s = 1 (median steps)."""
-    ax.errorbar([1.0], [W], yerr=[[max(W - lo, 0.0)], [max(hi - W, 0.0)]],
-                fmt="o", color="k", capsize=4, clip_on=False, zorder=4,
-                label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
+def _overview_open_loop(policy, episode: dict, cfg: CalibrationConfig, generator):
+    """Fig. 2a's data on the episode's longest expert segment: Eq. (1) at every cfg.stride-th label step,
+    as in open_loop_sigma, keeping the samples -> ((start, end), steps (m,), samples (m, n, H, dof),
+    Sigma_hat (m, dof, dof))."""
+    H, n, n_act = policy_horizon(policy), cfg.n_samples, cfg.n_act
+    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
+    actions = np.asarray(episode["action"], dtype=np.float64)
+    starts = label_starts(episode, H)
+    steps = starts[(starts >= start) & (starts < end)][::cfg.stride]         # (m,)
+    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n, axis=0)
+    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n, H, -1)
+    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
+    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
+    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n * n_act)              # Eq. (1), (m, dof, dof)
+    return (start, end), steps, samples, sigma_hat
 
 
-def _second_error_axis(ax, median_step: float, paper_median_step: float | None) -> None:
-    """Fig. 4's right axis: the settling error in the paper's median steps (the unit of its Fig. 4 and of
-    its W = 8.0), or in radians where the env has no paper unit."""
-    scale = median_step / (paper_median_step or 1.0)                        # ours -> theirs (or rad)
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
+                   min_survivors: int = CalibrationConfig.min_survivors) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps: every blended rollout (kept: dots;
+    discarded: crosses), the per-ratio RMS of the kept ones with their spread (fitted: filled; too few
+    kept: open), the fitted Eq. (12), W and its 95 % bootstrap interval (an error bar at s = 1).
+    median_step in radians (None: the calibration's)."""
+    plt = _pyplot()
+    c = calibration
+    unit = c.median_step if median_step is None else median_step
+    fig, ax = plt.subplots(figsize=(10.5, 3.8))
+    kept = c.blend_kept
+    ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, s=9, color="C0", alpha=0.35, zorder=2,
+               label=f"kept rollouts ({int(kept.sum())})")
+    # the axis ends a little above the divergence radius, so that the fit and W are what one sees; a discarded
+    # rollout whose error runs past the top is drawn at the top edge
+    radius = diverge_radius(CalibrationConfig.diverge_threshold, c.median_step, c.paper_median_step) / unit
+    top = 1.25 * max(radius, float(np.max(c.blend_x[kept], initial=0.0)) / unit, c.W / unit)
+    ax.axhline(radius, color="C3", linestyle=":", linewidth=1,
+               label=f"divergence radius ({CalibrationConfig.diverge_threshold:g} paper median steps)")
+    if np.any(~kept):
+        ax.scatter(c.blend_s[~kept], np.minimum(c.blend_x[~kept] / unit, top * 0.98), s=12, marker="x",
+                   color="C3", alpha=0.5, zorder=2,
+                   label=f"discarded: crossed the radius, or too short ({int((~kept).sum())}; "
+                         f"beyond the axis: at its top)")
+    cells = ratio_cells(c.blend_beta, c.blend_s, c.blend_x, kept, min_survivors)
+    for fitted, face in ((cells.fitted, "C0"), (~cells.fitted & (cells.n > 0), "white")):
+        if fitted.any():
+            ax.errorbar(cells.s[fitted], cells.x[fitted] / unit, yerr=cells.spread[fitted] / unit, fmt="o",
+                        ms=7, mfc=face, mec="C0", ecolor="C0", capsize=3, zorder=3,
+                        label="per-ratio RMS of the kept ± SD" + (" (fitted)" if face == "C0" else
+                                                                 f" (< {min_survivors} kept: not fitted)"))
+    if c.r is not None:
+        s = np.linspace(0.0, 1.0, 201)
+        ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
+                label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
+    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
+               label=f"W = {c.W / unit:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
+                     + ("" if c.r is not None else " (FALLBACK: no fit)"))
+    if c.W_ci is not None:                                                       # an error bar at s = 1
+        lo, hi, W = c.W_ci[0] / unit, c.W_ci[1] / unit, c.W / unit
+        ax.errorbar([1.0], [W], yerr=[[max(W - lo, 0.0)], [max(hi - W, 0.0)]], fmt="o", color="k", capsize=4,
+                    clip_on=False, zorder=4, label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
+    ax.set_ylim(0, top)
+    # the right axis: the paper's median steps (the unit of its Fig. 4 and W = 8.0), or rad without one
+    scale = unit / (c.paper_median_step or 1.0)
     right = ax.secondary_yaxis("right", functions=(lambda y: y * scale, lambda y: y / scale))
-    right.set_ylabel("[the paper's median steps]" if paper_median_step else "[rad]")
-
-
-def _finish_blend_fit(fig, ax, path) -> None:
-    """Fig. 4's axes, title, legend (right of the data and its second axis) and the file."""
+    right.set_ylabel("[the paper's median steps]" if c.paper_median_step else "[rad]")
     ax.set_xlim(0, 1.04)  # room for W's error bar at s = 1, clear of the right-hand axis
     ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
     ax.set_ylabel("settling error [our median steps]")
@@ -1207,16 +898,7 @@ def _finish_blend_fit(fig, ax, path) -> None:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.16, 1.0), frameon=False)  # outside the data
     fig.tight_layout()
     fig.savefig(path, dpi=150)
-    _pyplot().close(fig)
-
-
-# ---- memory ------------------------------------------------------------------------------------
-
-def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.ndarray:
-    """policy.sample over rows of obs in slices of at most max_batch rows (a memory bound)."""
-    parts = [policy.sample(obs[i:i + max_batch], generator=generator)
-             for i in range(0, len(obs), max_batch)]
-    return np.concatenate(parts, axis=0)                                    # (B, H, dof)
+    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1224,9 +906,8 @@ def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.nd
 # ----------------------------------------------------------------------------------------------
 
 if __name__ == "__main__":
-    # Calibrate a small policy trained on 100 oracle demonstrations (the data dagger.py's loop uses; the
-    # loop calibrates on the oracle's interventions, once per round) and draw Figs. 2 and 4 into the
-    # current folder. The oracle is imported here only: the method itself needs no expert in the loop.
+    # Calibrate a small policy trained on 100 oracle demonstrations and draw Figs. 2 and 4 into the current
+    # folder. The oracle is imported here only: the method itself needs no expert in the loop.
     import time
 
     import oracle
@@ -1241,7 +922,8 @@ if __name__ == "__main__":
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
           TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     t0 = time.time()
-    calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(), torch.Generator().manual_seed(0))
+    cfg = CalibrationConfig(n_samples=4, n_act=policy.cfg.n_act)
+    calibration = calibrate(env, policy, episodes[:8], unit, cfg, torch.Generator().manual_seed(0))
     print(f"calibrate: {time.time() - t0:.1f} s")
     print(calibration.report())
     plot_blend_fit(calibration, unit, "fig4_blend_fit.png")

@@ -13,22 +13,16 @@ Partial diffusion (Yoneda et al., "To the noise and back"; SDEdit, Meng et al.):
 forward to an intermediate noise level with Eq. (5), then let the policy run the reverse process Eq. (6)
 back to a clean chunk. beta = 0 keeps the expert chunk, beta = 1 forgets it (unguided sampling).
 
-Index convention (the one place where public code for this method is off by one). With the paper's step
-numbers k = 1..K, beta picks k_sw = ToInteger(beta K) in 0..K, and
-  1. forward:  a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps     (Eq. 5, closed form)
-     i.e. exactly k_sw forward steps; its noise fraction is sigma^2_{k_sw} = 1 - alphabar_{k_sw}, the value
-     noise_fraction() returns and calibrate.py puts into Eqs. (8)-(12);
-  2. reverse:  the first reverse step is Eq. (6) at paper step k_sw, which expects an input at noise level
-     alphabar_{k_sw} -- the level of step 1 -- followed by steps k_sw - 1, ..., 1: k_sw reverse steps.
-In diffusion.py's 0-based code indices (code k <-> paper step k + 1), step 1 is
-q_sample(schedule, a*, k_sw - 1, eps) and step 2 is reverse_process from code level k_sw - 1 down to 0.
-We read the paper's "k_sw - 1 timesteps" as this 0-based code index of the switching step; counted as
-steps it would stop one level short of the sigma^2_{k_sw} that Eq. (7) and Eqs. (8)-(12) use. Diffusing to
-one level but starting the reverse process at a neighbouring one would ask the network to remove a
-different amount of noise than the chunk holds (tests/test_partial_denoise.py checks the level the first
-reverse step receives). k_sw = 0 runs no step and returns the expert chunk unchanged; k_sw = K starts from
-level K, which is pure noise up to sqrt(alphabar_K) a* (5e-4 a* for the capped squared-cosine schedule at
-K = 100), i.e. unguided sampling.
+Index convention (where public code for this method is off by one). With the paper's steps k = 1..K,
+beta picks k_sw = ToInteger(beta K) in 0..K, and
+  1. forward:  a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps     (Eq. 5, closed form),
+     exactly k_sw forward steps, noise fraction sigma^2_{k_sw} = 1 - alphabar_{k_sw} (noise_fraction(),
+     the s of calibrate.py's Eqs. 8-12);
+  2. reverse:  Eq. (6) at paper steps k_sw, k_sw - 1, ..., 1 (k_sw steps; the first expects the level of 1.).
+In diffusion.py's 0-based code (code k <-> paper step k + 1): q_sample(schedule, a*, k_sw - 1, eps), then
+reverse_process from code level k_sw - 1 down to 0; the paper's "k_sw - 1 timesteps" is that code index.
+The first reverse step must get the noise level the chunk holds (tests/test_partial_denoise.py checks it).
+k_sw = 0 returns the expert chunk unchanged; k_sw = K starts from pure noise up to sqrt(alphabar_K) a*.
 """
 
 import math
@@ -39,9 +33,16 @@ import torch
 from diffusion import check_array, q_sample
 
 
+def _check_beta(beta):
+    """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
+    b = np.asarray(beta, dtype=np.float64)
+    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
+        raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
+    return b
+
+
 # ----------------------------------------------------------------------------------------------
 # Blending: Eq. (3), then the learned interpolator of Eq. (4) by partial diffusion
-
 
 def lerp_blend(a_policy, a_expert, beta):
     """Eq. (3): a_lerp = beta a_policy + (1 - beta) a_expert (beta = 0: the expert, 1: the policy)."""
@@ -60,9 +61,8 @@ def lerp_blend(a_policy, a_expert, beta):
 def switch_step(beta, K):
     """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas.
 
-    ToInteger = round to the nearest integer, halves up (floor(beta K + 1/2)). Nearest, not floor: beta K is
-    computed in floating point, and 0.29 * 100 = 28.999999999999996 would floor to 28; nearest is also
-    the unbiased choice. Halves up, not Python's round-half-to-even, so that k_sw is monotone in beta.
+    ToInteger = round to the nearest, halves up (floor(beta K + 1/2)): not floor, since 0.29 * 100 =
+    28.999999999999996; not Python's round-half-to-even, so that k_sw is monotone in beta.
     """
     b = _check_beta(beta)
     if not isinstance(K, (int, np.integer)) or K < 1:
@@ -76,11 +76,9 @@ def switch_step(beta, K):
 def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=True):
     """a_hat = f_theta(a*, beta | o) (Eq. 4) by partial diffusion, batched over B states.
 
-    obs (B, obs_dim), expert_chunk (B, H, dof) in joint units; beta a scalar or (B,) per row.
-    Returns (B, H, dof) float64 in joint units. Index convention: see the module docstring.
-    Random draws: the same per-row layout as policy.sample (diffusion.DiffusionPolicy.draw_noise), so
-    beta = 1 consumes the generator exactly like policy.sample and gives the same chunk up to the
-    sqrt(alphabar_K) a* term; and a batch equals its rows done one by one with the same generator.
+    obs (B, obs_dim), expert_chunk (B, H, dof) in joint units; beta a scalar or (B,) per row -> (B, H, dof)
+    float64 in joint units. Index convention: the module docstring. Random draws in policy.sample's per-row
+    layout (DiffusionPolicy.draw_noise): beta = 1 is policy.sample up to the sqrt(alphabar_K) a* term.
     """
     cfg = policy.cfg
     obs = check_array("obs", obs, (None, cfg.obs_dim))
@@ -113,23 +111,19 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
 # ----------------------------------------------------------------------------------------------
 # How far the blend may move: Eq. (7) and the noise fraction sigma^2_{k_sw} (Sec. IV-D)
 
-
 def sdedit_bound(sigma2, bound, d, delta):
     """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
     and a noise prediction with ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1).
 
-    Read it as the scale of the blend, sigma^2_{k_sw} (how the paper uses it in Eqs. 8-12), not as a
-    guarantee for this sampler: its leading term d + 2 sqrt(-d log delta) - 2 log delta is the chi-square
-    tail of the forward noise sigma^2 alone, while DDPM's reverse steps add their own posterior noise. With
-    eps_theta = 0 (bound 0) the error variance is ~1.9 sigma^2 per dimension at beta = 0.2, and the bound
-    holds for ~90% of samples instead of 95% (d = 8; tests/test_partial_denoise.py). A model that pulls the
-    chunk toward its data (every trained policy) removes that noise again and stays within the bound.
+    Read it as the scale of the blend, sigma^2_{k_sw} (as Eqs. 8-12 use it), not as a guarantee for this
+    sampler: it counts only the forward noise, not DDPM's posterior noise (tests/test_partial_denoise.py,
+    test_eq7_counts_only_the_forward_noise).
     """
     sigma2 = np.asarray(sigma2, dtype=np.float64)
-    if np.any(~np.isfinite(sigma2)) or np.any((sigma2 < 0) | (sigma2 > 1)):
-        raise ValueError(f"sigma2 must be a noise fraction in [0, 1], got {sigma2!r}")
-    if not bound >= 0 or not d >= 1 or not 0 < delta < 1:
-        raise ValueError(f"need bound >= 0, d >= 1, 0 < delta < 1; got bound={bound}, d={d}, delta={delta}")
+    if not (np.all(np.isfinite(sigma2)) and np.all((sigma2 >= 0) & (sigma2 <= 1)) and bound >= 0 and d >= 1
+            and 0 < delta < 1):
+        raise ValueError(f"need a noise fraction sigma2 in [0, 1], bound >= 0, d >= 1, 0 < delta < 1; "
+                         f"got sigma2={sigma2!r}, bound={bound}, d={d}, delta={delta}")
     # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
     log_delta = np.log(delta)
     # Eq. (7)
@@ -152,19 +146,15 @@ def noise_fraction(schedule, beta):
 # ----------------------------------------------------------------------------------------------
 # Fig. 3
 
-
 def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None,
                            n_samples=16):
-    """The paper's Fig. 3: at one state, the expert chunk, partial-denoising samples at several beta and
-    unguided samples (beta = 1), drawn as end-effector paths; one panel per beta, the scene in the first.
+    """The paper's Fig. 3: at one state, the expert chunk, n_samples partial-denoising samples per beta and
+    unguided ones (beta = 1) as end-effector paths (no mean path: at large beta the samples split between
+    modes); one panel per beta, the scene in the first.
 
-    obs (obs_dim,), expert_chunk (H, dof) joint targets; q (dof,) the arm's joint positions at obs
-    (default env.q). Each path starts at the current end effector and visits the end effector of every
-    action of the chunk (actions are absolute joint targets, so env.ee of a target is where it leads).
-    A planar env (env.dim == 2) is drawn in its plane over its scene (env.render); a 3-D env
-    (EngineReach3D) in the top view, x and y in m, with the goal as a marker (its render on a 2-D axis is
-    a camera picture, not a drawing to scale). Every panel shows n_samples paths per beta: a mean path would
-    be misleading, since at large beta the samples split between the policy's modes.
+    obs (obs_dim,), expert_chunk (H, dof) joint targets (env.ee of a target is where it leads); q (dof,)
+    the joints at obs (default env.q). A planar env is drawn in its plane over its scene, a 3-D env in the
+    top view (x, y in m) with the goal as a marker.
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -172,11 +162,9 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
 
     obs = np.asarray(obs, dtype=np.float32)
     expert_chunk = np.asarray(expert_chunk, dtype=np.float64)
-    if obs.ndim != 1 or expert_chunk.ndim != 2:
-        raise ValueError(f"plot_partial_denoising takes one state: obs (obs_dim,), expert_chunk (H, dof); "
-                         f"got {obs.shape}, {expert_chunk.shape}")
-    if env.dim not in (2, 3):
-        raise ValueError(f"plot_partial_denoising draws a 2-D or 3-D workspace, got dim = {env.dim}")
+    if obs.ndim != 1 or expert_chunk.ndim != 2 or env.dim not in (2, 3):
+        raise ValueError(f"plot_partial_denoising draws one state, obs (obs_dim,) and expert_chunk (H, dof), in a "
+                         f"2-D or 3-D workspace; got {obs.shape}, {expert_chunk.shape}, dim = {env.dim}")
     planar = env.dim == 2
     betas = [float(b) for b in _check_beta(np.atleast_1d(betas))]
     q = np.asarray(env.q if q is None else q, dtype=np.float64)
@@ -185,11 +173,10 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     def ee_path(chunk):                                        # (H, dof) -> (H + 1, 2)
         return np.concatenate([start, env.ee(chunk)[:, :2]])
 
-    levels = betas + [1.0]
-    obs_b = np.repeat(obs[None], n_samples * len(levels), axis=0)
-    chunk_b = np.repeat(expert_chunk[None], n_samples * len(levels), axis=0)
-    beta_b = np.repeat(levels, n_samples)
-    samples = partial_denoise(policy, obs_b, chunk_b, beta_b, generator=generator)   # (n * L, H, dof)
+    levels = betas + [1.0]                                     # and unguided
+    rows = n_samples * len(levels)
+    samples = partial_denoise(policy, np.repeat(obs[None], rows, axis=0), np.repeat(expert_chunk[None], rows, axis=0),
+                              np.repeat(levels, n_samples), generator=generator)   # (n * L, H, dof)
     paths = np.stack([ee_path(chunk) for chunk in samples]).reshape(len(levels), n_samples, -1, 2)
     expert_xy = ee_path(expert_chunk)                          # (H + 1, 2)
 
@@ -245,21 +232,9 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     return path
 
 
-# ==== Beyond the paper (safe to skip) ====================================================
-
-
-def _check_beta(beta):
-    """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
-    b = np.asarray(beta, dtype=np.float64)
-    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
-        raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
-    return b
-
-
 # ----------------------------------------------------------------------------------------------
-# Demo: on the two-mode toy task (chunks go up-right or down-left), an expert chunk that bends off the
-# up-right mode. Small beta keeps the expert's bend; large beta forgets it and, at beta = 1, half of the
-# samples even take the other mode (the paper's Fig. 3 in numbers).
+# Demo: on the two-mode toy task (chunks go up-right or down-left), an expert chunk that bends off the up-right
+# mode. Small beta keeps the bend; at beta = 1 half of the samples take the other mode (Fig. 3 in numbers).
 
 if __name__ == "__main__":
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train

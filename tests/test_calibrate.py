@@ -197,7 +197,9 @@ def test_open_loop_sigma_recovers_a_known_covariance():
 def test_open_loop_sigma_rejects_data_without_labels():
     ep = _episode([False] * 10)
     with pytest.raises(ValueError, match="no valid expert label"):
-        cal.open_loop_sigma(NoisyExpertPolicy(ep, np.eye(3), np.zeros(3)), [ep])
+        cal.open_loop_sigma(NoisyExpertPolicy(ep, np.eye(3), np.zeros(3)), [ep], stride=2, n_samples=4)
+    with pytest.raises(ValueError, match="n_samples=0"):
+        cal.open_loop_sigma(NoisyExpertPolicy(ep, np.eye(3), np.zeros(3)), [ep], stride=2, n_samples=0)
 
 
 class ExecutedStepsPolicy:
@@ -226,7 +228,7 @@ def test_open_loop_sigma_compares_only_the_executed_steps():
     full = cal.open_loop_sigma(policy, [ep], stride=2, n_samples=4, n_act=4)
     np.testing.assert_allclose(full.sigma, 0.5, rtol=1e-12)
     with pytest.raises(ValueError, match="n_act"):
-        cal.open_loop_sigma(policy, [ep], n_act=5)
+        cal.open_loop_sigma(policy, [ep], stride=2, n_samples=4, n_act=5)
 
 
 def _expert_path(n=60, dof=3):
@@ -235,13 +237,24 @@ def _expert_path(n=60, dof=3):
     return np.concatenate([0.02 * t, 0.3 * np.sin(0.05 * t), 0.01 * t], axis=1)[:, :dof]
 
 
+def _project_onto_expert(trajectory, expert_q, window):
+    """cal.advance_cursor along a whole recorded trajectory (n + 1, dof), the cursor starting at 0, as
+    closed_loop_rollouts does it online -> the cursor (n + 1,) and the nearest-state distance (n + 1,)."""
+    cursor = np.zeros(len(trajectory), dtype=np.int64)
+    distance = np.zeros(len(trajectory))
+    distance[0] = cal.nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
+    for i in range(1, len(trajectory)):
+        cursor[i], distance[i] = cal.advance_cursor(trajectory[i], expert_q, int(cursor[i - 1]), window)
+    return cursor, distance
+
+
 def _tracked(trajectory, expert, min_steps=20):
-    """Rollouts for one recorded trajectory, tracked as _closed_loop does it."""
-    cursor, error = cal.project_onto_expert(trajectory, expert, window=16)
+    """Rollouts for one recorded trajectory, tracked as closed_loop_rollouts does it."""
+    cursor, error = _project_onto_expert(trajectory, expert, window=16)
     n = len(trajectory) - 1
     reference = expert[np.minimum(np.arange(n + 1), len(expert) - 1)]
     return cal.Rollouts(trajectory[None], reference[None], np.array([n]), np.array([n]), np.zeros(1, bool),
-                        np.zeros(1, bool), cursor=cursor[None], nearest_error=error[None], min_steps=min_steps)
+                        cursor=cursor[None], nearest_error=error[None], min_steps=min_steps)
 
 
 def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one():
@@ -251,7 +264,7 @@ def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one()
     assert cal.settling_error(roll)[0] < 1e-12                              # on the path: no error
     np.testing.assert_array_equal(roll.cursor[0, 3:], np.arange(len(expert) - 3))   # the cursor lags too
     # the old rule (time-matched state) reads the pace difference as a large error
-    dev = roll.deviation[0, 13:41]
+    dev = (roll.trajectory - roll.reference)[0, 13:41]
     assert math.sqrt(np.mean(np.sum(dev ** 2, axis=-1))) > 0.05
     # the error is measured over steps [settle_start, settle_end] only
     off = lagging.copy()
@@ -265,7 +278,7 @@ def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one()
 def test_settling_error_is_the_rms_over_the_inclusive_window_of_recorded_steps():
     """settling_error's window exactly, on hand-made nearest-state errors e_t = t (rad): steps settle_start..
     settle_end, both included, and never past the last recorded step n (entries past it repeat its value, as
-    _closed_loop pads them); a rollout that stopped before settle_start takes steps 1..n (step 0, the start
+    closed_loop_rollouts pads them); a rollout that stopped before settle_start takes steps 1..n (step 0, the start
     on the expert, and the padding out). Catches a window end or start one step off in either branch (the
     short-rollout one, `1:n + 1` -> `1:n - 1`, survived the other tests) and a mean instead of the RMS."""
     L = 60
@@ -275,7 +288,7 @@ def test_settling_error_is_the_rms_over_the_inclusive_window_of_recorded_steps()
         error[b, n + 1:] = n                                                      # padded with the last
     B = len(n_recorded)
     zeros = np.zeros((B, L + 1, 3))
-    roll = cal.Rollouts(zeros, zeros, np.full(B, L), n_recorded, np.zeros(B, bool), np.zeros(B, bool),
+    roll = cal.Rollouts(zeros, zeros, np.full(B, L), n_recorded, np.zeros(B, bool),
                         cursor=np.zeros((B, L + 1), np.int64), nearest_error=error)
     rms = lambda steps: math.sqrt(np.mean(np.square(steps, dtype=np.float64)))    # noqa: E731
     expected = [rms(np.arange(13, 41)),    # settled: steps 13..40, 28 of them
@@ -293,7 +306,7 @@ def test_cursor_is_monotone_and_advances_at_most_one_index_a_step():
     expert = _expert_path()
     for trajectory in (expert[::2], expert[::-1], expert + rng.normal(0, 0.05, expert.shape),
                        rng.normal(0, 1.0, expert.shape)):                   # too fast, backwards, noisy, random
-        cursor, error = cal.project_onto_expert(trajectory, expert, window=16)
+        cursor, error = _project_onto_expert(trajectory, expert, window=16)
         steps = np.diff(cursor)
         assert np.all((steps == 0) | (steps == 1))
         assert cursor[0] == 0 and cursor.max() < len(expert)
@@ -303,7 +316,7 @@ def test_cursor_is_monotone_and_advances_at_most_one_index_a_step():
             assert error[i] == pytest.approx(np.linalg.norm(expert[lo:hi] - trajectory[i], axis=1).min())
     # a rollout twice as fast moves the cursor one index a step, and its nearest-state error stays 0
     # while it is less than 8 steps ahead
-    cursor, error = cal.project_onto_expert(expert[::2], expert, window=16)
+    cursor, error = _project_onto_expert(expert[::2], expert, window=16)
     np.testing.assert_array_equal(cursor, np.arange(len(cursor)))
     assert np.all(error[:8] < 1e-12) and error[20] > 0
 
@@ -325,7 +338,7 @@ def _calibration():
     return cal.Calibration(
         W=W, r=3.0, fit_note="fit", median_step=0.01, sigma_hat=S,
         sigma_alpha=cal.calibrated_sigma(S, W), episode_index=np.arange(6), timestep=np.arange(6) * 2,
-        pooled=cal.pooled_sigma(S, W), unguided_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13),
+        pooled=cal.pooled_sigma(S, W), blend_beta=np.linspace(0.05, 0.9, 13),
         blend_s=np.linspace(0.01, 0.98, 13), blend_x=np.linspace(0.0, 0.04, 13),
         blend_kept=np.arange(13) < 11, blend_episode=np.arange(13) % 4, blend_start=np.full(13, 5),
         W_ci=(0.04, 0.062))
@@ -337,7 +350,7 @@ def test_diverge_radius_is_the_authors_15_median_steps_in_radians():
     assert cal.diverge_radius(15.0, 0.0245, 0.0176) / 0.0245 == pytest.approx(10.78, abs=0.01)
     assert cal.diverge_radius(15.0, 0.0245, 0.0166) == pytest.approx(0.249)          # the UR5 lever
     assert cal.diverge_radius(15.0, 0.0245, None) == pytest.approx(15 * 0.0245)
-    assert cal.CalibrationConfig().diverge_threshold == 15.0
+    assert cal.CalibrationConfig.diverge_threshold == 15.0
 
 
 def test_report_gives_sigma_and_W_in_radians_and_the_papers_unit():
@@ -374,19 +387,11 @@ def test_calibration_json_round_trip(tmp_path):
     del old["W_ci"]
     assert cal.Calibration.from_dict(old).W_ci is None
     assert "bootstrap" not in cal.Calibration.from_dict(old).report()
-
-
-def test_bootstrap_interval_contains_W_and_is_deterministic():
-    s, x = _blend_points(0.2, 4.0, noise=0.05, seed=3)
-    fit = cal.fit_equilibrium(s, x)
-    ci = cal.bootstrap_W(s, x, n_resamples=40, seed=0)
-    assert ci[0] < fit.W < ci[1]
-    assert ci[1] < 3 * fit.W                                                # bounded (r_bounds keep it finite)
-    assert cal.bootstrap_W(s, x, n_resamples=40, seed=0) == ci              # same seed, same interval
-    assert cal.bootstrap_W(s, x, n_resamples=40, seed=1) != ci
-    exact = cal.bootstrap_W(*_blend_points(0.2, 4.0, noise=0.0, seed=0), n_resamples=20, seed=0)
-    assert exact == (pytest.approx(0.2, rel=1e-4), pytest.approx(0.2, rel=1e-4))   # exact points: no spread
-    assert cal.bootstrap_W(s[:2], x[:2]) is None                            # < 3 points: no interval
+    # and one written with the unguided control (now experiment/unguided.py), under either of its names
+    for key in ("unguided_pooled", "closed_loop_pooled"):
+        assert cal.Calibration.from_dict(dict(old, **{key: c.pooled.tolist()})).to_dict() == \
+            cal.Calibration.from_dict(old).to_dict()
+        assert cal.Calibration.from_dict(dict(old, **{key: None})).W == c.W
 
 
 def test_plot_blend_fit_writes_a_figure(tmp_path):
@@ -419,10 +424,18 @@ def planar():
     return env, episodes, _tiny_policy(env, episodes)
 
 
+CFG = cal.CalibrationConfig(n_samples=2, n_act=10)                          # the tiny policy's H = 16
+
+
+def _longest(episode, H=16):
+    return max(cal.expert_segments(episode, H), key=lambda se: se[1] - se[0])
+
+
 def test_blend_at_beta_zero_retraces_the_expert(planar):
     env, episodes, policy = planar
     ep = episodes[0]
-    out = cal.blend_rollouts(env, policy, ep, [0.0, 0.0], generator=torch.Generator().manual_seed(0))
+    out = cal.blend_rollouts(env, policy, [(ep, _longest(ep))] * 2, [0.0, 0.0], CFG, torch.Generator().manual_seed(0),
+                             0.4)
     T = len(ep["q"])
     assert np.all(out.rollouts.n_recorded == T - 1) and np.all(out.kept)
     np.testing.assert_allclose(out.rollouts.trajectory[0], ep["q"], atol=1e-12)   # time-matched, exact
@@ -430,7 +443,7 @@ def test_blend_at_beta_zero_retraces_the_expert(planar):
     np.testing.assert_array_equal(out.s, 0.0)
     # several scenarios in one batched run: each rollout follows its own segment's expert
     jobs = [(e, cal.expert_segments(e, 16)[0]) for e in episodes[:3]]
-    multi = cal._blend(env, policy, jobs, np.zeros(3), 8, None, 0.5)
+    multi = cal.blend_rollouts(env, policy, jobs, np.zeros(3), cal.CalibrationConfig(n_samples=2, n_act=8), None, 0.5)
     for b, e in enumerate(episodes[:3]):
         n = len(e["q"]) - 1
         np.testing.assert_allclose(multi.rollouts.trajectory[b, :n + 1], e["q"], atol=1e-12)
@@ -440,23 +453,26 @@ def test_rollouts_refuse_episodes_from_another_scenario(planar):
     env, episodes, policy = planar
     wrong = dict(episodes[0], seed=episodes[1]["seed"])
     with pytest.raises(ValueError, match="does not reproduce"):
-        cal.blend_rollouts(env, policy, wrong, [0.5])
+        cal.blend_rollouts(env, policy, [(wrong, _longest(wrong))], [0.5], CFG, None, 0.4)
+    with pytest.raises(ValueError, match=r"ratios in \[0, 1\]"):
+        cal.blend_rollouts(env, policy, [(episodes[0], _longest(episodes[0]))], [1.5], CFG, None, 0.4)
 
 
 def test_blend_rollouts_mark_divergence(planar):
     env, episodes, policy = planar
-    out = cal.blend_rollouts(env, policy, episodes[0], [0.9], generator=torch.Generator().manual_seed(0),
-                             diverge_rad=1e-6)
+    out = cal.blend_rollouts(env, policy, [(episodes[0], _longest(episodes[0]))], [0.9], CFG,
+                             torch.Generator().manual_seed(0), diverge_rad=1e-6)
     assert out.rollouts.diverged[0] and not out.kept[0]
     # discarded, but run to the segment's full length (the authors' blended episodes): its settling error is
     # the RMS over the whole settling window, as for a kept rollout, not cut where it crossed the radius
-    start, end = cal._longest_segment(episodes[0], policy.cfg.horizon)
+    start, end = _longest(episodes[0])
     assert out.rollouts.n_recorded[0] == min(end, len(episodes[0]["q"]) - 1) - start
     e = out.rollouts.nearest_error[0, cal.CalibrationConfig.settle_start:cal.CalibrationConfig.settle_end + 1]
     assert out.x[0] == pytest.approx(np.sqrt(np.mean(e ** 2))) and out.x[0] > 0
-    # a stopping closed loop (unguided_sigma's) still stops at the first diverged step
+    # a stopping closed loop (experiment/unguided.py's) stops at the first diverged step
     job = [(episodes[0], (start, end))]
-    stopped = cal._closed_loop(env, job, lambda obs, expert, rows: expert + 0.05, policy.cfg.horizon, 10, 1e-6)
+    stopped = cal.closed_loop_rollouts(env, job, lambda obs, expert, rows: expert + 0.05, policy.cfg.horizon, 10,
+                                       1e-6, stop_on_divergence=True)
     assert stopped.diverged[0] and stopped.n_recorded[0] < out.rollouts.n_recorded[0]
 
 
@@ -480,36 +496,36 @@ def _line_into_an_obstacle(env, seeds, past=3, speed=0.8):
     raise AssertionError("no straight line meets an obstacle")
 
 
-def test_contacts_are_recorded_never_discarded(planar):
+def test_contacts_never_discard_a_rollout(planar):
     env, _, policy = planar
     # an expert path that runs 3 steps into an obstacle: at beta = 0 the rollout retraces it exactly
     ep, first_contact = _line_into_an_obstacle(env, env.train_seeds(80))
-    kept = cal.blend_rollouts(env, policy, ep, [0.0])
-    assert kept.rollouts.collided[0] and kept.kept[0] and kept.x[0] == 0.0
+    kept = cal.blend_rollouts(env, policy, [(ep, _longest(ep))], [0.0], CFG, None, 0.4)
+    assert env.in_collision(kept.rollouts.trajectory[0]).any()                # it touched the obstacle ...
+    assert kept.kept[0] and kept.x[0] == 0.0                                 # ... and was kept
     assert kept.rollouts.n_recorded[0] == len(ep["q"]) - 1 > first_contact    # ran through the contact
 
 
 def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=True, unguided_segments=3, bootstrap=20)
+    cfg = cal.CalibrationConfig(n_samples=2, n_act=10, stride=4, bootstrap=20)
     c = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
     segments = cal.blend_schedule(episodes, policy.cfg.horizon, cfg)[1]
-    long_enough = {e for e, (a, b) in cal._segments_longest_first(episodes, policy.cfg.horizon)
+    long_enough = {e for e, (a, b) in cal.segments_longest_first(episodes, policy.cfg.horizon)
                    if b - a >= cfg.min_rollout_steps}
     assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
     assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
     assert all(np.sum(c.blend_beta == b) == len(long_enough) for b in cfg.betas)
-    for value in (c.W, *c.pooled.ravel(), *c.unguided_pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
+    for value in (c.W, *c.pooled.ravel(), *c.blend_x, *c.sigma_per_joint):
         assert math.isfinite(value)
     np.testing.assert_allclose(np.trace(c.sigma_alpha, axis1=1, axis2=2), c.W ** 2, rtol=1e-9)
     assert (c.W_ci is None) == (c.r is None)                                 # an interval with every fit
     assert c.r is not None or c.fit_note.startswith("FALLBACK")                # a fallback says so
     assert c.W_ci is None or c.W_ci[0] <= c.W_ci[1]
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
-    assert np.trace(c.unguided_pooled) == pytest.approx(c.W ** 2)
     # deterministic: same seed, same calibration
     again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     assert again.to_dict() == c.to_dict()
@@ -524,15 +540,13 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
 def test_calibrate_falls_back_when_every_blend_rollout_diverges(planar):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=True, unguided_segments=2, diverge_threshold=1e-9)
+    cfg = cal.CalibrationConfig(n_samples=2, n_act=10, stride=4, diverge_threshold=1e-9)
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert not c.blend_kept.any()
     assert c.r is None and c.fit_note.startswith("FALLBACK")
     assert c.W_ci is None                                                     # no fit, no interval
     assert c.W ** 2 == pytest.approx(np.trace(c.sigma_hat.mean(axis=0)))       # ||W||^2 = tr(Sigma_bar)
     np.testing.assert_allclose(c.pooled, c.sigma_hat.mean(axis=0))            # i.e. Sigma_bar unscaled
-    np.testing.assert_allclose(c.unguided_pooled, c.pooled)                # closed-loop fallback too
-    assert "closed loop" in c.fit_note
 
 
 def test_calibrate_holds_W_within_the_authors_fit_bounds(planar, monkeypatch):
@@ -541,7 +555,7 @@ def test_calibrate_holds_W_within_the_authors_fit_bounds(planar, monkeypatch):
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
     paper = envs.PAPER_MEDIAN_STEP["planar"]
-    cfg = cal.CalibrationConfig(n_samples=2, stride=4, unguided=False, diverge_threshold=1e3, bootstrap=5)
+    cfg = cal.CalibrationConfig(n_samples=2, n_act=10, stride=4, diverge_threshold=1e3, bootstrap=5)
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(1e5 * unit, 1e2, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
     assert c.W == pytest.approx(60 * paper)                                  # in rad: the bound in their unit
@@ -579,12 +593,12 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
         expert = np.concatenate([np.r_[np.ones(n, bool), np.zeros(5, bool)] for n in lengths])
         return {"expert": expert}
     episodes = [episode([30, 12]), episode([25, 40])]                        # segments of >= H = 10 steps
-    cfg = cal.CalibrationConfig(min_rollout_steps=20)
+    cfg = cal.CalibrationConfig(n_samples=4, n_act=10, min_rollout_steps=20)
     beta, jobs = cal.blend_schedule(episodes, 10, cfg)
     lengths = sorted({(e, b - a) for e, (a, b) in jobs}, key=lambda item: -item[1])
     assert [n for _, n in lengths] == [40, 30, 25]                           # the 12-step one is too short
     assert len(beta) == 13 * 3 and all(np.sum(beta == b) == 3 for b in cfg.betas)
-    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(min_rollout_steps=50))
+    beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(n_samples=4, n_act=10, min_rollout_steps=50))
     assert {b - a for _, (a, b) in jobs} == {40} and len(beta) == 13          # none long enough: the longest
 
 
@@ -601,7 +615,7 @@ def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
     c = cal.Calibration(
         W=W, r=2.0, fit_note="fit", median_step=unit, sigma_hat=S, sigma_alpha=cal.calibrated_sigma(S, W),
         episode_index=np.zeros(6, dtype=np.int64), timestep=np.arange(6) * 2, pooled=cal.pooled_sigma(S, W),
-        unguided_pooled=None, blend_beta=np.linspace(0.05, 0.9, 13), blend_s=np.linspace(0.01, 0.98, 13),
+        blend_beta=np.linspace(0.05, 0.9, 13), blend_s=np.linspace(0.01, 0.98, 13),
         blend_x=np.linspace(0.0, W, 13), blend_kept=np.ones(13, dtype=bool),
         blend_episode=np.zeros(13, dtype=np.int64), blend_start=np.full(13, 5))
     path = tmp_path / "fig2_engine3d.png"
@@ -713,7 +727,7 @@ def test_calibrate_recovers_a_known_W_end_to_end():
     env, W, gain = RailEnv(), np.array([0.12, 0.16]), 0.25                    # ||W|| = 0.2 rad
     policy = OffsetPolicy(W, gain)
     episodes = [_rail_episode(env, 0, [60]), _rail_episode(env, 1, [45, 50]), _rail_episode(env, 2, [41])]
-    cfg = cal.CalibrationConfig(n_act=1)
+    cfg = cal.CalibrationConfig(n_samples=4, n_act=1)
     c = cal.calibrate(env, policy, episodes, RAIL_SPEED, cfg, torch.Generator().manual_seed(0))
     assert c.fit_note == "fit" and c.blend_kept.all() and len(c.blend_kept) == 13 * 4
     assert c.W == pytest.approx(0.2, rel=0.02)
