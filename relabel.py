@@ -455,19 +455,15 @@ def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
 
 
 class AugmentationSampler:
-    """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool):
-    noised intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
-
-    noise / sigma: 'isotropic' a scalar σ in median steps (Table I baselines); 'pooled' Σ̄^α (dof, dof)
-      rad² (Eqs. (15)-(16)); 'per_step' (Eq. (14)) sigma[e] for episode index e is a pair (timesteps
-      (M,), covs (M, dof, dof)), in a list aligned with `episodes` or a dict {episode index: pair}.
-    make_env: a no-argument factory (e.g. `lambda: envs.make_env('planar')`); one env per scenario seed.
+    """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool): noised
+    intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
     A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free,
     within limits); v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v,
-    the recorded observation of state t) in the episode's scenario (PAPER_SETUP.md §6); chunk, mask =
-    `corrective_labels`. Pairs are made in batches into a pool (a ring buffer) that each call draws from; all
-    randomness comes from each call's rng: the same seed and calls give the same pairs."""
+    the recorded observation of t) in the episode's scenario (PAPER_SETUP.md §6); chunk, mask =
+    `corrective_labels`. Pairs are made in batches into a pool that each call draws from; all randomness
+    comes from each call's rng. sigma: as in `noise_factors`, for 'per_step' one pair per episode (a list
+    aligned with `episodes` or a dict {episode index: pair}). make_env: a no-argument env factory."""
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
                  noise: str, sigma, cfg: RelabelConfig):
@@ -595,10 +591,9 @@ class AugmentationSampler:
                                for d, c in zip(draws, per_draw)])
 
     def _label_rows(self, rows: np.ndarray, rng: np.random.Generator, limits):
-        """One pass of the pipeline over table rows (m,). Returns (r, q̃, v, chunks, mask) of the pairs
-        made, and the rows to redraw: those projecting within `near_end_steps` of their segment's end, or
-        whose label has fewer than `min_moving_steps` unmasked steps. Rows whose state stays in collision
-        / off limits for `max_tries` draws are dropped."""
+        """One pass over table rows (m,): (r, q̃, v, chunks, mask) of the pairs made, and the rows to redraw
+        (projecting within `near_end_steps` of the segment's end, or fewer than `min_moving_steps` steps in
+        the loss). States in collision / off limits after `max_tries` draws are dropped."""
         cfg, dof = self.cfg, self.center.shape[1]
         q_tilde, kept = np.empty((len(rows), dof)), np.zeros(len(rows), dtype=bool)
         for seed in np.unique(self.seeds[rows]):  # q̃ ~ N(q_t, Σ_t): one batched collision check per scenario
