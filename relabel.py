@@ -39,7 +39,7 @@ class RelabelConfig:
     accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame²
     gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m'
     jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= 1.5 a_clamp per step (theirs 0.5 per frame, 3 frames)
-    speed_cap: float = 1.68  # median steps/step: ‖v‖ <= max(1.68 m, speed_cap_v0 · ‖v0‖) (theirs 1.4 · 1.2 m')
+    speed_cap: float = 1.68  # median steps/step: ‖v‖ <= max(1.68 m, speed_cap_v0 ‖v0‖) (theirs 1.4 · 1.2 m')
     speed_cap_v0: float = 1.05  # unit-free: the 1.05 · ‖v0‖ part
     cursor_advance: int = 3  # trajectory indices per step the servo's cursor may advance (theirs 3 m' per frame)
     hold_tol: float = 0.02  # median steps/step: slower steps at the segment end are held (out of the loss)
@@ -97,7 +97,8 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step,
     accel_max = np.percentile(accels, 99.0, axis=0)  # (dof,)
     acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # the authors': norm over joints
     if np.any(accel_max <= 0):
-        raise ValueError(f"the demonstrations show no acceleration on joints {np.flatnonzero(accel_max <= 0).tolist()}; "
+        raise ValueError("the demonstrations show no acceleration on joints "
+                         f"{np.flatnonzero(accel_max <= 0).tolist()}; "
                          "the PD return could never move them (accel clamp would be 0)")
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), accel_max.shape).copy()
     if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
@@ -328,7 +329,8 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
         raise ValueError(f"accel_max and max_step must be > 0 per joint, got {accel_max} and {max_step}")
     T = len(trajectory)
     t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
-    start = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)) + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,))
+    start = (np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,))
+             + np.broadcast_to(np.asarray(lookahead, dtype=np.int64), (B,)))
     if B and (np.any(start < 0) or np.any(t_end > T) or np.any(t_end < 1)):
         raise ValueError(f"need t_proj + lookahead >= 0 and 1 <= t_end <= T={T}")
     # >>> exercise 9: the critically damped PD return chunk, accelerations clamped (Sec. IV-E)
@@ -484,7 +486,8 @@ class AugmentationSampler:
             t, seg_end = label_steps(expert, H, cfg.pad_short)
             traj.append(q)
             if t.size:
-                factors.append(noise_factors(self._episode_sigma(sigma, e), t, q.shape[1], median_step=stats.median_step))
+                factors.append(noise_factors(self._episode_sigma(sigma, e), t, q.shape[1],
+                                             median_step=stats.median_step))
                 center.append(q[t])
                 vel.append(q[t] - q[np.maximum(t - 1, 0)])  # at t = 0 the arm starts at rest (q_prev = q)
                 t_glob.append(offset + t)
@@ -493,7 +496,8 @@ class AugmentationSampler:
                 ep_of.append(np.full(t.size, e))
             offset += len(q)
         if not center:
-            raise ValueError(f"no intervention step with a valid label (expert run >= H={H}) in {len(episodes)} episodes")
+            raise ValueError(f"no intervention step with a valid label (expert run >= H={H}) in "
+                             f"{len(episodes)} episodes")
         self.trajectory = np.concatenate(traj)  # (sum T, dof) the episodes' joints, one after the other
         self.center = np.concatenate(center)  # (N, dof) q_t
         self.velocity = np.concatenate(vel)  # (N, dof) q_t - q_{t-1}
@@ -502,7 +506,8 @@ class AugmentationSampler:
         self.factors = np.ascontiguousarray(np.concatenate(factors))  # (N, dof, dof) L_t, L Lᵀ = Σ_t
         self.seeds = np.concatenate(seeds)  # (N,) scenario seed
         self.episode_of = np.concatenate(ep_of)  # (N,) episode index ...
-        self.step_of = self.t_glob - np.concatenate([[0], np.cumsum([len(q) for q in traj])])[self.episode_of]  # ... step
+        ep_start = np.concatenate([[0], np.cumsum([len(q) for q in traj])])  # the episodes' offsets
+        self.step_of = self.t_glob - ep_start[self.episode_of]  # ... and step
         # the contiguous block of rows of each episode, for the "episodes first" draw
         self._ep_ids, self._ep_start, self._ep_count = np.unique(self.episode_of, return_index=True, return_counts=True)
         self._pool_obs = self._pool_chunks = self._pool_mask = None
@@ -536,7 +541,8 @@ class AugmentationSampler:
             if self._filled == 0:
                 raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
                                  f"{cfg.max_tries} tries, or too near its segment's end after "
-                                 f"{cfg.max_redraws} redraws; the noise ({self.noise}) is too large for these scenarios")
+                                 f"{cfg.max_redraws} redraws; the noise ({self.noise}) is too large for these "
+                                 "scenarios")
         elif self._served >= cfg.reuse * cfg.refresh_size:
             self._refresh_pool(rng)
             self._served = 0
@@ -816,7 +822,8 @@ if __name__ == "__main__":
     t0 = time.perf_counter()
     for _ in range(200):
         obs, chunks, mask = sampler(128, rng)
-    print(f"sampler: obs {obs.shape} {obs.dtype}, chunks {chunks.shape} {chunks.dtype}, {mask.mean():.0%} of steps in the loss; "
+    print(f"sampler: obs {obs.shape} {obs.dtype}, chunks {chunks.shape} {chunks.dtype}, "
+          f"{mask.mean():.0%} of steps in the loss; "
           f"{(time.perf_counter() - t0) / 200 * 1e3:.2f} ms per call of 128 pairs; "
           f"{sampler.n_kept / sampler.n_drawn:.1%} of noised states collision-free")
     print("wrote", plot_recovery(env, episodes[0], sigma, "fig1_recovery_demo.png", rng, stats, cfg))
