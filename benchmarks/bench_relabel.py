@@ -10,7 +10,8 @@ scenario's start toward its nearest goal configuration, stopped before the first
 with a smoothstep, with the "intervention" covering all but the first 5 steps.
 
 A second table measures label quality on RRT-oracle demonstrations (which move at the speed limit):
-how close the PD chunks come back to the expert path, for both RelabelConfig.lookahead modes.
+how close the chunks come back to the expert path, for both labels (RelabelConfig.label 'servo', the
+default, and 'pd').
 
 Usage:  python benchmarks/bench_relabel.py [--calls 400] [--episodes 24] [--oracle-demos 8]
 Prints a markdown table. Numbers depend on machine load (the team shares 2 cores); the CPU-time
@@ -26,6 +27,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import relabel  # noqa: E402
 from envs import make_env, median_step, straight_line_episode  # noqa: E402
+
+H = 16  # steps: the label chunk's length measured here
 
 
 def straight_episode(env, seed, min_len=40):
@@ -58,7 +61,7 @@ def main():
         if ep is not None:
             episodes.append(ep)
     stats = relabel.demo_stats(episodes, median_step(episodes), env.max_step)
-    cfg = relabel.RelabelConfig()
+    cfg = relabel.RelabelConfig(horizon=H)
     unit = stats.median_step
     pooled = np.diag([4.0, 5.0, 4.5]) ** 2 * unit ** 2
     per_step = {e: (np.arange(0, len(ep["q"]), 2), np.broadcast_to(pooled, (len(range(0, len(ep["q"]), 2)), 3, 3)))
@@ -84,9 +87,11 @@ def main():
     rows.append(("monotone_projection, 512", per_second(
         lambda: relabel.monotone_projection(q_tilde, ep["q"], t, window=cfg.projection_window, t_end=t_end), 512), "states/s"))
     proj = relabel.monotone_projection(q_tilde, ep["q"], t, window=cfg.projection_window, t_end=t_end)
-    rows.append(("pd_return_chunk, 512 x H=16", per_second(
-        lambda: relabel.pd_return_chunk(q_tilde, v, ep["q"], proj, 16, 2, stats.accel_max, stats.max_step, t_end=t_end), 512),
+    rows.append((f"pd_return_chunk, 512 x H={H}", per_second(
+        lambda: relabel.pd_return_chunk(q_tilde, v, ep["q"], proj, H, 0, stats.accel_max, stats.max_step, t_end=t_end), 512),
         "chunks/s"))
+    rows.append((f"servo_return_chunk, 512 x H={H}", per_second(
+        lambda: relabel.servo_return_chunk(q_tilde, v, ep["q"], proj, stats, cfg, t_end=t_end), 512), "chunks/s"))
 
     for noise, sigma in (("isotropic", 4.0), ("pooled", pooled), ("per_step", per_step)):
         sampler = relabel.AugmentationSampler(episodes, lambda: make_env("planar"), stats, noise, sigma, cfg)
@@ -122,7 +127,7 @@ def main():
 
 def label_quality(env, n_demos):
     """How close the labels come back to the expert path, on RRT-oracle demonstrations (they move at
-    the speed limit, unlike the stand-ins above), for both RelabelConfig.lookahead modes."""
+    the speed limit, unlike the stand-ins above), for both labels ('servo' and 'pd')."""
     import oracle
 
     expert, seed = oracle.Oracle(), 0
@@ -138,8 +143,9 @@ def label_quality(env, n_demos):
     stats = relabel.demo_stats(demos, unit, env.max_step)
     print(f"\nLabel quality on {len(demos)} oracle demos ({time.perf_counter() - t0:.0f} s to plan): distance of "
           f"chunk[7] / chunk[15] to the expert segment, in median steps ({unit:.4f} rad), median (90th pct)\n")
-    print("| σ (median steps) | start | lookahead | chunk[7] | chunk[15] | mean |a| / clamp |\n|---:|---:|---|---:|---:|---:|")
-    table = relabel.AugmentationSampler(demos, lambda: make_env("planar"), stats, "isotropic", 0.0)
+    print("| σ (median steps) | start | label | chunk[7] | chunk[15] | mean |a| / clamp |\n|---:|---:|---|---:|---:|---:|")
+    table = relabel.AugmentationSampler(demos, lambda: make_env("planar"), stats, "isotropic", 0.0,
+                                        relabel.RelabelConfig(horizon=H))
     traj = table.trajectory
     rng = np.random.default_rng(0)
     for sigma in (2, 4, 8, 16):
@@ -151,13 +157,13 @@ def label_quality(env, n_demos):
             return np.array([np.linalg.norm(traj[a:b] - p, axis=1).min() for p, a, b in zip(x, t, t_end)]) / unit
 
         start = dist(q0)
-        for mode in ("time_matched", "gap"):
-            chunks = relabel.corrective_labels(q0, v, traj, t, t_end, stats, relabel.RelabelConfig(lookahead=mode))
+        for label in ("servo", "pd"):
+            chunks, _ = relabel.corrective_labels(q0, v, traj, t, t_end, stats, relabel.RelabelConfig(horizon=H, label=label))
             path = np.concatenate([q0[:, None], chunks], axis=1)
             acc = np.diff(np.concatenate([v[:, None], np.diff(path, axis=1)], axis=1), axis=1)
             mid, end = dist(chunks[:, 7]), dist(chunks[:, -1])
             fmt = lambda d: f"{np.median(d):.2f} ({np.percentile(d, 90):.2f})"
-            print(f"| {sigma} | {fmt(start)} | {mode} | {fmt(mid)} | {fmt(end)} | {np.mean(np.abs(acc) / stats.accel_max):.2f} |")
+            print(f"| {sigma} | {fmt(start)} | {label} | {fmt(mid)} | {fmt(end)} | {np.mean(np.abs(acc) / stats.accel_max):.2f} |")
 
 
 if __name__ == "__main__":
