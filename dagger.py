@@ -1,8 +1,8 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
-Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, each step's
-function in the loop's order and Table I's paired tests; after the banner, the paper's figures, the table's
-summary over lineages and the entry point.
+Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, the config and
+each step's function in the loop's order, Table I's statistics, the paper's figures, the report and the entry
+point.
 
 Paper map (paper.tex):
   Sec. IV-A, steps 1-6 ..... policy_calibrated_dagger: D0 from the oracle, BC pi_0, HG-DAgger rounds,
@@ -17,10 +17,11 @@ Paper map (paper.tex):
 
 The experiment's plumbing -- the run folder (stages, resume, atomic writes), worker processes, the command
 line, the result files and report.md -- is in experiment/; a student may skip it. So are the research variants,
-which register themselves in the core's tables when imported here (experiment/image_obs.py: `--env
-engine3d_image`, the UR5 policy on camera images). Every step below wraps
-its work in one `run.stage(name, compute)`: if the stage's file is in runs/<name>/, it is loaded, else it
-is computed and written, so a stopped run resumes from its last finished stage.
+which plug into the core's tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods): image
+observations (experiment/image_obs.py), the authors' 10-degree goal (oriented_goal.py), the authors' lever recipe
+(lever.py), the sigma = 0 control (controls.py). Every step below wraps its work in one `run.stage(name,
+compute)`: if the stage's file is in runs/<name>/, it is loaded, else it is computed and written, so a stopped
+run resumes from its last finished stage.
 
 Usage: `python dagger.py` (the quick profile: the whole loop on the planar env in minutes), `--profile smoke`
 (what CI runs), `--profile mid` (Table I's analogue on 2 cores), `--help`; README.md, "Profiles and options".
@@ -42,8 +43,8 @@ import envs
 import oracle as oracle_mod
 import partial_denoise
 import relabel
-from experiment import cli, profiles, report
-from experiment import image_obs  # noqa: F401 (a research variant: registers its env and encoder on import)
+from experiment import cli, controls, lever, profiles, report
+from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
 from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, stage_seed
 from experiment.workers import InBackground, in_parallel
 
@@ -55,27 +56,25 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only); PAPER_SETUP.md
     §2 and §4 say how the authors ran them. workers > 1: a round's noised arms, and the BC row, run in worker
     processes. Each call loads its result from the run folder if that step already finished."""
-    cfg = run.cfg
+    cfg, recipe = run.cfg, RECIPES[run.cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
     demos = oracle_demonstrations(run)
     stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
     # ... and pi_0 = BC on D0: every method of every round is fine-tuned from this checkpoint (step 6)
     pi0 = behavior_cloning(run, demos)
-    pi0_success = evaluate_policy(run, pi0_eval_name(cfg), pi0, "pi_0 (BC)", unseen=False)
+    pi0_success = evaluate_policy(run, "eval/pi0.json", pi0, "pi_0 (BC)", unseen=False)
     # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds)
     bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg)), enabled=workers > 1 and bool(lineages))
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
-        source = data_lineage(cfg, lineage)  # whose interventions and noise it trains on: its own (Table I)
+        source = recipe.data_lineage(run, lineage)  # whose interventions and noise it trains on: its own (Table I)
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
             rounds_data.append(collect_interventions(run, source, k, collector, collector_success))
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
             hg, hg_success = hg_dagger_round(run, lineage, k, demos, rounds_data, stats)
-            if source != lineage:  # replicates='seeds': lineage 0's round-k policy collects and is calibrated
-                hg, hg_success = hg_dagger_round(run, source, k, demos, rounds_data, stats)
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
@@ -100,91 +99,77 @@ def policy_calibrated_dagger(run, lineages, workers=1):
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
                    "pooled", "per_step", "closed_loop")
-# Not in the paper: 'zero_noise', the pipeline with sigma = 0 (intervention states relabelled with the return
-# labels, no noise), separates the effect of the noise from the effect of relabelling (a noised method never sees
-# the recorded intervention chunks, HG-DAgger sees nothing else); 'unguided_pooled', Sigma_bar measured from
-# unguided closed-loop rollouts instead of open-loop samples, scaled to W (calibrate.unguided_sigma).
-CONTROL_METHODS = ("zero_noise", "unguided_pooled")
-ALL_METHODS = TABLE_I_METHODS + CONTROL_METHODS
+ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS)  # and a research control's rows (experiment/controls.py)
+OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
+TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
 
 
 @dataclass
 class Config:
     # --- the paper's experiment (Sec. V; the authors' values in PAPER_SETUP.md) ---
-    env: str = "planar"  # 'planar' (Table I) or 'engine3d' (Table II); a variant's: 'engine3d_image' (camera images)
+    env: str = "planar"  # 'planar' (Table I), 'engine3d' (Table II), or a variant's (envs.ENVIRONMENTS)
     methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
     lineages: int = 5  # independent repeats of the rounds (paper: 5 planar, 3 UR5)
-    # The authors' chunks: 64 relative joint targets at 30 Hz, 32 executed (2.1 s and 1.1 s). The planar env
-    # runs at 10 Hz by default (envs.PlanarConfig.dt): the same seconds are 20 and 10 steps.
-    horizon: int = 20  # steps: H, actions per chunk (interventions shorter than H are discarded, Sec. IV-C)
-    n_act: int = 10  # steps: actions executed per chunk before the policy is asked again
+    horizon: int = 20  # steps: H, actions per chunk (the authors' 64 at 30 Hz; the planar env runs at 10 Hz)
+    n_act: int = 10  # steps: actions executed per chunk before the policy is asked again (the authors' 32 at 30 Hz)
     K: int = 100  # diffusion steps (the authors: 100, all of them at inference)
     down_dims: tuple = (64, 128, 256)  # channels of the epsilon U-Net's levels (the authors: 128, 256, 512)
     bc_steps: int = 75_000  # BC training steps (paper: pi_0 = BC's 75k checkpoint)
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
-    # The authors' co-training (PAPER_SETUP.md §2): every fine-tuning batch is D0 and, in exactly this share,
-    # intervention frames, split over rounds 1..k; the noised methods noise every intervention frame they draw
-    # (relabel.AugmentationSampler) and never D0.
-    intervention_fraction: float = 0.3
-    # How that share is split over rounds 1..k: 'equal' (the authors' planar runs, PCD lib_repro.sh
-    # planar_multi_args) or 'frames', in proportion to each round's intervention frames (their lever runs,
-    # lever_multi_args)
-    round_shares: str = "equal"
-    # Interventions shorter than the chunk H: 'drop' (the paper's label rule, Sec. IV-C: they teach nothing with
-    # chunks of H) or 'pad' (the authors' lever runs, PCD lib_repro.sh lever_train: teleop_pad_short_episodes,
-    # do_mask_loss_for_padding): every intervention is kept, its chunks repeat its last action past its end and
-    # those steps are out of the loss; the noised arms draw states at its steps too. D0 and the calibration
-    # keep the paper's rule (the authors also mask D0's padded tails: not done here).
-    short_interventions: str = "drop"
-    # What a lineage is: 'lineages', an independent chain of rounds (its own interventions, calibrations and
-    # training seeds; Table I's lineages, the authors' planar runs) or 'seeds', the authors' lever runs (PCD
-    # lever_seeds.sh: 3 training seeds on one intervention set): every lineage trains on lineage 0's
-    # interventions and calibrations with its own training seeds. Run lineage 0 first (or all in one command).
-    replicates: str = "lineages"
-    # How every arm is fine-tuned from pi_0 (PAPER_SETUP.md §2): 'continue', the authors' run -- pi_0 is the
-    # bc_steps point of one cosine schedule of bc_steps + finetune_steps, and every arm (the BC row too, on D0
-    # alone) continues BC's AdamW state along its tail; or 'constant', the authors' lever runs (PCD lib_repro.sh
-    # lever_train: +20k steps at a constant 1e-6 after BC's 1e-5 peak) -- pi_0 ends its own cosine at bc_steps,
-    # every arm continues its AdamW state at a constant lr / 10 for finetune_steps more; the BC row is pi_0
-    # itself, as theirs.
-    finetune: str = "continue"
-    # The authors' observation noise in training (PAPER_SETUP.md §2), raw units, labels unchanged:
-    obs_noise_joints: float = 0.01  # rad, on q_t and q_{t-1}
-    obs_noise_env: float = 0.005  # m, on the environment numbers (target, obstacles, end effector)
-    calib_samples: int = 4  # policy samples per anchor of Sigma_hat (the authors: 4; Sec. IV-D)
+    intervention_fraction: float = 0.3  # the intervention frames' share of every fine-tuning batch (PAPER_SETUP.md §2)
+    recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' planar runs; their lever runs'
+    #                        is a variant, experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
-    tost_margin: float = 2.0  # equivalence margin in success points (paper: +-2)
     # --- not in the paper ---
     name: str = "quick"  # run folder runs/<name>/ (default: the profile's name)
-    goal_angle: float | None = None  # deg, engine3d: success also needs the tool's orientation within this
-    #   angle of the goal posture's (the authors' 10; envs.EngineConfig.goal_angle_tolerance); None: position only
     seed: int = 0  # master seed; every stage derives its own seed from it
     device: str = "cpu"  # torch device of the policy ('cuda' where a GPU exists)
     oracle_attempts: int = 3  # RRT runs per plan; the shortest end-effector path wins (1 is ~3x faster)
-    joint_obs: bool = True  # policy predicts chunks relative to the current joint position (and sees the
-    #                         velocity): ~8x more precise first actions on held-out demos (diffusion.py)
-    # The epsilon network (diffusion.PolicyConfig.network): 'unet', the authors' (down_dims), or 'mlp', a residual
-    # MLP with the same FiLM conditioning (mlp_width, mlp_blocks), ~8x the training samples per CPU second
-    network: str = "unet"
-    mlp_width: int = 256
-    mlp_blocks: int = 3
-    # Every evaluated policy is also evaluated on envs.unseen_seeds(), scenarios no stage ever trains on (under
-    # the authors' protocol HG-DAgger collects on the evaluation scenarios): a second table; eval_scenarios x eval_repeats
-    eval_unseen: bool = True
+    network: str = "unet"  # the epsilon network, a diffusion.NETWORKS name: 'unet' (the authors') or 'mlp'
+    mlp_width: int = 256  # network='mlp': hidden width (~8x the U-Net's training samples per CPU second)
+    mlp_blocks: int = 3  # network='mlp': FiLM-conditioned residual blocks
+    eval_unseen: bool = True  # also evaluate on envs.unseen_seeds(), scenarios no stage trains on (a second table)
 
     def __post_init__(self):
-        profiles.check_config(self, ALL_METHODS)  # every field's valid values, with a clear error
-        # every stage's seed is numpy's SeedSequence([seed, ...]) (run_folder.stage_seed): it takes no negative
-        # numbers, so a bad seed is refused here, before the run folder is made, not in the first stage
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0 (the master seed every stage's seed is derived from), "
-                             f"got {self.seed!r}")
+        profiles.check_config(self, ALL_METHODS, RECIPES)  # every field's valid values, with a clear error
 
+
+class PaperRecipe:
+    """How pi_0 and every arm train around the paper's steps: the authors' planar runs (PAPER_SETUP.md §2), Table
+    I's. A recipe is this set of hooks, called by the steps below; a research variant brings its own
+    (experiment/lever.py: the authors' lever runs)."""
+
+    def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
+        return cfg.bc_steps + cfg.finetune_steps
+
+    def arm_training(cfg):  # ... that every arm continues to its end, from pi_0's AdamW state
+        return dict(schedule_steps=cfg.bc_steps + cfg.finetune_steps)
+
+    def bc_row(run, continued_on_d0):  # Table I's BC row: pi_0 continued on D0 alone, the arms' step budget
+        return continued_on_d0()
+
+    def round_shares(frames):  # a batch's intervention rows: rounds 1..k in equal shares
+        return [1.0] * len(frames)
+
+    def kept_interventions(expert, H):  # Sec. IV-C: interventions shorter than H teach nothing, dropped
+        return drop_short_interventions(expert, H)
+
+    ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
+    AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
+
+    def data_lineage(run, lineage):  # a lineage trains on its own interventions and calibrations
+        return lineage
+
+    def check(cfg):  # nothing to refuse
+        pass
+
+
+RECIPES = {"paper": PaperRecipe, **lever.RECIPES}
 
 # The run sizes (smoke, quick, mid, table2, paper): overrides of the defaults above, in experiment/profiles.py
 PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}
@@ -219,39 +204,33 @@ def oracle_demonstrations(run):
 
 
 def behavior_cloning(run, demos):
-    """pi_0 = BC on D0's chunks (Sec. IV-C). Under finetune='continue' it is the bc_steps point of one schedule
-    of bc_steps + finetune_steps, saved with its optimizer state for every arm to continue (the authors' run)."""
+    """pi_0 = BC on D0's chunks (Sec. IV-C), saved with its optimizer state for every arm to continue."""
     cfg = run.cfg
 
     def train_pi0():
         obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
         run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
-        policy, continuing = make_policy(cfg, make_run_env(cfg)), cfg.finetune == "continue"
+        policy = make_policy(cfg, make_run_env(cfg))
         tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
-                          schedule_steps=cfg.bc_steps + cfg.finetune_steps if continuing else 0)
-        # every arm continues pi_0's optimizer: keep its state
+                          schedule_steps=RECIPES[cfg.recipe].pi0_schedule_steps(cfg))
         return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
 
     return run.stage("checkpoints/bc.pt", train_pi0)
 
 
 def bc_row_arm(root, cfg_fields):
-    """Table I's BC row (a worker's job): under finetune='continue' pi_0 continued on D0 alone to
-    bc_steps + finetune_steps (the authors' BC row: their schedule run to its end, so every row has trained
-    the same steps), else pi_0 itself; evaluated."""
+    """Table I's BC row (a worker's job): the recipe's BC policy (the paper's: pi_0 continued on D0 alone to
+    bc_steps + finetune_steps, so every row has trained the same steps), evaluated."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    if cfg.finetune == "constant":  # the authors' lever table: pi_0 itself
-        evaluate_policy(run, "eval/bc.json", run.load("checkpoints/bc.pt"), "bc (pi_0)")
-        return
 
     def continue_on_d0():
         obs, chunks = diffusion.chunk_dataset(run.load("data/D0.npz"), cfg.horizon)
         run.log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
         return finetune_from_pi0(run, "checkpoints/bc_continued.pt", obs, chunks, stage_seed(cfg, "train", "bc"))
 
-    policy = run.stage("checkpoints/bc_continued.pt", continue_on_d0)
-    evaluate_policy(run, "eval/bc.json", policy, "bc (pi_0 continued on D0 alone)")
+    policy = RECIPES[cfg.recipe].bc_row(run, lambda: run.stage("checkpoints/bc_continued.pt", continue_on_d0))
+    evaluate_policy(run, "eval/bc.json", policy, "bc")
 
 
 def demo_statistics(cfg, demos):
@@ -263,6 +242,28 @@ def demo_statistics(cfg, demos):
                               frames_per_step=env.dt / envs.PAPER_FRAME_DT)
 
 
+def make_run_env(cfg):
+    """A fresh env of this run's kind (one per scenario in rollouts)."""
+    return envs.make_env(cfg.env)
+
+
+def make_oracle(cfg, *keys):
+    """The RRT expert; keys (e.g. lineage, round) give an intervention run its own planner seed."""
+    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle", *keys), horizon=cfg.horizon,
+                                                     n_attempts=cfg.oracle_attempts))
+
+
+def make_policy(cfg, env):
+    """A fresh diffusion policy for this run's env and network (diffusion.PolicyConfig); the env says how the
+    policy reads its observation (env.obs_encoder)."""
+    pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
+                                K=cfg.K, down_dims=cfg.down_dims, network=cfg.network,
+                                mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
+                                obs_encoder_args=dict(env.obs_encoder_args),
+                                seed=stage_seed(cfg, "init"))
+    return diffusion.DiffusionPolicy(pc, device=cfg.device)
+
+
 # ----------------------------------------------------------------------------------------------
 # Step 2: HG-DAgger data collection, many episodes in lockstep
 # ----------------------------------------------------------------------------------------------
@@ -272,8 +273,8 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     The authors' protocol: each round rolls the policy on the evaluation scenarios, skipping those its own
     evaluation (policy_success, (scenarios, repeats) bool) solved every time, and records interventions on the
     rest, so the evaluation scenarios enter the training data (the unseen scenarios are the held-out check:
-    evaluate_policy). Interventions shorter than H are dropped (Sec. IV-C; short_interventions='pad' keeps them);
-    episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
+    evaluate_policy). The recipe keeps the interventions it labels (the paper's: those of at least H steps, Sec.
+    IV-C); episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
     folder and seeds).
     """
     cfg = run.cfg
@@ -296,18 +297,16 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
-        pad = cfg.short_interventions == "pad"  # else the paper's rule: interventions shorter than H dropped
         for ep in episodes:
-            ep["expert"] = ep["expert"] if pad else drop_short_interventions(ep["expert"], cfg.horizon)
-        kept = [ep for ep in episodes if diffusion.label_mask(ep["expert"], cfg.horizon, pad).any()]
+            ep["expert"] = RECIPES[cfg.recipe].kept_interventions(ep["expert"], cfg.horizon)
+        kept = [ep for ep in episodes if ep["expert"].any()]
         alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
         rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
         run.log(f"  {len(episodes)} episodes: {alone} solved by the policy alone, {rescued} solved with the "
-                f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions "
-                + ("(short ones padded)" if pad else ">= H")
-                + f", {sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
+                f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions, "
+                f"{sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
         if not kept:
-            raise RuntimeError(f"{label}: no intervention of >= H={cfg.horizon} steps was "
+            raise RuntimeError(f"{label}: no intervention the recipe keeps (the paper's: >= H={cfg.horizon} steps) was "
                                f"recorded in {len(episodes)} episodes; nothing to aggregate")
         return kept
 
@@ -420,13 +419,6 @@ def hg_dagger_round(run, lineage, k, demos, rounds_data, stats):
                                f"hg_dagger (lineage {lineage}, K={k})")
 
 
-def data_lineage(cfg, lineage):
-    """The lineage whose interventions and calibrations `lineage` trains on: itself (replicates='lineages',
-    Table I's independent lineages) or lineage 0 (replicates='seeds', the authors' lever runs: one intervention
-    set, every arm retrained with each lineage's own training seed)."""
-    return lineage if cfg.replicates == "lineages" else 0
-
-
 def drop_short_interventions(expert, H):
     """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False
     (diffusion.expert_runs, the paper's label rule)."""
@@ -461,6 +453,12 @@ def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
     return calibrate.Calibration.from_dict(run.stage(f"{where}/calibration.json", measure))
 
 
+def calibration_config(cfg):
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts (one blended
+    rollout per ratio from every long enough intervention segment, calibrate.blend_schedule)."""
+    return calibrate.CalibrationConfig(n_act=cfg.n_act)
+
+
 # ----------------------------------------------------------------------------------------------
 # Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0
 # ----------------------------------------------------------------------------------------------
@@ -477,14 +475,8 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
         if median_step is None or paper_median_step is None:
             return "isotropic", sigma
         return "isotropic", sigma * paper_median_step / median_step
-    if method == "zero_noise":
-        return "isotropic", 0.0  # the control: augmented pairs without noise
-    if method == "pooled":
-        return "pooled", cal.pooled  # Eq. (16)
-    if method == "closed_loop":
-        return "pooled", cal.pooled  # Eq. (16), measured on its own chain (closed_loop_chain)
-    if method == "unguided_pooled":  # the control: Sigma_bar from unguided closed-loop rollouts
-        return "pooled", cal.unguided_pooled if cal.unguided_pooled is not None else cal.pooled
+    if method in ("pooled", "closed_loop"):  # Eq. (16); closed_loop's measured on its own chain (closed_loop_chain)
+        return "pooled", cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
         per_episode = {}
         for j, e in enumerate(episodes if episodes is not None else np.unique(cal.episode_index)):
@@ -492,29 +484,28 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
             if rows.any():
                 per_episode[j] = (cal.timestep[rows], cal.sigma_alpha[rows])
         return "per_step", per_episode
+    if method in controls.NOISE_MODELS:  # a research control's row (experiment/controls.py)
+        return controls.NOISE_MODELS[method]
     raise ValueError(f"method {method!r} adds no noise")
 
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
-    """The intervention rows of a fine-tuning batch: rounds 1..k in equal shares (round_shares='frames': in
-    proportion to their intervention frames); HG-DAgger's as recorded, a noised method's every drawn frame noised
-    and relabelled (relabel.AugmentationSampler), as in the authors' code. (The paper's text also co-trains on
-    the recorded chunks: measured, not adopted, benchmarks/README.md, "The co-training mix".)"""
-    samplers, weights, offset = [], [], 0
-    frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
-    shares = [f / sum(frames) for f in frames] if cfg.round_shares == "frames" else [1.0] * len(rounds_data)
-    for D, share in zip(rounds_data, shares):
+    """The intervention rows of a fine-tuning batch: rounds 1..k in the recipe's shares (the paper's: equal);
+    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled (relabel.AugmentationSampler),
+    as in the authors' code. (The paper's text also co-trains on the recorded chunks: measured, not adopted,
+    benchmarks/README.md, "The co-training mix".)"""
+    recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
+    for D in rounds_data:
         if method == "hg_dagger":
-            samplers.append(relabel.ChunkSampler(D, cfg.horizon, pad=cfg.short_interventions == "pad"))
+            samplers.append(recipe.ChunkSampler(D, cfg.horizon))
         else:
             kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
-            samplers.append(relabel.AugmentationSampler(
-                D, lambda: make_run_env(cfg), stats, kind, sigma,
-                relabel.RelabelConfig(horizon=cfg.horizon, pad_short=cfg.short_interventions == "pad")))
-        weights.append(share)
+            samplers.append(recipe.AugmentationSampler(D, lambda: make_run_env(cfg), stats, kind, sigma,
+                                                       relabel.RelabelConfig(horizon=cfg.horizon)))
         offset += len(D)
-    return relabel.MixtureSampler(samplers, weights)
+    frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
+    return relabel.MixtureSampler(samplers, recipe.round_shares(frames))
 
 
 def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
@@ -531,7 +522,7 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
                 f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
                 f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
                                                   ", every drawn frame noised and relabelled")
-                + (" (continuing pi_0's optimizer and schedule)" if cfg.finetune == "continue" else ""))
+                + f" (recipe {cfg.recipe}: continuing pi_0's optimizer)")
         return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
                                  cfg.intervention_fraction)
 
@@ -539,35 +530,30 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
 
 
 def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
-    """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name` by cfg.finetune: 'continue' goes on with pi_0's
-    AdamW state along its cosine to bc_steps + finetune_steps (the authors' planar run); 'constant' goes on with
-    it at a constant lr / 10 (their lever run: 1e-6 after BC's 1e-5 peak)."""
+    """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name`, continuing its AdamW state and step count to
+    bc_steps + finetune_steps along the recipe's schedule (the paper's: pi_0's own cosine, to its end)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
     total = cfg.bc_steps + cfg.finetune_steps
-    if cfg.finetune == "continue":
-        tc = train_config(cfg, policy, total, seed, schedule_steps=total, aug_fraction=aug_fraction)
-    else:
-        tc = train_config(cfg, policy, total, seed, lr=cfg.lr / 10, aug_fraction=aug_fraction, constant_lr=True)
+    tc = train_config(cfg, policy, total, seed, aug_fraction=aug_fraction, **RECIPES[cfg.recipe].arm_training(cfg))
     return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
 
 
-def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, constant_lr=False):
+def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, lr_schedule="cosine"):
     """diffusion.TrainConfig of a run to step `steps`: AdamW at peak lr, warm-up, a cosine that ends at
-    schedule_steps (0: steps) -- or, constant_lr, lr throughout --, the authors' observation noise;
-    aug_fraction of every batch from the sampler."""
+    schedule_steps (0: steps), the authors' observation noise; aug_fraction of every batch from the sampler."""
     return diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=lr or cfg.lr, seed=seed,
                                  warmup_steps=min(500, (schedule_steps or steps) // 10), schedule_steps=schedule_steps,
-                                 constant_lr=constant_lr, aug_fraction=aug_fraction,
-                                 obs_noise=observation_noise(cfg, policy.cfg))
+                                 lr_schedule=lr_schedule, aug_fraction=aug_fraction,
+                                 obs_noise=observation_noise(policy.cfg))
 
 
-def observation_noise(cfg, policy_cfg):
+def observation_noise(policy_cfg):
     """Per-entry std (obs_dim,) of the training observation noise, raw units (PAPER_SETUP.md §2): the
-    joints at t and t-1 get obs_noise_joints rad, the other low-dimensional numbers obs_noise_env m, the entries
+    joints at t and t-1 get OBS_NOISE_JOINTS rad, the other low-dimensional numbers OBS_NOISE_ENV m, the entries
     an observation encoder owns (a variant's camera image) none."""
     std = np.zeros(policy_cfg.obs_dim)
-    std[:2 * policy_cfg.dof] = cfg.obs_noise_joints
-    std[2 * policy_cfg.dof:policy_cfg.low_dim] = cfg.obs_noise_env
+    std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
+    std[2 * policy_cfg.dof:policy_cfg.low_dim] = OBS_NOISE_ENV
     return std
 
 
@@ -576,7 +562,7 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     folder)."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
-    demos, source = run.load("data/D0.npz"), data_lineage(cfg, lineage)
+    demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
     rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
     calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
     policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
@@ -626,9 +612,14 @@ def evaluation(run, policy, label, scenarios):
     env = make_run_env(cfg)
     seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
     ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act,
-                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), env_options(cfg), log=run.log)
+                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), log=run.log)
     run.log(f"  eval {label}: success {100 * ok.mean():.1f}% ({ok.size} episodes, {time.time() - t0:.0f} s)")
     return {"success": ok.tolist(), "seeds": list(map(int, seeds))}
+
+
+def unseen_name(name):
+    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
+    return name[:-len(".json")] + "_unseen.json"
 
 
 # Episodes run in lockstep at most this many at a time, per env. Each EngineReach3D holds its own pybullet
@@ -636,11 +627,8 @@ def evaluation(run, policy, label, scenarios):
 MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}  # by the paper's env (envs.paper_env)
 
 
-def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, max_parallel="env default",
-             log=None):
+def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env default", log=None):
     """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
-
-    env_options: keyword arguments of envs.make_env (e.g. start='random'), the same as in training.
 
     The len(seeds) * repeats episodes run in lockstep (one policy call per decision), in groups of at most
     max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once) to bound memory. The sampling
@@ -649,13 +637,12 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, env_options=None, ma
     """
     jobs = [int(s) for _ in range(repeats) for s in seeds]
     gen = torch.Generator(device=policy.device).manual_seed(seed)
-    ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, env_options,
-                                                                 max_parallel, log)], bool)
+    ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, max_parallel,
+                                                                 log)], bool)
     return ok.reshape(repeats, len(seeds)).T
 
 
-def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=None, max_parallel="env default",
-                       log=None):
+def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="env default", log=None):
     """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
     max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once). A group's envs stay open while the
     caller reads its pairs (e.g. to classify how an episode ended) and are closed before the next group starts,
@@ -666,7 +653,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=Non
     for start in range(0, len(jobs), group):
         env_list = []
         for s in jobs[start:start + group]:
-            e = envs.make_env(env_name, **(env_options or {}))
+            e = envs.make_env(env_name)
             e.reset(seed=s)
             env_list.append(e)
         yield from zip(env_list, rollout(env_list, policy, n_act, generator, log=log))
@@ -677,7 +664,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, env_options=Non
 
 # ----------------------------------------------------------------------------------------------
 # Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma, over lineages.
-# Self-written, no scipy; summarize (below the banner) applies them to the table, with the Student-t CDF.
+# Self-written, no scipy (the Student-t CDF below them); summarize applies them to the table.
 # ----------------------------------------------------------------------------------------------
 def paired_ttest(a, b):
     """Two-sided paired t-test of mean(a - b) = 0. Returns (t, df, p). Needs >= 2 pairs."""
@@ -719,48 +706,54 @@ def tost(a, b, margin):
     # <<< exercise 13
 
 
-# ==== Beyond the paper (safe to skip) ====================================================
-# The paper's figures from a finished round (make_figures), the table's statistics over lineages (summarize),
-# the env/oracle/policy factories and file names, the Student-t CDF, the report and the entry point. The run
-# folder, workers, command line and profiles themselves are in experiment/.
+def student_t_cdf(t, df):
+    """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
+    if df <= 0:
+        raise ValueError(f"degrees of freedom must be > 0, got {df}")
+    if math.isinf(t):
+        return 1.0 if t > 0 else 0.0
+    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
+    return 1.0 - tail if t > 0 else tail
 
-def make_figures(run, demos, stats):
-    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
-    cfg = run.cfg
-    fig = lambda name: run.path("figures", name)  # noqa: E731
-    env = make_run_env(cfg)
-    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
-        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
-    else:
-        env.reset(seed=int(demos[0]["seed"]))
-        envs.render_scene_image(env, fig("fig5_environment.png"))
-    env.plot_policy_view(demos[0], fig("fig5_policy_view.png"))  # a variant's camera input; the paper's envs: none
-    if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
-        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
-        return
-    D1 = run.load("lineage_0/round_1/D.npz")
-    cal = calibrate.Calibration.from_dict(run.load("lineage_0/round_1/calibration.json"))
-    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
-    calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
-    policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
-    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
-    # the episode with the longest intervention shows the method best
-    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
-    episode = D1[e]
-    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
-    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
-    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
-                                   generator=gen())
-    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
-                          np.random.default_rng(stage_seed(cfg, "fig1")), stats)
-    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
-    end = min(t + cfg.horizon, len(episode["action"]))
-    chunk = episode["action"][t:end]
-    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
-    env.reset(seed=int(episode["seed"]))
-    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
-                                           fig("fig3_partial_denoising.png"), gen(),
-                                           q=episode["q"][t])
+
+def incomplete_beta(a, b, x):
+    """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
+    if not 0.0 <= x <= 1.0:
+        raise ValueError(f"incomplete_beta needs 0 <= x <= 1, got {x}")
+    if x in (0.0, 1.0):
+        return x
+    log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
+                 + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):  # the continued fraction converges fast here
+        return math.exp(log_front) * _betacf(a, b, x) / a
+    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
+
+
+def _betacf(a, b, x, max_iter=300, eps=1e-15):
+    """Continued fraction of the regularized incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, max_iter + 1):
+        # even step: d_{2m} = m (b - m) x / ((a + 2m - 1)(a + 2m))
+        num = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
+        d = 1.0 + num * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + num / c
+        c = c if abs(c) > tiny else tiny
+        h *= d * c
+        # odd step: d_{2m+1} = -(a + m)(a + b + m) x / ((a + 2m)(a + 2m + 1))
+        num = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
+        d = 1.0 + num * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + num / c
+        c = c if abs(c) > tiny else tiny
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < eps:
+            break
+    return h
 
 
 def summarize(cfg, results):
@@ -805,7 +798,7 @@ def summarize(cfg, results):
 
 def paired_statistics(cfg, values):
     """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
-    sigma (TOST, cfg.tost_margin); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
+    sigma (TOST, TOST_MARGIN); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
     stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}}
     hg = values("hg_dagger")
     fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
@@ -825,10 +818,10 @@ def paired_statistics(cfg, values):
             ref = values(best_fixed)
             common = sorted(set(mine) & set(ref))
             if len(common) >= 2:
-                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], cfg.tost_margin)
+                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], TOST_MARGIN)
                 stats["tost_vs_best_fixed"][method] = {
                     "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
-                    "p": p, "margin": cfg.tost_margin,
+                    "p": p, "margin": TOST_MARGIN,
                     "degenerate": degenerate([mine[l] for l in common], [ref[l] for l in common])}
     return stats
 
@@ -847,104 +840,50 @@ def degenerate(a, b):
                 "so t and p are undefined")
     return None
 
+# ----------------------------------------------------------------------------------------------
+# The paper's figures (fig1-fig5) from lineage 0, round 1
+# ----------------------------------------------------------------------------------------------
+def make_figures(run, demos, stats):
+    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
+    cfg = run.cfg
+    fig = lambda name: run.path("figures", name)  # noqa: E731
+    env = make_run_env(cfg)
+    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
+        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
+    else:
+        env.reset(seed=int(demos[0]["seed"]))
+        envs.render_scene_image(env, fig("fig5_environment.png"))
+    env.plot_policy_view(demos[0], fig("fig5_policy_view.png"))  # a variant's camera input; the paper's envs: none
+    if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
+        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
+        return
+    D1 = run.load("lineage_0/round_1/D.npz")
+    cal = calibrate.Calibration.from_dict(run.load("lineage_0/round_1/calibration.json"))
+    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
+    calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
+    policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
+    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
+    # the episode with the longest intervention shows the method best
+    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
+    episode = D1[e]
+    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
+    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
+    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
+                                   generator=gen())
+    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
+                          np.random.default_rng(stage_seed(cfg, "fig1")), stats)
+    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
+    end = min(t + cfg.horizon, len(episode["action"]))
+    chunk = episode["action"][t:end]
+    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
+    env.reset(seed=int(episode["seed"]))
+    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
+                                           fig("fig3_partial_denoising.png"), gen(),
+                                           q=episode["q"][t])
 
-def pi0_eval_name(cfg):
-    """pi_0's evaluation: its own file under finetune='continue', the table's BC row under 'constant'."""
-    return "eval/pi0.json" if cfg.finetune == "continue" else "eval/bc.json"
-
-
-def unseen_name(name):
-    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
-    return name[:-len(".json")] + "_unseen.json"
-
-
-def calibration_config(cfg):
-    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts (one blended
-    rollout per ratio from every long enough intervention segment, calibrate.blend_schedule)."""
-    return calibrate.CalibrationConfig(n_samples=cfg.calib_samples, n_act=cfg.n_act,
-                                       unguided="unguided_pooled" in cfg.methods)
-
-
-def env_options(cfg):
-    """envs.make_env keyword arguments of this run (the UR5's goal angle is an env option)."""
-    options = {}
-    if cfg.goal_angle is not None:
-        options["goal_angle_tolerance"] = cfg.goal_angle
-    return options
-
-
-def make_run_env(cfg):
-    """A fresh env of this run's kind (one per scenario in rollouts)."""
-    return envs.make_env(cfg.env, **env_options(cfg))
-
-
-def make_oracle(cfg, *keys):
-    """The RRT expert; keys (e.g. lineage, round) give an intervention run its own planner seed."""
-    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle", *keys), horizon=cfg.horizon,
-                                                     n_attempts=cfg.oracle_attempts))
-
-
-def make_policy(cfg, env):
-    """A fresh diffusion policy for this run's env and network (diffusion.PolicyConfig); the env says how the
-    policy reads its observation (env.obs_encoder)."""
-    pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, down_dims=cfg.down_dims, joint_obs=cfg.joint_obs, network=cfg.network,
-                                mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
-                                obs_encoder_args=dict(env.obs_encoder_args),
-                                seed=stage_seed(cfg, "init"))
-    return diffusion.DiffusionPolicy(pc, device=cfg.device)
-
-
-def _betacf(a, b, x, max_iter=300, eps=1e-15):
-    """Continued fraction of the regularized incomplete beta function (modified Lentz)."""
-    tiny = 1e-300
-    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
-    d = 1.0 / (d if abs(d) > tiny else tiny)
-    h = d
-    for m in range(1, max_iter + 1):
-        # even step: d_{2m} = m (b - m) x / ((a + 2m - 1)(a + 2m))
-        num = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
-        d = 1.0 + num * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + num / c
-        c = c if abs(c) > tiny else tiny
-        h *= d * c
-        # odd step: d_{2m+1} = -(a + m)(a + b + m) x / ((a + 2m)(a + 2m + 1))
-        num = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
-        d = 1.0 + num * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + num / c
-        c = c if abs(c) > tiny else tiny
-        delta = d * c
-        h *= delta
-        if abs(delta - 1.0) < eps:
-            break
-    return h
-
-
-def incomplete_beta(a, b, x):
-    """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
-    if not 0.0 <= x <= 1.0:
-        raise ValueError(f"incomplete_beta needs 0 <= x <= 1, got {x}")
-    if x in (0.0, 1.0):
-        return x
-    log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
-                 + a * math.log(x) + b * math.log1p(-x))
-    if x < (a + 1.0) / (a + b + 2.0):  # the continued fraction converges fast here
-        return math.exp(log_front) * _betacf(a, b, x) / a
-    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
-
-
-def student_t_cdf(t, df):
-    """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
-    if df <= 0:
-        raise ValueError(f"degrees of freedom must be > 0, got {df}")
-    if math.isinf(t):
-        return 1.0 if t > 0 else 0.0
-    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
-    return 1.0 - tail if t > 0 else tail
-
-
+# ----------------------------------------------------------------------------------------------
+# The report and the entry point (the run folder, workers, command line and profiles are in experiment/)
+# ----------------------------------------------------------------------------------------------
 def write_report(run):
     """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
     table figures, the paper's figures and report.md (experiment/report.py writes them). Returns the table."""
@@ -990,7 +929,7 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, wo
 
 def parse_args(argv):
     """(args, cfg) of a command line (experiment/cli.py) with this file's profiles and methods."""
-    return cli.parse_args(argv, PROFILES, ALL_METHODS)
+    return cli.parse_args(argv, PROFILES, ALL_METHODS, RECIPES)
 
 
 def main(argv=None):

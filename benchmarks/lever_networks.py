@@ -9,8 +9,8 @@ Each candidate is a profile (default table2) with some dagger.Config fields chan
 (H and the steps executed), the widths, the batch, the steps, the fine-tuning mode -- run as
 `python dagger.py --prepare` in its own folder OUT/<candidate>/: D0 (collected once in OUT/D0/ and copied into
 every candidate's folder, so all of them learn from the same demonstrations), pi_0 and its evaluation on the
-evaluation scenarios; then the table's BC row (dagger.bc_row_arm: under finetune='continue' pi_0 continued on
-D0 alone for finetune_steps more, the budget every cell of the table trains; else pi_0 itself). Every stage is a
+evaluation scenarios; then the table's BC row (dagger.bc_row_arm: under the paper's recipe pi_0 continued on
+D0 alone for finetune_steps more, the budget every cell of the table trains; under authors_lever pi_0 itself). Every stage is a
 file: a stopped benchmark resumes where it stopped.
 
 Prints a markdown table: the candidate's fields, its parameter count, training steps per CPU-second and the
@@ -39,7 +39,7 @@ from experiment.workers import in_parallel  # noqa: E402
 
 # dagger.Config fields each candidate changes in the base profile. The continued ones train pi_0 for bc_steps of
 # one cosine of bc_steps + finetune_steps (the mid recipe, and the table2 profile's since unet16_b256 was chosen).
-CONTINUED = dict(batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000, finetune="continue")
+CONTINUED = dict(batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000, recipe="paper")
 # (The earlier table2 recipe, U-Net (32, 64, 128), batch 64, BC 30k with its fine-tuning restarted -- measured:
 # pi_0 49.0 %, 48 min -- is gone with finetune='restart': benchmarks/README.md keeps its numbers.)
 CANDIDATES = {
@@ -50,8 +50,8 @@ CANDIDATES = {
     # the U-Net's temporal convolutions at half the widths, batch 256, continued
     "unet16_b256": dict(network="unet", down_dims=(16, 32, 64), **CONTINUED),
     # the same U-Net with pi_0 at the end of its own cosine: the pi_0 of the authors' lever fine-tuning
-    # (finetune='constant': every arm continues it at a constant lr / 10; the BC row is pi_0 itself)
-    "unet16_b256_constant": dict(network="unet", down_dims=(16, 32, 64), **{**CONTINUED, "finetune": "constant"}),
+    # (recipe authors_lever, experiment/lever.py: every arm continues it at a constant lr / 10; the BC row is pi_0)
+    "unet16_b256_constant": dict(network="unet", down_dims=(16, 32, 64), **{**CONTINUED, "recipe": "authors_lever"}),
 }
 DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two new ones (measured: benchmarks/README.md, "ε-networks ...")
 TIMED_STEPS = 200  # training steps timed for the CPU cost of a step
@@ -114,14 +114,15 @@ def result_row(out, name):
     cfg = dagger.Config(**without_retired_fields(path, read_json(path)))  # a folder may predate a deleted option
     pi0 = Run(root, cfg).load("checkpoints/bc.pt")
     seconds = cfg.bc_steps * read_json(os.path.join(root, "cpu_per_step.json"))["seconds"]  # pi_0's training, CPU
-    pi0_eval = dagger.pi0_eval_name(cfg)
+    # pi_0's own evaluation (a folder made before issue 41 under the lever recipe has only the BC row's, the same)
+    pi0_eval = "eval/pi0.json" if os.path.exists(os.path.join(root, "eval", "pi0.json")) else "eval/bc.json"
     success = {key: 100.0 * float(np.mean(read_json(os.path.join(root, *path.split("/")))["success"]))
                for key, path in (("pi0", pi0_eval), ("bc_row", "eval/bc.json"))}
     evaluation = read_json(os.path.join(root, "timings", timing_name(pi0_eval).replace("/", "__") + ".json"))
     net = (f"U-Net {tuple(cfg.down_dims)}" if cfg.network == "unet"
            else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks}")
     return {"candidate": name, "network": net, "chunk": f"{cfg.horizon} / {cfg.n_act}", "batch": cfg.batch_size,
-            "bc_steps": cfg.bc_steps, "finetune": cfg.finetune,
+            "bc_steps": cfg.bc_steps, "finetune": cfg.recipe,
             "params": sum(p.numel() for p in pi0.net.parameters()),
             "steps_per_s": cfg.bc_steps / seconds, "bc_minutes": seconds / 60.0,
             "pi0": success["pi0"], "bc_row": success["bc_row"],

@@ -17,9 +17,9 @@ import envs
 from experiment.run_folder import ConfigMismatch, RunFolderError
 
 
-def parse_args(argv, profiles, methods):
+def parse_args(argv, profiles, methods, recipes):
     """(args, cfg): the profile's config with the command line's overrides and a run-folder name that says
-    what differs from the profile. methods: every valid method name."""
+    what differs from the profile. methods: every valid method name; recipes: dagger.RECIPES."""
     p = argparse.ArgumentParser(
         prog="dagger.py",
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
@@ -30,28 +30,17 @@ def parse_args(argv, profiles, methods):
                         "rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS),
-                   help="environment (default planar): planar, engine3d, or a research variant's, e.g. engine3d_image "
+                   help="environment (default planar): planar, engine3d, or a research variant's: engine3d_image "
                         "(experiment/image_obs.py: the UR5 policy sees a camera image through a small CNN instead of "
-                        "the obstacle list)")
-    p.add_argument("--goal-angle", type=float, default=None, metavar="DEG",
-                   help="engine3d: success also needs the tool within DEG degrees of the goal posture's "
-                        "orientation (the authors' rule: 10), and the oracle ends at that posture")
+                        "the obstacle list), engine3d_oriented (experiment/oriented_goal.py: success also needs the "
+                        "tool's orientation within the authors' 10 degrees)")
     p.add_argument("--methods", default=None,
                    help=f"comma-separated subset of: {','.join(methods)} (BC and HG-DAgger always run)")
-    p.add_argument("--finetune", default=None, choices=("continue", "constant"),
-                   help="how every arm is fine-tuned from pi_0: continue (pi_0's optimizer along one cosine, the "
-                        "authors' planar runs) or constant (pi_0's optimizer at a constant lr / 10, their lever "
-                        "runs); default: the profile's")
-    p.add_argument("--round-shares", default=None, choices=("equal", "frames"),
-                   help="the intervention share of a batch split over rounds equally (the authors' planar runs) "
-                        "or by frame count (their lever runs); default: the profile's")
-    p.add_argument("--short-interventions", default=None, choices=("drop", "pad"),
-                   help="interventions shorter than the chunk: drop (the paper's label rule) or pad (the authors' "
-                        "lever runs: kept, their chunks padded and the padded steps out of the loss); default: "
-                        "the profile's")
-    p.add_argument("--replicates", default=None, choices=("lineages", "seeds"),
-                   help="what a lineage is: lineages (independent chains, Table I) or seeds (the authors' lever "
-                        "runs: training seeds on lineage 0's interventions and calibrations); default: lineages")
+    p.add_argument("--recipe", default=None, choices=sorted(recipes),
+                   help="how pi_0 and every arm train: paper (the authors' planar runs: every arm continues pi_0's "
+                        "optimizer along one cosine), or a research variant's, e.g. authors_lever (experiment/lever.py: "
+                        "their lever runs' constant lr, padded short interventions, frame shares; authors_lever_seeds: "
+                        "training seeds on lineage 0's interventions); default: the profile's")
     p.add_argument("--rounds", type=int, default=None, help="HG-DAgger rounds K")
     p.add_argument("--lineages", type=int, default=None, help="number of lineages")
     p.add_argument("--lineage", type=int, default=None,
@@ -76,8 +65,8 @@ def parse_args(argv, profiles, methods):
                         "calibrations, timings; no checkpoints), for --join in another folder or a commit")
     p.add_argument("--copy-from", default=None, metavar="FOLDER",
                    help="first copy in the finished stages of FOLDER, a run of the same config with fewer methods "
-                        "(e.g. runs/table2 for --methods ...,zero_noise), so only the added methods train; with another "
-                        "--replicates, only lineage 0 (the same under both designs) is copied")
+                        "(e.g. runs/table2 for --methods ...,zero_noise), so only the added methods train; from "
+                        "--recipe authors_lever to authors_lever_seeds or back, only lineage 0 (the same in both)")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
     args = p.parse_args(argv)
@@ -87,16 +76,8 @@ def parse_args(argv, profiles, methods):
         over["env"] = args.env
     if args.methods:
         over["methods"] = parse_methods(p, args.methods, methods)
-    if args.goal_angle is not None:
-        over["goal_angle"] = args.goal_angle
-    if args.finetune:
-        over["finetune"] = args.finetune
-    if args.round_shares:
-        over["round_shares"] = args.round_shares
-    if args.short_interventions:
-        over["short_interventions"] = args.short_interventions
-    if args.replicates:
-        over["replicates"] = args.replicates
+    if args.recipe:
+        over["recipe"] = args.recipe
     if args.no_eval_unseen:
         over["eval_unseen"] = False
     for key in ("rounds", "lineages", "seed"):
@@ -108,7 +89,7 @@ def parse_args(argv, profiles, methods):
         if args.device.startswith("cuda") and not torch.cuda.is_available():
             p.error(f"--device {args.device}: no CUDA device is available here; use --device cpu")
         over["device"] = args.device
-    over["name"] = folder_name(cfg, over, args)
+    over["name"] = folder_name(cfg, over)
     try:
         cfg = replace(cfg, **over)
     except ValueError as err:
@@ -139,16 +120,12 @@ def parse_methods(parser, text, methods):
     return tuple(names)
 
 
-def folder_name(cfg, over, args):
+def folder_name(cfg, over):
     """The run folder's name: the profile's, plus whatever the command line changed that changes results
-    (another env, goal angle, fine-tuning, round shares, short interventions, replicates, set of methods)."""
-    env = over.get("env", cfg.env)
+    (another env, recipe, set of methods)."""
+    env, recipe = over.get("env", cfg.env), over.get("recipe", cfg.recipe)
     name = cfg.name + ("" if env == cfg.env else f"_{env}")  # another env than the profile's: own folder
-    name += f"_goal_angle{args.goal_angle:g}" if args.goal_angle is not None else ""
-    name += f"_{over['finetune']}" if over.get("finetune", cfg.finetune) != cfg.finetune else ""
-    name += "_frame_shares" if over.get("round_shares", cfg.round_shares) != cfg.round_shares else ""
-    name += "_pad_short" if over.get("short_interventions", cfg.short_interventions) != cfg.short_interventions else ""
-    name += "_seed_replicates" if over.get("replicates", cfg.replicates) != cfg.replicates else ""
+    name += "" if recipe == cfg.recipe else f"_{recipe}"
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     return name

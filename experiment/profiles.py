@@ -5,6 +5,8 @@ nanoGPT keeps its run configurations beside train.py. dagger.PROFILES builds the
 """
 from __future__ import annotations
 
+import numpy as np
+
 import diffusion
 import envs
 
@@ -18,13 +20,12 @@ PROFILES = {
     "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, K=10,
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                    calib_samples=4, eval_scenarios=8, eval_repeats=1),
+                    eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 6 min 55 s - 9 min 5 s wall over three seeds on the 2-core machine, --workers 2
     # (benchmarks/README.md, "The quick profile today").
     "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
-                    finetune="continue",
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
     # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
     # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, Table I's whole fixed sweep
@@ -38,7 +39,6 @@ PROFILES = {
     # (benchmarks/README.md, "The mid run with Table I's whole sweep").
     "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                  finetune="continue",
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
                   eval_scenarios=100, eval_repeats=3),
     # All of Table I on the 2-core machine: the mid recipe with the paper's five rounds and every row (the fixed
@@ -49,8 +49,7 @@ PROFILES = {
     # benchmarks/README.md, "All of Table I: one whole table1 lineage").
     "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
-                     finetune="continue",
-                     methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
+                      methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
                               "per_step", "closed_loop"),
                      eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the UR5 engine-lever env with Table II's rows (BC, HG-DAgger, pooled
@@ -64,7 +63,7 @@ PROFILES = {
     # (benchmarks/README.md, "The Table II analogue today").
     "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3,
                      K=20, down_dims=(16, 32, 64), batch_size=256, lr=1e-3, bc_steps=10_000,
-                     finetune_steps=10_000, finetune="continue",
+                     finetune_steps=10_000,
                      methods=("bc", "hg_dagger", "fixed_4", "fixed_8", "pooled"),
                      eval_scenarios=100, eval_repeats=3),
     # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
@@ -73,9 +72,10 @@ PROFILES = {
 }
 
 
-def check_config(cfg, methods):
+def check_config(cfg, methods, recipes):
     """dagger.Config.__post_init__: BC and HG-DAgger first in methods, tuples where JSON gives lists, and a
-    clear ValueError for a field outside its valid values. methods: every valid method name."""
+    clear ValueError for a field outside its valid values, before any folder is made. methods: every valid
+    method name; recipes: dagger.RECIPES."""
     cfg.methods = tuple(cfg.methods)
     bad = [m for m in cfg.methods if m not in methods]
     if bad:
@@ -89,27 +89,18 @@ def check_config(cfg, methods):
                 "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
-    if cfg.goal_angle is not None and (envs.paper_env(cfg.env) != "engine3d" or not 0.0 < cfg.goal_angle <= 180.0):
-        raise ValueError(f"goal_angle: {cfg.goal_angle!r} is an option of the engine3d env (and its variants) only, in "
-                         f"degrees within (0, 180] (the authors' 10), or None for position-only success")
-    if cfg.finetune not in ("continue", "constant"):
-        raise ValueError(f"finetune must be 'continue' (the authors' planar run) or 'constant' (their lever run), "
-                         f"got {cfg.finetune!r}")
-    if cfg.replicates not in ("lineages", "seeds"):
-        raise ValueError(f"replicates must be 'lineages' (independent chains) or 'seeds' (training seeds on lineage "
-                         f"0's interventions), got {cfg.replicates!r}")
-    if cfg.replicates == "seeds" and "closed_loop" in cfg.methods:
-        raise ValueError("replicates='seeds' trains every lineage on lineage 0's interventions, but the closed_loop "
-                         "row collects its own chain of them: run it with replicates='lineages'")
-    if cfg.short_interventions not in ("drop", "pad"):
-        raise ValueError(f"short_interventions must be 'drop' (the paper's label rule) or 'pad' (the authors' lever "
-                         f"runs), got {cfg.short_interventions!r}")
-    if cfg.round_shares not in ("equal", "frames"):
-        raise ValueError(f"round_shares must be 'equal' (the authors' planar runs) or 'frames' (their lever "
-                         f"runs), got {cfg.round_shares!r}")
+    if cfg.recipe not in recipes:
+        raise ValueError(f"recipe must be one of {', '.join(recipes)} (paper: the authors' planar runs), "
+                         f"got {cfg.recipe!r}")
+    recipes[cfg.recipe].check(cfg)
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
     if not 0.0 < cfg.intervention_fraction < 1.0:
         raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
     if cfg.eval_scenarios > 100:
         raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {cfg.eval_scenarios}")
+    # every stage's seed is numpy's SeedSequence([seed, ...]) (run_folder.stage_seed): it takes no negative
+    # numbers, so a bad seed is refused here, before the run folder is made, not in the first stage
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, (int, np.integer)) or cfg.seed < 0:
+        raise ValueError(f"seed must be an integer >= 0 (the master seed every stage's seed is derived from), "
+                         f"got {cfg.seed!r}")

@@ -214,8 +214,8 @@ def format_table(cfg, table, stats, unseen=None):
                  f"evaluations; mean ± SE over lineages (count in parentheses; a single lineage has no ±: "
                  f"its spread is not measured). BC is one pi_0 shared by every lineage."
                  + (" A lineage here is a training seed: every lineage trains on lineage 0's interventions and "
-                    "calibrations (replicates='seeds', the authors' lever runs), so the spread is the training "
-                    "seeds' alone." if getattr(cfg, "replicates", "lineages") == "seeds" else ""))
+                    "calibrations (recipe authors_lever_seeds, the authors' lever runs), so the spread is the "
+                    "training seeds' alone." if cfg.recipe == "authors_lever_seeds" else ""))
     paper = paper_table(cfg)
     if paper:
         lines += ["", f"The paper's Table {table_number(cfg)} for the same rows and rounds (its "

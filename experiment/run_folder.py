@@ -44,7 +44,7 @@ FOLDER_FREE_FIELDS = ("device", "eval_unseen", "lineages")
 # (ConfigMismatch), naming the field. ANY_VALUE: a field that only a deleted option read (its value changed nothing).
 ANY_VALUE = None
 RETIRED_FIELDS = {
-    "finetune_lr": (None,),  # finetune='constant' runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
+    "finetune_lr": (None,),  # the lever recipe runs at lr / 10 (the authors' 1e-6 after BC's 1e-5)
     "raw_mix": (0.0,),  # a noised arm noises every intervention frame it draws (the authors' code)
     "start": (None, "random"),  # the authors' random starts (None: the env's default, 'random')
     "collect_on": ("eval",),  # HG-DAgger collects on the evaluation scenarios (the authors' protocol)
@@ -53,9 +53,23 @@ RETIRED_FIELDS = {
     "calib_blend_segments": (0,),  # every long enough intervention segment starts blended rollouts
     "image_obs": (False,),  # camera images are an env variant now: --env engine3d_image (experiment/image_obs.py)
     "image_size": ANY_VALUE,  # read only by image_obs (the variant's image size is its own)
+    "goal_angle": (None,),  # position-only success; the authors' 10 degrees is the env variant engine3d_oriented
+    "joint_obs": (True,),  # chunks relative to q_t, the policy sees the velocity (measured, adopted)
+    "calib_samples": (4,),  # policy samples per anchor of Sigma_hat: calibrate.CalibrationConfig's (the authors')
+    "tost_margin": (2.0,),  # dagger.TOST_MARGIN (the paper's +-2)
+    "obs_noise_joints": (0.01,),  # dagger.OBS_NOISE_JOINTS (the authors')
+    "obs_noise_env": (0.005,),  # dagger.OBS_NOISE_ENV (the authors')
 }
 # What to do instead, for a retired field that became a variant rather than being deleted.
-RETIRED_ADVICE = {"image_obs": "camera images are the env variant --env engine3d_image now (experiment/image_obs.py)"}
+RETIRED_ADVICE = {"image_obs": "camera images are the env variant --env engine3d_image now (experiment/image_obs.py)",
+                  "goal_angle": "the authors' 10 degrees is the env variant --env engine3d_oriented now "
+                                "(experiment/oriented_goal.py)"}
+# Four fields that one Config.recipe replaced: their combinations that ran a recipe which remains (dagger.RECIPES).
+RECIPE_FIELDS = {"finetune": "continue", "round_shares": "equal", "short_interventions": "drop",
+                 "replicates": "lineages"}  # each with its default
+RECIPE_OF_FIELDS = {("continue", "equal", "drop", "lineages"): "paper",
+                    ("constant", "frames", "pad", "lineages"): "authors_lever",
+                    ("constant", "frames", "pad", "seeds"): "authors_lever_seeds"}
 
 
 class Run:
@@ -126,7 +140,7 @@ class Run:
         """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
         run (a stopped run resumes from the last one), then the final file.
 
-        continue_from: the name of a finished policy with training state (pi_0 under finetune='continue')
+        continue_from: the name of a finished policy with training state (pi_0)
         whose optimizer and step count go on to train_cfg.steps; keep_state: the final file keeps the
         optimizer state, for runs that continue from it.
         """
@@ -264,9 +278,9 @@ def copy_from(run, src):
     (a row added to a finished run, e.g. the sigma = 0 control beside table2): its data, checkpoints, evaluations,
     timings and lineages are copied in, each lineage.json given this folder's config, so only the new methods'
     stages run. The stage seeds do not depend on the methods list: the copied stages are those this run would
-    compute. If src differs in `replicates` as well (independent lineages there, training seeds on lineage 0's
-    interventions here, or the reverse), only the shared stages and lineage 0 are copied: lineage 0 is the same
-    run under both designs, the others are not. Refused (ConfigMismatch) if src differs in any other field
+    compute. If src ran the other of the recipes authors_lever / authors_lever_seeds (independent lineages there,
+    training seeds on lineage 0's interventions here, or the reverse), only the shared stages and lineage 0 are
+    copied: lineage 0 is the same run under both, the others are not. Refused (ConfigMismatch) if src differs in any other field
     (FOLDER_FREE_FIELDS aside), runs a method this run lacks, or has another pi_0 than one already here; files
     already here are kept. Returns the count."""
     path = os.path.join(src, "config.json")
@@ -279,10 +293,14 @@ def copy_from(run, src):
     if extra:
         raise ConfigMismatch(f"--copy-from {src}: it runs {', '.join(extra)}, which this run does not; copy only from "
                              f"a folder whose methods are among this run's ({', '.join(cfg.methods)})")
-    lineage_0_only = old.get("replicates", "lineages") != cfg.replicates
-    check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name, "replicates": cfg.replicates}, cfg,
-                      advice="--copy-from takes the stages of a run that differs only in its methods (and "
-                             "replicates): run the other fields' change from scratch in its own folder.")
+    old = without_retired_fields(src, old)
+    lever = {"authors_lever", "authors_lever_seeds"}
+    lineage_0_only = old.get("recipe", "paper") != cfg.recipe and {old.get("recipe"), cfg.recipe} == lever
+    check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name,
+                            **({"recipe": cfg.recipe} if lineage_0_only else {})}, cfg,
+                      advice="--copy-from takes the stages of a run that differs only in its methods (or in "
+                             "authors_lever / authors_lever_seeds): run the other fields' change from scratch in its own "
+                             "folder.")
     pi0_src, pi0_here = (os.path.join(r, "checkpoints", "bc.pt") for r in (src, run.root))
     if os.path.exists(pi0_src) and os.path.exists(pi0_here) and weights_sha256(pi0_src) != weights_sha256(pi0_here):
         raise ConfigMismatch(f"--copy-from {src}: its pi_0 differs from the one already in {run.root} (another "
@@ -309,7 +327,7 @@ def copy_from(run, src):
                 os.replace(tmp, dst)  # a stage is finished only when its file is complete
             copied += 1
     run.log(f"copied {copied} stage files from {src} (the same config, methods {', '.join(old.get('methods', ()))}"
-            + (f"; replicates {old.get('replicates', 'lineages')} there: lineage 0 only)" if lineage_0_only else ")"))
+            + (f"; recipe {old.get('recipe')} there: lineage 0 only)" if lineage_0_only else ")"))
     return copied
 
 
@@ -374,6 +392,14 @@ def folder_pi0(run):
 def without_retired_fields(where, stored):
     """The stored config `stored` (a dict) without its RETIRED_FIELDS, each checked to hold a value of the
     behaviour that remains; ConfigMismatch naming `where` and the field otherwise."""
+    if any(key in stored for key in RECIPE_FIELDS):
+        combination = tuple(stored.get(key, default) for key, default in RECIPE_FIELDS.items())
+        if combination not in RECIPE_OF_FIELDS:
+            raise ConfigMismatch(f"{where} was made with " + ", ".join(
+                f"{k} = {v!r}" for k, v in zip(RECIPE_FIELDS, combination)) + ", a combination no recipe runs now "
+                "(dagger.RECIPES: paper, authors_lever, authors_lever_seeds). Use the commit that made it to run or "
+                "report it.")
+        stored = {**{k: v for k, v in stored.items() if k not in RECIPE_FIELDS}, "recipe": RECIPE_OF_FIELDS[combination]}
     for key, allowed in RETIRED_FIELDS.items():
         if key in stored and allowed is not ANY_VALUE and stored[key] not in allowed:
             why = (f"a field that left the Config: {RETIRED_ADVICE[key]}" if key in RETIRED_ADVICE else

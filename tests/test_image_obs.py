@@ -22,7 +22,7 @@ from experiment.image_obs import EngineImageConfig, EngineReach3DImage, ImageEnc
 TINY_NET = dict(down_dims=(16, 32), n_groups=4, step_embed_dim=32)  # as tests/test_diffusion.py's
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32, methods=("bc", "hg_dagger", "pooled"),
-                     calib_samples=2, eval_scenarios=3, eval_repeats=1)
+                     eval_scenarios=3, eval_repeats=1)
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +148,7 @@ CNN_8 = dict(obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "fea
 def test_image_policy_reads_the_direction_from_the_image():
     obs, chunks, _ = image_direction_data(2000, seed=0)
     test_obs, _, left = image_direction_data(200, seed=1)
-    policy = tiny_policy(obs_dim=obs.shape[1], joint_obs=True, **CNN_8)
+    policy = tiny_policy(obs_dim=obs.shape[1], **CNN_8)
     train(policy, obs, chunks, TrainConfig(steps=200, batch_size=128, lr=1e-2, warmup_steps=50, log_every=0))
     samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
     moved_up = (samples[:, -1] - test_obs[:, None, :2][:, 0]).mean(axis=1) > 0
@@ -158,7 +158,7 @@ def test_image_policy_reads_the_direction_from_the_image():
 
 def test_image_policy_normalizer_layout_and_round_trip(tmp_path):
     obs, chunks, _ = image_direction_data(100, seed=3)
-    policy = tiny_policy(obs_dim=obs.shape[1], joint_obs=True, **CNN_8)
+    policy = tiny_policy(obs_dim=obs.shape[1], **CNN_8)
     assert policy.cfg.low_dim == 4 and policy.cfg.encoder_sizes == (64, 16)
     assert policy.cfg.cond_input_dim == 4 + 2 + 16                # low-dim, velocity, image code
     policy.fit_normalizer(obs, chunks)
@@ -255,11 +255,9 @@ def test_env_flag_chooses_the_variant_names_the_run_and_reaches_the_policy():
     assert policy.cfg.obs_encoder == "image_cnn" and policy.cfg.obs_encoder_args == {"shape": (3, 32, 32)}
     assert policy.cfg.obs_dim == env.obs_dim
     assert policy.cfg.obs_encoder_args is not env.obs_encoder_args   # a copy: the env's stays as it is
-    _, cfg = dagger.parse_args(["--env", "engine3d_image", "--goal-angle", "10", "--profile", "smoke"])
-    assert dagger.make_run_env(cfg).cfg.goal_angle_tolerance == 10.0  # an option of the lever and its variants
     # the training observation noise: joints and goal as the lever's, the pixels none
-    std = dagger.observation_noise(cfg, policy.cfg)
-    assert np.all(std[:12] == cfg.obs_noise_joints) and np.all(std[12:15] == cfg.obs_noise_env)
+    std = dagger.observation_noise(policy.cfg)
+    assert np.all(std[:12] == dagger.OBS_NOISE_JOINTS) and np.all(std[12:15] == dagger.OBS_NOISE_ENV)
     assert np.all(std[15:] == 0)
 
 
@@ -274,7 +272,7 @@ def test_evaluate_runs_an_image_policy_on_image_observations(monkeypatch):
     seen = []
     sample = policy.sample
     policy.sample = lambda o, generator=None: seen.append(o.shape) or sample(o, generator)
-    ok = dagger.evaluate(policy, name, env.eval_seeds()[:2], 1, cfg.n_act, 0, dagger.env_options(cfg))
+    ok = dagger.evaluate(policy, name, env.eval_seeds()[:2], 1, cfg.n_act, 0)
     assert ok.shape == (2, 1) and seen and all(shape[1] == env.obs_dim == 15 + 3 * 8 * 8 for shape in seen)
     with pytest.raises(ValueError, match="obs must have shape"):
         dagger.evaluate(policy, "engine3d", env.eval_seeds()[:1], 1, cfg.n_act, 0)  # no images: 127 != 207

@@ -1,0 +1,133 @@
+"""A research variant: the authors' lever recipe, how their UR5 runs trained (PAPER_SETUP.md §2; PCD lib_repro.sh
+lever_train and lever_seeds.sh), measured here as benchmarks/results/table2_authors_finetune(_seeds)
+(benchmarks/README.md, "The authors' lever fine-tuning" and "The authors' replicate design"). Run it with
+`python dagger.py --profile table2 --recipe authors_lever` (or authors_lever_seeds).
+
+Where it differs from the paper's recipe (dagger.PaperRecipe, the authors' planar runs, Table I):
+  - fine-tuning: pi_0 ends its own cosine at bc_steps; every arm continues pi_0's AdamW state at a constant
+    lr / 10 for finetune_steps more (their +20k at 1e-6 after BC's 1e-5 peak); the table's BC row is pi_0 itself;
+  - interventions shorter than H are kept (their teleop_pad_short_episodes): a chunk repeats its run's last action
+    past the run's end and those steps are out of the loss (do_mask_loss_for_padding); the noised arms draw states
+    at their steps too. D0 and the calibration keep the paper's rule;
+  - the intervention share of a batch is split over rounds in proportion to their intervention frames;
+  - authors_lever_seeds: every lineage trains on lineage 0's interventions and calibrations with its own training
+    seeds (three training seeds on one intervention set); lineage 0 runs first.
+
+It plugs in through what the core names: dagger.RECIPES (a recipe is the set of hooks below), diffusion.LR_SCHEDULES
+('constant'), and relabel.AugmentationSampler's label rule (a subclass). It never imports dagger.py.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+import diffusion
+import relabel
+from experiment.run_folder import RunFolderError
+
+
+# ---- the padded label rule (their teleop_pad_short_episodes, do_mask_loss_for_padding) ---------------------------
+def padded_chunks(episodes, H):
+    """(obs (N, obs_dim), chunks (N, H, dof), mask (N, H) bool) at every expert-driven step of every episode: the
+    chunk repeats its run's last action past the run's end, and the mask is False on those padded steps."""
+    obs_list, chunk_list, mask_list = [], [], []
+    for ep in episodes:
+        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"], bool)
+        starts, ends = padded_label_steps(expert, H)
+        steps = starts[:, None] + np.arange(H)[None, :]                 # (n, H)
+        last = ends[:, None] - 1                                         # the last step of each start's own run
+        obs_list.append(obs[starts].astype(np.float32))
+        chunk_list.append(action[np.minimum(steps, last)].astype(np.float32))
+        mask_list.append(steps <= last)
+    return np.concatenate(obs_list), np.concatenate(chunk_list), np.concatenate(mask_list)
+
+
+def padded_label_steps(expert, H):
+    """(t, seg_end): every step t of every expert run, however short, and the end (exclusive) of its run."""
+    expert = np.asarray(expert, bool)
+    seg_end = np.zeros(len(expert), np.int64)
+    for start, end in expert_runs(expert):
+        seg_end[start:end] = end
+    t = np.flatnonzero(expert)
+    return t, seg_end[t]
+
+
+def expert_runs(expert):
+    """The maximal runs [start, end) of expert-driven steps, however short."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(expert, np.int8), [0]])))
+    return [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
+
+
+class PaddedChunkSampler:
+    """HG-DAgger's intervention rows as recorded, at every intervention step, with the padded steps' loss mask."""
+
+    def __init__(self, episodes, H):
+        self.obs, self.chunks, self.mask = padded_chunks(episodes, H)
+
+    def __call__(self, n, rng):
+        pick = rng.integers(len(self.obs), size=n)
+        return self.obs[pick], self.chunks[pick], self.mask[pick]
+
+
+class PaddedAugmentationSampler(relabel.AugmentationSampler):
+    """The noised arms' sampler with states drawn at every intervention step (the labels end with the run)."""
+    label_steps = staticmethod(padded_label_steps)
+
+
+def constant_lr(step, cfg):
+    """diffusion.LR_SCHEDULES['constant']: cfg.lr at every step, no warm-up or cosine."""
+    return cfg.lr
+
+
+diffusion.LR_SCHEDULES["constant"] = constant_lr
+
+
+# ---- the recipes (dagger.RECIPES) ----------------------------------------------------------------------------------
+class AuthorsLever:
+    """The authors' lever recipe; dagger.PaperRecipe names what each hook does in the paper's."""
+
+    def pi0_schedule_steps(cfg):
+        return 0  # pi_0 ends its own cosine at bc_steps
+
+    def arm_training(cfg):
+        return dict(lr=cfg.lr / 10, lr_schedule="constant")  # their 1e-6 after BC's 1e-5 peak
+
+    def bc_row(run, continued_on_d0):
+        return run.load("checkpoints/bc.pt")  # the table's BC row is pi_0 itself
+
+    def round_shares(frames):
+        return [f / sum(frames) for f in frames]  # by intervention frames
+
+    def kept_interventions(expert, H):
+        return np.asarray(expert, bool)  # every intervention, however short
+
+    ChunkSampler = PaddedChunkSampler
+    AugmentationSampler = PaddedAugmentationSampler
+
+    def data_lineage(run, lineage):
+        return lineage  # independent lineages
+
+    def check(cfg):
+        pass
+
+
+class AuthorsLeverSeeds(AuthorsLever):
+    """The lever recipe with seed replicates: lineage l > 0 trains on lineage 0's interventions and calibrations."""
+
+    def data_lineage(run, lineage):
+        if lineage > 0:
+            last = os.path.join(run.root, "lineage_0", f"round_{run.cfg.rounds}", "D.npz")
+            if not os.path.exists(last):
+                raise RunFolderError(f"recipe {run.cfg.recipe}: lineage {lineage} trains on lineage 0's interventions, "
+                                     f"and {last} is not there yet; run lineage 0 first (--lineage 0, or all lineages "
+                                     "in one command)")
+        return 0
+
+    def check(cfg):
+        if "closed_loop" in cfg.methods:
+            raise ValueError(f"recipe {cfg.recipe!r} trains every lineage on lineage 0's interventions, but the "
+                             "closed_loop row collects its own chain of them: run it with recipe 'authors_lever'")
+
+
+RECIPES = {"authors_lever": AuthorsLever, "authors_lever_seeds": AuthorsLeverSeeds}
