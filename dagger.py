@@ -249,7 +249,7 @@ def make_run_env(cfg):
 
 def make_oracle(cfg, *keys):
     """The RRT expert; keys (e.g. lineage, round) give an intervention run its own planner seed."""
-    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle", *keys), horizon=cfg.horizon,
+    return oracle_mod.Oracle(oracle_mod.OracleConfig(seed=stage_seed(cfg, "oracle", *keys),
                                                      n_attempts=cfg.oracle_attempts))
 
 

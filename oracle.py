@@ -40,7 +40,6 @@ class OracleConfig:
     """The authors' planner and gate (PAPER_SETUP.md §3; why ours differ: benchmarks/README.md, "What the loop
     takes from the authors' code"). Their counts are frames at 30 Hz, ours steps at 10 Hz: a third as many.
     A sweep is 0.5 * env.link_radius m of arm-point motion (Oracle.sweep; planar 0.0075 m)."""
-    horizon: int  # steps: H, the policy's chunk (dagger passes its own; it drops interventions shorter than H)
     max_goals: int = 32  # IK goal configurations handed to the planner, nearest first (theirs: 32)
     speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (theirs: 0.5 rad/s)
     a_max: float = 1.0  # rad/s^2 per joint (theirs)
@@ -609,8 +608,8 @@ class Plan:
 class Oracle:
     """Deterministic RRT expert: demonstrations (D0) and HG-DAgger interventions (D1..DK)."""
 
-    def __init__(self, config: OracleConfig):
-        self.cfg = config
+    def __init__(self, config: OracleConfig | None = None):
+        self.cfg = config or OracleConfig()
         if not self.cfg.margin > self.cfg.verify_margin >= 0.5:
             raise ValueError(f"OracleConfig needs margin > verify_margin >= 0.5 (sweeps; see the edge checks), "
                              f"got margin={self.cfg.margin}, verify_margin={self.cfg.verify_margin}")
@@ -811,7 +810,7 @@ if __name__ == "__main__":
     import envs
 
     env = envs.make_env("planar")
-    oracle = Oracle(OracleConfig(horizon=20))  # dagger.Config.horizon
+    oracle = Oracle()
     seed = env.eval_seeds()[0]
     episode = oracle.demonstrate(env, seed)
     plan = oracle.last_plan
@@ -821,8 +820,8 @@ if __name__ == "__main__":
     t = int(0.3 * len(episode["q"]))
     q, step = episode["q"][t] + 0.1, episode["q"][t] - episode["q"][t - 1]
     env.set_state(q, q - step)
-    print(f"gate on the expert's old actions from the drifted state: "
-          f"{oracle.gate(env).should_intervene(env, episode['action'][t:t + oracle.cfg.horizon])}")
+    chunk = episode["action"][t:t + 20]  # a chunk of H = 20 steps (dagger.Config.horizon)
+    print(f"gate on the expert's old actions from the drifted state: {oracle.gate(env).should_intervene(env, chunk)}")
     actions = oracle.intervention(env)
     print(f"intervention: drives {len(actions)} steps, handoff velocity matched: {oracle.last_plan.velocity_matched}")
     os.makedirs("runs", exist_ok=True)

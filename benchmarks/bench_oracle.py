@@ -84,7 +84,7 @@ def main():
         compare(args.compare, args.n, args.n_3d)
         return
     env = make_env("planar")
-    oracle = Oracle(OracleConfig(horizon=HORIZON))
+    oracle = Oracle()
     v_max, a_max, j_max = oracle.limits(env)
     seeds = env.eval_seeds()[: args.n] if args.seeds == "eval" else env.train_seeds(args.n)
     rows, failures = [], []
@@ -253,8 +253,7 @@ def compare(rev, n_planar, n_3d):
             cells = []
             for label, module in oracles.items():
                 # an older oracle.py's OracleConfig may have no horizon field (or a default for it)
-                fields = module.OracleConfig.__dataclass_fields__
-                expert = module.Oracle(module.OracleConfig(**({"horizon": HORIZON} if "horizon" in fields else {})))
+                expert = module.Oracle(module.OracleConfig())
                 counts = count_planning_checks(env, expert)
                 del step_collisions[:]
                 try:

@@ -303,7 +303,7 @@ def test_hg_dagger_rollout_rewinds_hands_back_and_keeps_a_consistent_record():
     steps (or its whole plan), at most max_interventions per episode."""
     import envs
     import oracle as oracle_mod
-    oracle = oracle_mod.Oracle(oracle_mod.OracleConfig(horizon=20, n_attempts=1, stall_window=20))
+    oracle = oracle_mod.Oracle(oracle_mod.OracleConfig(n_attempts=1, stall_window=20))
     env_list = []
     # the 4 of 20 scenes whose goal lies farthest from the start in joint space: every plan is longer than the
     # hand-back range (where the goal is a few steps away the oracle's whole plan is a shorter intervention)

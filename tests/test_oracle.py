@@ -18,12 +18,12 @@ V_MAX = 0.5
 A_MAX = V_MAX / (4 * DT)
 J_MAX = A_MAX / (2 * DT)
 LIMITS_2D = (np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
-H = 20  # the policy's chunk (dagger.Config.horizon, which dagger passes to OracleConfig)
+H = 20  # the policy's chunk (dagger.Config.horizon)
 
 
 def make_oracle(**options):
-    """Oracle(OracleConfig) with the chunk length H and the given options."""
-    return Oracle(OracleConfig(horizon=H, **options))
+    """Oracle(OracleConfig) with the given options."""
+    return Oracle(OracleConfig(**options))
 
 
 # ---- toy collision functions (test doubles) --------------------------------------------------
@@ -437,7 +437,7 @@ def test_gate_looks_gate_lookahead_steps_ahead_at_gate_clearance(env):
 
 
 def test_gate_time_triggers_and_the_cap_on_interventions(env, demo):
-    cfg = OracleConfig(horizon=H, time_trigger_first=5, time_trigger_every=(3, 3), max_interventions=2,
+    cfg = OracleConfig(time_trigger_first=5, time_trigger_every=(3, 3), max_interventions=2,
                        stall_window=1000, gate_lookahead=1)
     oracle_ = Oracle(cfg)
     env.reset(seed=demo["seed"])
