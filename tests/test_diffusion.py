@@ -473,7 +473,7 @@ def test_training_lowers_loss_and_logs_progress():
 
 
 def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
-    obs, chunks = toy_two_mode_data(64, H=4, seed=2)
+    obs, chunks = constant_velocity_data(64, seed=2)                  # a distinct label per row
     policy = tiny_policy()
     seen = []
     real_loss = policy.loss
