@@ -11,7 +11,7 @@ blocks, whose row shows how many training samples per CPU second each network bu
 Defaults: the planar task's observation (obs_dim 14), dof 3, H = 20 (10 Hz, 2 s chunks) and H = 16.
 
 Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [--threads 1]
-                                            [--down-dims 32,64,128 64,128,256 128,256,512] [--full-sample]
+                                            [--down-dims 32,64,128 64,128,256 128,256,512] [--full-sample] [--K 100]
         python benchmarks/bench_diffusion.py --horizons 20 --mlp 256x3 --down-dims 32,64,128 --full-sample
             (the quick and mid profiles' MLP beside the U-Net they replace)
         python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
@@ -99,6 +99,7 @@ def main():
     parser.add_argument("--horizons", type=int, nargs="+", default=[20, 16], help="chunk lengths H")
     parser.add_argument("--obs-dim", type=int, default=14, help="observation length (planar env: 14)")
     parser.add_argument("--dof", type=int, default=3)
+    parser.add_argument("--K", type=int, default=100, help="diffusion steps (the authors': 100)")
     parser.add_argument("--episodes", type=int, default=300, help="parallel episodes per decision")
     parser.add_argument("--full-sample", action="store_true", help="time whole policy.sample calls")
     parser.add_argument("--image-size", type=int, default=0,
@@ -106,10 +107,10 @@ def main():
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    print(f"torch threads: {args.threads}, K = {PolicyConfig.K}, dof = {args.dof}, "
+    print(f"torch threads: {args.threads}, K = {args.K}, dof = {args.dof}, "
           f"{args.episodes} chunks per decision; CPU ms (wall / CPU)")
     print("| network | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
-          f"samples / CPU s at 256 | sample {args.episodes} chunks, K = {PolicyConfig.K} | wall / CPU |")
+          f"samples / CPU s at 256 | sample {args.episodes} chunks, K = {args.K} | wall / CPU |")
     print("|---|---|---|---|---|---|---|---|---|")
     networks = [("unet", {"down_dims": tuple(int(d) for d in dims.split(","))}) for dims in args.down_dims]
     networks += [("mlp", {"mlp_width": int(spec.split("x")[0]), "mlp_blocks": int(spec.split("x")[1])})
@@ -119,12 +120,12 @@ def main():
             if args.image_size:
                 S = args.image_size
                 cfg = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof, horizon=horizon,
-                                   n_act=horizon // 2, network=network, obs_encoder="image_cnn",
+                                   n_act=horizon // 2, K=args.K, network=network, obs_encoder="image_cnn",
                                    obs_encoder_args={"shape": (3, S, S)}, **shape)
                 obs_name = f"image {S}x{S}"
             else:
                 cfg = PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, horizon=horizon, n_act=horizon // 2,
-                                   network=network, **shape)
+                                   K=args.K, network=network, **shape)
                 obs_name = f"{args.obs_dim} numbers"
             name = (f"U-Net {cfg.down_dims}" if network == "unet"
                     else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks} blocks")

@@ -19,7 +19,7 @@ TINY_NET = dict(down_dims=(16, 32), n_groups=4, step_embed_dim=32)
 
 
 def tiny_policy(**overrides):
-    kwargs = dict(obs_dim=2, dof=2, horizon=4, n_act=2, K=50, **TINY_NET)
+    kwargs = dict(obs_dim=4, dof=2, horizon=4, n_act=2, K=50, **TINY_NET)   # obs: (q_t, q_t-1) of 2 joints
     kwargs.update(overrides)
     return DiffusionPolicy(PolicyConfig(**kwargs))
 
@@ -129,18 +129,18 @@ def test_p_sample_without_clip_is_eq6():
                                                (2, 16, 6, (8, 16, 32)), (1, 7, 1, (8,))])
 def test_unet_output_has_the_chunk_shape(B, H, dof, down_dims):
     """H = 20 with two halvings (20 -> 10 -> 5) and H = 7 with none (one level) are fine."""
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=5, dof=dof, horizon=H, n_act=1, K=10, down_dims=down_dims,
-                                          n_groups=4, step_embed_dim=8))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=2 * dof + 1, dof=dof, horizon=H, n_act=1, K=10,
+                                          down_dims=down_dims, n_groups=4, step_embed_dim=8))
     nn.init.normal_(policy.net.final[-1].weight)                      # not the zero output
     a = torch.randn(B, H, dof)
-    eps = policy.predict_eps(a, torch.arange(B) % 10, torch.randn(B, 5), use_ema=False)
+    eps = policy.predict_eps(a, torch.arange(B) % 10, torch.randn(B, policy.cfg.cond_input_dim), use_ema=False)
     assert eps.shape == (B, H, dof) and torch.isfinite(eps).all() and eps.abs().max() > 0
 
 
 def test_separated_film_equals_one_linear_map_of_the_concatenated_condition():
     """condition() = (W_o Mish(obs features), W_s Mish(step features) + b) must equal every block's
     film(Mish([step features, obs features])), and the network's output must be the same either way."""
-    policy = tiny_policy(obs_dim=4, joint_obs=True, down_dims=(8, 16, 32), horizon=8, K=20)
+    policy = tiny_policy(down_dims=(8, 16, 32), horizon=8, K=20)
     net = policy.net
     gen = torch.Generator().manual_seed(0)
     for p in net.parameters():                                        # the zero output would hide a mistake
@@ -158,8 +158,8 @@ def test_separated_film_equals_one_linear_map_of_the_concatenated_condition():
 
 
 def test_untrained_net_predicts_zero_noise():
-    policy = tiny_policy(obs_dim=3)
-    eps = policy.predict_eps(torch.randn(16, 4, 2), torch.randint(0, 50, (16,)), torch.randn(16, 3))
+    policy = tiny_policy(obs_dim=5)
+    eps = policy.predict_eps(torch.randn(16, 4, 2), torch.randint(0, 50, (16,)), torch.randn(16, 5 + 2))
     assert torch.equal(eps, torch.zeros(16, 4, 2))                    # zero output conv: a stable start
 
 
@@ -168,19 +168,21 @@ def test_untrained_net_predicts_zero_noise():
     (dict(down_dims=()), "non-empty"),
     (dict(down_dims=64), "tuple"),
     (dict(down_dims=(64, 128, 256), horizon=18), re.escape("divisible by 2**(len(down_dims) - 1) = 4")),
-    (dict(kernel_size=4), "kernel_size must be odd"),
+    (dict(kernel_size=4), "kernel_size odd"),
     (dict(n_groups=0), "n_groups must be a positive int"),
-    (dict(step_embed_dim=7), "step_embed_dim must be even"),
+    (dict(step_embed_dim=7), "step_embed_dim even"),
+    (dict(n_act=17), "n_act <= horizon"),
+    (dict(obs_dim=3), re.escape("(q_t, q_t-1), 2 * dof = 4")),     # no room for the two joint readings
 ])
 def test_bad_unet_configs_raise(overrides, match):
     with pytest.raises(ValueError, match=match):
-        PolicyConfig(obs_dim=2, dof=2, **{"horizon": 16, "n_act": 2, **overrides})
+        PolicyConfig(**{"obs_dim": 4, "dof": 2, "horizon": 16, "n_act": 2, "K": 10, **overrides})
 
 
 # ---------------------------------------------------------------------------------------------- policy
 
 def test_two_mode_toy_policy_keeps_both_modes(toy_trained):
-    obs = np.zeros((400, 2), dtype=np.float32)
+    obs = np.zeros((400, 4), dtype=np.float32)                        # at rest at the origin
     chunks = toy_trained.sample(obs, generator=torch.Generator().manual_seed(0))
     assert chunks.shape == (400, 4, 2) and chunks.dtype == np.float64
     # From the origin the data chunks are ±(0.5, 0.5) * t / H for t = 1..H.
@@ -195,7 +197,7 @@ def test_save_load_round_trip(toy_trained, tmp_path):
     path = str(tmp_path / "policy.pt")
     toy_trained.save(path)
     loaded = DiffusionPolicy.load(path)
-    obs = np.random.default_rng(0).uniform(-1, 1, (32, 2)).astype(np.float32)
+    obs = np.random.default_rng(0).uniform(-1, 1, (32, 4)).astype(np.float32)
     a = toy_trained.sample(obs, generator=torch.Generator().manual_seed(3))
     b = loaded.sample(obs, generator=torch.Generator().manual_seed(3))
     assert np.array_equal(a, b)
@@ -205,20 +207,23 @@ def test_save_load_round_trip(toy_trained, tmp_path):
     with pytest.raises(FileNotFoundError):
         DiffusionPolicy.load(str(tmp_path / "missing.pt"))
     torch.save({"format": "diffusion-policy-v1", "config": {}, "state_dict": {}}, tmp_path / "mlp.pt")
-    with pytest.raises(ValueError, match="residual-MLP"):
+    with pytest.raises(ValueError, match="not a diffusion-policy-v2 checkpoint"):
         DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
 
 
-def test_a_checkpoint_written_before_the_schedule_option_was_deleted_loads_if_squared_cosine(toy_trained, tmp_path):
-    """Checkpoints written before PolicyConfig.schedule was deleted name their schedule: 'squaredcos' (every
-    profile's) loads as before; 'linear' ran a schedule that is gone and is refused, naming the file."""
+def test_a_checkpoint_of_a_deleted_option_loads_at_the_kept_value_and_is_refused_at_another(toy_trained, tmp_path):
+    """Checkpoints written before PolicyConfig.schedule / joint_obs were deleted name them: 'squaredcos' and
+    joint_obs True (every profile's) load as before; 'linear' and absolute chunks are refused, naming the file."""
     toy_trained.save(str(tmp_path / "policy.pt"))
     payload = torch.load(tmp_path / "policy.pt", weights_only=True)
-    for schedule in ("squaredcos", "linear"):
-        torch.save({**payload, "config": {**payload["config"], "schedule": schedule}}, tmp_path / f"{schedule}.pt")
-    assert DiffusionPolicy.load(str(tmp_path / "squaredcos.pt")).cfg == toy_trained.cfg
-    with pytest.raises(ValueError, match=r"linear\.pt.*linear noise schedule"):
-        DiffusionPolicy.load(str(tmp_path / "linear.pt"))
+    for name, value in (("schedule", "squaredcos"), ("schedule", "linear"), ("joint_obs", True), ("joint_obs", False)):
+        torch.save({**payload, "config": {**payload["config"], name: value}}, tmp_path / f"{name}_{value}.pt")
+    assert DiffusionPolicy.load(str(tmp_path / "schedule_squaredcos.pt")).cfg == toy_trained.cfg
+    assert DiffusionPolicy.load(str(tmp_path / "joint_obs_True.pt")).cfg == toy_trained.cfg
+    with pytest.raises(ValueError, match=r"schedule_linear\.pt.*linear noise schedule"):
+        DiffusionPolicy.load(str(tmp_path / "schedule_linear.pt"))
+    with pytest.raises(ValueError, match=r"joint_obs_False\.pt.*absolute chunks"):
+        DiffusionPolicy.load(str(tmp_path / "joint_obs_False.pt"))
 
 
 def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
@@ -247,7 +252,7 @@ def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
 
 
 def test_batched_sampling_equals_looped(toy_trained):
-    obs = np.random.default_rng(1).uniform(-1, 1, (3, 2)).astype(np.float32)
+    obs = np.random.default_rng(1).uniform(-1, 1, (3, 4)).astype(np.float32)
     batched = toy_trained.sample(obs, generator=torch.Generator().manual_seed(5))
     gen = torch.Generator().manual_seed(5)
     looped = np.concatenate([toy_trained.sample(obs[i:i + 1], generator=gen) for i in range(3)])
@@ -255,19 +260,19 @@ def test_batched_sampling_equals_looped(toy_trained):
 
 
 def test_normalizer_round_trip_and_constant_dims():
-    policy = tiny_policy(obs_dim=3)
+    policy = tiny_policy(obs_dim=5)
     rng = np.random.default_rng(0)
-    obs = rng.normal(size=(100, 3)).astype(np.float32)
-    obs[:, 1] = 5.0                                                       # a constant dimension
+    obs = rng.normal(size=(100, 5)).astype(np.float32)
+    obs[:, 4] = 5.0                                                       # a constant dimension
     acts = rng.uniform(-2, 3, size=(100, 4, 2))
     policy.fit_normalizer(obs, acts)
     o = policy.normalize_obs(torch.as_tensor(obs))
-    assert torch.isfinite(o).all() and torch.all(o[:, 1] == 0)
+    assert torch.isfinite(o).all() and torch.all(o[:, 4] == 0)
     assert o[:, 0].min().item() == pytest.approx(-1, abs=1e-5) and o[:, 0].max().item() == pytest.approx(1, abs=1e-5)
-    a = torch.as_tensor(acts, dtype=torch.float32)
-    an = policy.normalize_actions(a)
+    a, o_raw = torch.as_tensor(acts, dtype=torch.float32), torch.as_tensor(obs)
+    an = policy.normalize_actions(a, o_raw)
     assert an.min().item() == pytest.approx(-1, abs=1e-5) and an.max().item() == pytest.approx(1, abs=1e-5)
-    assert torch.allclose(policy.unnormalize_actions(an), a, atol=1e-5)
+    assert torch.allclose(policy.unnormalize_actions(an, o_raw), a, atol=1e-5)
 
 
 def constant_velocity_data(n, H=4, seed=0):
@@ -280,8 +285,8 @@ def constant_velocity_data(n, H=4, seed=0):
     return obs, chunks.astype(np.float32)
 
 
-def test_joint_obs_normalizes_relative_to_q_and_adds_velocity():
-    policy = tiny_policy(obs_dim=4, joint_obs=True)
+def test_normalizer_is_relative_to_q_and_adds_velocity():
+    policy = tiny_policy()
     obs, chunks = constant_velocity_data(200)
     policy.fit_normalizer(obs, chunks)
     o, a = torch.as_tensor(obs), torch.as_tensor(chunks)
@@ -294,31 +299,23 @@ def test_joint_obs_normalizes_relative_to_q_and_adds_velocity():
     v = o[:, :2] - o[:, 2:]
     assert torch.allclose(feats[:, 4:], (v - policy.vel_center) / policy.vel_half, atol=1e-6)
     with pytest.raises(ValueError):
-        policy.normalize_actions(a)                                      # the origin q_t is needed
-    with pytest.raises(ValueError):
         policy.fit_normalizer(obs, chunks.reshape(-1, 2))                # chunks must pair with obs
-    with pytest.raises(ValueError):
-        PolicyConfig(obs_dim=3, dof=2, joint_obs=True)                   # no room for (q_t, q_t-1)
 
 
-def test_joint_obs_policy_continues_the_velocity_precisely():
-    """With joint_obs the velocity is an input and the chunk is learned relative to q_t: after a short
-    training run the sampled chunk keeps the velocity to a small fraction of a step (velocities are up to
-    0.05 rad per step; measured 0.004 rad). The same budget without joint_obs is ~70x less precise (measured
-    0.27 rad)."""
+def test_policy_continues_the_velocity_precisely():
+    """The velocity is an input and the chunk is learned relative to q_t: after a short training run the
+    sampled chunk keeps the velocity to a small fraction of a step (velocities are up to 0.05 rad per step;
+    measured 0.004 rad; absolute chunks, deleted, were ~70x less precise: 0.27 rad)."""
     obs, chunks = constant_velocity_data(2000, seed=1)
     test_obs, test_chunks = constant_velocity_data(200, seed=2)
-    errors = {}
-    for joint_obs in (True, False):
-        policy = tiny_policy(obs_dim=4, joint_obs=joint_obs)
-        train(policy, obs, chunks, TrainConfig(steps=300, batch_size=128, lr=1e-2, warmup_steps=50, log_every=0))
-        samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
-        errors[joint_obs] = np.abs(samples - test_chunks).mean()
-    assert errors[True] < 0.01, f"mean error {errors[True]:.4f} rad"
-    assert errors[False] > 5 * errors[True]
+    policy = tiny_policy()
+    train(policy, obs, chunks, TrainConfig(steps=300, batch_size=128, lr=1e-2, warmup_steps=50, log_every=0))
+    samples = policy.sample(test_obs, generator=torch.Generator().manual_seed(0))
+    error = np.abs(samples - test_chunks).mean()
+    assert error < 0.01, f"mean error {error:.4f} rad"
 
 
-@pytest.mark.parametrize("bad", [np.zeros((4, 3)), np.zeros(2), np.full((4, 2), np.nan), np.full((4, 2), np.inf)])
+@pytest.mark.parametrize("bad", [np.zeros((4, 3)), np.zeros(4), np.full((4, 4), np.nan), np.full((4, 4), np.inf)])
 def test_sample_rejects_bad_obs(bad):
     with pytest.raises(ValueError):
         tiny_policy().sample(bad)
@@ -327,17 +324,21 @@ def test_sample_rejects_bad_obs(bad):
 def test_bad_inputs_raise():
     policy = tiny_policy()
     with pytest.raises(ValueError):
-        policy.fit_normalizer(np.zeros((5, 2)), np.zeros((5, 3, 2)))     # wrong horizon
+        policy.fit_normalizer(np.zeros((5, 4)), np.zeros((5, 3, 2)))     # wrong horizon
     with pytest.raises(ValueError):
-        policy.fit_normalizer(np.zeros((5, 2)), np.full((5, 4, 2), np.nan))
+        policy.fit_normalizer(np.zeros((5, 4)), np.full((5, 4, 2), np.nan))
     with pytest.raises(ValueError):
-        train(policy, np.zeros((5, 2)), np.zeros((6, 4, 2)), TrainConfig(steps=1))
-    with pytest.raises(ValueError):
-        train(policy, np.zeros((5, 2)), np.zeros((5, 4, 2)), TrainConfig(steps=1, aug_fraction=0.5))
-    with pytest.raises(ValueError):
-        PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=8)
-    with pytest.raises(ValueError):
+        train(policy, np.zeros((5, 4)), np.zeros((6, 4, 2)), TrainConfig(steps=1))
+    with pytest.raises(ValueError, match="sampler"):
+        train(policy, np.zeros((5, 4)), np.zeros((5, 4, 2)), TrainConfig(steps=1, aug_fraction=0.5))
+    with pytest.raises(ValueError, match=re.escape("aug_fraction in [0, 1]")):
         TrainConfig(aug_fraction=1.5)
+    for bad, rule in ((dict(steps=-1), "needs steps >= 0"), (dict(batch_size=0), "batch_size >= 1"),
+                      (dict(warmup_steps=-1), "warmup_steps >= 0"), (dict(ema_decay=1.0), "ema_decay in")):
+        with pytest.raises(ValueError, match=re.escape(rule)):
+            TrainConfig(**bad)
+    with pytest.raises(ValueError, match="checkpoint_path"):
+        TrainConfig(checkpoint_steps=(5,))
 
 
 # ---------------------------------------------------------------------------------------------- dataset
@@ -360,8 +361,14 @@ def test_chunk_dataset_label_rule():
     # An episode ending with a non-expert step has no padded labels there.
     ep2 = dict(ep, expert=np.array([1] * 9 + [0], dtype=bool))
     assert np.array_equal(np.nonzero(label_mask(ep2["expert"], H))[0], [0, 1, 2, 3, 4, 5, 6])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="'expert'"):
         chunk_dataset([{"obs": ep["obs"], "action": action}], H)
+    with pytest.raises(ValueError, match="share the length"):
+        chunk_dataset([dict(ep, obs=ep["obs"][:-1])], H)
+    with pytest.raises(ValueError):
+        chunk_dataset([], H)
+    with pytest.raises(ValueError, match="H must be a positive int"):
+        chunk_dataset([ep], 0)
 
 
 def test_every_consumer_of_the_label_rule_agrees_on_random_masks():
@@ -414,10 +421,10 @@ class PoolSampler:
     def __call__(self, n, rng):
         self.calls.append(n)
         if self.pool is None:
-            self.pool = rng.uniform(-1, 1, (16, 2)).astype(np.float32)
-        self.pool[rng.integers(0, 16)] = rng.uniform(-1, 1, 2)
+            self.pool = rng.uniform(-1, 1, (16, 4)).astype(np.float32)
+        self.pool[rng.integers(0, 16)] = rng.uniform(-1, 1, 4)
         obs = self.pool[rng.integers(0, 16, n)] + self.pool.mean(0)       # depends on the whole pool
-        return obs, np.repeat(obs[:, None, :], 4, axis=1)
+        return obs, np.repeat(obs[:, None, :2], 4, axis=1)
 
     def state_dict(self):
         return {"pool": None if self.pool is None else self.pool.copy()}
@@ -457,8 +464,8 @@ def test_training_lowers_loss_and_logs_progress():
     obs, chunks = toy_two_mode_data(500, H=4, seed=2)
     lines = []
     policy = tiny_policy()
-    train(policy, obs, chunks, TrainConfig(steps=200, batch_size=64, warmup_steps=20, log_every=100),
-          log=lines.append)
+    train(policy, obs, chunks, TrainConfig(steps=200, batch_size=64, warmup_steps=20, log_every=100,
+                                           log_seconds=1e9), log=lines.append)   # lines by steps only
     assert len(lines) == 2 and lines[-1].startswith("step 200/200 | loss ")
     assert "steps/s" in lines[0] and "s left" in lines[0]
     first, last = (float(line.split("| loss ")[1].split(" ")[0]) for line in lines)
@@ -466,7 +473,7 @@ def test_training_lowers_loss_and_logs_progress():
 
 
 def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
-    obs, chunks = toy_two_mode_data(64, H=4, seed=2)
+    obs, chunks = constant_velocity_data(64, seed=2)                  # a distinct label per row
     policy = tiny_policy()
     seen = []
     real_loss = policy.loss
@@ -474,7 +481,7 @@ def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
                                                 real_loss(o, a, generator))[1]
     # noise of std 0.5 on the second entry only (raw units), none on the first
     train(policy, obs, chunks, TrainConfig(steps=3, batch_size=16, warmup_steps=1, log_every=0,
-                                           obs_noise=(0.0, 0.5)))
+                                           obs_noise=(0.0, 0.5, 0.0, 0.0)))
     clean_obs = policy.normalize_obs(torch.as_tensor(obs))
     clean_chunks = policy.normalize_actions(torch.as_tensor(chunks), torch.as_tensor(obs))
     for o, a in seen:
@@ -489,6 +496,8 @@ def test_observation_noise_is_in_raw_units_per_entry_and_leaves_labels_alone():
         TrainConfig(obs_noise=-0.1)
     with pytest.raises(ValueError, match="obs_dim"):
         train(tiny_policy(), obs, chunks, TrainConfig(steps=1, obs_noise=(0.1, 0.1, 0.1)))
+    with pytest.raises(ValueError, match="obs_noise"):
+        TrainConfig(obs_noise=[[0.1]])
 
 
 def test_masked_loss_ignores_masked_steps_and_none_is_the_plain_loss():
@@ -498,7 +507,7 @@ def test_masked_loss_ignores_masked_steps_and_none_is_the_plain_loss():
         for p in policy.net.parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=weights))
     g = lambda: torch.Generator().manual_seed(0)
-    obs = torch.randn(8, 2, generator=torch.Generator().manual_seed(1))
+    obs = torch.randn(8, 6, generator=torch.Generator().manual_seed(1))   # normalized: 4 obs entries, velocity
     chunk = torch.randn(8, 4, 2, generator=torch.Generator().manual_seed(2))
     # mask=None: exactly the old loss, DDPM's plain mean over every entry
     k = torch.randint(0, policy.cfg.K, (8,), generator=g())
@@ -527,7 +536,7 @@ def test_masked_loss_ignores_masked_steps_and_none_is_the_plain_loss():
 
 
 def test_train_accepts_a_sampler_with_a_mask():
-    obs = np.random.default_rng(0).normal(size=(32, 2)).astype(np.float32)
+    obs = np.random.default_rng(0).normal(size=(32, 4)).astype(np.float32)
     chunks = np.random.default_rng(1).normal(size=(32, 4, 2)).astype(np.float32)
     seen = []
 
@@ -550,7 +559,7 @@ def test_train_accepts_a_sampler_with_a_mask():
 def test_mlp_network_shares_the_film_interface_and_output_shape():
     """network='mlp': the same split FiLM (obs part + step table = every block's film of the concatenated
     condition), a zero output before training, and chunks of the right shape (no divisibility rule on H)."""
-    policy = tiny_policy(obs_dim=4, joint_obs=True, horizon=7, K=20, network="mlp", mlp_width=32, mlp_blocks=2)
+    policy = tiny_policy(horizon=7, K=20, network="mlp", mlp_width=32, mlp_blocks=2)
     net = policy.net
     assert type(net).__name__ == "ResidualMLP" and len(list(net.residual_blocks())) == 2
     eps0 = policy.predict_eps(torch.randn(5, 7, 2), torch.randint(0, 20, (5,)), torch.randn(5, 4 + 2))
@@ -575,7 +584,7 @@ def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
     obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
     policy = tiny_policy(network="mlp", mlp_width=64, mlp_blocks=2)
     train(policy, obs, chunks, TrainConfig(steps=400, batch_size=128, lr=3e-3, warmup_steps=50, log_every=0))
-    last = policy.sample(np.zeros((300, 2), np.float32), generator=torch.Generator().manual_seed(0))[:, -1]
+    last = policy.sample(np.zeros((300, 4), np.float32), generator=torch.Generator().manual_seed(0))[:, -1]
     up = last.sum(axis=1) > 0
     assert 0.2 < up.mean() < 0.8                                       # both modes kept
     assert np.allclose(last[up].mean(0), [0.5, 0.5], atol=0.1) and np.allclose(last[~up].mean(0), [-0.5, -0.5], atol=0.1)
@@ -589,7 +598,7 @@ def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
                                              (dict(network="mlp", mlp_width=0), "mlp_width must be a positive int")])
 def test_bad_mlp_configs_raise(overrides, match):
     with pytest.raises(ValueError, match=match):
-        PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, **overrides)
+        PolicyConfig(obs_dim=4, dof=2, horizon=4, n_act=2, K=10, **overrides)
 
 
 # ---------------------------------------------------------------------------------------------- continuation
