@@ -44,8 +44,8 @@ from partial_denoise import noise_fraction, partial_denoise
 class CalibrationConfig:
     """Sec. IV-D as the authors ran it (PAPER_SETUP.md §5), their 30 Hz frames converted to our 10 Hz steps
     (a third as many)."""
-    n_samples: int                       # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
     n_act: int                           # steps executed per decision, and compared in Eq. (1) (authors: 32 frames)
+    n_samples: int = 4                   # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
     stride: int = 2                      # steps: Sigma_hat_t at every other valid step (Fig. 2a)
     betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each
     settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
@@ -242,8 +242,8 @@ class Rollouts:
 
 
 def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                         diverge_rad: float, window: int = CalibrationConfig.settle_window, min_steps: int = 0,
-                         stop_on_divergence: bool = False) -> Rollouts:
+                         diverge_rad: float, window: int = CalibrationConfig.settle_window,
+                         min_steps: int = 0) -> Rollouts:
     """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
 
     Rollout b starts at the segment's first recorded state and runs for the segment's length; after every
@@ -251,8 +251,8 @@ def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn
     chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE call
     (expert = the expert's chunk from the cursor on); each executes its first n_act actions by the env's
     motion rule (env.clip_action). One env serves all rollouts (set_state per rollout, reset(seed) only when
-    the scenario changes). A rollout whose nearest-state distance reaches diverge_rad is marked diverged
-    (stop_on_divergence: and stops there, experiment/unguided.py). Contacts are not checked: the env is
+    the scenario changes). A rollout whose nearest-state distance reaches diverge_rad is marked diverged.
+    Contacts are not checked: the env is
     kinematic, and in these cluttered scenes a deviation of a few median steps already grazes an obstacle,
     so discarding on contact would keep only the luckiest rollouts (benchmarks/README.md, the estimator now).
     """
@@ -320,9 +320,6 @@ def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn
                     c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
                     cursor[b, i:], nearest_error[b, i:] = c, err
                     diverged[b] |= err >= diverge_rad
-                    if diverged[b] and stop_on_divergence:
-                        live[b] = False
-                        break
                 q[b], q_prev[b] = env.q, env.q_prev
                 obs[b] = env.make_obs(q[b], q_prev[b])
     return Rollouts(traj, reference, n_steps, n_recorded, diverged, cursor, nearest_error, min_steps)
@@ -683,7 +680,7 @@ class Calibration:
     @classmethod
     def from_dict(cls, data: dict) -> "Calibration":
         """The inverse of to_dict (calibration.json; older files: without W_ci or paper_median_step, and
-        with the unguided control's 'unguided_pooled' / 'closed_loop_pooled', now experiment/unguided.py)."""
+        with the deleted unguided control's 'unguided_pooled' / 'closed_loop_pooled', dropped)."""
         kwargs = {}
         for k, v in data.items():
             if k in ("unguided_pooled", "closed_loop_pooled"):
@@ -918,7 +915,7 @@ if __name__ == "__main__":
     episodes = [expert.demonstrate(env, seed) for seed in env.train_seeds(100)]
     unit = envs.median_step(episodes)
     print(f"{len(episodes)} oracle demonstrations, median step {unit:.4f} rad; training a small policy")
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100, down_dims=(32, 64, 128)))
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
           TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     t0 = time.time()

@@ -120,7 +120,7 @@ class TrainConfig:
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
     schedule_steps: int = 0          # step at which the cosine reaches 0 (0: steps). The authors' pi_0 is the 75k
     #                                  point of one 175k-step schedule that their fine-tuning continues (continue_from)
-    constant_lr: bool = False        # lr at every step, no warm-up or cosine (the authors' lever fine-tuning)
+    lr_schedule: str = "cosine"      # an LR_SCHEDULES name: the authors' warm-up + cosine (a variant adds its own)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
     obs_noise: object = 0.0          # observation noise std, raw units (rad, m; the authors': 0.01, 0.005): one or
     #                                  one per entry (obs_dim,)
@@ -142,7 +142,8 @@ class TrainConfig:
                  "obs_noise a std >= 0 or one per observation entry":
                      noise.ndim <= 1 and np.all(np.isfinite(noise)) and np.all(noise >= 0),
                  "schedule_steps 0 (= steps) or >= steps":
-                     self.schedule_steps == 0 or self.schedule_steps >= self.steps}
+                     self.schedule_steps == 0 or self.schedule_steps >= self.steps,
+                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"TrainConfig needs {'; '.join(broken)}; got {self}")
@@ -730,41 +731,36 @@ def _as_numpy(x):
 # Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
 
 
-def expert_runs(expert, H, pad=False):
+def expert_runs(expert, H):
     """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
     can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
     (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
-    of H and is discarded, also when it ends the episode. Every other module derives its labels from here.
-    pad=True: the authors' lever runs instead (PAPER_SETUP.md; their teleop_pad_short_episodes): every run
-    counts, however short; its chunks are padded past its end and those steps masked out of the loss."""
+    of H and is discarded, also when it ends the episode. Every other module derives its labels from here."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
     runs = [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
-    return [(s, e) for s, e in runs if pad or e - s >= H or (s == 0 and e == T)]
+    return [(s, e) for s, e in runs if e - s >= H or (s == 0 and e == T)]
 
 
-def label_mask(expert, H, pad=False):
+def label_mask(expert, H):
     """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
     t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
-    (the chunk is then padded with the last action). pad=True: every step of every run starts a label (the
-    steps past its run's end padded and masked: chunk_dataset)."""
+    (the chunk is then padded with the last action)."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     mask = np.zeros(T, dtype=bool)
-    for start, end in expert_runs(expert, H, pad):
-        mask[start:(end if end == T or pad else end - H + 1)] = True
+    for start, end in expert_runs(expert, H):
+        mask[start:(end if end == T else end - H + 1)] = True
     return mask
 
 
-def chunk_dataset(episodes, H, pad=False):
+def chunk_dataset(episodes, H):
     """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
-    A chunk is action[t : t + H]; past the episode end it repeats the last action. pad=True (the authors'
-    lever runs; their do_mask_loss_for_padding): every expert step starts a chunk, which repeats its run's last
-    action past the run's end, and a third array, the loss mask (N, H) bool, is False on those padded steps."""
+    A chunk is action[t : t + H]; past the episode end it repeats the last action."""
     if not isinstance(H, (int, np.integer)) or H < 1:
         raise ValueError(f"H must be a positive int, got {H!r}")
-    obs_list, chunk_list, mask_list = [], [], []
+    obs_list, chunk_list = [], []
     for i, ep in enumerate(episodes):
         if not {"obs", "action", "expert"} <= set(ep):
             raise ValueError(f"episode {i} needs 'obs', 'action' and 'expert' arrays, has {sorted(ep)}")
@@ -773,19 +769,13 @@ def chunk_dataset(episodes, H, pad=False):
         if len(obs) != T or len(expert) != T or action.ndim != 2:
             raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
                              "must share the length T, with action of shape (T, dof)")
-        starts = np.nonzero(label_mask(expert, H, pad))[0]             # (n,)
+        starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
         steps = starts[:, None] + np.arange(H)[None, :]                # (n, H)
-        last = np.full(len(starts), T - 1)                             # the last step a chunk may read
-        if pad:                                                        # the end of each start's own run
-            for start, end in expert_runs(expert, H, pad):
-                last[(starts >= start) & (starts < end)] = end - 1
-            mask_list.append(steps <= last[:, None])                   # (n, H): padded steps out of the loss
         obs_list.append(obs[starts].astype(np.float32))
-        chunk_list.append(action[np.minimum(steps, last[:, None])].astype(np.float32))  # (n, H, dof), padded
+        chunk_list.append(action[np.minimum(steps, T - 1)].astype(np.float32))  # (n, H, dof), padded at the end
     if not obs_list:
         raise ValueError("chunk_dataset needs at least one episode")
-    data = np.concatenate(obs_list), np.concatenate(chunk_list)
-    return (*data, np.concatenate(mask_list)) if pad else data
+    return np.concatenate(obs_list), np.concatenate(chunk_list)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -912,15 +902,21 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
 
 
 def lr_at(step, cfg):
+    """The learning rate of optimizer step `step`: cfg.lr_schedule's (LR_SCHEDULES)."""
+    return LR_SCHEDULES[cfg.lr_schedule](step, cfg)
+
+
+def warmup_cosine(step, cfg):
     """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.schedule_steps (0: cfg.steps)
-    (the authors'); with cfg.constant_lr, cfg.lr at every step."""
-    if cfg.constant_lr:
-        return cfg.lr
+    (the authors')."""
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     end = cfg.schedule_steps or cfg.steps
     progress = (step - cfg.warmup_steps) / max(1, end - cfg.warmup_steps)
     return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+LR_SCHEDULES = {"cosine": warmup_cosine}  # experiment/lever.py adds the authors' lever runs' 'constant'
 
 
 @torch.no_grad()

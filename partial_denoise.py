@@ -240,10 +240,10 @@ if __name__ == "__main__":
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
 
     obs, chunks = toy_two_mode_data(4000, H=4)
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, down_dims=(32, 64)))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=4, dof=2, horizon=4, n_act=2, K=100, down_dims=(32, 64)))
     train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=1000))
     n = 500
-    o = np.zeros((n, 2), dtype=np.float32)
+    o = np.zeros((n, 4), dtype=np.float32)  # (q_t, q_{t-1}) of an arm at rest at the origin
     t = np.arange(1, 5)[:, None] / 4                          # (H, 1)
     expert = np.repeat((0.5 * t * np.array([[1.0, 0.4]]))[None], n, axis=0)   # (n, H, 2), off the (+, +) mode
     print(" beta  k_sw  sigma^2  mean ||a* - a_hat||  share of samples in the other mode")

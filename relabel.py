@@ -46,8 +46,6 @@ class RelabelConfig:
     min_moving_steps: int = 3  # steps: a label with fewer in the loss is redrawn (theirs 8 frames)
     near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
     max_redraws: int = 6  # redraws (theirs 6), then the state is dropped
-    pad_short: bool = False  # interventions shorter than H noised too (diffusion.expert_runs pad=True; their lever
-    #   runs' teleop_pad_short_episodes): states are drawn at every intervention step, the labels end with the run
     # ours
     projection_window: int = 32  # steps the projection looks past t (2H of path >> Table I's 16 median steps)
     max_tries: int = 10  # rejection rounds for a noised state in collision / off limits, then it is dropped
@@ -110,15 +108,14 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step,
 
 # ---- 2. Noised states around the intervention data (Sec. IV-A step 3; Σ^α from calibrate.py)
 
-def label_steps(expert: np.ndarray, horizon: int, pad: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule; pad: every run's
-    every step), and seg_end (N,): the end (exclusive) of the expert run containing t -- the part of the
-    trajectory labels may follow."""
+def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule), and seg_end (N,):
+    the end (exclusive) of the expert run containing t -- the part of the trajectory labels may follow."""
     expert = np.asarray(expert, dtype=bool)
     seg_end = np.zeros(len(expert), dtype=np.int64)
-    for start, end in expert_runs(expert, horizon, pad):
+    for start, end in expert_runs(expert, horizon):
         seg_end[start:end] = end
-    t = np.flatnonzero(label_mask(expert, horizon, pad))
+    t = np.flatnonzero(label_mask(expert, horizon))
     return t, seg_end[t]
 
 
@@ -466,6 +463,7 @@ class AugmentationSampler:
     `corrective_labels`. Pairs are made in batches into a pool that each call draws from; all randomness
     comes from each call's rng. sigma: as in `noise_factors`, for 'per_step' one pair per episode (a list
     aligned with `episodes` or a dict {episode index: pair}). make_env: a no-argument env factory."""
+    label_steps = staticmethod(label_steps)  # the paper's label rule (a variant's subclass brings its own)
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
                  noise: str, sigma, cfg: RelabelConfig):
@@ -483,7 +481,7 @@ class AugmentationSampler:
         self._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
         for e, ep in enumerate(episodes):
             q, expert = _episode_arrays(ep)
-            t, seg_end = label_steps(expert, H, cfg.pad_short)
+            t, seg_end = self.label_steps(expert, H)
             traj.append(q)
             if t.size:
                 factors.append(noise_factors(self._episode_sigma(sigma, e), t, q.shape[1],
@@ -657,19 +655,14 @@ class AugmentationSampler:
 
 
 class ChunkSampler:
-    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data);
-    pad=True: at every intervention step, with the loss mask of the chunk's padded steps (chunk_dataset)."""
+    """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
 
-    def __init__(self, episodes, H, pad=False):
-        data = chunk_dataset(episodes, H, pad)
-        self.obs, self.chunks = data[:2]
-        self.mask = data[2] if pad else None  # (N, H) bool, False on the padded steps
+    def __init__(self, episodes, H):
+        self.obs, self.chunks = chunk_dataset(episodes, H)
 
     def __call__(self, n, rng):
         pick = rng.integers(len(self.obs), size=n)
-        if self.mask is None:
-            return self.obs[pick], self.chunks[pick]
-        return self.obs[pick], self.chunks[pick], self.mask[pick]
+        return self.obs[pick], self.chunks[pick]
 
 
 class MixtureSampler:

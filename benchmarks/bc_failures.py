@@ -7,7 +7,7 @@ or timeout (the step limit, env.max_steps). For collisions it names what touched
 box, the wall, the table, the arm itself); for timeouts the end effector's final distance to the
 target. Collisions are re-judged on the sub-steps of the last step with the env's own numpy check.
 engine3d with position-only success also counts the successes whose tool is within 10 deg of the goal
-posture's orientation (the authors' rule has this part: EngineConfig.goal_angle_tolerance).
+posture's orientation (the authors' rule has this part: the env variant engine3d_oriented, experiment/oriented_goal.py).
 
 With several checkpoints (e.g. BC, HG-DAgger and pooled of one round) it ends with the failure-time
 histogram side by side: when the collisions happen (the first second, 1-3 s, 3-10 s, later), their share in
@@ -27,6 +27,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import dagger  # noqa: E402
 import diffusion  # noqa: E402
 import envs  # noqa: E402
+from experiment import oriented_goal  # noqa: E402
 
 
 def ending(env, episode):
@@ -125,7 +126,7 @@ def roll_out(checkpoint, args):
             scene = {"dt": e.cfg.dt, "goal_tolerance": e.goal_tolerance,
                      "angle_rule": args.env == "engine3d" and not e.goal_is_pose}
         if scene["angle_rule"] and rows[-1][0] == "success":
-            angles.append(e.tool_angle(ending(e, ep)[3]))
+            angles.append(oriented_goal.tool_angle(ending(e, ep)[3], e.cfg.goal_q))
     return rows, np.array(angles), scene
 
 
@@ -183,7 +184,7 @@ def print_failures(args, checkpoint, rows, angles, scene):
     if scene["angle_rule"]:  # the authors' 10 deg, not checked
         if len(angles):
             print(f"successes with the tool within 10 deg of the goal posture's orientation (the authors' rule, "
-                  f"not checked: goal_angle_tolerance is None): {np.sum(angles <= 10)} of {len(angles)}; angle median "
+                  f"not checked by the env: --env engine3d_oriented checks it): {np.sum(angles <= 10)} of {len(angles)}; angle median "
                   f"{np.median(angles):.0f} deg (10th-90th pct {np.percentile(angles, 10):.0f}-"
                   f"{np.percentile(angles, 90):.0f})")
 

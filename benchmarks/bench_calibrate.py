@@ -7,7 +7,6 @@ on the demos (or loaded with --policy):
 
   open-loop Sigma_hat (Eq. 1)      every other label step, n_samples chunks each, batched sampling
   blend rollouts (13 betas)        closed loop with partial denoising, one call per decision
-  unguided closed loop             the control of experiment/unguided.py, from the longest segments
   calibrate()                      all of the above + the fit and Eqs. (13)-(16)
 
 Usage:  python benchmarks/bench_calibrate.py [--demos 12] [--train-steps 1000] [--policy PATH]
@@ -34,7 +33,6 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import calibrate as cal  # noqa: E402
-from experiment import unguided  # noqa: E402
 import oracle  # noqa: E402
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train  # noqa: E402
 from envs import make_env, median_step, paper_median_step  # noqa: E402
@@ -83,7 +81,8 @@ def main():
     if args.policy:
         policy = DiffusionPolicy.load(args.policy)
     else:
-        policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, down_dims=(32, 64, 128)))
+        policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100,
+                                                  down_dims=(32, 64, 128)))
         train(policy, *chunk_dataset(demos, policy.cfg.horizon),
               TrainConfig(steps=args.train_steps, warmup_steps=100, log_every=0))
 
@@ -95,11 +94,10 @@ def main():
         interventions.append(dict(ep, expert=expert_mask))
     n_steps = sum(int(e["expert"].sum()) for e in interventions)
 
-    cfg = cal.CalibrationConfig(n_samples=4, n_act=10)  # dagger's defaults (Config.calib_samples, Config.n_act)
+    cfg = cal.CalibrationConfig(n_act=10)  # dagger.Config.n_act
     threshold = cal.diverge_radius(cfg.diverge_threshold, unit, paper_median_step(env))  # as calibrate does
     gen = torch.Generator().manual_seed(0)
     H = policy.cfg.horizon
-    segs = cal.segments_longest_first(interventions, H)
     blend_beta, chosen = cal.blend_schedule(interventions, H, cfg)  # as calibrate starts them
     rows = []
     steps, w, c = timed(lambda: cal.open_loop_sigma(policy, interventions, cfg.stride, cfg.n_samples, gen,
@@ -110,8 +108,6 @@ def main():
     rows.append(("blend rollouts", f"13 betas x {len(chosen) // 13} segments, "
                  f"{int(blend.rollouts.n_recorded.sum())} env steps, "
                  f"{int(blend.kept.sum())} kept", w, c))
-    _, w, c = timed(lambda: unguided.unguided_sigma(env, policy, interventions, cfg.n_act, gen, threshold, 8))
-    rows.append(("unguided closed loop (a control)", f"{min(len(segs), 8)} segments", w, c))
     calib, w, c = timed(lambda: cal.calibrate(env, policy, interventions, unit, cfg, gen))
     rows.append(("calibrate() total", f"{len(interventions)} interventions, {n_steps} expert steps", w, c))
 

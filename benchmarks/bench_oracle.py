@@ -41,9 +41,8 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 import oracle  # noqa: E402
 from envs import make_env  # noqa: E402
-from oracle import Oracle, OracleConfig, PlanningFailed  # noqa: E402
+from oracle import Oracle, PlanningFailed  # noqa: E402
 
-HORIZON = 20  # the policy's chunk H (dagger.Config.horizon); the oracle only carries it
 
 
 def min_time_lower_bound(path, v_max, a_max):
@@ -252,7 +251,7 @@ def compare(rev, n_planar, n_3d):
         for seed in env.eval_seeds()[:n]:
             cells = []
             for label, module in oracles.items():
-                # an older oracle.py's OracleConfig may have no horizon field (or a default for it)
+                # the compared commit's own oracle, at its defaults
                 expert = module.Oracle(module.OracleConfig())
                 counts = count_planning_checks(env, expert)
                 del step_collisions[:]

@@ -6,10 +6,14 @@
     cli.py         the command line: profiles, overrides, the run folder's name, Ctrl-C and errors
     profiles.py    the run sizes (smoke, quick, mid, table2, paper) and the config's valid values
     report.py      results.json, results.csv, table.md, report.md and the table figures
-and the research variants, each of which registers itself in the core's tables when dagger.py imports it:
-    image_obs.py   the UR5 policy on camera images: envs.ENVIRONMENTS['engine3d_image'] and
-                   diffusion.OBS_ENCODERS['image_cnn'] (python dagger.py --env engine3d_image)
+and the research variants, which plug into the core's tables when dagger.py imports them:
+    image_obs.py      the UR5 policy on camera images: envs.ENVIRONMENTS['engine3d_image'] and
+                      diffusion.OBS_ENCODERS['image_cnn'] (python dagger.py --env engine3d_image)
+    oriented_goal.py  the authors' 10-degree goal posture: envs.ENVIRONMENTS['engine3d_oriented']
+    lever.py          the authors' lever recipe: dagger.RECIPES['authors_lever'(_seeds)], diffusion.LR_SCHEDULES
+                      ['constant'], padded short interventions (python dagger.py --recipe authors_lever)
+    controls.py       the sigma = 0 row zero_noise (dagger.ALL_METHODS, dagger.noise_model)
 
-It imports the concept modules (envs, diffusion, calibrate) but never dagger.py; dagger.py passes in what it
+It imports the concept modules (envs, diffusion, relabel, calibrate) but never dagger.py; dagger.py passes in what it
 needs (its profiles, its statistics' results, its worker functions). A student may skip this folder.
 """

@@ -524,7 +524,7 @@ def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
     demos = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(3)]
     stats = dagger.demo_statistics(TINY, demos)
     assert stats.paper_median_step == 0.0176 and stats.frames_per_step == pytest.approx(3.0)  # 10 Hz env
-    assert relabel.velocity_noise_std(relabel.RelabelConfig(), stats) == pytest.approx(0.3 * 0.0176 * 3)
+    assert relabel.velocity_noise_std(relabel.RelabelConfig(horizon=16), stats) == pytest.approx(0.3 * 0.0176 * 3)
 
 
 def test_every_policy_is_also_evaluated_on_unseen_scenarios(full_run):

@@ -120,7 +120,7 @@ def test_image_env_bad_input_names_the_value(image_env):
 
 # ---- the encoder and the policy ------------------------------------------------------------------------------------
 def tiny_policy(**overrides):
-    kwargs = dict(obs_dim=2, dof=2, horizon=4, n_act=2, K=50, **TINY_NET)
+    kwargs = dict(obs_dim=4, dof=2, horizon=4, n_act=2, K=50, **TINY_NET)
     kwargs.update(overrides)
     return DiffusionPolicy(PolicyConfig(**kwargs))
 
@@ -191,17 +191,17 @@ def test_the_encoder_leaves_image_free_policies_unchanged_and_checks_its_argumen
     # obs_dim 68 = 4 + 64 pixels, and the CNN's 64 features: the U-Net's shapes agree, and so do its weights
     assert all(torch.equal(shared[k], plain.net.state_dict()[k]) for k in shared)
     with pytest.raises(ValueError, match="image_cnn: shape must be"):
-        PolicyConfig(obs_dim=100, dof=2, obs_encoder="image_cnn", obs_encoder_args={"shape": (8, 8)})
+        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (8, 8)})
     with pytest.raises(ValueError, match="image_cnn: shape must be"):
-        PolicyConfig(obs_dim=100, dof=2, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 4, 4)})
+        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 4, 4)})
     with pytest.raises(ValueError, match="image_cnn: features must be"):
-        PolicyConfig(obs_dim=100, dof=2, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "features": 0})
+        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "features": 0})
     with pytest.raises(ValueError, match="must be longer"):
-        PolicyConfig(obs_dim=64, dof=2, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8)})
+        PolicyConfig(obs_dim=64, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8)})
     with pytest.raises(ValueError, match="do not fit the obs_encoder 'image_cnn'"):
-        PolicyConfig(obs_dim=100, dof=2, obs_encoder="image_cnn", obs_encoder_args={"size": 8})
+        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"size": 8})
     with pytest.raises(ValueError, match="obs_encoder must be one of"):
-        PolicyConfig(obs_dim=100, dof=2, obs_encoder="depth_cnn")
+        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="depth_cnn")
 
 
 def test_checkpoints_of_earlier_versions_load_without_an_image_and_are_refused_with_one(tmp_path):

@@ -18,7 +18,7 @@ class StubPolicy(DiffusionPolicy):
     with a known noise prediction. The normalizer is the identity, so joint units = normalized units."""
 
     def __init__(self, eps_fn, H=4, dof=2, K=100):
-        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
+        super().__init__(PolicyConfig(obs_dim=2 * dof, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
                                       step_embed_dim=4))
         self.eps_fn = eps_fn
 
@@ -54,7 +54,7 @@ def generator(seed=0):
 def toy_policy():
     """Two-mode toy task (diffusion.toy_two_mode_data), trained for a few seconds."""
     obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=2, dof=2, horizon=4, n_act=2, K=100, down_dims=(16, 32),
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=4, dof=2, horizon=4, n_act=2, K=100, down_dims=(16, 32),
                                           n_groups=4, step_embed_dim=32))
     train(policy, obs, chunks, TrainConfig(steps=400, batch_size=128, lr=1e-2, warmup_steps=50, log_every=0))
     return policy
@@ -106,7 +106,7 @@ def test_sdedit_bound_eq7():
 def test_bad_beta_raises(bad):
     policy = StubPolicy(zero_eps)
     with pytest.raises(ValueError):
-        partial_denoise(policy, np.zeros((2, 1)), np.zeros((2, 4, 2)), bad)
+        partial_denoise(policy, np.zeros((2, 4)), np.zeros((2, 4, 2)), bad)
     with pytest.raises(ValueError):
         switch_step(bad, 100)
     with pytest.raises(ValueError):
@@ -116,13 +116,13 @@ def test_bad_beta_raises(bad):
 def test_bad_shapes_raise():
     policy = StubPolicy(zero_eps)
     with pytest.raises(ValueError):
-        partial_denoise(policy, np.zeros((2, 1)), np.zeros((2, 3, 2)), 0.5)          # wrong horizon
+        partial_denoise(policy, np.zeros((2, 4)), np.zeros((2, 3, 2)), 0.5)          # wrong horizon
     with pytest.raises(ValueError):
-        partial_denoise(policy, np.zeros((2, 1)), np.zeros((3, 4, 2)), 0.5)          # batch mismatch
+        partial_denoise(policy, np.zeros((2, 4)), np.zeros((3, 4, 2)), 0.5)          # batch mismatch
     with pytest.raises(ValueError):
-        partial_denoise(policy, np.zeros((2, 1)), np.zeros((2, 4, 2)), [0.5, 0.5, 0.5])
+        partial_denoise(policy, np.zeros((2, 4)), np.zeros((2, 4, 2)), [0.5, 0.5, 0.5])
     with pytest.raises(ValueError):
-        partial_denoise(policy, np.zeros((2, 1)), np.full((2, 4, 2), np.nan), 0.5)
+        partial_denoise(policy, np.zeros((2, 4)), np.full((2, 4, 2), np.nan), 0.5)
 
 
 # ---------------------------------------------------------------------------------------------- convention
@@ -140,7 +140,7 @@ def test_first_reverse_step_gets_the_noise_level_it_expects():
     n, a_star = 20_000, 0.3
     beta = 0.03                                                  # k_sw = 3: small levels differ a lot
     k_sw = switch_step(beta, 100)
-    partial_denoise(policy, np.zeros((n, 1)), np.full((n, 4, 2), a_star), beta, generator=generator())
+    partial_denoise(policy, np.zeros((n, 4)), np.full((n, 4, 2), a_star), beta, generator=generator())
     assert len(calls) == k_sw
     assert [int(k[0]) for k, _ in calls] == list(range(k_sw - 1, -1, -1))
     k_first, a_first = calls[0]
@@ -159,7 +159,7 @@ def test_error_variance_matches_closed_form_for_zero_noise_prediction(beta):
     policy = StubPolicy(zero_eps)
     sch = policy.schedule
     n_rows = 20_000
-    out = partial_denoise(policy, np.zeros((n_rows, 1)), np.zeros((n_rows, 4, 2)), beta, generator=generator(1))
+    out = partial_denoise(policy, np.zeros((n_rows, 4)), np.zeros((n_rows, 4, 2)), beta, generator=generator(1))
     n = switch_step(beta, 100)
     abar = np.concatenate([[1.0], sch.alphas_cumprod.double().numpy()])          # paper k = 0..K
     post_var = np.concatenate([[0.0], sch.posterior_variance.double().numpy()])  # paper k = 0..K
@@ -172,7 +172,7 @@ def test_error_variance_matches_closed_form_for_zero_noise_prediction(beta):
 
 def test_beta_zero_returns_expert_chunk(toy_policy):
     expert = np.random.default_rng(0).uniform(-1, 1, (16, 4, 2))
-    obs = np.zeros((16, 2), dtype=np.float32)
+    obs = np.zeros((16, 4), dtype=np.float32)
     out = partial_denoise(toy_policy, obs, expert, 0.0, generator=generator())
     assert np.array_equal(out, expert)
     out = partial_denoise(toy_policy, obs, expert, 0.004, generator=generator())   # rounds to k_sw = 0
@@ -181,7 +181,7 @@ def test_beta_zero_returns_expert_chunk(toy_policy):
 
 def test_beta_one_is_unguided_sampling(toy_policy):
     n = 400
-    obs = np.zeros((n, 2), dtype=np.float32)
+    obs = np.zeros((n, 4), dtype=np.float32)
     expert = np.repeat(np.array([[[0.3, -0.3]]]), n, axis=0).repeat(4, axis=1)     # off both modes
     guided = partial_denoise(toy_policy, obs, expert, 1.0, generator=generator(7))
     plain = toy_policy.sample(obs, generator=generator(7))
@@ -195,7 +195,7 @@ def test_beta_one_is_unguided_sampling(toy_policy):
 
 def test_distance_to_expert_grows_with_beta(toy_policy):
     n = 300
-    obs = np.zeros((n, 2), dtype=np.float32)
+    obs = np.zeros((n, 4), dtype=np.float32)
     t = np.arange(1, 5)[:, None] / 4
     expert = np.repeat((0.5 * t * np.array([[1.0, 0.4]]))[None], n, axis=0)      # bends off the (+, +) mode
     dists = []
@@ -229,7 +229,7 @@ def test_eq7_holds_for_a_bounded_noise_prediction():
     a_star = np.full((n, H, dof), 0.2)
     policy = StubPolicy(gaussian_prior_eps(mean=torch.tensor(0.4), std=0.3, bound=bound), H=H, dof=dof)
     for beta in (0.05, 0.1, 0.2, 0.3):            # beyond ~0.3 the bound exceeds the box [-1, 1]^d's diameter
-        a_hat = partial_denoise(policy, np.zeros((n, 1)), a_star, beta, generator=generator(5))
+        a_hat = partial_denoise(policy, np.zeros((n, 4)), a_star, beta, generator=generator(5))
         err = ((a_star - a_hat) ** 2).reshape(n, -1).sum(1)
         limit = sdedit_bound(noise_fraction(policy.schedule, beta), bound, d, delta)
         assert (err <= limit).mean() >= 1 - delta, f"beta={beta}: {(err <= limit).mean():.3f} within Eq. (7)"
@@ -242,7 +242,7 @@ def test_eq7_counts_only_the_forward_noise():
     leading term is the chi-square tail of the forward noise sigma^2 alone, is exceeded more often than delta."""
     n, delta = 4000, 0.05
     policy = StubPolicy(zero_eps)
-    a_hat = partial_denoise(policy, np.zeros((n, 1)), np.zeros((n, 4, 2)), 0.2, generator=generator(6))
+    a_hat = partial_denoise(policy, np.zeros((n, 4)), np.zeros((n, 4, 2)), 0.2, generator=generator(6))
     err = (a_hat ** 2).reshape(n, -1).sum(1)
     within = (err <= sdedit_bound(noise_fraction(policy.schedule, 0.2), 0.0, 8, delta)).mean()
     assert 0.8 < within < 1 - delta
@@ -255,11 +255,11 @@ def test_plot_partial_denoising_writes_figure(tmp_path):
     env = envs.make_env("planar")
     obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
     q = info["q"]
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=20, down_dims=(8, 16),
-                                          n_groups=4, step_embed_dim=16, joint_obs=True))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=20,
+                                          down_dims=(8, 16), n_groups=4, step_embed_dim=16))
     expert = q[None, :] + np.linspace(0.02, 0.3, 16)[:, None] * np.array([[1.0, -0.5, 0.3]])   # (H, dof)
     policy.fit_normalizer(np.stack([obs, obs]), np.stack([expert, expert + 0.1]))
-    # beta = 0 returns the expert chunk also through the joint_obs normalization (relative to q_t).
+    # beta = 0 returns the expert chunk also through the normalization relative to q_t.
     assert np.array_equal(partial_denoise(policy, obs[None], expert[None], 0.0), expert[None])
     path = str(tmp_path / "fig3.png")
     plot_partial_denoising(env, policy, obs, expert, (0.1, 0.5), path, generator(), q=q, n_samples=3)
@@ -277,8 +277,8 @@ def test_plot_partial_denoising_draws_the_3d_env_in_the_top_view(tmp_path):
     obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
     q = info["q"]
     assert env.dim == 3 and env.dof == 6
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, K=10, down_dims=(8, 16),
-                                          n_groups=4, step_embed_dim=16, joint_obs=True))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=10,
+                                          down_dims=(8, 16), n_groups=4, step_embed_dim=16))
     expert = q[None, :] + np.linspace(0.02, 0.3, 16)[:, None] * np.array([[1.0, -0.5, 0.3, 0.2, 0.1, 0.0]])
     policy.fit_normalizer(np.stack([obs, obs]), np.stack([expert, expert + 0.1]))
     path = str(tmp_path / "fig3_engine3d.png")

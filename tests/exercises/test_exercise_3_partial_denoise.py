@@ -16,7 +16,7 @@ class KnownEpsPolicy(DiffusionPolicy):
     it records the (level, input) of every network call."""
 
     def __init__(self, eps_fn, H=4, dof=2, K=100):
-        super().__init__(PolicyConfig(obs_dim=1, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
+        super().__init__(PolicyConfig(obs_dim=2 * dof, dof=dof, horizon=H, n_act=1, K=K, down_dims=(4,), n_groups=4,
                                       step_embed_dim=4))
         self.eps_fn, self.calls = eps_fn, []
 
@@ -45,7 +45,7 @@ def test_switch_step_is_toInteger_beta_K():
 def test_the_first_reverse_step_receives_the_level_it_is_told():
     policy = KnownEpsPolicy(zero_eps)
     n, a_star, beta = 20_000, 0.3, 0.03                              # k_sw = 3: neighbouring levels differ a lot
-    partial_denoise(policy, np.zeros((n, 1)), np.full((n, 4, 2), a_star), beta,
+    partial_denoise(policy, np.zeros((n, 4)), np.full((n, 4, 2), a_star), beta,
                     generator=torch.Generator().manual_seed(0))
     assert [int(k[0]) for k, _ in policy.calls] == [2, 1, 0]          # k_sw steps, code levels k_sw - 1 .. 0
     k_first, a_first = policy.calls[0]
@@ -60,7 +60,7 @@ def test_error_variance_of_a_zero_noise_prediction(beta):
     (1 - abar_n) / abar_n + sum_{j=2..n} beta~_j / abar_{j-1} per dimension, n = k_sw (paper indices)."""
     policy = KnownEpsPolicy(zero_eps)
     sch, n = policy.schedule, switch_step(beta, 100)
-    out = partial_denoise(policy, np.zeros((20_000, 1)), np.zeros((20_000, 4, 2)), beta,
+    out = partial_denoise(policy, np.zeros((20_000, 4)), np.zeros((20_000, 4, 2)), beta,
                           generator=torch.Generator().manual_seed(1))
     abar = np.concatenate([[1.0], sch.alphas_cumprod.double().numpy()])
     post = np.concatenate([[0.0], sch.posterior_variance.double().numpy()])
@@ -74,10 +74,10 @@ def test_beta_0_keeps_the_expert_and_a_batch_equals_its_rows():
     rng = np.random.default_rng(0)
     expert = rng.uniform(-0.8, 0.8, (3, 4, 2))
     betas = np.array([0.0, 0.05, 0.4])
-    out = partial_denoise(policy, np.zeros((3, 1)), expert, betas, generator=torch.Generator().manual_seed(2))
+    out = partial_denoise(policy, np.zeros((3, 4)), expert, betas, generator=torch.Generator().manual_seed(2))
     assert np.array_equal(out[0], expert[0])                          # beta = 0: no step, the expert chunk
     gen = torch.Generator().manual_seed(2)
-    rows = [partial_denoise(policy, np.zeros((1, 1)), expert[i:i + 1], betas[i], generator=gen) for i in range(3)]
+    rows = [partial_denoise(policy, np.zeros((1, 4)), expert[i:i + 1], betas[i], generator=gen) for i in range(3)]
     assert np.allclose(out, np.concatenate(rows), atol=1e-6)
     dist = np.linalg.norm((out - expert).reshape(3, -1), axis=1)
     assert dist[0] == 0 < dist[1] < dist[2]                           # more noise, further from the expert
