@@ -248,7 +248,8 @@ def paired_lines(cfg, stats):
             lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, {stat_words(s)}")
     if stats["tost_vs_best_fixed"]:
         lines.append("")
-        lines.append(f"TOST equivalence (±{cfg.tost_margin:g} points) vs the best fixed noise in hindsight "
+        margin = next(iter(stats["tost_vs_best_fixed"].values()))["margin"]  # dagger.TOST_MARGIN
+        lines.append(f"TOST equivalence (±{margin:g} points) vs the best fixed noise in hindsight "
                      f"({stats['best_fixed']}):")
         for m, s in stats["tost_vs_best_fixed"].items():
             lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, "
@@ -256,8 +257,10 @@ def paired_lines(cfg, stats):
     per_round = {k: r for k, r in (stats.get("per_round") or {}).items() if r["paired_vs_hg_dagger"]}
     if per_round:
         lines.append("")
-        lines.append(f"Per round (paired over the lineages that finished it): each method vs HG-DAgger; the "
-                     f"calibrated ones vs that round's best fixed noise, TOST ±{cfg.tost_margin:g}:")
+        margins = {s["margin"] for r in per_round.values() for s in r["tost_vs_best_fixed"].values()}
+        lines.append("Per round (paired over the lineages that finished it): each method vs HG-DAgger; the "
+                     "calibrated ones vs that round's best fixed noise"
+                     + "".join(f", TOST ±{m:g}" for m in sorted(margins)) + ":")
         for k, r in per_round.items():
             parts = [f"{m} {s['diff']:+.1f} (" + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.2g}")
                      + ")" for m, s in r["paired_vs_hg_dagger"].items()]
