@@ -70,6 +70,9 @@ RECIPE_FIELDS = {"finetune": "continue", "round_shares": "equal", "short_interve
 RECIPE_OF_FIELDS = {("continue", "equal", "drop", "lineages"): "paper",
                     ("constant", "frames", "pad", "lineages"): "authors_lever",
                     ("constant", "frames", "pad", "seeds"): "authors_lever_seeds"}
+# ... and the parts of a run folder's name (cli.folder_name) that said those fields, as the recipe's part says it now
+RECIPE_NAME_PARTS = {"_constant_frame_shares_pad_short_seed_replicates": "_authors_lever_seeds",
+                     "_constant_frame_shares_pad_short": "_authors_lever"}
 
 
 class Run:
@@ -400,6 +403,10 @@ def without_retired_fields(where, stored):
                 "(dagger.RECIPES: paper, authors_lever, authors_lever_seeds). Use the commit that made it to run or "
                 "report it.")
         stored = {**{k: v for k, v in stored.items() if k not in RECIPE_FIELDS}, "recipe": RECIPE_OF_FIELDS[combination]}
+        for old, new in RECIPE_NAME_PARTS.items():
+            if isinstance(stored.get("name"), str) and old in stored["name"]:
+                stored["name"] = stored["name"].replace(old, new)
+                break
     for key, allowed in RETIRED_FIELDS.items():
         if key in stored and allowed is not ANY_VALUE and stored[key] not in allowed:
             why = (f"a field that left the Config: {RETIRED_ADVICE[key]}" if key in RETIRED_ADVICE else

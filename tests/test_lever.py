@@ -166,5 +166,10 @@ def test_a_stored_config_of_the_four_old_fields_reads_as_its_recipe(stored, reci
     """Run folders and results files made before the recipe (table2_authors_finetune, ..._seeds) name four fields;
     each combination that ran a recipe that remains is read as that recipe, any other is refused."""
     assert run_folder.without_retired_fields("here", {"seed": 0, **stored}) == {"seed": 0, "recipe": recipe}
+    # the folder name the old options gave (cli.folder_name) reads as the recipe's
+    old = "table2" + {"paper": "", "authors_lever": "_constant_frame_shares_pad_short",
+                      "authors_lever_seeds": "_constant_frame_shares_pad_short_seed_replicates"}[recipe] + "_hg_dagger-pooled"
+    _, cfg = dagger.parse_args(["--profile", "table2", "--recipe", recipe, "--methods", "hg_dagger,pooled"])
+    assert run_folder.without_retired_fields("here", {**stored, "name": old})["name"] == cfg.name
     with pytest.raises(run_folder.ConfigMismatch, match="a combination no recipe runs now"):
         run_folder.without_retired_fields("here", {**stored, "round_shares": "frames", "finetune": "continue"})

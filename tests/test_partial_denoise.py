@@ -208,7 +208,7 @@ def test_distance_to_expert_grows_with_beta(toy_policy):
 
 def test_batched_equals_looped(toy_policy):
     rng = np.random.default_rng(3)
-    obs = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+    obs = rng.uniform(-1, 1, (4, 4)).astype(np.float32)  # (q_t, q_{t-1}) of the toy's 2 joints
     expert = rng.uniform(-1, 1, (4, 4, 2))
     betas = np.array([0.0, 0.2, 0.5, 1.0])
     batched = partial_denoise(toy_policy, obs, expert, betas, generator=generator(4))
