@@ -47,16 +47,10 @@ def padded_label_steps(expert, H):
     """(t, seg_end): every step t of every expert run, however short, and the end (exclusive) of its run."""
     expert = np.asarray(expert, bool)
     seg_end = np.zeros(len(expert), np.int64)
-    for start, end in expert_runs(expert):
+    for start, end in diffusion.expert_runs(expert, 1):  # with H = 1 every run counts, however short
         seg_end[start:end] = end
     t = np.flatnonzero(expert)
     return t, seg_end[t]
-
-
-def expert_runs(expert):
-    """The maximal runs [start, end) of expert-driven steps, however short."""
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(expert, np.int8), [0]])))
-    return [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
 
 
 class PaddedChunkSampler:
