@@ -198,7 +198,8 @@ class BlendRollouts:
 
 def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas, cfg: CalibrationConfig,
                    generator: torch.Generator | None, diverge_rad: float) -> BlendRollouts:
-    """One closed-loop rollout per job (episode, segment), job b partial-denoised toward the expert at betas[b].
+    """Sec. IV-D's blended rollouts: one closed loop per job (episode, segment), partial-denoised (Eq. 4)
+    toward the expert at betas[b].
 
     Every decision executes the first cfg.n_act actions of partial_denoise(policy, obs, expert chunk at the
     cursor, beta), for all live rollouts in one call. Rollouts whose nearest-state distance reaches
@@ -915,7 +916,8 @@ if __name__ == "__main__":
     episodes = [expert.demonstrate(env, seed) for seed in env.train_seeds(100)]
     unit = envs.median_step(episodes)
     print(f"{len(episodes)} oracle demonstrations, median step {unit:.4f} rad; training a small policy")
-    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100, down_dims=(32, 64, 128)))
+    policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100,
+                                          down_dims=(32, 64, 128)))
     train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
           TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     t0 = time.time()
