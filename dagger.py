@@ -871,7 +871,8 @@ def make_figures(run, demos, stats):
     calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
                                    generator=gen())
     relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
-                          np.random.default_rng(stage_seed(cfg, "fig1")), stats, relabel.RelabelConfig(horizon=cfg.horizon))
+                          np.random.default_rng(stage_seed(cfg, "fig1")), stats,
+                          relabel.RelabelConfig(horizon=cfg.horizon))
     t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
     end = min(t + cfg.horizon, len(episode["action"]))
     chunk = episode["action"][t:end]

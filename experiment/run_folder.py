@@ -283,9 +283,9 @@ def copy_from(run, src):
     stages run. The stage seeds do not depend on the methods list: the copied stages are those this run would
     compute. If src ran the other of the recipes authors_lever / authors_lever_seeds (independent lineages there,
     training seeds on lineage 0's interventions here, or the reverse), only the shared stages and lineage 0 are
-    copied: lineage 0 is the same run under both, the others are not. Refused (ConfigMismatch) if src differs in any other field
-    (FOLDER_FREE_FIELDS aside), runs a method this run lacks, or has another pi_0 than one already here; files
-    already here are kept. Returns the count."""
+    copied: lineage 0 is the same run under both, the others are not. Refused (ConfigMismatch) if src differs in
+    any other field (FOLDER_FREE_FIELDS aside), runs a method this run lacks, or has another pi_0 than one already
+    here; files already here are kept. Returns the count."""
     path = os.path.join(src, "config.json")
     if not os.path.isfile(path):
         raise RunFolderError(f"--copy-from {src}: not a run folder (no config.json there)")
@@ -302,8 +302,8 @@ def copy_from(run, src):
     check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name,
                             **({"recipe": cfg.recipe} if lineage_0_only else {})}, cfg,
                       advice="--copy-from takes the stages of a run that differs only in its methods (or in "
-                             "authors_lever / authors_lever_seeds): run the other fields' change from scratch in its own "
-                             "folder.")
+                             "authors_lever / authors_lever_seeds): run the other fields' change from scratch in its "
+                             "own folder.")
     pi0_src, pi0_here = (os.path.join(r, "checkpoints", "bc.pt") for r in (src, run.root))
     if os.path.exists(pi0_src) and os.path.exists(pi0_here) and weights_sha256(pi0_src) != weights_sha256(pi0_here):
         raise ConfigMismatch(f"--copy-from {src}: its pi_0 differs from the one already in {run.root} (another "

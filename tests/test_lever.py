@@ -99,12 +99,14 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
     assert not (diffusion.chunk_dataset([short], H)[0] == short["obs"][s0]).all(axis=1).any()  # the paper: dropped
 
     stats = dagger.demo_statistics(TINY, load(paper_run, "data/D0.npz"))
-    assert len(dagger.intervention_sampler(TINY, "hg_dagger", [[short]], None, stats)(64, np.random.default_rng(0))) == 2
+    recorded = dagger.intervention_sampler(TINY, "hg_dagger", [[short]], None, stats)
+    assert len(recorded(64, np.random.default_rng(0))) == 2  # the paper's rows carry no loss mask
     o, c, m = dagger.intervention_sampler(LEVER, "hg_dagger", [[short]], None, stats)(256, np.random.default_rng(0))
     assert m.all(axis=1).mean() < 1 and m[:, 0].all()
     cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(paper_run,
                                                                        "lineage_0/round_1/calibration.json")))
-    padded, paper = (dagger.intervention_sampler(c, "fixed_4", [[short]], cal, stats).samplers[0] for c in (LEVER, TINY))
+    padded, paper = (dagger.intervention_sampler(c, "fixed_4", [[short]], cal, stats).samplers[0]
+                     for c in (LEVER, TINY))
     assert len(padded.center) == short["expert"].sum()
     assert len(paper.center) == diffusion.label_mask(short["expert"], H).sum()
 
