@@ -775,10 +775,7 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
             ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
         ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
         ax.set_title(title, fontsize=10)
-        if planar:
-            ax.set_xticks([])
-            ax.set_yticks([])
-        else:
+        if not planar:  # the planar render labels its axes in metres itself
             ax.set_aspect("equal")
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
@@ -807,12 +804,12 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
 
     # per-joint sigma, legends below panels (a)-(b), title, a common zoom on the intervention, the file
     per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
-    where = dict(x=0.02, y=0.02) if planar else dict(x=0.5, y=-0.14, ha="center", va="top")  # 3-D: below the axis
+    where = dict(x=0.5, y=-0.14, ha="center", va="top")  # below the axis, outside the data
     rad = np.sqrt(np.diag(calibration.pooled))                               # (dof,) per-joint sigma, rad
     axes[3].text(s=f"per-joint sigma: {per_joint} median steps\n= {other_units(rad, calibration.paper_median_step, 1)}",
                  transform=axes[3].transAxes, fontsize=8, **where)
     for ax in axes[:2]:  # below the panel, outside the data
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07 if planar else -0.12), frameon=False)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
     fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
                  f"{calibration.W / calibration.median_step:.2f} median steps = "
                  f"{other_units(calibration.W, calibration.paper_median_step)}; ellipses 2 sigma"
