@@ -440,6 +440,10 @@ def test_bad_episode_or_request_raises():
         perturb_states({"q": np.zeros((3, DOF)), "expert": np.ones(3, bool)}, 2.0, rng, 5, FakeEnv(), H, median_step=0.01)
     with pytest.raises(ValueError, match="t_index"):
         perturb_states(make_episode(), 2.0, rng, 5, FakeEnv(), H, t_index=80, median_step=0.01)
+    # a negative step among valid ones is refused too (not read from the end), and the message names the range
+    # (catches the check or the message taking t.max() for t.min() or the reverse)
+    with pytest.raises(ValueError, match=r"t_index must be in \[0, 80\), got range \[-1, 30\]"):
+        perturb_states(make_episode(), 2.0, rng, 2, FakeEnv(), H, t_index=np.array([-1, 30]), median_step=0.01)
     with pytest.raises(ValueError, match="n must be"):
         perturb_states(make_episode(), 2.0, rng, -1, FakeEnv(), H, median_step=0.01)
 
