@@ -444,6 +444,8 @@ def test_bad_episode_or_request_raises():
     # (catches the check or the message taking t.max() for t.min() or the reverse)
     with pytest.raises(ValueError, match=r"t_index must be in \[0, 80\), got range \[-1, 30\]"):
         perturb_states(make_episode(), 2.0, rng, 2, FakeEnv(), H, t_index=np.array([-1, 30]), median_step=0.01)
+    with pytest.raises(ValueError, match=r"got range \[30, 80\]"):  # one step past the end among valid ones
+        perturb_states(make_episode(), 2.0, rng, 2, FakeEnv(), H, t_index=np.array([30, 80]), median_step=0.01)
     with pytest.raises(ValueError, match="n must be"):
         perturb_states(make_episode(), 2.0, rng, -1, FakeEnv(), H, median_step=0.01)
 
