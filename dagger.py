@@ -45,7 +45,7 @@ import partial_denoise
 import relabel
 from experiment import cli, controls, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
-from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, stage_seed
+from experiment.run_folder import Run, copy_from, export_lineages, export_start, join_lineage, stage_seed
 from experiment.workers import InBackground, in_parallel
 
 
@@ -936,8 +936,11 @@ def parse_args(argv):
 def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
-    return cli.run_command(run_experiment, cfg, args.out or os.path.join("runs", cfg.name), args.lineage,
-                           args.prepare, args.report, args.workers, args.join, args.export_lineages, args.copy_from)
+    root = cli.run_command(run_experiment, cfg, args.out, args.lineage, args.prepare, args.report, args.workers,
+                           args.join, args.export_lineages, args.copy_from)
+    for path in cli.run_command(export_start, root, args.export_start) if args.export_start else []:
+        print(f"wrote {path}")
+    return root
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """The command line of `python dagger.py`: profiles, overrides, the run folder's name, and the modes.
 
-Modes: the whole run (default); --prepare (the shared stages: D0, BC and its evaluation, the BC row);
+Modes: the whole run (default); --prepare (the shared stages: D0, BC and its evaluation, the BC row; copied from
+benchmarks/results/<profile>/start/ where the repository holds them for this config, as every mode does);
 --lineage i (one lineage, e.g. one task of a cluster job array); --report (merge finished lineages into
 the table and figures); --join / --export-lineages (a lineage's results as one file, to merge elsewhere). dagger.main passes in its profiles and method names: this module never imports it.
 """
@@ -14,7 +15,7 @@ from dataclasses import replace
 import torch
 
 import envs
-from experiment.run_folder import ConfigMismatch, RunFolderError
+from experiment.run_folder import ConfigMismatch, RunFolderError, committed_start
 
 
 def parse_args(argv, profiles, methods, recipes):
@@ -67,6 +68,11 @@ def parse_args(argv, profiles, methods, recipes):
                    help="first copy in the finished stages of FOLDER, a run of the same config with fewer methods "
                         "(e.g. runs/table2 for --methods ...,zero_noise), so only the added methods train; from "
                         "--recipe authors_lever to authors_lever_seeds or back, only lineage 0 (the same in both)")
+    p.add_argument("--export-start", default=None, metavar="FOLDER",
+                   help="after the mode, write FOLDER/start/: the run's shared stages (D0, pi_0 with its optimizer "
+                        "state, the BC row, their evaluations). A run of the profile copies "
+                        "benchmarks/results/<profile>/start/ into a new folder of the same config first (committed "
+                        "for table1), so lineages run anywhere continue from one pi_0 and join")
     p.add_argument("--no-eval-unseen", action="store_true",
                    help="skip the second evaluation of every policy on the unseen scenarios (never trained on)")
     args = p.parse_args(argv)
@@ -102,6 +108,9 @@ def parse_args(argv, profiles, methods, recipes):
         p.error(f"--workers {args.workers}: must be >= 1")
     if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
         p.error(f"--lineage {args.lineage}: valid lineages are 0..{cfg.lineages - 1}")
+    args.out = args.out or os.path.join("runs", cfg.name)
+    if args.copy_from is None and not args.report:  # the profile's committed shared stages, where they fit this run
+        args.copy_from = committed_start(args.profile, cfg, args.out)
     return args, cfg
 
 

@@ -275,6 +275,68 @@ def rounds_finished(run, lineage):
 
 STAGE_FOLDERS = ("data", "checkpoints", "eval", "timings")  # a folder's stages, beside its lineage_<l>/ folders
 
+# A profile's shared stages committed once (benchmarks/results/<profile>/start/: config.json, D0, pi_0 with its
+# optimizer state, the BC row, their evaluations and timings), so that every lineage -- run on any machine, on any
+# day -- continues from the same pi_0 and joins the others (--join): the same seed gives another pi_0 on another
+# kind of machine. --prepare / --lineage i / a whole run copy it into a new run folder of the profile's config.
+RESULTS_ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "results")
+
+
+def start_files(root):
+    """The shared stages' files of run folder `root` (relative paths): config.json and the files under
+    STAGE_FOLDERS that no lineage owns, without partial checkpoints (*_step<n>.pt) or files being written."""
+    files = ["config.json"]
+    for folder in STAGE_FOLDERS:
+        for name in sorted(os.listdir(os.path.join(root, folder))) if os.path.isdir(os.path.join(root, folder)) else []:
+            if not re.search(r"lineage_\d+|_step\d+\.pt$|\.tmp", name):
+                files.append(f"{folder}/{name}")
+    return files
+
+
+def export_start(root, folder):
+    """folder/start/: a copy of run folder `root`'s shared stages (start_files), for a commit that every lineage
+    of the profile starts from (committed_start). Refused (RunFolderError) before the shared stages finished
+    (run --prepare first). Returns the paths written."""
+    needed = ("data/D0.npz", "checkpoints/bc.pt", "eval/pi0.json", "eval/bc.json")
+    missing = [rel for rel in needed if not os.path.isfile(os.path.join(root, rel))]
+    if missing:
+        raise RunFolderError(f"--export-start: {root} has not finished its shared stages ({', '.join(missing)} "
+                             "missing): run the same command with --prepare first")
+    written = []
+    for rel in start_files(root):
+        dst = os.path.join(folder, "start", rel)
+        os.makedirs(os.path.dirname(dst), exist_ok=True)
+        shutil.copyfile(os.path.join(root, rel), f"{dst}.{os.getpid()}.tmp")
+        os.replace(f"{dst}.{os.getpid()}.tmp", dst)
+        written.append(dst)
+    return written
+
+
+def committed_start(profile, cfg, root):
+    """RESULTS_ROOT/<profile>/start/ if the repository holds a start of this run's config (methods aside: the
+    shared stages do not depend on them; its methods among this run's) that run folder `root` still lacks; None
+    (and a line saying why) where it is another config's, or where `root` already has a pi_0 of its own."""
+    start = os.path.join(RESULTS_ROOT, profile, "start")
+    if not os.path.isfile(os.path.join(start, "config.json")):
+        return None
+    stored = without_retired_fields(start, read_json(os.path.join(start, "config.json")))
+    try:
+        check_same_config(start, {**stored, "methods": cfg.methods, "name": cfg.name}, cfg, advice="")
+    except ConfigMismatch as err:
+        print(f"not loading the committed start: {str(err).strip()} (this run computes its own shared stages)")
+        return None
+    if not set(stored.get("methods", ())) <= set(cfg.methods):
+        return None  # copy_from would refuse it: a start of more methods than this run's
+    if all(os.path.exists(os.path.join(root, rel)) for rel in start_files(start)):
+        return None  # loaded before (or made here): nothing to copy
+    pi0 = os.path.join(root, "checkpoints", "bc.pt")
+    if os.path.exists(pi0) and weights_sha256(pi0) != weights_sha256(os.path.join(start, "checkpoints", "bc.pt")):
+        print(f"not loading the committed start {start}: {root} has a pi_0 of its own (its lineages join only each "
+              "other's); give --out a new folder to start from the committed one")
+        return None
+    return start
+
+
 
 def copy_from(run, src):
     """Seed the run folder with the finished stages of folder `src`, made with the same config but fewer methods

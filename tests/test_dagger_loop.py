@@ -262,6 +262,12 @@ def test_every_committed_results_file_matches_the_config_of_the_command_that_rep
     for name in paths:
         data = run_folder.load_stage_file(os.path.join(where, name), run_folder._read_lineage_file)
         run_folder.check_same_config(name, data["config"], cfg)
+    start = os.path.join(where, "start")
+    if os.path.isdir(start):  # a committed start is the shared stages of the same config and pi_0 as the lineages
+        run_folder.check_same_config(start, run_folder.read_json(os.path.join(start, "config.json")), cfg)
+        pi0 = run_folder.weights_sha256(os.path.join(start, "checkpoints", "bc.pt"))
+        assert all(run_folder.load_stage_file(os.path.join(where, name), run_folder._read_lineage_file)["pi0_sha256"]
+                   == pi0 for name in paths)
 
 
 
@@ -900,3 +906,46 @@ def test_w_spread_recalibrates_a_finished_round_at_other_blend_ratios(full_run, 
     for bad in ("0.2,x", "0.2,0.5", "0.2,0.5,1.5"):
         with pytest.raises(SystemExit, match="--betas"):
             bench.parse_betas(bad)
+
+
+def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_computes_its_own(
+        full_run, tmp_path, monkeypatch, trained_stages, capsys):
+    """--export-start writes a run's shared stages (D0, pi_0 with its optimizer state, the BC row, their evaluations)
+    as benchmarks/results/<profile>/start/; a new folder of the profile's config then copies them in first (in
+    --prepare as in --lineage i), so no shared stage trains and its pi_0 is the committed one, whatever the machine.
+    Fails if the start is not loaded, if a lineage's files or partial checkpoints travel with it, if it is loaded
+    into a run of another config (another seed: another pi_0 must be computed), or over a folder's own pi_0."""
+    results = tmp_path / "results"
+    monkeypatch.setattr(run_folder, "RESULTS_ROOT", str(results))
+    monkeypatch.setitem(dagger.PROFILES, "tiny", TINY)
+    with pytest.raises(SystemExit) as refused:  # nothing to export before --prepare finished
+        dagger.main(["--profile", "tiny", "--report", "--out", str(tmp_path / "empty"),
+                     "--export-start", str(results / "tiny")])
+    assert refused.value.code == 2 and "--prepare first" in capsys.readouterr().err
+    assert not os.path.exists(results / "tiny")
+    run_folder.export_start(full_run, str(results / "tiny"))
+    start = results / "tiny" / "start"
+    assert sorted(run_folder.start_files(str(start))) == sorted(
+        ["config.json", "data/D0.npz", "checkpoints/bc.pt", "checkpoints/bc_continued.pt", "eval/bc.json",
+         "eval/bc_unseen.json", "eval/pi0.json", *[f"timings/{n}" for n in os.listdir(start / "timings")]])
+    assert not any("lineage" in n for n in os.listdir(start / "timings"))
+    pi0 = run_folder.weights_sha256(os.path.join(full_run, "checkpoints", "bc.pt"))
+
+    root = str(tmp_path / "elsewhere")
+    dagger.main(["--profile", "tiny", "--prepare", "--out", root])
+    assert trained_stages == []  # D0, pi_0 and the BC row came from the start: nothing trained
+    assert run_folder.weights_sha256(os.path.join(root, "checkpoints", "bc.pt")) == pi0
+    assert f"stage files from {start}" in open(os.path.join(root, "log.txt")).read()
+    args, _ = dagger.parse_args(["--profile", "tiny", "--lineage", "0", "--out", root])
+    assert args.copy_from is None  # the start is in: a resumed lineage copies nothing again
+
+    other = str(tmp_path / "seed1")
+    args, _ = dagger.parse_args(["--profile", "tiny", "--seed", "1", "--out", other])
+    assert args.copy_from is None and "seed = 0 there, 1 now" in capsys.readouterr().out
+    own = str(tmp_path / "own")
+    os.makedirs(os.path.join(own, "checkpoints"))
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, os.path.join(own, "checkpoints", "bc.pt"))
+    args, _ = dagger.parse_args(["--profile", "tiny", "--out", own])
+    assert args.copy_from is None and "has a pi_0 of its own" in capsys.readouterr().out
+    args, _ = dagger.parse_args(["--profile", "tiny", "--out", str(tmp_path / "new")])
+    assert args.copy_from == str(start)
