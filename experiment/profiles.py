@@ -16,8 +16,9 @@ PROFILES = {
     # smoke round), so CI fits W by Eq. (12): with one segment (calib_blend_segments=1) each ratio had one
     # rollout, fewer than min_survivors = 3, and W always fell back to the open-loop error. Measured: 46 of
     # 117 rollouts kept, 6 ratios fitted; the calibration 2 s -> 4 s, the run 1 min 45 s -> 1 min 52 s on
-    # the 2-core machine (tests/test_calibrate.py::test_the_smoke_profile_calibration_fits_W).
-    "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=1, K=10,
+    # the 2-core machine (tests/test_calibrate.py::test_the_smoke_profile_calibration_fits_W). Two lineages, so
+    # that CI computes Table I's statistics (mean +- SE, the paired t-tests, TOST) from a run.
+    "smoke": dict(name="smoke", n_demos=16, rounds=1, lineages=2, K=10,
                     down_dims=(16, 32), bc_steps=300, finetune_steps=150, batch_size=64, lr=1e-3,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
                     eval_scenarios=8, eval_repeats=1),
