@@ -134,40 +134,29 @@ def substeps(n):
     return edge, np.arange(n.sum()) - np.repeat(first, n) + 1
 
 
-def _check_in_rounds(states, edge, rounds, in_collision, n_edges):
-    """hit (P,): in_collision of states (P, dof), one batched call per round 0, 1, ...; states of an edge that
-    collided in an earlier round are skipped (reported free)."""
-    hit = np.zeros(len(states), dtype=bool)
-    blocked = np.zeros(n_edges, dtype=bool)
-    for r in range(int(rounds.max(initial=-1)) + 1):
-        todo = np.flatnonzero((rounds == r) & ~blocked[edge])
-        if len(todo):
-            hit[todo] = in_collision(states[todo])
-            blocked[edge[todo[hit[todo]]]] = True
-    return hit
-
-
 def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
     """(E,) fraction of each edge q_from -> q_to that is free from its start (1 = all). States in order, in rounds
-    of doubling length: long CONNECT edges nearly all collide early (first_round 4 beat 8 and 16, planar)."""
+    of doubling length (first_round, 2x, 4x, ... states of each edge still free; first_round 4 beat 8 and 16,
+    planar): long CONNECT edges nearly all collide early, and an edge stops at its first collision."""
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
     # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
     rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
+    hit = np.zeros(len(states), dtype=bool)
+    blocked = np.zeros(len(n), dtype=bool)
+    for r in range(int(rounds.max(initial=-1)) + 1):
+        todo = np.flatnonzero((rounds == r) & ~blocked[edge])  # states of edges that have not collided yet
+        if len(todo):
+            hit[todo] = in_collision(states[todo])
+            blocked[edge[todo[hit[todo]]]] = True
     first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
     np.minimum.at(first_hit, edge[hit], k[hit])
     return (first_hit - 1) / n
 
 
-def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
-    """(E,) True where the whole edge q_from -> q_to is free: every coarse-th state first, then the rest of the
-    edges not found colliding (coarse 2, 4 and 8 planned equally fast, planar)."""
-    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
-    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    rounds = (k % coarse != 0).astype(int)  # (P,) 0: the coarse pass, 1: the rest
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
-    return ~np.bincount(edge[hit], minlength=len(n)).astype(bool)
+def edges_free(q_from, q_to, in_collision, resolution):
+    """(E,) True where the whole edge q_from -> q_to is collision-free."""
+    return edge_free_fraction(q_from, q_to, in_collision, resolution) == 1.0
 
 
 def path_in_collision(path, in_collision, resolution):
