@@ -1,8 +1,7 @@
 """The RRT oracle expert (paper Sec. V; the gate of Sec. IV-A; the authors' setup: PAPER_SETUP.md §3).
 
-A deterministic planner with privileged simulator information stands in for HG-DAgger's human: it plans to the
-goal, executes only a fraction of the plan and matches the policy's pose and velocity at the handoff. For any
-serial arm behind the env interface of envs.py, in the paper's order:
+A deterministic planner with privileged simulator information stands in for HG-DAgger's human, for any serial
+arm behind the env interface of envs.py. In the paper's order:
 
   solve_ik            goal configurations: damped least squares from many seeds
   edge checks         lever-arm spacing and a clearance margin, so that no check misses an obstacle
@@ -397,10 +396,10 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
     dof = path.shape[1]
     v_max, a_max, j_max = (np.broadcast_to(np.asarray(x, dtype=np.float64), (dof,)) for x in (v_max, a_max, j_max))
     v0 = np.zeros(dof) if v0 is None else np.asarray(v0, dtype=np.float64)
-    if not (np.all(v_max > 0) and np.all(a_max > 0) and np.all(j_max > 0) and dt > 0):
-        raise ValueError(f"v_max, a_max, j_max (per joint) and dt must be > 0, got {v_max}, {a_max}, {j_max}, {dt}")
-    if v0.shape != (dof,) or np.any(np.abs(v0) > v_max * (1 + 1e-9)):
-        raise ValueError(f"v0 must have shape ({dof},) and |v0| <= v_max={v_max}, got {v0}")
+    if not (np.all(v_max > 0) and np.all(a_max > 0) and np.all(j_max > 0) and dt > 0 and v0.shape == (dof,)
+            and np.all(np.abs(v0) <= v_max * (1 + 1e-9))):
+        raise ValueError(f"need v_max, a_max, j_max (per joint), dt > 0 and v0 ({dof},) with |v0| <= v_max; got "
+                         f"v_max={v_max}, a_max={a_max}, j_max={j_max}, dt={dt}, v0={v0}")
     kernel = filter_kernel(v_max, a_max, j_max, dt)
     L = len(kernel)
     q0 = path[0]
@@ -528,8 +527,7 @@ class Gate:
 @dataclass
 class Plan:
     samples: np.ndarray  # (T, dof) trajectory at env.dt; samples[0] = start, samples[-1] = goal
-    path: np.ndarray  # (N, dof) the smoothed geometric path it follows
-    ee_length: float  # end-effector arc length of `path` (the selection criterion)
+    ee_length: float  # end-effector arc length of the smoothed path it follows (the selection criterion)
     velocity_matched: bool  # False if the handoff velocity had to be dropped (abrupt stop)
     planning_time: float  # s, wall clock (informative only; never used in a decision)
 
@@ -596,15 +594,13 @@ class Oracle:
                     raise PlanningFailed("; ".join(failures)) from None
         path = best[0] if not np.any(v0) else np.concatenate([q0[None], best[0]])
         try:
-            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0, in_collision=verify,
-                                        resolution=res)
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0, in_collision=verify, resolution=res)
         except PlanningFailed:
             if not np.any(v0):
                 raise
             matched = False  # the S-curve stop of the handoff collides: stop abruptly instead
-            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None, in_collision=verify,
-                                        resolution=res)
-        self.last_plan = Plan(samples, best[0], best[1], matched, time.perf_counter() - t0)
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None, in_collision=verify, resolution=res)
+        self.last_plan = Plan(samples, best[1], matched, time.perf_counter() - t0)
         return self.last_plan
 
     def _search(self, env, q0, coast, start, goals, sweep, rng):
@@ -734,7 +730,7 @@ if __name__ == "__main__":
     # an intervention: the arm 30 % into the demo, drifted 0.1 rad per joint off it and moving
     t = int(0.3 * len(episode["q"]))
     env.set_state(episode["q"][t] + 0.1, episode["q"][t - 1] + 0.1)
-    print(f"gate on the expert's next 20 actions: {oracle.gate(env).should_intervene(env, episode['action'][t:t + 20])}")
+    print(f"gate on the next 20 expert actions: {oracle.gate(env).should_intervene(env, episode['action'][t:t + 20])}")
     actions = oracle.intervention(env)
     print(f"intervention: drives {len(actions)} steps, handoff velocity matched: {oracle.last_plan.velocity_matched}")
     os.makedirs("runs", exist_ok=True)
