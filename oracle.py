@@ -161,9 +161,7 @@ def edges_free(q_from, q_to, in_collision, resolution):
 def path_in_collision(path, in_collision, resolution):
     """True if the first state of the polyline path (N, dof) or any of its edges collides."""
     path = np.atleast_2d(path)
-    if in_collision(path[:1])[0]:
-        return True
-    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
+    return bool(in_collision(path[:1])[0]) or not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
 
 
 def with_margin(env, margin, relax_at=None, relax_radius=0.0):
@@ -337,8 +335,7 @@ def smooth_corners(path, in_collision, resolution=0.05, n_points=8, n_halvings=3
     B(u) = (1-u)^2 p_in + 2u(1-u) v + u^2 p_out, p_in = v + d (a - v)/|a - v|, p_out likewise toward b, tangent
     to both edges. A blend that collides is retried with d halved, n_halvings times; then the sharp corner stays."""
     path = _drop_duplicates(np.asarray(path, dtype=np.float64))
-    n_corner = len(path) - 2
-    if n_corner < 1:
+    if len(path) < 3:
         return path
     v, a, b = path[1:-1], path[:-2], path[2:]  # (C, dof) each
     len_a = np.linalg.norm(a - v, axis=1)[:, None]
@@ -346,16 +343,15 @@ def smooth_corners(path, in_collision, resolution=0.05, n_points=8, n_halvings=3
     d = 0.4 * np.minimum(len_a, len_b)  # (C, 1); a factor <= 0.5: neighbouring blends never overlap
     u = np.linspace(0.0, 1.0, n_points)[None, :, None]  # (1, n_points, 1)
     blends = list(path[1:-1, None])  # (1, dof) each: the sharp corner until a blend is free
-    todo = np.arange(n_corner)
+    todo = np.arange(len(v))
     for _ in range(n_halvings + 1):
         p_in = v[todo] + d[todo] * (a[todo] - v[todo]) / len_a[todo]
         p_out = v[todo] + d[todo] * (b[todo] - v[todo]) / len_b[todo]
         curve = ((1 - u) ** 2 * p_in[:, None] + 2 * u * (1 - u) * v[todo][:, None]
                  + u ** 2 * p_out[:, None])  # (C', n_points, dof)
-        q_from = curve[:, :-1].reshape(-1, path.shape[1])
-        q_to = curve[:, 1:].reshape(-1, path.shape[1])
-        ok = edges_free(q_from, q_to, in_collision, resolution).reshape(len(todo), -1)
-        ok = np.all(ok, axis=1)  # p_in itself lies on a checked edge of the path
+        edges = edges_free(curve[:, :-1].reshape(-1, path.shape[1]), curve[:, 1:].reshape(-1, path.shape[1]),
+                           in_collision, resolution)
+        ok = np.all(edges.reshape(len(todo), -1), axis=1)  # p_in itself lies on a checked edge of the path
         for row in np.flatnonzero(ok):
             blends[todo[row]] = curve[row]
         todo = todo[~ok]
@@ -639,22 +635,19 @@ class Oracle:
         """An expert episode (D0) for scenario `seed`, the plan's samples as absolute joint targets until the env
         ends it: 'obs', 'q', 'action', 'expert' (all True), 'seed', 'success' (envs.save_episodes)."""
         obs, _ = env.reset(seed=seed)
-        rng = np.random.default_rng([self.cfg.seed, int(seed)])
-        plan = self.plan(env, env.q, np.zeros(env.dof), rng)
-        episode = {"obs": [], "q": [], "action": []}
-        success = False
+        plan = self.plan(env, env.q, np.zeros(env.dof), np.random.default_rng([self.cfg.seed, int(seed)]))
+        observations, qs, success = [], [], False
         for target in plan.samples[1:]:
-            episode["obs"].append(obs)
-            episode["q"].append(env.q)
-            episode["action"].append(target)
+            observations.append(obs)
+            qs.append(env.q)
             obs, _, terminated, truncated, info = env.step(target)
             success = info["success"]
             if terminated or truncated:
                 break
-        T = len(episode["q"])
-        return {"obs": np.asarray(episode["obs"], dtype=np.float32).reshape(T, env.obs_dim),
-                "q": np.asarray(episode["q"], dtype=np.float64).reshape(T, env.dof),
-                "action": np.asarray(episode["action"], dtype=np.float64).reshape(T, env.dof),
+        T = len(qs)
+        return {"obs": np.asarray(observations, dtype=np.float32).reshape(T, env.obs_dim),
+                "q": np.asarray(qs, dtype=np.float64).reshape(T, env.dof),
+                "action": plan.samples[1:T + 1].copy(),  # the targets stepped
                 "expert": np.ones(T, dtype=bool), "seed": int(seed), "success": bool(success)}
 
     def gate(self, env, rng=None):
