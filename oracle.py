@@ -1,20 +1,15 @@
-"""The RRT oracle expert (paper Sec. V; the expert gating of Sec. IV-A; the authors' setup: PAPER_SETUP.md §3).
+"""The RRT oracle expert (paper Sec. V; the gate of Sec. IV-A; the authors' setup: PAPER_SETUP.md §3).
 
-A deterministic planner with privileged simulator information stands in for HG-DAgger's human: it "plans a path
-from the current state to the goal, but we execute only a fraction of the plan", picks "the optimal path under a
-deterministic criterion (for example, minimum end effector arc length)", smooths it, enforces speed, acceleration
-and jerk limits, and matches "the policy's induced pose and velocity at the handoff". Built from scratch for any
-serial arm behind the env interface of envs.py, in the paper's order:
+A deterministic planner with privileged simulator information stands in for HG-DAgger's human, for any serial
+arm behind the env interface of envs.py. In the paper's order:
 
   solve_ik            goal configurations: damped least squares from many seeds
   edge checks         lever-arm spacing and a clearance margin, so that no check misses an obstacle
   rrt_connect         bidirectional RRT-Connect in joint space, batched edge checks, several goals
   shortcut            random shortcutting (after one greedy batched pass)
-  smooth_corners      quadratic-Bezier corner rounding (no separate trajectory-optimization step)
-  time_parameterize   speed / acceleration / jerk limits at every sample WITHOUT TOPP-RA: a double
-                      moving-average filter of a full-speed traversal, slowed down where needed
-  Gate, Oracle        demonstrations (D0); the HG-DAgger gate (predicted collision, stall, time
-                      triggers) and interventions that hand back after a fraction of the plan
+  smooth_corners      quadratic-Bezier corner rounding (no separate trajectory optimization)
+  time_parameterize   speed / acceleration / jerk limits without TOPP-RA: a double moving-average filter
+  Gate, Oracle        demonstrations (D0); the HG-DAgger gate and interventions that hand back early
   plot_demonstration  Fig. 5: a scene with an expert demonstration
 """
 from __future__ import annotations
@@ -37,9 +32,8 @@ class PlanningFailed(RuntimeError):
 
 @dataclass
 class OracleConfig:
-    """The authors' planner and gate (PAPER_SETUP.md §3; why ours differ: benchmarks/README.md, "What the loop
-    takes from the authors' code"). Their counts are frames at 30 Hz, ours steps at 10 Hz: a third as many.
-    A sweep is 0.5 * env.link_radius m of arm-point motion (Oracle.sweep; planar 0.0075 m)."""
+    """The authors' planner and gate (PAPER_SETUP.md §3; ours vs theirs: benchmarks/README.md, "What the loop
+    takes from the authors' code"). Counts are our 10 Hz steps (theirs: 30 Hz frames). A sweep: Oracle.sweep."""
     max_goals: int = 32  # IK goal configurations handed to the planner, nearest first (theirs: 32)
     speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (theirs: 0.5 rad/s)
     a_max: float = 1.0  # rad/s^2 per joint (theirs)
@@ -65,16 +59,11 @@ class OracleConfig:
 
 
 # ---- Inverse kinematics (goal configurations) -------------------------------------------------
-def solve_ik(env, goal, rng, max_goals, q_start=None, n_seeds=512, iters=40, damping=0.05, tolerance=1e-3,
+def solve_ik(env, goal, rng, max_goals, q_start, n_seeds=512, iters=40, damping=0.05, tolerance=1e-3,
              dedup=0.2, in_collision=None):
-    """Collision-free goal configurations (M, dof), M <= max_goals, nearest to q_start first.
-
-    Damped least squares batched over n_seeds seeds (q_start and uniform random ones: free goal configurations
-    can be rare in clutter, ~2 % of converged seeds; most converge in 10-20 iterations):
-    dq = J^T (J J^T + damping^2 I)^-1 (goal - ee(q)), clipped to the joint limits (an env whose goal includes an
-    orientation, env.goal_is_pose, gives its configurations in closed form). Kept: within `tolerance` m of the
-    goal, env.goal_reached, free (in_collision, default env's) and over `dedup` rad (max-norm) from those kept.
-    """
+    """Free goal configurations (M <= max_goals, dof), nearest to q_start first: damped least squares from q_start
+    and uniform seeds, kept within `tolerance` m of the goal, env.goal_reached, free (in_collision, default the
+    env's) and over `dedup` rad (max-norm) apart. An env with env.goal_is_pose gives them in closed form."""
     in_collision = in_collision or env.in_collision
     goal = np.asarray(goal, dtype=np.float64)
     if env.goal_is_pose:
@@ -82,9 +71,9 @@ def solve_ik(env, goal, rng, max_goals, q_start=None, n_seeds=512, iters=40, dam
     else:
         lo, hi = env.joint_limits
         q = rng.uniform(lo, hi, size=(n_seeds, env.dof))  # (S, dof)
-        if q_start is not None:
-            q[0] = q_start
+        q[0] = q_start
         for _ in range(iters):
+            # dq = J^T (J J^T + damping^2 I)^-1 (goal - ee(q)), clipped to the joint limits
             err = goal - env.ee(q)  # (S, dim)
             J = env.ee_jacobian(q)  # (S, dim, dof), central differences
             JJt = J @ J.transpose(0, 2, 1) + damping ** 2 * np.eye(J.shape[1])  # (S, dim, dim)
@@ -93,8 +82,7 @@ def solve_ik(env, goal, rng, max_goals, q_start=None, n_seeds=512, iters=40, dam
         close = np.linalg.norm(env.ee(q) - goal, axis=1) <= tolerance
         q = q[close & env.goal_reached(q)]
     q = q[~in_collision(q)] if len(q) else q
-    if q_start is not None and len(q):
-        q = q[np.argsort(np.linalg.norm(q - q_start, axis=1), kind="stable")]
+    q = q[np.argsort(np.linalg.norm(q - q_start, axis=1), kind="stable")]
     kept = []
     for cand in q:
         if all(np.max(np.abs(cand - k)) > dedup for k in kept):
@@ -105,20 +93,14 @@ def solve_ik(env, goal, rng, max_goals, q_start=None, n_seeds=512, iters=40, dam
 
 
 # ---- Collision checks along edges ---------------------------------------------------------------
-# Why a check cannot miss an obstacle: a joint step dq moves any point of a serial arm by at most
-# sum_j R_j |dq_j|, R_j bounding the distance from joint j to the arm beyond it (`lever_arms`). Checks spaced
-# so that no arm point moves more than s m between two of them (`edge_resolution`) leave every state of an
-# edge within s/2 of a checked one, so checking against obstacles inflated by a margin >= s/2 (`with_margin`)
-# clears the whole edge. Planning keeps a margin m with checks 2 (m - v) apart, so the plan keeps a clearance
-# v everywhere; the executed trajectory is verified with margin v (OracleConfig.margin, verify_margin). Edges
-# are checked in rounds and stop at their first collision (benchmarks/README.md, "RRT-Connect: checks per plan").
+# Why no check misses an obstacle: a joint step dq moves any arm point by at most sum_j R_j |dq_j| (`lever_arms`).
+# Checks spaced so that no arm point moves more than s m between two (`edge_resolution`) leave every state of an
+# edge within s/2 of a checked one, so obstacles inflated by a margin >= s/2 (`with_margin`) clear the whole edge.
+# Planning: margin m, checks 2 (m - v) apart, so the plan keeps clearance v; the executed trajectory is verified
+# with margin v. Edges stop at their first collision (benchmarks/README.md, "RRT-Connect: checks per plan").
 def lever_arms(env, n_probe=8):
-    """R_j (dof,): a bound on the distance from joint j to any point of the arm beyond it.
-
-    env.lever_arms where the env gives it (the planar gripper's fingers reach past its fk points); else from
-    env.fk's points (the base, one per joint, the end effector): R_j = the sum of the segment lengths after
-    joint j, each the largest over the zero pose and n_probe random poses (a fixed probe seed).
-    """
+    """R_j (dof,): a bound on the distance from joint j to any point of the arm beyond it: env.lever_arms if
+    given, else sums of env.fk's segment lengths after joint j (largest over the zero pose and n_probe others)."""
     if hasattr(env, "lever_arms"):
         return np.array(env.lever_arms, dtype=np.float64)
     lo, hi = env.joint_limits
@@ -136,9 +118,8 @@ def edge_resolution(env, sweep):
 
 
 def interpolate_edges(q_from, q_to, resolution):
-    """States (P, dof) along the straight edges q_from -> q_to (E, dof), sum_j |dq_j| / resolution_j <= 1 apart:
-    fractions k / n, k = 1 .. n, of each edge (its start is checked already); their edge index (P,), their
-    sub-step k (P,) and each edge's sub-step count n (E,)."""
+    """States (P, dof) at fractions k / n_e, k = 1 .. n_e, of the edges q_from -> q_to (E, dof), at most one
+    `resolution` step apart; their edge index (P,), sub-step k (P,) and each edge's count n (E,)."""
     dq = q_to - q_from  # (E, dof)
     n = np.maximum(1, np.ceil(np.sum(np.abs(dq) / resolution, axis=1) - 1e-9)).astype(int)  # (E,)
     edge, k = substeps(n)
@@ -152,60 +133,41 @@ def substeps(n):
     return edge, np.arange(n.sum()) - np.repeat(first, n) + 1
 
 
-def _check_in_rounds(states, edge, rounds, in_collision, n_edges):
-    """in_collision of states (P, dof), one batched call per round (0, 1, ...); the states of an edge that
-    collided in an earlier round are skipped (reported free). Returns hit (P,) bool."""
-    hit = np.zeros(len(states), dtype=bool)
-    blocked = np.zeros(n_edges, dtype=bool)
-    for r in range(int(rounds.max(initial=-1)) + 1):
-        todo = np.flatnonzero((rounds == r) & ~blocked[edge])
-        if len(todo):
-            hit[todo] = in_collision(states[todo])
-            blocked[edge[todo[hit[todo]]]] = True
-    return hit
-
-
 def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
-    """(E,) fraction of each edge q_from -> q_to that is collision-free from its start (1 = all).
-
-    States in order, in rounds of doubling length (first_round, 2x, 4x, ... states of each edge still free):
-    long CONNECT edges nearly all collide early. first_round = 4 planned faster than 8 or 16 (planar scenes).
-    """
+    """(E,) fraction of each edge q_from -> q_to that is free from its start (1 = all). States in order, in rounds
+    of doubling length (first_round, 2x, 4x, ... states of each edge still free; first_round 4 beat 8 and 16,
+    planar): long CONNECT edges nearly all collide early, and an edge stops at its first collision."""
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
     # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
     rounds = np.floor(np.log2((k - 1) / first_round + 1)).astype(int)
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
+    hit = np.zeros(len(states), dtype=bool)
+    blocked = np.zeros(len(n), dtype=bool)
+    for r in range(int(rounds.max(initial=-1)) + 1):
+        todo = np.flatnonzero((rounds == r) & ~blocked[edge])  # states of edges that have not collided yet
+        if len(todo):
+            hit[todo] = in_collision(states[todo])
+            blocked[edge[todo[hit[todo]]]] = True
     first_hit = n + 1  # (E,) sub-step of the first collision; n + 1 = none
     np.minimum.at(first_hit, edge[hit], k[hit])
     return (first_hit - 1) / n
 
 
-def edges_free(q_from, q_to, in_collision, resolution, coarse=4):
-    """(E,) True where the whole edge q_from -> q_to is collision-free: every coarse-th state first, then the
-    rest of the edges not yet found colliding (coarse = 2, 4 or 8 planned equally fast on the planar scenes)."""
-    q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
-    states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
-    rounds = (k % coarse != 0).astype(int)  # (P,) 0: the coarse pass, 1: the rest
-    hit = _check_in_rounds(states, edge, rounds, in_collision, len(n))
-    return ~np.bincount(edge[hit], minlength=len(n)).astype(bool)
+def edges_free(q_from, q_to, in_collision, resolution):
+    """(E,) True where the whole edge q_from -> q_to is collision-free."""
+    return edge_free_fraction(q_from, q_to, in_collision, resolution) == 1.0
 
 
 def path_in_collision(path, in_collision, resolution):
     """True if the first state of the polyline path (N, dof) or any of its edges collides."""
     path = np.atleast_2d(path)
-    if in_collision(path[:1])[0]:
-        return True
-    return not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
+    return bool(in_collision(path[:1])[0]) or not np.all(edges_free(path[:-1], path[1:], in_collision, resolution))
 
 
 def with_margin(env, margin, relax_at=None, relax_radius=0.0):
-    """The planner's collision predicate: True within margin (m) of a collision (env.in_collision's margin).
-
-    Near relax_at (K, dof) -- arm motion sum_j R_j |q_j - relax_at_kj| <= relax_radius (m, scalar or (K,)) --
-    only the plain check applies: a start inside the margin band (an intervention often begins close to an
-    obstacle) must be able to leave it, and a goal configuration squeezed between obstacles be reachable.
-    """
+    """The planner's predicate: True within margin (m) of a collision. Near relax_at (K, dof), within arm motion
+    sum_j R_j |q_j - relax_at_kj| <= relax_radius (m, scalar or (K,)), only the plain check applies: a start in
+    the margin band must be able to leave it, a goal squeezed between obstacles be reachable."""
     lever = lever_arms(env)
     relax_at = None if relax_at is None else np.atleast_2d(relax_at)
 
@@ -274,13 +236,9 @@ def _grow(tree, near, targets, free, step_size):
 
 def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3, resolution=0.05,
                 max_iters=500, max_time=10.0, batch=32):
-    """A collision-free path (N, dof) from q_start to one of q_goals (M, dof), or raise PlanningFailed.
-
-    One batched step per iteration: tree A EXTENDs toward `batch` uniform samples (a step_size each, keeping
-    the free part of a blocked step), tree B CONNECTs greedily toward every new node (straight, as far as
-    free); the trees swap roles. Edges are checked at `resolution` (rad, scalar or (dof,)). batch 32 halved
-    the planar planning time against 8. Budget: max_iters (deterministic) and max_time s (a hang guard).
-    """
+    """A free path (N, dof) from q_start to one of q_goals (M, dof), or PlanningFailed. Per iteration tree A
+    EXTENDs toward `batch` uniform samples (batch 32 halved the planar time against 8), tree B CONNECTs toward
+    every new node; the trees swap. Edges checked at `resolution` (rad); max_time (s) is a hang guard."""
     q_start = np.asarray(q_start, dtype=np.float64)
     q_goals = np.atleast_2d(np.asarray(q_goals, dtype=np.float64))
     lo, hi = (np.asarray(x, dtype=np.float64) for x in joint_limits)
@@ -339,12 +297,9 @@ def _drop_duplicates(path, tol=1e-12):
 
 # ---- Path post-processing: shortcutting and corner smoothing -------------------------------------
 def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
-    """Shorter collision-free polyline with the same end points.
-
-    1) Greedy pass: from each kept vertex jump to the farthest later vertex reachable by a free straight edge.
-    2) Random shortcutting: `iters` proposals of two random points along the path, in batches of `batch`
-       checked together; the free proposal that saves the most length is applied.
-    """
+    """A shorter free polyline with the same end points: a greedy pass (from each kept vertex to the farthest
+    later one in free straight reach), then `iters` random proposals of two points along the path in batches;
+    the free proposal of each batch that saves the most length is applied."""
     path = _drop_duplicates(np.asarray(path, dtype=np.float64))
     out, i = [path[0]], 0
     while i < len(path) - 1:
@@ -375,59 +330,41 @@ def shortcut(path, in_collision, rng, iters=64, resolution=0.05, batch=8):
     return path
 
 
-def smooth_corners(path, in_collision, resolution=0.05, fraction=0.4, n_points=8, n_halvings=3):
-    """Replace each interior vertex by a quadratic Bezier blend, where that stays collision-free.
-
-    The blend of vertex v between neighbours a, b runs from p_in = v + d (a - v)/|a - v| to
-    p_out = v + d (b - v)/|b - v| with control point v: B(u) = (1-u)^2 p_in + 2u(1-u) v + u^2 p_out, tangent
-    to both edges. d = fraction * min(|a-v|, |b-v|) (fraction <= 0.5: neighbouring blends never overlap). A
-    blend that collides is retried with d halved, n_halvings times, then the sharp corner stays (it was
-    checked). All corners of one halving level are checked in one batched call.
-    """
+def smooth_corners(path, in_collision, resolution=0.05, n_points=8, n_halvings=3):
+    """Replace each interior vertex v (neighbours a, b) by a quadratic Bezier blend where it stays free:
+    B(u) = (1-u)^2 p_in + 2u(1-u) v + u^2 p_out, p_in = v + d (a - v)/|a - v|, p_out likewise toward b, tangent
+    to both edges. A blend that collides is retried with d halved, n_halvings times; then the sharp corner stays."""
     path = _drop_duplicates(np.asarray(path, dtype=np.float64))
-    if not 0 < fraction <= 0.5:
-        raise ValueError(f"fraction must be in (0, 0.5], got {fraction}")
-    n_corner = len(path) - 2
-    if n_corner < 1:
+    if len(path) < 3:
         return path
     v, a, b = path[1:-1], path[:-2], path[2:]  # (C, dof) each
     len_a = np.linalg.norm(a - v, axis=1)[:, None]
     len_b = np.linalg.norm(b - v, axis=1)[:, None]
-    d = fraction * np.minimum(len_a, len_b)  # (C, 1)
+    d = 0.4 * np.minimum(len_a, len_b)  # (C, 1); a factor <= 0.5: neighbouring blends never overlap
     u = np.linspace(0.0, 1.0, n_points)[None, :, None]  # (1, n_points, 1)
-    blends = [None] * n_corner
-    todo = np.arange(n_corner)
+    blends = list(path[1:-1, None])  # (1, dof) each: the sharp corner until a blend is free
+    todo = np.arange(len(v))
     for _ in range(n_halvings + 1):
         p_in = v[todo] + d[todo] * (a[todo] - v[todo]) / len_a[todo]
         p_out = v[todo] + d[todo] * (b[todo] - v[todo]) / len_b[todo]
         curve = ((1 - u) ** 2 * p_in[:, None] + 2 * u * (1 - u) * v[todo][:, None]
                  + u ** 2 * p_out[:, None])  # (C', n_points, dof)
-        q_from = curve[:, :-1].reshape(-1, path.shape[1])
-        q_to = curve[:, 1:].reshape(-1, path.shape[1])
-        ok = edges_free(q_from, q_to, in_collision, resolution).reshape(len(todo), -1)
-        ok = np.all(ok, axis=1)  # p_in itself lies on a checked edge of the path
-        for row, c in enumerate(todo):
-            if ok[row]:
-                blends[c] = curve[row]
+        edges = edges_free(curve[:, :-1].reshape(-1, path.shape[1]), curve[:, 1:].reshape(-1, path.shape[1]),
+                           in_collision, resolution)
+        ok = np.all(edges.reshape(len(todo), -1), axis=1)  # p_in itself lies on a checked edge of the path
+        for row in np.flatnonzero(ok):
+            blends[todo[row]] = curve[row]
         todo = todo[~ok]
         d[todo] *= 0.5
         if len(todo) == 0:
             break
-    pieces = [path[:1]]
-    for c in range(n_corner):
-        pieces.append(blends[c] if blends[c] is not None else path[c + 1:c + 2])
-    pieces.append(path[-1:])
-    return _drop_duplicates(np.concatenate(pieces))
+    return _drop_duplicates(np.concatenate([path[:1], *blends, path[-1:]]))
 
 
 # ---- Time parameterization with velocity / acceleration / jerk limits (TOPP-free) ----------------
 def filter_kernel(v_max, a_max, j_max, dt):
-    """Impulse response of two moving averages, (n_acc + n_jerk - 1,), summing to 1.
-
-    Averaging a velocity sequence over n_acc steps turns any jump of at most v_max into a ramp of slope
-    <= v_max / (n_acc dt) <= a_max; averaging again over n_jerk steps turns each acceleration step into a ramp
-    of slope <= a_max / (n_jerk dt) <= j_max (the FIR form of an S-curve).
-    """
+    """Impulse response (n_acc + n_jerk - 1,) of two moving averages, summing to 1 (the FIR form of an S-curve):
+    over n_acc steps a velocity jump <= v_max ramps at <= a_max, over n_jerk steps an acceleration step at <= j_max."""
     # >>> exercise 11: time parameterization under speed, acceleration and jerk limits (Sec. V)
     n_acc = int(math.ceil(np.max(v_max / (a_max * dt)) - 1e-9))
     n_jerk = int(math.ceil(np.max(a_max / (j_max * dt)) - 1e-9))
@@ -436,39 +373,29 @@ def filter_kernel(v_max, a_max, j_max, dt):
 
 
 def handoff_point(q0, v0, kernel, dt):
-    """Where the filter input must start so that the output starts at q0 with velocity v0.
-
-    The input is taken to have moved at v0 forever before t = 0 (so the output begins at v0 with zero
-    acceleration); that history adds v0 * dt * (the kernel's mean delay) to the displacement, so the input
-    path starts that far ahead of q0, along v0 (a "coast").
-    """
+    """Where the filter input starts so that the output starts at q0 with velocity v0: the input moved at v0
+    forever before t = 0, which puts it v0 * dt * (the kernel's mean delay) ahead of q0 (a "coast")."""
     delay = np.sum(np.arange(len(kernel)) * kernel)  # mean delay in steps
     return np.asarray(q0, dtype=np.float64) + np.asarray(v0, dtype=np.float64) * dt * delay
 
 
 def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None, resolution=None,
                       max_repairs=60, repair_factor=0.7, min_speed_factor=1e-2):
-    """Samples (T, dof) of a trajectory along `path` at the step dt, within per-joint limits.
-
-    Finite differences at dt of the samples, with sample -1 = q0 - v0 dt (constant velocity before), satisfy
-    |v| <= v_max, |a| <= a_max, |jerk| <= j_max at EVERY sample; the first sample is path[0] moving at v0,
-    the last is path[-1] at rest. Method: (1) traverse the polyline at full speed (the most constrained
-    joint at its v_max), sampled at dt -> input velocities w; (2) prepend the handoff history (w = v0 before
-    t = 0), filter w with `filter_kernel` and integrate (the input starts at `handoff_point`, then follows
-    path[1:]); (3) verify every sample (limits and, with in_collision, every output edge at `resolution`);
-    where one fails, slow the input by repair_factor over the window that sample depends on (the filter
-    cuts corners by at most the path traversed within one kernel window, so this also shrinks a colliding
-    cut), and repeat. PlanningFailed below min_speed_factor of full speed or after max_repairs rounds.
-    A straight rest-to-rest move takes L / v_max + (n_acc + n_jerk - 2) dt: an S-curve's time.
+    """Samples (T, dof) at dt along `path`, from path[0] moving at v0 to path[-1] at rest, with |v| <= v_max,
+    |a| <= a_max, |jerk| <= j_max per joint at EVERY sample (finite differences, sample -1 = q0 - v0 dt).
+    (1) Traverse the path at full speed, sampled at dt: input velocities w; (2) filter w (after the v0 history)
+    with `filter_kernel` and integrate; (3) where a sample breaks a limit or an output edge collides, slow the
+    input over the window that sample depends on by repair_factor, and repeat; PlanningFailed under
+    min_speed_factor of full speed or after max_repairs. A straight move takes L / v_max + (n_acc + n_jerk - 2) dt.
     """
     path = np.atleast_2d(np.asarray(path, dtype=np.float64))
     dof = path.shape[1]
     v_max, a_max, j_max = (np.broadcast_to(np.asarray(x, dtype=np.float64), (dof,)) for x in (v_max, a_max, j_max))
     v0 = np.zeros(dof) if v0 is None else np.asarray(v0, dtype=np.float64)
-    if not (np.all(v_max > 0) and np.all(a_max > 0) and np.all(j_max > 0) and dt > 0):
-        raise ValueError(f"v_max, a_max, j_max (per joint) and dt must be > 0, got {v_max}, {a_max}, {j_max}, {dt}")
-    if v0.shape != (dof,) or np.any(np.abs(v0) > v_max * (1 + 1e-9)):
-        raise ValueError(f"v0 must have shape ({dof},) and |v0| <= v_max={v_max}, got {v0}")
+    if not (np.all(v_max > 0) and np.all(a_max > 0) and np.all(j_max > 0) and dt > 0 and v0.shape == (dof,)
+            and np.all(np.abs(v0) <= v_max * (1 + 1e-9))):
+        raise ValueError(f"need v_max, a_max, j_max (per joint), dt > 0 and v0 ({dof},) with |v0| <= v_max; got "
+                         f"v_max={v_max}, a_max={a_max}, j_max={j_max}, dt={dt}, v0={v0}")
     kernel = filter_kernel(v_max, a_max, j_max, dt)
     L = len(kernel)
     q0 = path[0]
@@ -484,9 +411,8 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
     verts = verts[seg] + u[:, None] * (verts[np.minimum(seg + 1, len(verts) - 1)] - verts[seg])
     piece_time = np.repeat(seg_time / m, m)  # (P,)
     slow = np.ones(len(piece_time))  # speed factor per piece, lowered by repairs
-    # Input steps spent waiting at the handoff point first. From a handoff at full speed, reversing a joint
-    # needs an input velocity jump above v_max, which no slow-down fixes; after L + 1 steps of waiting the
-    # filter has come to rest there (an S-curve stop), and any direction is feasible.
+    # Input steps waited at the handoff point: reversing a joint from a full-speed handoff needs an input jump
+    # above v_max that no slow-down fixes; after L + 1 steps the filter is at rest there (an S-curve stop).
     dwell, max_dwell = 0, L + 1 if np.any(v0) else 0
     for _ in range(max_repairs + 1):
         t_vert = np.concatenate([[0.0], np.cumsum(piece_time / slow)])  # (P + 1,) input time
@@ -513,9 +439,8 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
         if len(bad) == 0:
             samples[-1] = path[-1]  # remove float round-off of the cumulative sum at the goal
             return samples
-        # The failing sample k depends on input steps k - L - 1 .. k, i.e. input times in
-        # [(k - L - 2 - dwell) dt, (k - dwell) dt]: slow every piece overlapping such a window,
-        # and wait longer at the handoff if the failure is within reach of it.
+        # Failing sample k depends on input times in [(k - L - 2 - dwell) dt, (k - dwell) dt]: slow every piece
+        # there (the filter's corner cut shrinks too), and wait longer at the handoff if k is within its reach.
         if dwell < max_dwell and bad.min() <= dwell + L + 2:
             dwell += 1
         lo, hi = (bad - L - 2 - dwell) * dt, (bad - dwell) * dt
@@ -529,8 +454,8 @@ def time_parameterize(path, v_max, a_max, j_max, dt, v0=None, in_collision=None,
 
 # ---- The HG-DAgger gate (Sec. IV-A): predicted collision, stall, the authors' time triggers --------
 def rollout_chunk(env, chunk, q=None):
-    """States (H + 1, dof) the env would visit executing `chunk` (H, dof) of absolute targets, by its motion
-    rule (envs.ArmEnv.clip_action): q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi)."""
+    """States (H + 1, dof) the env visits executing `chunk` (H, dof) of absolute targets from q (default env.q)
+    by its motion rule: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi)."""
     # >>> exercise 12: the HG-DAgger gate: predicted collision or stall (Sec. IV-A)
     lo, hi = env.joint_limits
     q = env.q if q is None else np.asarray(q, dtype=np.float64)
@@ -554,9 +479,8 @@ def stalled(distances, window, min_progress):
 
 
 class Gate:
-    """Per-episode HG-DAgger gate (one per env in a batched rollout). Create it right after env.reset
-    (oracle.gate(env, rng)), call record(env, by_expert) after every env step whoever drove it, and
-    should_intervene(env, pending) before every policy step with the policy's pending actions."""
+    """Per-episode HG-DAgger gate (one per env): create it right after env.reset (oracle.gate), call record
+    after every env step whoever drove, should_intervene before every policy step with the pending actions."""
 
     def __init__(self, oracle, env, rng=None):
         self.oracle = oracle
@@ -599,8 +523,7 @@ class Gate:
 @dataclass
 class Plan:
     samples: np.ndarray  # (T, dof) trajectory at env.dt; samples[0] = start, samples[-1] = goal
-    path: np.ndarray  # (N, dof) the smoothed geometric path it follows
-    ee_length: float  # end-effector arc length of `path` (the selection criterion)
+    ee_length: float  # end-effector arc length of the smoothed path it follows (the selection criterion)
     velocity_matched: bool  # False if the handoff velocity had to be dropped (abrupt stop)
     planning_time: float  # s, wall clock (informative only; never used in a decision)
 
@@ -632,15 +555,10 @@ class Oracle:
         return float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
 
     def plan(self, env, q0, v0, rng):
-        """Plan from q0 moving at v0 to the env's goal: IK, RRT-Connect attempts, shortcutting and corner
-        smoothing, the minimum ee arc length, time parameterization. Raises PlanningFailed.
-
-        Handoff (Sec. V, "match the policy's induced pose and velocity"): the geometric plan starts at
-        handoff_point(q0, v0), where the arm coasts while the filter absorbs v0, so the samples start at q0
-        with velocity exactly v0. If that coast leaves the joint limits or collides, or the handoff cannot be
-        time-parameterized without collision, v0 is dropped (an abrupt stop the env allows) and
-        velocity_matched says so.
-        """
+        """Plan from q0 moving at v0 to the env's goal: IK, RRT-Connect attempts, shortcut, corners, the least ee
+        arc length, time parameterization; raises PlanningFailed. The geometric plan starts at handoff_point(q0, v0)
+        so that the samples leave q0 at exactly v0 (Sec. V); if that coast leaves the limits or collides, or the
+        handoff cannot be time-parameterized free, v0 is dropped (an abrupt stop) and velocity_matched is False."""
         c, t0 = self.cfg, time.perf_counter()
         q0 = np.asarray(q0, dtype=np.float64)
         v0 = np.zeros(env.dof) if v0 is None else np.asarray(v0, dtype=np.float64)
@@ -658,8 +576,8 @@ class Oracle:
         goals = solve_ik(env, env.goal, rng, c.max_goals, q_start=start)
         if len(goals) == 0:
             raise PlanningFailed("no collision-free IK solution for the goal")
-        # Narrow passages can be closed by the margin: then search again with checks twice as dense and
-        # margins (in sweeps) twice as thin, down to min_sweep_fraction of the sweep.
+        # Narrow passages can be closed by the margin: search again with the sweep (checks and margins) halved,
+        # down to min_sweep_fraction of it.
         failures = []
         while True:
             try:
@@ -672,20 +590,18 @@ class Oracle:
                     raise PlanningFailed("; ".join(failures)) from None
         path = best[0] if not np.any(v0) else np.concatenate([q0[None], best[0]])
         try:
-            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0, in_collision=verify,
-                                        resolution=res)
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=v0, in_collision=verify, resolution=res)
         except PlanningFailed:
             if not np.any(v0):
                 raise
             matched = False  # the S-curve stop of the handoff collides: stop abruptly instead
-            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None, in_collision=verify,
-                                        resolution=res)
-        self.last_plan = Plan(samples, best[0], best[1], matched, time.perf_counter() - t0)
+            samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None, in_collision=verify, resolution=res)
+        self.last_plan = Plan(samples, best[1], matched, time.perf_counter() - t0)
         return self.last_plan
 
     def _search(self, env, q0, coast, start, goals, sweep, rng):
-        """RRT-Connect attempts + shortcut + corners at one check density; the plan with the smallest ee arc
-        length. Returns ((path, length), verify predicate, resolution)."""
+        """RRT-Connect attempts + shortcut + corners at one sweep; the plan of least ee arc length.
+        Returns ((path, length), verify predicate, resolution)."""
         c = self.cfg
         res = edge_resolution(env, sweep)  # verification of the executed trajectory
         # planning checks 2 (margin - verify_margin) sweeps apart keep verify_margin everywhere (edge checks)
@@ -716,25 +632,22 @@ class Oracle:
         return best, verify, res
 
     def demonstrate(self, env, seed):
-        """An expert episode (D0) for scenario `seed`: the plan's samples are the absolute joint targets until
-        the env ends it. 'obs', 'q', 'action', 'expert' (all True), 'seed', 'success' (envs.save_episodes)."""
+        """An expert episode (D0) for scenario `seed`, the plan's samples as absolute joint targets until the env
+        ends it: 'obs', 'q', 'action', 'expert' (all True), 'seed', 'success' (envs.save_episodes)."""
         obs, _ = env.reset(seed=seed)
-        rng = np.random.default_rng([self.cfg.seed, int(seed)])
-        plan = self.plan(env, env.q, np.zeros(env.dof), rng)
-        episode = {"obs": [], "q": [], "action": []}
-        success = False
+        plan = self.plan(env, env.q, np.zeros(env.dof), np.random.default_rng([self.cfg.seed, int(seed)]))
+        observations, qs, success = [], [], False
         for target in plan.samples[1:]:
-            episode["obs"].append(obs)
-            episode["q"].append(env.q)
-            episode["action"].append(target)
+            observations.append(obs)
+            qs.append(env.q)
             obs, _, terminated, truncated, info = env.step(target)
             success = info["success"]
             if terminated or truncated:
                 break
-        T = len(episode["q"])
-        return {"obs": np.asarray(episode["obs"], dtype=np.float32).reshape(T, env.obs_dim),
-                "q": np.asarray(episode["q"], dtype=np.float64).reshape(T, env.dof),
-                "action": np.asarray(episode["action"], dtype=np.float64).reshape(T, env.dof),
+        T = len(qs)
+        return {"obs": np.asarray(observations, dtype=np.float32).reshape(T, env.obs_dim),
+                "q": np.asarray(qs, dtype=np.float64).reshape(T, env.dof),
+                "action": plan.samples[1:T + 1].copy(),  # the targets stepped
                 "expert": np.ones(T, dtype=bool), "seed": int(seed), "success": bool(success)}
 
     def gate(self, env, rng=None):
@@ -742,10 +655,8 @@ class Oracle:
         return Gate(self, env, rng)
 
     def chunk_collides(self, env, chunk):
-        """True if the next gate_lookahead steps of `chunk` (H, dof) from env.q come within gate_clearance (m)
-        of a collision, checked at the edge resolution along every step (the env moves straight within a
-        step). Within gate_clearance of arm motion of env.q only the plain check applies: an arm already
-        close to an obstacle may leave."""
+        """True if the next gate_lookahead steps of `chunk` (H, dof) come within gate_clearance (m) of a collision
+        (every step checked along its straight edge); near env.q only the plain check applies (it may leave)."""
         c = self.cfg
         states = rollout_chunk(env, chunk if c.gate_lookahead is None else chunk[:c.gate_lookahead])
         near = with_margin(env, c.gate_clearance, env.q[None], c.gate_clearance)
@@ -763,13 +674,9 @@ class Oracle:
         # <<< exercise 12
 
     def intervention(self, env, rng=None):
-        """Absolute joint targets (L, dof) for the expert to drive from the current state.
-
-        Plans from env.q with the velocity (env.q - env.q_prev) / env.dt matched at the handoff, drives a
-        random number of steps in cfg.handback_steps (or the whole plan if shorter), and hands back. The plan
-        is deterministic (its rng is seeded by cfg.seed and the state); `rng` draws the hand-back length
-        (default: seeded like the plan). Raises PlanningFailed.
-        """
+        """Absolute joint targets (L, dof) for the expert to drive from env.q: a plan with the handoff velocity
+        (env.q - env.q_prev) / env.dt, seeded by cfg.seed and the state, cut after a random number of steps in
+        cfg.handback_steps drawn from `rng` (default: the plan's). Raises PlanningFailed."""
         q, q_prev = env.q, env.q_prev
         state_key = np.frombuffer(np.concatenate([q, q_prev]).tobytes(), dtype=np.uint32)
         plan_rng = np.random.default_rng([self.cfg.seed, *state_key.tolist()])
@@ -794,8 +701,7 @@ def plot_demonstration(env, episode, path, n_arms=8):
     fig, ax = plt.subplots(figsize=(5, 5))
     env.render(ax)  # scene and the arm at the start
     for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)[1:], start=1):
-        alpha = 0.15 + 0.6 * i / max(1, n_arms - 1)
-        env.render(ax, q=q[t], alpha=alpha, color="tab:orange", show_scene=False)
+        env.render(ax, q=q[t], alpha=0.15 + 0.6 * i / max(1, n_arms - 1), color="tab:orange", show_scene=False)
     ax.plot(pts[:, -1, 0], pts[:, -1, 1], color="tab:red", lw=1.5, label="end-effector path")
     ax.set_aspect("equal")
     ax.set_title(f"expert demonstration, seed {episode['seed']} ({len(q)} steps; start in blue)")
@@ -811,17 +717,13 @@ if __name__ == "__main__":
 
     env = envs.make_env("planar")
     oracle = Oracle()
-    seed = env.eval_seeds()[0]
-    episode = oracle.demonstrate(env, seed)
-    plan = oracle.last_plan
-    print(f"seed {seed}: success {episode['success']}, {len(episode['q'])} steps, planning "
-          f"{plan.planning_time:.2f} s, ee arc length {plan.ee_length:.2f} m")
+    episode = oracle.demonstrate(env, env.eval_seeds()[0])
+    print(f"seed {episode['seed']}: success {episode['success']}, {len(episode['q'])} steps, planning "
+          f"{oracle.last_plan.planning_time:.2f} s, ee arc length {oracle.last_plan.ee_length:.2f} m")
     # an intervention: the arm 30 % into the demo, drifted 0.1 rad per joint off it and moving
     t = int(0.3 * len(episode["q"]))
-    q, step = episode["q"][t] + 0.1, episode["q"][t] - episode["q"][t - 1]
-    env.set_state(q, q - step)
-    chunk = episode["action"][t:t + 20]  # a chunk of H = 20 steps (dagger.Config.horizon)
-    print(f"gate on the expert's old actions from the drifted state: {oracle.gate(env).should_intervene(env, chunk)}")
+    env.set_state(episode["q"][t] + 0.1, episode["q"][t - 1] + 0.1)
+    print(f"gate on the next 20 expert actions: {oracle.gate(env).should_intervene(env, episode['action'][t:t + 20])}")
     actions = oracle.intervention(env)
     print(f"intervention: drives {len(actions)} steps, handoff velocity matched: {oracle.last_plan.velocity_matched}")
     os.makedirs("runs", exist_ok=True)

@@ -465,6 +465,9 @@ def test_gate_time_triggers_and_the_cap_on_interventions(env, demo):
     assert gate.should_intervene(env, demo["action"][10:11]) is None  # the cap: max_interventions taken
     lo, hi = cfg.rewind_steps
     assert all(lo <= gate.rewind_steps(1000) <= hi for _ in range(20)) and gate.rewind_steps(3) <= 3
+    recorded = list(gate.distances)
+    gate.rewound(2)  # the env was put back 2 steps: their distances are forgotten
+    assert gate.distances == recorded[:-2]
 
 
 @pytest.mark.parametrize("name, seed_index",
