@@ -32,9 +32,7 @@ import numpy as np
 import pymunk
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar reacher's configuration (Table I; the authors' setup: PAPER_SETUP.md §1)
-# ----------------------------------------------------------------------------------------------
+# ---- The planar reacher's configuration (Table I; the authors' setup: PAPER_SETUP.md §1) ---------
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf ---
@@ -69,9 +67,7 @@ class PlanarConfig:
     min_goal_configurations: int = 8  # a scene needs this many free IK candidates of the target centre
 
 
-# ----------------------------------------------------------------------------------------------
-# Scenarios: seed ranges (Sec. V: 100 fixed evaluation scenarios, never seen in training)
-# ----------------------------------------------------------------------------------------------
+# ---- Scenarios: seed ranges (Sec. V: 100 fixed evaluation scenarios, never seen in training) -----
 EVAL_SEED_START = 10_000
 N_EVAL_SEEDS = 100
 TRAIN_SEED_END = EVAL_SEED_START  # training seeds are 0 .. 9_999
@@ -98,9 +94,7 @@ def unseen_seeds():
     return list(range(UNSEEN_SEED_START, UNSEEN_SEED_START + N_UNSEEN_SEEDS))
 
 
-# ----------------------------------------------------------------------------------------------
-# What both arm envs share: state, the motion rule, the episode step, the end effector
-# ----------------------------------------------------------------------------------------------
+# ---- What both arm envs share: state, the motion rule, the episode step, the end effector --------
 def _as_batch(q, dof, name="q"):
     """(dof,) or (B, dof) array -> ((B, dof) float64, was_single)."""
     q = np.asarray(q, dtype=np.float64)
@@ -115,8 +109,9 @@ def _as_batch(q, dof, name="q"):
 class ArmEnv:
     """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
 
-    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__ with
-    its joint limits, and supplies fk, in_collision, simulator_in_collision (judges a step), make_obs, reset, render.
+    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__ with its
+    joint limits, and supplies fk, _in_collision_chunk, simulator_in_collision (judges a step), make_obs,
+    _draw_scenario, render.
     """
 
     # How a policy reads the observation (diffusion.OBS_ENCODERS); an image variant names its own encoder and
@@ -156,21 +151,28 @@ class ArmEnv:
     train_seeds = staticmethod(train_seeds)
     unseen_seeds = staticmethod(unseen_seeds)
 
-    def _scenario_rng(self, seed):
-        """(seed, its rng) for reset: a non-negative int, or None for fresh entropy (then recorded)."""
+    def reset(self, seed=None):
+        """Draw the scenario of `seed` (a non-negative int; None: fresh entropy, then recorded) and put the arm at
+        its start. The scenario is a deterministic function of seed: the subclass's _draw_scenario(rng)."""
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
-        return int(seed), np.random.default_rng(int(seed))
+        start = self._draw_scenario(np.random.default_rng(int(seed)))
+        self.seed = int(seed)
+        self.set_state(start)
+        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
-    def _check_batch(self, q, margin=0.0):
-        """in_collision's input: ((B, dof) finite float64, was_single); margin >= 0 m."""
+    def in_collision(self, q, margin=0.0):
+        """True where the arm at q touches an obstacle or itself (the subclass's _in_collision_chunk). (B,) bool.
+        margin > 0 (m): True also where closer than margin (planners keep clear between their checks)."""
         q, single = _as_batch(q, self.dof)
         if not np.all(np.isfinite(q)) or not (np.isfinite(margin) and margin >= 0):
             raise ValueError(f"in_collision: q must not contain NaN or inf, and margin must be a finite distance "
                              f">= 0 m, got margin {margin}")
-        return q, single
+        n = self.collision_chunk
+        hit = np.concatenate([self._in_collision_chunk(q[k:k + n], float(margin)) for k in range(0, len(q), n)])
+        return hit[0] if single else hit
 
     def _check_q(self, q, name, within_limits=True):
         """A copy of one configuration (dof,) as float64: finite, and (within_limits) inside the joint limits."""
@@ -213,6 +215,18 @@ class ArmEnv:
         truncated = (not terminated) and self.step_count >= self.max_steps
         info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
         return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
+
+    def _joint_goal_obs(self, q, q_prev):
+        """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:2 dof + dim], the
+        rest for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
+        q, single = _as_batch(q, self.dof, "q")
+        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
+        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
+        d = self.dof
+        obs[:, :d] = q
+        obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
+        obs[:, 2 * d:2 * d + self.dim] = self._goal
+        return obs, q, single
 
     def make_obs_near(self, q, q_prev, recorded):
         """Observations of states drawn near recorded ones (relabel.py's noised states): make_obs at the new
@@ -265,9 +279,7 @@ class ArmEnv:
                                  facecolor=color, edgecolor=color, alpha=alpha, lw=0.7))
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar reacher (Sec. V, Table I)
-# ----------------------------------------------------------------------------------------------
+# ---- The planar reacher (Sec. V, Table I) --------------------------------------------------------
 class PlanarReacher(ArmEnv):
     """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Table I, Fig. 5).
 
@@ -288,6 +300,7 @@ class PlanarReacher(ArmEnv):
     """
 
     dim = 2  # workspace dimension
+    collision_chunk = 4096  # configurations per pass of in_collision: the temporaries stay in cache
     # Arm parts (rows of self.parts: link, centre along it, centre across it, half length, half width);
     # parts 3-5 (palm, fingers) ride on link 2.
     PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")
@@ -363,20 +376,10 @@ class PlanarReacher(ArmEnv):
         hy = np.broadcast_to(self.parts[:, 4:5], c.shape)
         return cx, cy, c, s, hx, hy
 
-    def in_collision(self, q, margin=0.0):
-        """True where configuration q touches an obstacle or itself. (B,) bool.
-
-        Two boxes touch when closer than contact_margin (the authors' 5 mm) + margin (planners pass
-        margin > 0 to keep clear between their checks). Pairs: every arm part with every obstacle, and
-        SELF_PAIRS. The target block is not an obstacle.
-        """
-        q, single = self._check_batch(q, margin)
-        chunk = 4096  # configurations per pass: the temporaries stay in cache
-        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], self.contact_margin + margin)
-                              for i in range(0, len(q), chunk)])
-        return hit[0] if single else hit
-
     def _in_collision_chunk(self, q, margin):
+        """in_collision: two boxes touch when closer than contact_margin (the authors' 5 mm) + margin. Pairs:
+        every arm part with every obstacle, and SELF_PAIRS. The target block is not an obstacle."""
+        margin = self.contact_margin + margin
         arm = self.part_boxes(q)  # 6 arrays (n_parts, B)
         B = len(q)
         i, j = np.array(self.SELF_PAIRS).T
@@ -418,7 +421,7 @@ class PlanarReacher(ArmEnv):
         self._obstacle_boxes = (cx, cy, np.cos(angle), np.sin(angle), hx, hy)
         centres = np.zeros(2 * self.cfg.n_obstacles)  # absent obstacles (hand-built scenes): zeros
         centres[:obstacles[:, :2].size] = obstacles[:, :2].ravel()
-        self._scene_obs = np.concatenate([self._goal, centres]).astype(np.float32)
+        self._obstacle_obs = centres.astype(np.float32)
         self._build_space()
 
     # ---- pymunk mirror (the simulator) -------------------------------------------------------
@@ -537,15 +540,14 @@ class PlanarReacher(ArmEnv):
         hi = q0[blocked[blocked >= i].min()] if np.any(blocked >= i) else np.inf
         return bool(np.any((goal_qs[:, 0] > lo) & (goal_qs[:, 0] < hi)))
 
-    def reset(self, seed=None):
-        """Draw the scenario of `seed` (target, obstacles, start) and put the arm at the start.
+    def _draw_scenario(self, rng):
+        """reset's scenario: install the scene (target, obstacles) and return the start (3,).
 
-        Rejection sampling from one rng stream (a deterministic function of seed): a scene is re-drawn when
-        blocks overlap, when its target has fewer than min_goal_configurations free IK solutions, or when no
-        start is found: the first of 64 uniform draws within the limits that is free, not at the target, and
-        whose shoulder can turn to a goal configuration (the authors' reset).
+        Rejection sampling from one rng stream: a scene is re-drawn when blocks overlap, when its target has
+        fewer than min_goal_configurations free IK solutions, or when no start is found: the first of 64 uniform
+        draws within the limits that is free, not at the target, and whose shoulder can turn to a goal
+        configuration (the authors' reset).
         """
-        seed, rng = self._scenario_rng(seed)
         while True:
             scene = self._draw_scene(rng)
             if scene is None:
@@ -560,22 +562,13 @@ class PlanarReacher(ArmEnv):
                 continue
             start = candidates[np.argmax(ok)]
             if self._shoulder_can_reach(start, goal_qs):
-                break
-        self.seed = seed
-        self.set_state(start)
-        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
+                return start
 
     # ---- observations ---------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
         """Observations (B, obs_dim) float32 for the current scenario, the end effector from q; (dof,) -> (obs_dim,)."""
-        q, single = _as_batch(q, self.dof, "q")
-        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
-        q_prev = np.broadcast_to(q_prev, q.shape)
-        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d = self.dof
-        obs[:, :d] = q
-        obs[:, d:2 * d] = q_prev
-        obs[:, 2 * d:-2] = self._scene_obs  # target, obstacle centres
+        obs, q, single = self._joint_goal_obs(q, q_prev)
+        obs[:, 2 * self.dof + self.dim:-2] = self._obstacle_obs  # obstacle centres
         obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
@@ -611,10 +604,8 @@ class PlanarReacher(ArmEnv):
         return ax
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar check's box geometry (numpy): a box is its centre (x, y), cos and sin of its angle, and
-# half extents (hx, hy) along its own axes. Arrays broadcast over any leading shape.
-# ----------------------------------------------------------------------------------------------
+# ---- The planar check's box geometry (numpy) -----------------------------------------------------
+# A box is its centre (x, y), cos and sin of its angle, and half extents (hx, hy) along its own axes.
 def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
     """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
     dx, dy = px - cx, py - cy
@@ -655,11 +646,8 @@ def box_distance(a, b):
     return np.where(overlap, 0.0, d)
 
 
-# ----------------------------------------------------------------------------------------------
-# The UR5 engine lever's configuration (Table II; the authors' small-engine cell, benchmarks/README.md,
-# "The UR5 engine-lever task"). Their cell in our frame: the UR5's DH base frame is their URDF base frame
-# turned 180 deg about z, (x, y) -> (-x, -y); the table top is our ground z = 0.
-# ----------------------------------------------------------------------------------------------
+# ---- The UR5 engine lever's configuration (Table II; benchmarks/README.md, "The UR5 engine-lever task") --
+# The authors' small-engine cell in our frame: their URDF base turned 180 deg about z; the table top is z = 0.
 @dataclass
 class EngineConfig:
     # --- the UR5 (radii from its datasheet's outer diameters) ---
@@ -708,9 +696,9 @@ class EngineConfig:
     n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); the authors' scenes have 6
 
 
-# ----------------------------------------------------------------------------------------------
-# UR5 engine-lever reaching (Sec. V, Table II)
-# ----------------------------------------------------------------------------------------------
+# ---- UR5 engine-lever reaching (Sec. V, Table II) ------------------------------------------------
+pb = None  # the pybullet module, imported by the first EngineReach3D (the planar env never needs it)
+
 # UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
 # ("DH parameters for calculations of kinematics and dynamics", universal-robots.com, UR5 row).
 # Frame i follows frame i-1 by T_i = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i); frame 6 is the flange.
@@ -751,8 +739,13 @@ class EngineReach3D(ArmEnv):
     """
 
     dim = 3  # workspace dimension
+    collision_chunk = 1024  # configurations per pass of in_collision: the temporaries stay in cache
 
     def __init__(self, config: EngineConfig | None = None):
+        global pb
+        if pb is None:  # the simulator, imported with the first UR5 env
+            import pybullet
+            pb = pybullet
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
         self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
@@ -768,7 +761,7 @@ class EngineReach3D(ArmEnv):
         self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
         super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
-        self._sim = None  # the pybullet DIRECT client (a BulletClient), created by the first set_scene
+        self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
         self.link_lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)  # (8,) rigid: same at every q
         i, j = ENGINE_SELF_PAIRS.T
@@ -840,21 +833,13 @@ class EngineReach3D(ArmEnv):
         """(B,) distance from the arm's capsules to the wall's face y = wall_y (at a capsule's end point)."""
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
-    def in_collision(self, q, margin=0.0):
-        """True where the arm at q penetrates an obstacle, the wall, the ground or itself. (B,) bool.
-
-        With margin > 0 (m), True also where anything is closer than margin (planners keep clear between their
-        checks). Pairs: every arm capsule with every obstacle, ENGINE_SELF_PAIRS, the ground, the wall. Two phases
-        for speed: axis-aligned bounding boxes rule out ~98 % of the pairs, exact segment distances decide the
-        rest. The base column never moves (joint 1 turns it about its own axis): its clearance is a constant.
-        """
-        q, single = self._check_batch(q, margin)
-        chunk = 1024  # configurations per pass: temporaries stay in cache
-        hit = np.concatenate([self._in_collision_chunk(q[k:k + chunk], float(margin))
-                              for k in range(0, len(q), chunk)])
-        return hit[0] if single else hit
-
     def _in_collision_chunk(self, q, margin):
+        """in_collision: the arm penetrates (or comes within margin of) an obstacle, the wall, the ground or itself.
+
+        Pairs: every arm capsule with every obstacle, ENGINE_SELF_PAIRS, the ground, the wall. Axis-aligned bounding
+        boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column never moves
+        (joint 1 turns it about its own axis): its clearance is set_scene's constant.
+        """
         a0, a1 = self._arm_components(q)  # (3, B, 8) each
         hit = (self._ground_clearance(a0, a1) < margin) | (self._base_clearance < margin)  # (B,)
         hit |= self._wall_clearance(a0, a1) < margin
@@ -926,51 +911,50 @@ class EngineReach3D(ArmEnv):
     # ---- pybullet mirror (the simulator) -----------------------------------------------------
     def _build_bullet(self):
         """pybullet DIRECT world of the current scene: arm capsule bodies, obstacles, ground, wall, goal."""
-        if self._sim is None:  # pybullet is imported with the first UR5 scene (the planar env never needs it)
-            import pybullet
-            from pybullet_utils.bullet_client import BulletClient  # passes its client id to every call
-            self._sim = BulletClient(pybullet.DIRECT)
-        sim = self._sim
-        sim.resetSimulation()
-        plane = sim.createCollisionShape(sim.GEOM_PLANE)
-        floor_visual = sim.createVisualShape(sim.GEOM_BOX, halfExtents=[1.5, 1.5, 0.005],
-                                             visualFramePosition=[0, 0, -0.005], rgbaColor=[0.85, 0.85, 0.82, 1])
-        self._ground = sim.createMultiBody(0, plane, floor_visual)
+        if self._client is None:
+            self._client = pb.connect(pb.DIRECT)
+        cid = self._client
+        pb.resetSimulation(physicsClientId=cid)
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=cid)
+        floor_visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[1.5, 1.5, 0.005], rgbaColor=[0.85, 0.85, 0.82, 1],
+                                            visualFramePosition=[0, 0, -0.005], physicsClientId=cid)
+        self._ground = pb.createMultiBody(0, plane, floor_visual, physicsClientId=cid)
         # arm: one capsule body per link, placed by our FK. Mass > 0 makes them dynamic bodies, which pybullet
         # tests against the static obstacles; we never call stepSimulation, so nothing moves by itself.
         self._link_bodies = []
         for name, length, radius in zip(ENGINE_LINK_NAMES, self.link_lengths, self.link_radii):
             color = [0.2, 0.5, 0.85, 1] if name in ("probe", "fingers") else [0.75, 0.78, 0.82, 1]
             self._link_bodies.append(self._capsule_body(float(length), float(radius), color, mass=1.0))
-        checked = {tuple(pair) for pair in ENGINE_SELF_PAIRS.tolist()}
-        for i in range(len(self._link_bodies)):  # arm pairs outside ENGINE_SELF_PAIRS: no contacts
-            for j in range(i + 1, len(self._link_bodies)):
+        bodies, checked = self._link_bodies, {tuple(pair) for pair in ENGINE_SELF_PAIRS.tolist()}
+        for i in range(len(bodies)):  # arm pairs outside ENGINE_SELF_PAIRS: no contacts
+            for j in range(i + 1, len(bodies)):
                 if (i, j) not in checked:
-                    sim.setCollisionFilterPair(self._link_bodies[i], self._link_bodies[j], -1, -1, 0)
-        for body in self._link_bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
-            sim.setCollisionFilterPair(body, self._ground, -1, -1, 0)
+                    pb.setCollisionFilterPair(bodies[i], bodies[j], -1, -1, 0, physicsClientId=cid)
+        for body in bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
+            pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
         half = [1.5, 0.25, 0.75]  # the wall: a 0.5 m thick slab whose face is the plane y = wall_y
-        sim.createMultiBody(0, sim.createCollisionShape(sim.GEOM_BOX, halfExtents=half),
-                            sim.createVisualShape(sim.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1]),
-                            basePosition=[0.0, self._wall_y + half[1], half[2]])
+        shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1],
+                                      physicsClientId=cid)
+        pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]], physicsClientId=cid)
         colors = {"engine": [0.25, 0.25, 0.28, 1],
                   "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1], "box": [0.62, 0.45, 0.3, 1]}
         for (x0, y0, z0, x1, y1, z1, radius), kind in zip(self.obstacles, self.obstacle_kinds):
             a, b = np.array([x0, y0, z0]), np.array([x1, y1, z1])
             body = self._capsule_body(float(np.linalg.norm(b - a)), float(radius), colors[kind], mass=0.0)
-            direction = (b - a) / max(np.linalg.norm(b - a), 1e-12)
-            sim.resetBasePositionAndOrientation(body, ((a + b) / 2).tolist(),
-                                                _quaternion_z_to(direction[None])[0].tolist())
-        goal_visual = sim.createVisualShape(sim.GEOM_SPHERE, radius=self.goal_tolerance / 2,
-                                            rgbaColor=[0.1, 0.8, 0.2, 1])
-        sim.createMultiBody(0, -1, goal_visual, basePosition=self._goal.tolist())
+            quat = _quaternion_z_to(((b - a) / max(np.linalg.norm(b - a), 1e-12))[None])[0]  # z axis along b - a
+            pb.resetBasePositionAndOrientation(body, ((a + b) / 2).tolist(), quat.tolist(), physicsClientId=cid)
+        goal_visual = pb.createVisualShape(pb.GEOM_SPHERE, radius=self.goal_tolerance / 2, rgbaColor=[0.1, 0.8, 0.2, 1],
+                                           physicsClientId=cid)
+        pb.createMultiBody(0, -1, goal_visual, basePosition=self._goal.tolist(), physicsClientId=cid)
 
     def _capsule_body(self, length, radius, color, mass):
         """A capsule body along its local z axis."""
-        sim = self._sim
-        return sim.createMultiBody(mass, sim.createCollisionShape(sim.GEOM_CAPSULE, radius=radius, height=length),
-                                   sim.createVisualShape(sim.GEOM_CAPSULE, radius=radius, length=length,
-                                                         rgbaColor=color))
+        cid = self._client
+        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length, physicsClientId=cid)
+        visual = pb.createVisualShape(pb.GEOM_CAPSULE, radius=radius, length=length, rgbaColor=color,
+                                      physicsClientId=cid)
+        return pb.createMultiBody(mass, shape, visual, physicsClientId=cid)
 
     def _pose_arm(self, q):
         """Place the arm's capsule bodies at configuration q (dof,)."""
@@ -979,7 +963,7 @@ class EngineReach3D(ArmEnv):
         directions = seg[:, 1] - seg[:, 0]
         quats = _quaternion_z_to(directions / np.linalg.norm(directions, axis=1, keepdims=True))
         for body, c, quat in zip(self._link_bodies, centres, quats):
-            self._sim.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist())
+            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(), physicsClientId=self._client)
 
     def pybullet_in_collision(self, q):
         """Same predicate as in_collision, from pybullet contacts (one config at a time, slower)."""
@@ -987,9 +971,9 @@ class EngineReach3D(ArmEnv):
         out = np.zeros(len(q), dtype=bool)
         for b in range(len(q)):
             self._pose_arm(q[b])
-            self._sim.performCollisionDetection()
+            pb.performCollisionDetection(physicsClientId=self._client)
             # contacts are reported a little before touching; penetration = negative distance
-            out[b] = any(c[8] < 0.0 for c in self._sim.getContactPoints())
+            out[b] = any(c[8] < 0.0 for c in pb.getContactPoints(physicsClientId=self._client))
         return out[0] if single else out
 
     # ---- scenarios ---------------------------------------------------------------------------
@@ -1030,10 +1014,7 @@ class EngineReach3D(ArmEnv):
         frame6 = ur5_frames(q_goal[None])[0, 6]
         tool_axis, handle_axis = frame6[:3, 2], frame6[:3, 1]
         goal = self.ee(q_goal)
-        obstacles, kinds = [], []
-        for part in cfg.engine_parts:
-            obstacles.append(list(part))
-            kinds.append("engine")
+        obstacles, kinds = [list(part) for part in cfg.engine_parts], ["engine"] * len(cfg.engine_parts)
         handle = goal + cfg.lever_offset * tool_axis  # T-handle across the fingers' grasp
         obstacles.append([*(handle - 0.05 * handle_axis), *(handle + 0.05 * handle_axis), 0.02])
         obstacles.append([*handle, *(handle + 0.25 * tool_axis), 0.015])  # shaft, on into the engine
@@ -1047,15 +1028,13 @@ class EngineReach3D(ArmEnv):
             kinds.append("box")
         return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
 
-    def reset(self, seed=None):
-        """Draw the scenario of `seed` (the scene, then the start) and put the arm there.
+    def _draw_scenario(self, rng):
+        """reset's scenario: install the scene and return the start (6,).
 
-        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed. A
-        scene is re-drawn when its witness (the goal posture) collides or its goal has fewer than
-        min_goal_configurations free IK solutions (EngineReach3D's own goal set, also in a variant that
-        narrows it: the same scenes), or when no start is found (_draw_start).
+        Rejection sampling from one rng stream: a scene is re-drawn when its witness (the goal posture) collides
+        or its goal has fewer than min_goal_configurations free IK solutions (EngineReach3D's own goal set, also
+        in a variant that narrows it: the same scenes), or when no start is found (_draw_start).
         """
-        seed, rng = self._scenario_rng(seed)
         while True:
             obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
             self._set_obstacles(obstacles, kinds)
@@ -1066,11 +1045,8 @@ class EngineReach3D(ArmEnv):
                 continue
             start = self._draw_start(rng)
             if start is not None:
-                break
-        self.seed = seed
-        self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
-        self.set_state(start)
-        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
+                self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
+                return start
 
     def _draw_start(self, rng, n=256):
         """The authors' start: the first of n draws uniform within the joint limits that is clear of everything
@@ -1088,18 +1064,6 @@ class EngineReach3D(ArmEnv):
         obs[:, 2 * self.dof + self.dim:] = self._obstacle_obs
         return obs[0] if single else obs
 
-    def _joint_goal_obs(self, q, q_prev):
-        """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:15], the rest
-        for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
-        q, single = _as_batch(q, self.dof, "q")
-        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
-        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d = self.dof
-        obs[:, :d] = q
-        obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
-        obs[:, 2 * d:2 * d + self.dim] = self._goal
-        return obs, q, single
-
     simulator_in_collision = pybullet_in_collision  # the contact check that judges a step: the simulator's
 
     # ---- images and drawing ------------------------------------------------------------------
@@ -1108,11 +1072,11 @@ class EngineReach3D(ArmEnv):
         camera ENGINE_CAMERA with pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed)."""
         q = self._check_q(self._q if q is None else q, "q")
         self._pose_arm(q)
-        sim, cam = self._sim, ENGINE_CAMERA
-        view = sim.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
-        projection = sim.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
-        _, _, rgba, _, _ = sim.getCameraImage(width, height, view, projection, renderer=sim.ER_TINY_RENDERER,
-                                              lightDirection=[0.6, -0.5, 1.0], shadow=0)
+        cam = ENGINE_CAMERA
+        view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
+        projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
+        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
+                                             lightDirection=[0.6, -0.5, 1.0], shadow=0, physicsClientId=self._client)
         return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[..., :3]
 
     def render(self, ax, q=None):
@@ -1123,16 +1087,20 @@ class EngineReach3D(ArmEnv):
         return ax
 
     def close(self):
-        """Disconnect the pybullet client now (it also goes with the env; set_scene or reset connects anew)."""
-        if self._sim is not None:
-            self._sim.disconnect()
-            self._sim = None
+        """Disconnect the pybullet client (set_scene or reset connects a new one)."""
+        if self._client is not None:
+            pb.disconnect(physicsClientId=self._client)
+            self._client = None
             self._has_state = False
 
+    def __del__(self):  # free the pybullet client when the env is garbage-collected
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: pybullet may already be gone
+            pass
 
-# ----------------------------------------------------------------------------------------------
-# Capsule geometry and UR5 kinematics (EngineReach3D)
-# ----------------------------------------------------------------------------------------------
+
+# ---- Capsule geometry and UR5 kinematics (EngineReach3D) -----------------------------------------
 def segment_distance_3d(a0, a1, b0, b1):
     """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
 
@@ -1249,9 +1217,7 @@ def _quaternion_z_to(direction):
     return quat / np.linalg.norm(quat, axis=1, keepdims=True)
 
 
-# ----------------------------------------------------------------------------------------------
-# Environments by name
-# ----------------------------------------------------------------------------------------------
+# ---- Environments by name ------------------------------------------------------------------------
 # name -> (env class, its config); a research variant adds its own on import of its module (a subclass of
 # EngineReach3D: experiment/image_obs.py 'engine3d_image', experiment/oriented_goal.py 'engine3d_oriented')
 ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig), "engine3d": (EngineReach3D, EngineConfig)}
@@ -1274,9 +1240,7 @@ def paper_env(env):
                  if env_class is not None and issubclass(env_class, ENVIRONMENTS[name][0])), None)
 
 
-# ----------------------------------------------------------------------------------------------
-# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
-# ----------------------------------------------------------------------------------------------
+# ---- The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations ------------
 def median_step(episodes):
     """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
 
@@ -1304,9 +1268,7 @@ def paper_median_step(env):
     return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
-# ----------------------------------------------------------------------------------------------
-# Episode files (the run folder's datasets) and a stand-in expert for tests and demos
-# ----------------------------------------------------------------------------------------------
+# ---- Episode files (the run folder's datasets) and a stand-in expert for tests and demos ---------
 def save_episodes(path, episodes):
     """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
     episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
@@ -1369,9 +1331,7 @@ def straight_line_episode(env, seed, peak=0.04, expert_from=5):
             "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
 
 
-# ----------------------------------------------------------------------------------------------
-# Fig. 5: the UR5's scene (the planar one: PlanarReacher.render under a demonstration, oracle.py)
-# ----------------------------------------------------------------------------------------------
+# ---- Fig. 5: the UR5's scene (the planar one: PlanarReacher.render, oracle.py) -------------------
 def render_scene_image(env, path, q=None, width=640, height=480):
     """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
     from matplotlib.image import imsave
