@@ -404,11 +404,8 @@ class PlanarReacher(ArmEnv):
         return hit
 
     def set_scene(self, obstacles, goal=None):
-        """Install a scene: obstacles (N, 5) rows (centre x, y, half x, half y, angle), goal (2,).
-
-        reset() calls this with a generated scene; tests and figures with a built one. Both collision
-        checks derive what they need from this one array.
-        """
+        """Install a scene, for both collision checks: obstacles (N, 5) rows (centre x, y, half x, half y, angle),
+        goal (2,)."""
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
         if (not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0)
                 or len(obstacles) > self.cfg.n_obstacles):
@@ -624,13 +621,9 @@ def box_corners(cx, cy, cos, sin, hx, hy):
 
 
 def box_distance(a, b):
-    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
-
-    Two facts of 2-D convex geometry make this short and exact:
-      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
-      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
-        smallest of the 8 corner-to-box distances.
-    """
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy). Exact:
+    overlap <=> no separating axis among the four edge normals (the separating axis theorem), and two disjoint
+    convex polygons are closest at a vertex of one of them: the smallest of the 8 corner-to-box distances."""
     acx, acy, ac, as_, ahx, ahy = a
     bcx, bcy, bc, bs, bhx, bhy = b
     dx, dy = bcx - acx, bcy - acy
@@ -873,12 +866,8 @@ class EngineReach3D(ArmEnv):
 
     # ---- scene installation -------------------------------------------------------------------
     def set_scene(self, obstacles, goal=None, kinds=None):
-        """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
-
-        reset() calls this with a generated scene; tests and figures with a built one. kinds: one of
-        'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default pipe). The wall is not a row.
-        Both collision checks derive what they need from this one array.
-        """
+        """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,), for both collision
+        checks; kinds: 'engine', 'lever', 'pipe' (the default) or 'box' per obstacle (colours only)."""
         self._set_obstacles(obstacles, kinds)
         if goal is not None:
             goal = np.asarray(goal, dtype=np.float64)
@@ -1003,12 +992,9 @@ class EngineReach3D(ArmEnv):
         return q[~self.in_collision(q)] if len(q) else q
 
     def _draw_authors_scene(self, rng):
-        """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
-
-        Fixed: the engine, the goal posture cfg.goal_q and its TCP (the goal), a T-handle lever just beyond
-        the TCP along the tool axis, its shaft running on into the engine. Drawn: the two boxes, each a
-        capsule on the table, centre uniform in its box_x x box_y range, scaled by one factor of box_scale.
-        """
+        """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)). Fixed:
+        the engine, the goal posture cfg.goal_q, its TCP (the goal), a T-handle lever just beyond it along the tool
+        axis, its shaft on into the engine. Drawn: the two boxes, centre uniform in box_x x box_y, scaled."""
         cfg = self.cfg
         q_goal = np.asarray(cfg.goal_q, dtype=np.float64)
         frame6 = ur5_frames(q_goal[None])[0, 6]
@@ -1033,29 +1019,25 @@ class EngineReach3D(ArmEnv):
 
         Rejection sampling from one rng stream: a scene is re-drawn when its witness (the goal posture) collides
         or its goal has fewer than min_goal_configurations free IK solutions (EngineReach3D's own goal set, also
-        in a variant that narrows it: the same scenes), or when no start is found (_draw_start).
+        in a variant that narrows it: the same scenes), or when none of 256 starts fits. The start (the authors'):
+        the first draw uniform within the joint limits that is clear of everything by start_clearance, its TCP at
+        least start_goal_min_dist from the goal.
         """
+        cfg = self.cfg
         while True:
             obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
             self._set_obstacles(obstacles, kinds)
             self._goal = goal
             if self.in_collision(self.witness):
                 continue
-            if len(EngineReach3D.goal_configurations(self)) < self.cfg.min_goal_configurations:
+            if len(EngineReach3D.goal_configurations(self)) < cfg.min_goal_configurations:
                 continue
-            start = self._draw_start(rng)
-            if start is not None:
+            q = rng.uniform(self._lo, self._hi, size=(256, self.dof))
+            far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
+            ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
+            if ok.any():
                 self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
-                return start
-
-    def _draw_start(self, rng, n=256):
-        """The authors' start: the first of n draws uniform within the joint limits that is clear of everything
-        by start_clearance, its TCP at least start_goal_min_dist from the goal; (6,) or None."""
-        cfg = self.cfg
-        q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
-        far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
-        ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
-        return q[np.argmax(ok)] if ok.any() else None
+                return q[np.argmax(ok)]
 
     # ---- observations -------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
@@ -1102,12 +1084,9 @@ class EngineReach3D(ArmEnv):
 
 # ---- Capsule geometry and UR5 kinematics (EngineReach3D) -----------------------------------------
 def segment_distance_3d(a0, a1, b0, b1):
-    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
-
-    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the closest
-    points of the infinite lines, clamped to the segments, re-projected once (a zero-length segment: its
-    squared length floored at 1e-18). Components first keep every operation on contiguous memory: 4-5x faster.
-    """
+    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...) (contiguous
+    memory: 4-5x faster). Ericson, Real-Time Collision Detection, Sec. 5.1.9: the closest points of the infinite
+    lines, clamped to the segments, re-projected once (a zero-length segment: squared length floored at 1e-18)."""
     (ax, ay, az), (bx, by, bz) = a0, b0
     ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
     vx, vy, vz = b1[0] - bx, b1[1] - by, b1[2] - bz
@@ -1242,11 +1221,8 @@ def paper_env(env):
 
 # ---- The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations ------------
 def median_step(episodes):
-    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
-
-    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
-    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
-    """
+    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit). Exact zeros
+    (a joint pinned at a limit, an arm standing still) are ignored: a demo that waits does not shrink the unit."""
     steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
     steps = np.concatenate(steps) if steps else np.zeros(0)
     steps = steps[steps > 0]
@@ -1255,16 +1231,15 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their demonstration
-# steps of the L2 norm over the joints of one 30 Hz frame (every sigma and W of the paper counts it). Ours
-# (median_step) is per joint at the env's dt. A per-joint sigma in rad: sigma_ours * median_step = sigma_paper * this.
+# The paper's own unit (PAPER_SETUP.md §1): the median over the authors' demo steps of the L2 norm over the joints
+# of one 30 Hz frame; ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step =
+# sigma_paper * this.
 PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
 
 
 def paper_median_step(env):
-    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
-    paper has none (then only radians and our median steps can be given)."""
+    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where it has none."""
     return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
@@ -1349,12 +1324,8 @@ if __name__ == "__main__":
     env = make_env("planar")
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
     for ax, seed in zip(axes, env.eval_seeds()):
-        obs, info = env.reset(seed=seed)
+        env.reset(seed=seed)
         env.render(ax)
-        goal_q = env.goal_configurations()
-        env.render(ax, q=goal_q[np.argmin(np.abs(goal_q - env.q).sum(1))], alpha=0.4,
-                   color="tab:orange", show_scene=False)
-        ax.set_title(f"seed {seed}: {len(env.obstacles)} obstacles")
+        ax.set_title(f"seed {seed}: {len(env.goal_configurations())} free goal configurations")
     fig.savefig("planar_scenes.png", dpi=80)
-    print("wrote planar_scenes.png; obs_dim", env.obs_dim, "collision at start:",
-          bool(env.in_collision(env.q)))
+    print("wrote planar_scenes.png; obs_dim", env.obs_dim)
