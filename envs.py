@@ -20,13 +20,10 @@ Both envs share ArmEnv and one interface (gymnasium conventions without the depe
     env.goal_configurations()                 # (M, dof) collision-free closed-form IK of the goal
     env.make_obs(q, q_prev), env.clip_action(q, action), env.render(ax), env.draw_noise_ellipses(...)
 
-Step: q_next = clip(q + clip(action - q, -max_step, max_step), lo, hi) (targets beyond the limits are clipped,
-NaN / inf / a wrong shape raise ValueError). An episode ends on success (goal reached, no collision), on collision
-(terminated) or after max_steps steps (truncated). The simulator (pymunk planar, pybullet 3-D) judges a step's
-contacts; the same geometry feeds a vectorized numpy check for planners, relabeling and evaluation, which need
-millions of checks, and the two agree (tests/test_envs.py, tests/test_engine3d.py). pybullet is imported with
-the first EngineReach3D: the planar env never loads it. Research variants subclass EngineReach3D and register
-in ENVIRONMENTS on import (experiment/image_obs.py, experiment/oriented_goal.py).
+The simulator (pymunk planar, pybullet 3-D) judges a step's contacts; the same geometry feeds the vectorized
+numpy check that planners, relabeling and evaluation call millions of times, and the two agree (tests). pybullet
+is imported with the first EngineReach3D. Research variants subclass EngineReach3D and register in ENVIRONMENTS
+on import (experiment/image_obs.py, experiment/oriented_goal.py).
 """
 import math
 from dataclasses import dataclass
@@ -35,9 +32,7 @@ import numpy as np
 import pymunk
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar reacher's configuration (Table I; the authors' setup: PAPER_SETUP.md §1)
-# ----------------------------------------------------------------------------------------------
+# ---- The planar reacher's configuration (Table I; the authors' setup: PAPER_SETUP.md §1) ---------
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf ---
@@ -46,44 +41,37 @@ class PlanarConfig:
     gripper_reach: float = 0.15  # m, gripper base (end of the wrist link) to the end-effector point
     joint_lo: tuple = (-math.pi, -math.pi, -math.pi)  # rad, the URDF's limits on every joint
     joint_hi: tuple = (math.pi, math.pi, math.pi)  # rad
-    # --- the task: success, contact, episode length, speed limit ---
+    # --- the task ---
     speed_limit: float = 0.5  # rad/s per joint; max_step = speed_limit * dt rad per step
     episode_seconds: float = 1000 / 30  # s (the authors' 1000 steps at 30 Hz); max_steps = it / dt
     goal_tolerance: float = 0.06  # m, success: end effector within this distance of the target centre
     contact_margin: float = 0.005  # m, bodies closer than this are in collision (the authors' 5 mm)
-    # --- the scene: a target block and two obstacle blocks placed polar around the shoulder; re-drawn if
-    #     blocks overlap or the target has too few collision-free configurations. The start: all joints
-    #     uniform within their limits until collision-free (the authors' reset; often folded) ---
+    # --- the scene: target and obstacle blocks placed polar around the shoulder (PlanarReacher.reset) ---
     target_size: float = 0.05  # m, the target cube (touching it is not a collision)
     obstacle_size: float = 0.07  # m, each obstacle cube
     n_obstacles: int = 2  # obstacle blocks per scene
     target_radius: tuple = (0.30, 0.55)  # m, distance of the target centre from the shoulder
     obstacle_radius: tuple = (0.20, 0.62)  # m, distance of each obstacle centre from the shoulder
-    # --- not in the paper: the gripper (a Robotiq 2F-85 held open) as a palm and two fingers in the wrist
-    #     link's frame, this project's approximation of its 85 mm outline; the end-effector point lies
-    #     between the finger pads, gripper_reach beyond the gripper base (the authors' tool centre) ---
+    # --- not in the paper: the gripper (a Robotiq 2F-85 held open) as a palm and two fingers on the wrist
+    #     link, this project's approximation of its 85 mm outline ---
     palm_size: tuple = (0.07, 0.09)  # m, (length along the link, width across it)
     finger_size: tuple = (0.08, 0.015)  # m, each finger; the pair spans 0.07 .. 0.15 past the base
     finger_gap: float = 0.075  # m, clear width between the two fingers (fixed open)
     base: tuple = (0.0, 0.0)  # m, the shoulder pivot in the (x, z) plane of the arm
     dt: float = 0.1  # s per step: 10 Hz, a third of the authors' 30 Hz steps on a CPU (1/30 gives theirs)
-    # States checked for contact within one step (the end state and evenly spaced ones before it). The
-    # farthest arm point moves <= 0.05 rad x (0.81 + 0.52 + 0.27) m = 0.08 m a step, 0.02 m between checks:
-    # less than the thinnest band a part must cross (a 1.5 cm finger and the 3.5 cm link 2: 5 cm).
-    n_substeps: int = 4  # states per step
+    # States checked for contact per step: the farthest arm point moves <= 0.08 m a step, 0.02 m between
+    # checks, less than the thinnest band a part must cross (a 1.5 cm finger and the 3.5 cm link 2: 5 cm).
+    n_substeps: int = 4
     block_clearance: float = 0.02  # m, blocks closer than this to each other overlap (re-draw)
     n_goal_angles: int = 180  # last-link orientations tried when searching goal configurations
     min_goal_configurations: int = 8  # a scene needs this many free IK candidates of the target centre
 
 
-# ----------------------------------------------------------------------------------------------
-# Scenarios: seed ranges (Sec. V: 100 fixed evaluation scenarios, never seen in training)
-# ----------------------------------------------------------------------------------------------
+# ---- Scenarios: seed ranges (Sec. V: 100 fixed evaluation scenarios, never seen in training) -----
 EVAL_SEED_START = 10_000
 N_EVAL_SEEDS = 100
 TRAIN_SEED_END = EVAL_SEED_START  # training seeds are 0 .. 9_999
-# Not in the paper: HG-DAgger collects on the evaluation scenarios (the authors' protocol), so those are not
-# held out; these 100 are (no stage of any run trains on them; dagger.py evaluates every policy on them too).
+# Not in the paper: HG-DAgger collects on the evaluation scenarios (the authors' protocol); these are held out.
 UNSEEN_SEED_START = 20_000
 N_UNSEEN_SEEDS = 100
 
@@ -106,9 +94,7 @@ def unseen_seeds():
     return list(range(UNSEEN_SEED_START, UNSEEN_SEED_START + N_UNSEEN_SEEDS))
 
 
-# ----------------------------------------------------------------------------------------------
-# What both arm envs share: state, the motion rule, the episode step, the end effector
-# ----------------------------------------------------------------------------------------------
+# ---- What both arm envs share: state, the motion rule, the episode step, the end effector --------
 def _as_batch(q, dof, name="q"):
     """(dof,) or (B, dof) array -> ((B, dof) float64, was_single)."""
     q = np.asarray(q, dtype=np.float64)
@@ -123,15 +109,15 @@ def _as_batch(q, dof, name="q"):
 class ArmEnv:
     """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
 
-    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__
-    with its joint limits, and supplies fk, in_collision, simulator_in_collision (the simulator's contacts
-    that judge a step), make_obs, reset, render.
+    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__ with its
+    joint limits, and supplies fk, _in_collision_chunk, simulator_in_collision (judges a step), make_obs,
+    _draw_scenario, render.
     """
 
-    # How a policy reads the observation: flat numbers (diffusion.OBS_ENCODERS 'flat'). A variant whose
-    # observation ends in a camera image names its encoder and arguments here (experiment/image_obs.py).
+    # How a policy reads the observation (diffusion.OBS_ENCODERS); an image variant names its own encoder and
+    # its arguments (experiment/image_obs.py). dagger.make_policy copies both into the policy's config.
     obs_encoder = "flat"
-    obs_encoder_args = {}  # read only: dagger.make_policy copies it into the policy's config
+    obs_encoder_args = {}
     goal_is_pose = False  # the goal is a position; True: goal_configurations is the whole goal set (oracle.py)
 
     def __init__(self, joint_lo, joint_hi):
@@ -165,21 +151,37 @@ class ArmEnv:
     train_seeds = staticmethod(train_seeds)
     unseen_seeds = staticmethod(unseen_seeds)
 
-    def _scenario_rng(self, seed):
-        """(seed, its rng) for reset: a non-negative int, or None for fresh entropy (then recorded)."""
+    def reset(self, seed=None):
+        """Draw the scenario of `seed` (a non-negative int; None: fresh entropy, then recorded) and put the arm at
+        its start. The scenario is a deterministic function of seed: the subclass's _draw_scenario(rng)."""
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
-        return int(seed), np.random.default_rng(int(seed))
+        start = self._draw_scenario(np.random.default_rng(int(seed)))
+        self.seed = int(seed)
+        self.set_state(start)
+        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
 
-    def _check_batch(self, q, margin=0.0):
-        """in_collision's and clearance's input: ((B, dof) finite float64, was_single); margin >= 0 m."""
+    def in_collision(self, q, margin=0.0):
+        """True where the arm at q touches an obstacle or itself (the subclass's _in_collision_chunk). (B,) bool.
+        margin > 0 (m): True also where closer than margin (planners keep clear between their checks)."""
         q, single = _as_batch(q, self.dof)
         if not np.all(np.isfinite(q)) or not (np.isfinite(margin) and margin >= 0):
             raise ValueError(f"in_collision: q must not contain NaN or inf, and margin must be a finite distance "
                              f">= 0 m, got margin {margin}")
-        return q, single
+        n = self.collision_chunk
+        hit = np.concatenate([self._in_collision_chunk(q[k:k + n], float(margin)) for k in range(0, len(q), n)])
+        return hit[0] if single else hit
+
+    def _check_q(self, q, name, within_limits=True):
+        """A copy of one configuration (dof,) as float64: finite, and (within_limits) inside the joint limits."""
+        q = np.array(q, dtype=np.float64)
+        if q.shape != (self.dof,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"{name} must be a finite array of shape ({self.dof},), got {q!r}")
+        if within_limits and (np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9)):
+            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
+        return q
 
     def set_state(self, q, q_prev=None, step_count=0):
         """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
@@ -189,14 +191,6 @@ class ArmEnv:
         self.step_count = int(step_count)
         self._has_state = True
 
-    def _check_q(self, q, name):
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (self.dof,) or not np.all(np.isfinite(q)):
-            raise ValueError(f"{name} must be a finite array of shape ({self.dof},), got {q!r}")
-        if np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9):
-            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
-        return q.copy()
-
     # ---- the motion rule and the episode step ------------------------------------------------
     def clip_action(self, q, action):
         """The next joint positions from `action` (absolute targets): speed limit, then limits."""
@@ -205,16 +199,12 @@ class ArmEnv:
     def step(self, action):
         """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
 
-        Collision is judged by the simulator's contacts (simulator_in_collision) at the end state and at
-        n_substeps - 1 evenly spaced states before it (nothing tunnels: PlanarConfig.n_substeps).
-        reward = 1 on success else 0 (the method does not use rewards).
+        The simulator's contacts (simulator_in_collision) judge the end state and n_substeps - 1 evenly spaced
+        states before it (nothing tunnels: PlanarConfig.n_substeps). reward = 1 on success else 0 (unused).
         """
         if not self._has_state:
             raise ValueError("step called before reset (or set_state)")
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.dof,) or not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be a finite array of shape ({self.dof},), got {action!r}")
-        q_next = self.clip_action(self._q, action)
+        q_next = self.clip_action(self._q, self._check_q(action, "action", within_limits=False))
         fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
         sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
         collision = bool(any(self.simulator_in_collision(sweep)))
@@ -226,14 +216,25 @@ class ArmEnv:
         info = {"collision": collision, "success": success, "q": self.q, "step": self.step_count}
         return self.make_obs(self._q, self._q_prev), float(success), terminated, truncated, info
 
+    def _joint_goal_obs(self, q, q_prev):
+        """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:2 dof + dim], the
+        rest for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
+        q, single = _as_batch(q, self.dof, "q")
+        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
+        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
+        d = self.dof
+        obs[:, :d] = q
+        obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
+        obs[:, 2 * d:2 * d + self.dim] = self._goal
+        return obs, q, single
+
     def make_obs_near(self, q, q_prev, recorded):
-        """Observations of states (q, q_prev) drawn near recorded ones (relabel.py's noised states): make_obs,
-        everything recomputed at the new state. (An image variant keeps the recorded image instead.)"""
+        """Observations of states drawn near recorded ones (relabel.py's noised states): make_obs at the new
+        state. (An image variant keeps the recorded image instead.)"""
         return self.make_obs(q, q_prev)
 
     def plot_policy_view(self, episode, path):
-        """A figure of what the policy sees beyond the observation's numbers (a variant's camera image);
-        none here: returns False (nothing written)."""
+        """A figure of what the policy sees beyond numbers (an image variant's); none here: returns False."""
         return False
 
     # ---- the end effector and the goal ---------------------------------------------------------
@@ -256,22 +257,21 @@ class ArmEnv:
 
     # ---- drawing helpers of the figures (calibrate.py, relabel.py, partial_denoise.py) ---------
     def square_view(self, axes, points, margin=0.0):
-        """Square limits around workspace points (N, 2) in m, plus `margin` m and 10 %, on one axis or a list
-        of them (square: the figures' equal aspect then fills the panel)."""
+        """Square limits around workspace points (N, 2) in m, plus `margin` m and 10 %, on one axis or a list."""
         lo, hi = np.min(points, axis=0), np.max(points, axis=0)
         center, half = (lo + hi) / 2, 1.1 * (0.5 * float(np.max(hi - lo)) + margin)
         for ax in (axes if isinstance(axes, (list, tuple, np.ndarray)) else [axes]):
             ax.set_xlim(center[0] - half, center[0] + half)
             ax.set_ylim(center[1] - half, center[1] + half)
 
-    def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3, plane=(0, 1)):
-        """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end
-        effector to first order, Sigma_ee = J Sigma J^T, and drawn in the given plane of the workspace."""
+    def draw_noise_ellipses(self, ax, q, cov, color, n_std=2.0, alpha=0.3):
+        """n_std ellipses of joint covariances cov (B, dof, dof) at q (B, dof), pushed to the end effector to
+        first order, Sigma_ee = J Sigma J^T, drawn in the workspace's first two axes."""
         from matplotlib.patches import Ellipse
         q = np.atleast_2d(q)
-        J = self.ee_jacobian(q)[:, list(plane)]                                # (B, 2, dof)
+        J = self.ee_jacobian(q)[:, :2]                                         # (B, 2, dof)
         cov_ee = J @ np.asarray(cov) @ J.transpose(0, 2, 1)                   # (B, 2, 2)
-        for c, S in zip(self.ee(q)[:, list(plane)], cov_ee):
+        for c, S in zip(self.ee(q)[:, :2], cov_ee):
             vals, vecs = np.linalg.eigh(S)
             vals = np.maximum(vals, 0.0)
             angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
@@ -279,19 +279,14 @@ class ArmEnv:
                                  facecolor=color, edgecolor=color, alpha=alpha, lw=0.7))
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar reacher (Sec. V, Table I)
-# ----------------------------------------------------------------------------------------------
+# ---- The planar reacher (Sec. V, Table I) --------------------------------------------------------
 class PlanarReacher(ArmEnv):
     """3-link planar arm with a gripper among two box obstacles (paper Sec. V, Table I, Fig. 5).
 
-    From its start (often folded: the arm must untangle its links) the arm must reach the target within 6 cm
-    without touching an obstacle or itself (contact within 5 mm ends the episode). Every body is an oriented
-    box: the arm's six (three links, a palm, two fingers) in their links' frames (`parts`), the obstacles one
-    array (N, 5) of (centre x, y, half x, half y, angle). That one definition feeds the pymunk space (the
-    simulator of step: every polygon rounded by half the contact margin) and the vectorized numpy check
-    in_collision (exact box distances, box_distance). They agree on 12,000 random configurations and 1e-7 rad
-    either side of the contact boundary; a box centred exactly across a link counts as contact in both.
+    From its start (often folded) the arm must reach the target within 6 cm without touching an obstacle or
+    itself (contact within 5 mm ends the episode). Every body is an oriented box: the arm's six (three links, a
+    palm, two fingers) in their links' frames (`parts`), the obstacles rows (centre x, y, half x, half y, angle).
+    That one geometry feeds the pymunk space (the simulator of step) and the numpy check in_collision.
 
     Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
     observation.environment_state, PAPER_SETUP.md §1):
@@ -305,12 +300,12 @@ class PlanarReacher(ArmEnv):
     """
 
     dim = 2  # workspace dimension
-    # Arm parts: (link, centre along the link from its joint, centre across it, half length, half
-    # width) filled in by __init__ from the config; parts 3-5 (palm, fingers) ride on link 2.
+    collision_chunk = 4096  # configurations per pass of in_collision: the temporaries stay in cache
+    # Arm parts (rows of self.parts: link, centre along it, centre across it, half length, half width);
+    # parts 3-5 (palm, fingers) ride on link 2.
     PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")
-    # Self-collision pairs: parts whose links are not joined by a joint. Link 1 vs link 3 and the
-    # gripper; link 2 vs the gripper (the gripper is a child of link 3, so link 2 and the palm are
-    # not adjacent in the URDF's sense). Adjacent links share a joint and never count.
+    # Self-collision pairs: parts of links not joined by a joint (link 1 vs link 3 and the gripper; link 2 vs
+    # the gripper, a child of link 3 in the URDF). Adjacent links share a joint and never count.
     SELF_PAIRS = ((0, 2), (0, 3), (0, 4), (0, 5), (1, 3), (1, 4), (1, 5))
 
     def __init__(self, config: PlanarConfig | None = None):
@@ -381,20 +376,10 @@ class PlanarReacher(ArmEnv):
         hy = np.broadcast_to(self.parts[:, 4:5], c.shape)
         return cx, cy, c, s, hx, hy
 
-    def in_collision(self, q, margin=0.0):
-        """True where configuration q touches an obstacle or itself. (B,) bool.
-
-        Two boxes touch when closer than contact_margin (the authors' 5 mm) + margin (planners pass
-        margin > 0 to keep clear between their checks). Pairs: every arm part with every obstacle, and
-        SELF_PAIRS. The target block is not an obstacle.
-        """
-        q, single = self._check_batch(q, margin)
-        chunk = 4096  # configurations per pass: the temporaries stay in cache
-        hit = np.concatenate([self._in_collision_chunk(q[i:i + chunk], self.contact_margin + margin)
-                              for i in range(0, len(q), chunk)])
-        return hit[0] if single else hit
-
     def _in_collision_chunk(self, q, margin):
+        """in_collision: two boxes touch when closer than contact_margin (the authors' 5 mm) + margin. Pairs:
+        every arm part with every obstacle, and SELF_PAIRS. The target block is not an obstacle."""
+        margin = self.contact_margin + margin
         arm = self.part_boxes(q)  # 6 arrays (n_parts, B)
         B = len(q)
         i, j = np.array(self.SELF_PAIRS).T
@@ -419,11 +404,8 @@ class PlanarReacher(ArmEnv):
         return hit
 
     def set_scene(self, obstacles, goal=None):
-        """Install a scene: obstacles (N, 5) rows (centre x, y, half x, half y, angle), goal (2,).
-
-        reset() calls this with a generated scene; tests and figures with a built one. Both collision
-        checks derive what they need from this one array.
-        """
+        """Install a scene, for both collision checks: obstacles (N, 5) rows (centre x, y, half x, half y, angle),
+        goal (2,)."""
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
         if (not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0)
                 or len(obstacles) > self.cfg.n_obstacles):
@@ -436,14 +418,13 @@ class PlanarReacher(ArmEnv):
         self._obstacle_boxes = (cx, cy, np.cos(angle), np.sin(angle), hx, hy)
         centres = np.zeros(2 * self.cfg.n_obstacles)  # absent obstacles (hand-built scenes): zeros
         centres[:obstacles[:, :2].size] = obstacles[:, :2].ravel()
-        self._scene_obs = np.concatenate([self._goal, centres]).astype(np.float32)
+        self._obstacle_obs = centres.astype(np.float32)
         self._build_space()
 
     # ---- pymunk mirror (the simulator) -------------------------------------------------------
     def _build_space(self):
-        """pymunk space of the current scene: kinematic bodies carrying the arm's box parts,
-        static obstacle boxes. Every pymunk polygon is rounded by half the contact margin, so two
-        shapes touch in pymunk exactly when their boxes are closer than the margin."""
+        """pymunk space of the scene: kinematic bodies carrying the arm's parts, static obstacle boxes; every
+        polygon rounded by half the contact margin, so shapes touch exactly when boxes are closer than it."""
         space = pymunk.Space()
         rounding = 0.5 * self.contact_margin
         self._link_bodies = [pymunk.Body(body_type=pymunk.Body.KINEMATIC) for _ in range(self.dof)]
@@ -455,10 +436,8 @@ class PlanarReacher(ArmEnv):
             space.add(shape)
             self._part_shapes.append(shape)
         for cx, cy, hx, hy, angle in self.obstacles:
-            c, s = math.cos(angle), math.sin(angle)
-            corners = [(cx + sx * hx * c - sy * hy * s, cy + sx * hx * s + sy * hy * c)
-                       for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-            space.add(pymunk.Poly(space.static_body, corners, radius=rounding))
+            xs, ys = box_corners(cx, cy, math.cos(angle), math.sin(angle), hx, hy)
+            space.add(pymunk.Poly(space.static_body, list(zip(xs, ys)), radius=rounding))
         space.reindex_static()  # compute the static shapes' world geometry once
         self._space = space
         self._pairs_that_count = {frozenset(p) for p in self.SELF_PAIRS}
@@ -494,12 +473,9 @@ class PlanarReacher(ArmEnv):
 
     # ---- scenarios ---------------------------------------------------------------------------
     def _draw_scene(self, rng):
-        """One candidate scene: (obstacles (N, 5), goal (2,)), or None where blocks overlap.
-
-        The authors' placement (PAPER_SETUP.md §1): the target and each obstacle at an angle uniform
-        in [0, 2 pi) around the shoulder, at a distance uniform in target_radius / obstacle_radius.
-        The obstacles may or may not block the way: nothing else constrains them.
-        """
+        """One candidate scene: (obstacles (N, 5), goal (2,)), or None where blocks overlap. The authors'
+        placement (PAPER_SETUP.md §1): each block at an angle uniform in [0, 2 pi) around the shoulder, at a
+        distance uniform in target_radius / obstacle_radius; the obstacles may or may not block the way."""
         cfg = self.cfg
 
         def polar(radius_range):
@@ -509,10 +485,9 @@ class PlanarReacher(ArmEnv):
         goal = polar(cfg.target_radius)
         centres = np.array([polar(cfg.obstacle_radius) for _ in range(cfg.n_obstacles)])
         half = 0.5 * np.array([cfg.target_size] + [cfg.obstacle_size] * cfg.n_obstacles)
-        blocks = np.concatenate([goal[None], centres])  # axis-aligned squares
+        blocks = np.concatenate([goal[None], centres])  # axis-aligned squares: the gap is the larger per-axis gap
         for i in range(len(blocks)):
             for j in range(i):
-                # axis-aligned squares: the gap is the larger of the per-axis gaps
                 gap = np.max(np.abs(blocks[i] - blocks[j]) - half[i] - half[j])
                 if gap < cfg.block_clearance:
                     return None
@@ -521,12 +496,9 @@ class PlanarReacher(ArmEnv):
         return obstacles, goal
 
     def goal_configurations(self, n_angles=None):
-        """Collision-free joint configurations whose end effector is exactly at the goal. (M, 3).
-
-        Closed-form IK of the 3-link chain: for each orientation phi of the last link the wrist is at
-        goal - l3 (cos phi, sin phi), and its 2-link IK has two elbow solutions. Those outside the joint
-        limits or in collision are dropped.
-        """
+        """Collision-free joint configurations, within the limits, with the end effector exactly at the goal.
+        (M, 3). Closed-form IK: for each orientation phi of the last link the wrist is at goal - l3 (cos phi,
+        sin phi), and its 2-link IK has two elbow solutions."""
         goal, n = self._goal, n_angles or self.cfg.n_goal_angles
         l1, l2, l3 = self.chain_lengths
         phi = np.linspace(-math.pi, math.pi, n, endpoint=False)
@@ -549,11 +521,9 @@ class PlanarReacher(ArmEnv):
     def _shoulder_can_reach(self, start, goal_qs, n=720):
         """A necessary condition for a path from start to one of goal_qs: the shoulder can turn there.
 
-        Joint 0 has hard limits at +-pi (no wrap-around), and an obstacle within link 1's reach
-        blocks link 1 at some angles whatever the other joints do. The angles where link 1 alone is
-        collision-free form intervals; the start's and at least one goal configuration's joint 0
-        must lie in the same one (it removes the scenes where the arm is walled in by its own joint
-        limit, the main kind of unsolvable scene the other checks keep).
+        Joint 0 stops at +-pi (no wrap-around), and an obstacle within link 1's reach blocks some of its
+        angles whatever the other joints do: the start's and a goal configuration's joint 0 must lie in one
+        free interval (this removes scenes where the arm is walled in by its own joint limit).
         """
         q0 = np.linspace(self._lo[0], self._hi[0], n)
         cx, cy, c, s, hx, hy = (x[:1] for x in self.part_boxes(np.c_[q0, np.zeros((n, 2))]))
@@ -567,16 +537,14 @@ class PlanarReacher(ArmEnv):
         hi = q0[blocked[blocked >= i].min()] if np.any(blocked >= i) else np.inf
         return bool(np.any((goal_qs[:, 0] > lo) & (goal_qs[:, 0] < hi)))
 
-    def reset(self, seed=None):
-        """Draw the scenario of `seed` (target, obstacles, start) and put the arm at the start.
+    def _draw_scenario(self, rng):
+        """reset's scenario: install the scene (target, obstacles) and return the start (3,).
 
-        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed.
-        A scene is re-drawn when blocks overlap, when its target has fewer than
-        min_goal_configurations collision-free IK solutions, or when no start is found: the start
-        is the first of 64 uniform draws within the joint limits that is collision-free and not
-        already at the target, and whose shoulder can turn to a goal configuration.
+        Rejection sampling from one rng stream: a scene is re-drawn when blocks overlap, when its target has
+        fewer than min_goal_configurations free IK solutions, or when no start is found: the first of 64 uniform
+        draws within the limits that is free, not at the target, and whose shoulder can turn to a goal
+        configuration (the authors' reset).
         """
-        seed, rng = self._scenario_rng(seed)
         while True:
             scene = self._draw_scene(rng)
             if scene is None:
@@ -591,22 +559,13 @@ class PlanarReacher(ArmEnv):
                 continue
             start = candidates[np.argmax(ok)]
             if self._shoulder_can_reach(start, goal_qs):
-                break
-        self.seed = seed
-        self.set_state(start)
-        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
+                return start
 
     # ---- observations ---------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
         """Observations (B, obs_dim) float32 for the current scenario, the end effector from q; (dof,) -> (obs_dim,)."""
-        q, single = _as_batch(q, self.dof, "q")
-        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
-        q_prev = np.broadcast_to(q_prev, q.shape)
-        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d = self.dof
-        obs[:, :d] = q
-        obs[:, d:2 * d] = q_prev
-        obs[:, 2 * d:-2] = self._scene_obs  # target, obstacle centres
+        obs, q, single = self._joint_goal_obs(q, q_prev)
+        obs[:, 2 * self.dof + self.dim:-2] = self._obstacle_obs  # obstacle centres
         obs[:, -2:] = self.ee(q)
         return obs[0] if single else obs
 
@@ -629,13 +588,9 @@ class PlanarReacher(ArmEnv):
                                 linestyle="--", lw=1))
             ax.plot(*self.base, "ks", markersize=5)
             reach = self.chain_lengths.sum() + 0.05
-            ax.set_xlim(self.base[0] - reach, self.base[0] + reach)
-            ax.set_ylim(self.base[1] - reach, self.base[1] + reach)
-            ax.set_aspect("equal")
-            ax.set_xlabel("x [m]")
-            ax.set_ylabel("z [m]")  # the arm's vertical plane (the URDF's x-z)
-        q = self._q if q is None else q
-        q = np.atleast_2d(q)
+            ax.set(xlim=(self.base[0] - reach, self.base[0] + reach), ylim=(self.base[1] - reach, self.base[1] + reach),
+                   aspect="equal", xlabel="x [m]", ylabel="z [m]")  # the arm's vertical plane (the URDF's x-z)
+        q = np.atleast_2d(self._q if q is None else q)
         cx, cy, c, s, hx, hy = self.part_boxes(q)  # (n_parts, B) each
         for b in range(len(q)):
             for p in range(len(self.parts)):
@@ -646,10 +601,8 @@ class PlanarReacher(ArmEnv):
         return ax
 
 
-# ----------------------------------------------------------------------------------------------
-# The planar check's box geometry (numpy): a box is its centre (x, y), cos and sin of its angle, and
-# half extents (hx, hy) along its own axes. Arrays broadcast over any leading shape.
-# ----------------------------------------------------------------------------------------------
+# ---- The planar check's box geometry (numpy) -----------------------------------------------------
+# A box is its centre (x, y), cos and sin of its angle, and half extents (hx, hy) along its own axes.
 def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
     """Distance from point p to the box (0 inside): in the box's frame, |max(|p_local| - h, 0)|."""
     dx, dy = px - cx, py - cy
@@ -668,13 +621,9 @@ def box_corners(cx, cy, cos, sin, hx, hy):
 
 
 def box_distance(a, b):
-    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy).
-
-    Two facts of 2-D convex geometry make this short and exact:
-      * overlap <=> no separating axis among the four edge normals (the separating axis theorem);
-      * two disjoint convex polygons are closest at a vertex of one of them, so the distance is the
-        smallest of the 8 corner-to-box distances.
-    """
+    """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy). Exact:
+    overlap <=> no separating axis among the four edge normals (the separating axis theorem), and two disjoint
+    convex polygons are closest at a vertex of one of them: the smallest of the 8 corner-to-box distances."""
     acx, acy, ac, as_, ahx, ahy = a
     bcx, bcy, bc, bs, bhx, bhy = b
     dx, dy = bcx - acx, bcy - acy
@@ -690,70 +639,57 @@ def box_distance(a, b):
     return np.where(overlap, 0.0, d)
 
 
-# ----------------------------------------------------------------------------------------------
-# The UR5 engine lever's configuration (Table II; the authors' small-engine cell, benchmarks/README.md,
-# "The UR5 engine-lever task"). Their cell in our frame: the UR5's DH base frame is their URDF base frame
-# turned 180 deg about z, (x, y) -> (-x, -y); the table top is our ground z = 0.
-# ----------------------------------------------------------------------------------------------
+# ---- The UR5 engine lever's configuration (Table II; benchmarks/README.md, "The UR5 engine-lever task") --
+# The authors' small-engine cell in our frame: their URDF base turned 180 deg about z; the table top is z = 0.
 @dataclass
 class EngineConfig:
-    # --- the UR5 (radii from its datasheet's outer diameters: ~0.12 m shoulder and upper arm housings,
-    #     ~0.10 m forearm, ~0.09 m wrists) ---
+    # --- the UR5 (radii from its datasheet's outer diameters) ---
     link_radii: tuple = (0.06, 0.06, 0.05, 0.045, 0.045, 0.045, 0.025, 0.02)  # m, per ENGINE_LINK_NAMES
-    # rad. One turn per joint (the UR5 allows +-2 pi) keeps the planner from searching copies of each
-    # configuration; the shoulder in [-pi, 0] keeps the upper arm above the table; the elbow stops at
-    # +-160 deg before the forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
+    # rad. One turn per joint (the UR5 allows +-2 pi) spares the planner copies of each configuration; the
+    # shoulder in [-pi, 0] keeps the upper arm above the table; the elbow stops at +-160 deg before the
+    # forearm folds onto the upper arm (adjacent capsules, which the checks ignore).
     joint_lo: tuple = (-math.pi, -math.pi, -2.8, -math.pi, -math.pi, -math.pi)
     joint_hi: tuple = (math.pi, 0.0, 2.8, math.pi, math.pi, math.pi)  # rad
     # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
     dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
-    # m, success: the TCP within this distance of the goal (the authors' rule also asks 10 deg of the
-    # goal posture's orientation: the variant experiment/oriented_goal.py; benchmarks/README.md, "The 10° rule")
+    # m, success: the TCP within this distance of the goal (the authors' 10 deg orientation rule is the variant
+    # experiment/oriented_goal.py; benchmarks/README.md, "The 10° rule")
     goal_tolerance: float = 0.03
     max_steps: int = 333  # steps: the authors evaluate 1000 frames at 30 Hz (33 s), the same seconds here
-    # m, a start keeps this from everything (the authors' planning obstacle clearance); starts are all six
-    # joints uniform within the limits until clear (theirs, _get_random_collision_free_q; _draw_start)
-    start_clearance: float = 0.02
+    start_clearance: float = 0.02  # m, a start keeps this from everything (the authors' planning clearance)
     start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
     # --- the scene (EngineReach3D._draw_authors_scene) ---
-    # rad, the goal posture: the authors' q_goal_bias (the IK seed all their demos converge to); the
-    # goal is its TCP, (0.151, -0.373, 0.206) m, the tool pointing along +x at the engine.
+    # rad, the goal posture: the authors' q_goal_bias (their demos' IK seed); the goal is its TCP
     goal_q: tuple = (1.223, -1.587, 2.082, -0.925, -0.496, -1.124)
-    # The small engine, fixed (theirs: a ~0.34 x 0.38 x 0.34 m splat at (-0.48, 0.36) m): a block capsule
-    # and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m.
+    # The small engine, fixed: a block capsule and a fuel-tank capsule on top, (x0, y0, z0, x1, y1, z1, radius) m
     engine_parts: tuple = ((0.50, -0.46, 0.15, 0.50, -0.26, 0.15, 0.15),
                            (0.47, -0.45, 0.36, 0.47, -0.28, 0.36, 0.06))
     wall_y: float = 0.225  # m, a wall behind the robot: everything at y >= wall_y is solid (theirs: a cuboid)
-    # The two boxes on the table, drawn per seed (theirs: their ranges, each scaled 0.9-1.1; their sizes are
-    # splat scans not in the public code). Each is a capsule lying on the table: centre x, y ranges (m),
-    # its axis ('x' or 'y'), length (m) and radius (m, = half its height), scaled by box_scale.
+    # The two boxes on the table, drawn per seed: capsules lying on the table with centre x, y ranges (m), an
+    # axis ('x' or 'y'), length (m) and radius (m, = half its height), both scaled by one box_scale factor
     box_x: tuple = ((-0.50, -0.15), (-0.30, 0.40))  # m
     box_y: tuple = ((-0.50, -0.30), (-0.80, -0.60))  # m
     box_axis: tuple = ("y", "x")  # the two boxes stand at 90 deg to each other
     box_length: tuple = (0.30, 0.30)  # m, centre line (the box's long side minus its height)
     box_radius: tuple = (0.09, 0.09)  # m
     box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
-    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis: the
-    #                             probe tip (r 0.025) stops 0.035 m short of the handle (r 0.02)
-    # A scene is kept only if at least this many goal_configurations are free: a goal reachable from a
-    # sliver of joint space is a needle's eye no planner (or IK from random seeds) finds reliably.
+    lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis
+    # A scene needs this many free goal_configurations: a goal reachable from a sliver of joint space is a
+    # needle's eye no planner finds reliably
     min_goal_configurations: int = 40
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
     # --- not in the paper ---
     tool_length: float = 0.10  # m, flange to tool centre point (TCP) along z6 (this project's tool)
     finger_half_width: float = 0.045  # m, the fingers: a bar along x6 across the probe's tip (joint 6 matters)
-    # States checked for contact per step. At max_step on every joint an arm point moves <= 0.05 rad x
-    # sum_j R_j (the fk chain beyond joint j, 4.12 m in all) = 0.21 m, 0.052 m between checks: less than the
-    # thinnest band to pass through, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m. Nothing tunnels.
-    n_substeps: int = 4  # states per step
+    # States checked for contact per step: an arm point moves <= 0.21 m a step, 0.052 m between checks, less
+    # than the thinnest band to pass through, 2 x (fingers 0.02 + lever shaft 0.015) = 0.07 m
+    n_substeps: int = 4
     n_max_obstacles: int = 16  # obstacle slots in the observation (absent = zeros); the authors' scenes have 6
 
 
-# ----------------------------------------------------------------------------------------------
-# UR5 engine-lever reaching (Sec. V, Table II)
-# ----------------------------------------------------------------------------------------------
+# ---- UR5 engine-lever reaching (Sec. V, Table II) ------------------------------------------------
 pb = None  # the pybullet module, imported by the first EngineReach3D (the planar env never needs it)
 
 # UR5 (CB3) standard Denavit-Hartenberg parameters, as published by Universal Robots
@@ -763,18 +699,15 @@ UR5_D = np.array([0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823])  # m, offsets a
 UR5_A = np.array([0.0, -0.425, -0.39225, 0.0, 0.0, 0.0])  # m, lengths along x_i
 UR5_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])  # rad, twists
 
-# The arm as 8 capsules (EngineReach3D.link_segments): wrist 3 runs from its centre to the flange, the probe
-# from the flange to the TCP.
+# The arm as 8 capsules (link_segments): wrist 3 from its centre to the flange, the probe from there to the TCP
 ENGINE_LINK_NAMES = ("base", "upper_arm", "forearm", "wrist1", "wrist2", "wrist3", "probe", "fingers")
-# The fixed camera of Fig. 5 (and of the image variant's observations): in front of the robot, above the
-# table, looking at the engine and the goal (the authors' debug camera looks from the same side)
+# The fixed camera of Fig. 5 and of the image variant: in front of the robot, looking at the engine and goal
 ENGINE_CAMERA = dict(eye=(-0.35, -1.45, 1.0), target=(0.15, -0.3, 0.2), fov=60.0)
 _CAPSULE_START = [0, 1, 2, 3, 4, 5, 6, 8]  # rows of EngineReach3D._capsule_points where each
 _CAPSULE_END = [1, 2, 3, 4, 5, 6, 7, 9]  # capsule of ENGINE_LINK_NAMES starts / ends
-# Self-collision pairs: those that can meet when the arm folds. Consecutive capsules share a joint and never
-# count; in the wrist the DH offsets hold some others at a fixed distance whatever the angles (forearm-wrist 2
-# d4 = 0.109 m apart, radii sum 0.095; wrist 1-wrist 3 d5; wrist 2-probe d6; wrist 1-probe, wrist 2 / 3-fingers
-# farther): they never touch, and with a planner's margin of a few mm they would flag every configuration.
+# Self-collision pairs: those that can meet when the arm folds. Consecutive capsules share a joint; in the wrist
+# the DH offsets hold the other pairs apart whatever the angles (e.g. forearm-wrist 2: d4 = 0.109 m, radii 0.095):
+# they never touch, and a planner's margin of a few mm would flag every configuration
 ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs forearm .. fingers
                              + [(1, j) for j in range(3, 8)]  # upper arm vs wrist 1 .. fingers
                              + [(2, 5), (2, 6), (2, 7), (3, 7)])  # forearm / wrist 1 vs the tool
@@ -783,14 +716,11 @@ ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs for
 class EngineReach3D(ArmEnv):
     """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
-    The paper renders its mockup with Gaussian splats; without a scan the scene here is capsules: the
-    authors' small-engine cell as their code sets it up, one engine with its lever at a fixed place, the
-    goal the TCP of their goal posture (the witness), a wall behind the robot (a half-space y >= wall_y,
-    not an obstacle row), the table (the ground z = 0) and two boxes on the table, drawn per seed. Starts:
-    uniform within the joint limits (theirs). One geometry (capsules: segment + radius, `self.obstacles`
-    and `link_segments`) feeds pybullet in DIRECT mode (the simulator of step: one body per arm capsule
-    placed by our own FK) and the vectorized numpy check in_collision (segment-segment distances); both
-    are exact, and they agree on random configurations and 1e-6 rad either side of the contact boundary.
+    The paper's mockup is Gaussian splats; here the authors' small-engine cell is capsules (benchmarks/README.md,
+    "The UR5 engine-lever task"): the engine and its lever fixed, the goal the TCP of their goal posture (the
+    witness), a wall behind the robot (the half-space y >= wall_y), the table (the ground z = 0) and two boxes
+    drawn per seed. One geometry (capsules: segment + radius, `self.obstacles` and `link_segments`) feeds
+    pybullet in DIRECT mode (the simulator of step) and the numpy check in_collision (segment distances).
 
     Observation layout (float32, obs_dim = 2 dof + 3 + 7 n_max_obstacles = 127):
         [0:6]     q       current joint positions (rad)
@@ -802,6 +732,7 @@ class EngineReach3D(ArmEnv):
     """
 
     dim = 3  # workspace dimension
+    collision_chunk = 1024  # configurations per pass of in_collision: the temporaries stay in cache
 
     def __init__(self, config: EngineConfig | None = None):
         global pb
@@ -834,10 +765,9 @@ class EngineReach3D(ArmEnv):
     def _capsule_points(self, q):
         """(B, 10, 3): base, shoulder, elbow, wrist 1-3 centres, flange, TCP, the two finger ends.
 
-        The DH chain of ur5_frames written out point by point, 4x faster than the 4x4 products
-        (tests check the two agree). Joints 2-4 are parallel (alpha2 = alpha3 = 0), so the shoulder,
-        elbow and wrist 1 move in the vertical plane at angle q1, with in-plane angles q2,
-        q2 + q3 and q2 + q3 + q4; the lateral axis z1 = (sin q1, -cos q1, 0) carries d4.
+        The DH chain of ur5_frames written out point by point, 4x faster than the 4x4 products (tests check
+        they agree). Joints 2-4 are parallel, so shoulder, elbow and wrist 1 move in the vertical plane at
+        angle q1, with in-plane angles q2, q2 + q3, q2 + q3 + q4; the lateral axis z1 = (sin q1, -cos q1, 0).
         """
         B = len(q)
         c1, s1 = np.cos(q[:, 0:1]), np.sin(q[:, 0:1])  # (B, 1)
@@ -861,9 +791,8 @@ class EngineReach3D(ArmEnv):
         x6 = c6 * x5 + s6 * np.cross(z6, x5)  # joint 6 turns the fingers about z6
         p[:, 6] = p[:, 5] + UR5_D[5] * z6  # flange
         p[:, 7] = p[:, 6] + self.cfg.tool_length * z6  # TCP: the probe runs along the flange axis
-        # The finger bar crosses the probe just behind the TCP, where its tips are exactly as far
-        # from the wrist-3 centre as the TCP is: no point of the arm is farther from joint j than
-        # the fk chain beyond joint j is long, the lever-arm bound planners derive from fk.
+        # The finger bar crosses the probe just behind the TCP, its tips exactly as far from the wrist-3 centre
+        # as the TCP: no arm point is farther from joint j than the fk chain beyond j (planners' lever arms).
         reach = UR5_D[5] + self.cfg.tool_length  # wrist-3 centre to TCP
         w = self.cfg.finger_half_width
         centre = p[:, 5] + math.sqrt(reach * reach - w * w) * z6
@@ -883,14 +812,6 @@ class EngineReach3D(ArmEnv):
         p = self._capsule_points(q)  # (B, 10, 3)
         return np.stack([p[:, _CAPSULE_START], p[:, _CAPSULE_END]], axis=2)
 
-    def clearance(self, q):
-        """Signed distance (B,) from the arm at q to everything it may not touch, in m (negative: penetration):
-        the minimum over every arm capsule vs every obstacle capsule (segment distance minus the two radii),
-        the pairs ENGINE_SELF_PAIRS, the forearm .. fingers vs the ground z = 0, every capsule vs the wall."""
-        q, single = self._check_batch(q)
-        d = np.concatenate([self._clearance(q[k:k + 256]) for k in range(0, len(q), 256)])  # chunks: in cache
-        return d[0] if single else d
-
     def _arm_components(self, q):
         """Arm capsule end points, components first: a0, a1 (3, B, 8) (contiguous, for speed)."""
         p = self._capsule_points(q).transpose(2, 0, 1)  # (3, B, 10)
@@ -905,41 +826,17 @@ class EngineReach3D(ArmEnv):
         """(B,) distance from the arm's capsules to the wall's face y = wall_y (at a capsule's end point)."""
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
-    def _clearance(self, q):
-        """clearance for a (B, dof) batch: every pair, no broad phase."""
-        a0, a1 = self._arm_components(q)
-        r, (i, j) = self.link_radii, ENGINE_SELF_PAIRS.T
-        d = (segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
-             - r[i] - r[j]).min(axis=1)  # (B,) self-collision pairs
-        d = np.minimum(d, self._ground_clearance(a0, a1))
-        d = np.minimum(d, self._wall_clearance(a0, a1))
-        if len(self.obstacles):
-            g = self._geom
-            dist = segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None],
-                                       g["end"][:, None, None])  # (B, 8, N)
-            d = np.minimum(d, (dist - g["contact"]).min(axis=(1, 2)))
-        return d
-
-    def in_collision(self, q, margin=0.0):
-        """True where the arm at q penetrates an obstacle, the wall, the ground or itself. (B,) bool.
-
-        With margin > 0 (m), True also where anything is closer than margin (planners keep clear between
-        their checks). The same predicate as clearance(q) < margin, in two phases for speed: axis-aligned
-        bounding boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column
-        never moves (joint 1 turns it about its own axis): its clearance is set_scene's constant.
-        """
-        q, single = self._check_batch(q, margin)
-        chunk = 1024  # configurations per pass: temporaries stay in cache
-        hit = np.concatenate([self._in_collision_chunk(q[k:k + chunk], float(margin))
-                              for k in range(0, len(q), chunk)])
-        return hit[0] if single else hit
-
     def _in_collision_chunk(self, q, margin):
+        """in_collision: the arm penetrates (or comes within margin of) an obstacle, the wall, the ground or itself.
+
+        Pairs: every arm capsule with every obstacle, ENGINE_SELF_PAIRS, the ground, the wall. Axis-aligned bounding
+        boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column never moves
+        (joint 1 turns it about its own axis): its clearance is set_scene's constant.
+        """
         a0, a1 = self._arm_components(q)  # (3, B, 8) each
         hit = (self._ground_clearance(a0, a1) < margin) | (self._base_clearance < margin)  # (B,)
         hit |= self._wall_clearance(a0, a1) < margin
-        # broad phase: axis-aligned boxes around the capsules, grown by the margin; two capsules
-        # whose boxes do not overlap cannot be closer than the margin
+        # broad phase: capsules whose axis-aligned boxes, grown by the margin, do not overlap are not closer
         lo = np.minimum(a0, a1) - self.link_radii - margin  # (3, B, 8)
         hi = np.maximum(a0, a1) + self.link_radii + margin
         g = self._geom  # obstacle boxes precomputed by set_scene
@@ -955,8 +852,8 @@ class EngineReach3D(ArmEnv):
         for k in range(3):
             near &= (lo[k][:, i] <= hi[k][:, j] + margin) & (hi[k][:, i] >= lo[k][:, j] - margin)
         b_self, pair = np.divmod(np.flatnonzero(near), len(i))
-        # narrow phase on all candidates: segment A = an arm capsule, segment B = obstacle / capsule;
-        # arm capsules are picked by flat index config * 8 + capsule from the raveled (3, B * 8)
+        # narrow phase on all candidates: an arm capsule (flat index config * 8 + capsule into (3, B * 8))
+        # against an obstacle or another arm capsule
         a0, a1 = a0.reshape(3, -1), a1.reshape(3, -1)
         arm = np.concatenate([b_obs * 8 + link, b_self * 8 + i[pair]])
         other = b_self * 8 + j[pair]
@@ -969,12 +866,8 @@ class EngineReach3D(ArmEnv):
 
     # ---- scene installation -------------------------------------------------------------------
     def set_scene(self, obstacles, goal=None, kinds=None):
-        """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,).
-
-        reset() calls this with a generated scene; tests and figures with a built one. kinds: one of
-        'engine', 'lever', 'pipe', 'box' per obstacle (colours only; default pipe). The wall is not a row.
-        Both collision checks derive what they need from this one array.
-        """
+        """Install a scene: obstacles (N, 7) rows (x0, y0, z0, x1, y1, z1, radius), goal (3,), for both collision
+        checks; kinds: 'engine', 'lever', 'pipe' (the default) or 'box' per obstacle (colours only)."""
         self._set_obstacles(obstacles, kinds)
         if goal is not None:
             goal = np.asarray(goal, dtype=np.float64)
@@ -1006,61 +899,51 @@ class EngineReach3D(ArmEnv):
 
     # ---- pybullet mirror (the simulator) -----------------------------------------------------
     def _build_bullet(self):
-        """pybullet DIRECT world of the current scene: arm capsule bodies, obstacles, ground."""
+        """pybullet DIRECT world of the current scene: arm capsule bodies, obstacles, ground, wall, goal."""
         if self._client is None:
             self._client = pb.connect(pb.DIRECT)
         cid = self._client
         pb.resetSimulation(physicsClientId=cid)
         plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=cid)
-        floor_visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[1.5, 1.5, 0.005],
-                                            visualFramePosition=[0, 0, -0.005],
-                                            rgbaColor=[0.85, 0.85, 0.82, 1], physicsClientId=cid)
+        floor_visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[1.5, 1.5, 0.005], rgbaColor=[0.85, 0.85, 0.82, 1],
+                                            visualFramePosition=[0, 0, -0.005], physicsClientId=cid)
         self._ground = pb.createMultiBody(0, plane, floor_visual, physicsClientId=cid)
-        # arm: one capsule body per link, placed by our FK. Mass > 0 makes them dynamic bodies,
-        # which pybullet tests against the static obstacles (static-static pairs are skipped);
-        # we never call stepSimulation, so nothing moves by itself.
+        # arm: one capsule body per link, placed by our FK. Mass > 0 makes them dynamic bodies, which pybullet
+        # tests against the static obstacles; we never call stepSimulation, so nothing moves by itself.
         self._link_bodies = []
         for name, length, radius in zip(ENGINE_LINK_NAMES, self.link_lengths, self.link_radii):
             color = [0.2, 0.5, 0.85, 1] if name in ("probe", "fingers") else [0.75, 0.78, 0.82, 1]
             self._link_bodies.append(self._capsule_body(float(length), float(radius), color, mass=1.0))
-        checked = {tuple(pair) for pair in ENGINE_SELF_PAIRS.tolist()}
-        for i in range(len(self._link_bodies)):  # arm pairs outside ENGINE_SELF_PAIRS: no contacts
-            for j in range(i + 1, len(self._link_bodies)):
+        bodies, checked = self._link_bodies, {tuple(pair) for pair in ENGINE_SELF_PAIRS.tolist()}
+        for i in range(len(bodies)):  # arm pairs outside ENGINE_SELF_PAIRS: no contacts
+            for j in range(i + 1, len(bodies)):
                 if (i, j) not in checked:
-                    pb.setCollisionFilterPair(self._link_bodies[i], self._link_bodies[j], -1, -1, 0,
-                                              physicsClientId=cid)
-        for body in self._link_bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
+                    pb.setCollisionFilterPair(bodies[i], bodies[j], -1, -1, 0, physicsClientId=cid)
+        for body in bodies[:2]:  # base, upper arm never reach the ground (_ground_clearance)
             pb.setCollisionFilterPair(body, self._ground, -1, -1, 0, physicsClientId=cid)
-        colors = {"engine": [0.25, 0.25, 0.28, 1],
-                  "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1], "box": [0.62, 0.45, 0.3, 1]}
         half = [1.5, 0.25, 0.75]  # the wall: a 0.5 m thick slab whose face is the plane y = wall_y
         shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
         visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.87, 0.8, 0.75, 1],
                                       physicsClientId=cid)
-        pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]],
-                           physicsClientId=cid)
+        pb.createMultiBody(0, shape, visual, basePosition=[0.0, self._wall_y + half[1], half[2]], physicsClientId=cid)
+        colors = {"engine": [0.25, 0.25, 0.28, 1],
+                  "lever": [0.85, 0.15, 0.1, 1], "pipe": [0.9, 0.55, 0.1, 1], "box": [0.62, 0.45, 0.3, 1]}
         for (x0, y0, z0, x1, y1, z1, radius), kind in zip(self.obstacles, self.obstacle_kinds):
             a, b = np.array([x0, y0, z0]), np.array([x1, y1, z1])
             body = self._capsule_body(float(np.linalg.norm(b - a)), float(radius), colors[kind], mass=0.0)
-            self._place(body, a, b)
-        goal_visual = pb.createVisualShape(pb.GEOM_SPHERE, radius=self.goal_tolerance / 2,
-                                           rgbaColor=[0.1, 0.8, 0.2, 1], physicsClientId=cid)
+            quat = _quaternion_z_to(((b - a) / max(np.linalg.norm(b - a), 1e-12))[None])[0]  # z axis along b - a
+            pb.resetBasePositionAndOrientation(body, ((a + b) / 2).tolist(), quat.tolist(), physicsClientId=cid)
+        goal_visual = pb.createVisualShape(pb.GEOM_SPHERE, radius=self.goal_tolerance / 2, rgbaColor=[0.1, 0.8, 0.2, 1],
+                                           physicsClientId=cid)
         pb.createMultiBody(0, -1, goal_visual, basePosition=self._goal.tolist(), physicsClientId=cid)
 
     def _capsule_body(self, length, radius, color, mass):
+        """A capsule body along its local z axis."""
         cid = self._client
-        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length,
-                                        physicsClientId=cid)
+        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length, physicsClientId=cid)
         visual = pb.createVisualShape(pb.GEOM_CAPSULE, radius=radius, length=length, rgbaColor=color,
                                       physicsClientId=cid)
         return pb.createMultiBody(mass, shape, visual, physicsClientId=cid)
-
-    def _place(self, body, a, b):
-        """Put a capsule body (axis = its local z) on the segment a -> b."""
-        direction = (b - a) / max(np.linalg.norm(b - a), 1e-12)
-        quat = _quaternion_z_to(direction[None])[0]
-        pb.resetBasePositionAndOrientation(body, ((a + b) / 2).tolist(), quat.tolist(),
-                                           physicsClientId=self._client)
 
     def _pose_arm(self, q):
         """Place the arm's capsule bodies at configuration q (dof,)."""
@@ -1069,8 +952,7 @@ class EngineReach3D(ArmEnv):
         directions = seg[:, 1] - seg[:, 0]
         quats = _quaternion_z_to(directions / np.linalg.norm(directions, axis=1, keepdims=True))
         for body, c, quat in zip(self._link_bodies, centres, quats):
-            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(),
-                                               physicsClientId=self._client)
+            pb.resetBasePositionAndOrientation(body, c.tolist(), quat.tolist(), physicsClientId=self._client)
 
     def pybullet_in_collision(self, q):
         """Same predicate as in_collision, from pybullet contacts (one config at a time, slower)."""
@@ -1110,21 +992,15 @@ class EngineReach3D(ArmEnv):
         return q[~self.in_collision(q)] if len(q) else q
 
     def _draw_authors_scene(self, rng):
-        """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)).
-
-        Fixed: the engine, the goal posture cfg.goal_q and its TCP (the goal), a T-handle lever just beyond
-        the TCP along the tool axis, its shaft running on into the engine. Drawn: the two boxes, each a
-        capsule on the table, centre uniform in its box_x x box_y range, scaled by one factor of box_scale.
-        """
+        """One candidate scene of the authors' cell: (obstacles (N, 7), kinds, goal (3,), witness (6,)). Fixed:
+        the engine, the goal posture cfg.goal_q, its TCP (the goal), a T-handle lever just beyond it along the tool
+        axis, its shaft on into the engine. Drawn: the two boxes, centre uniform in box_x x box_y, scaled."""
         cfg = self.cfg
         q_goal = np.asarray(cfg.goal_q, dtype=np.float64)
         frame6 = ur5_frames(q_goal[None])[0, 6]
         tool_axis, handle_axis = frame6[:3, 2], frame6[:3, 1]
         goal = self.ee(q_goal)
-        obstacles, kinds = [], []
-        for part in cfg.engine_parts:
-            obstacles.append(list(part))
-            kinds.append("engine")
+        obstacles, kinds = [list(part) for part in cfg.engine_parts], ["engine"] * len(cfg.engine_parts)
         handle = goal + cfg.lever_offset * tool_axis  # T-handle across the fingers' grasp
         obstacles.append([*(handle - 0.05 * handle_axis), *(handle + 0.05 * handle_axis), 0.02])
         obstacles.append([*handle, *(handle + 0.25 * tool_axis), 0.015])  # shaft, on into the engine
@@ -1138,39 +1014,30 @@ class EngineReach3D(ArmEnv):
             kinds.append("box")
         return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
 
-    def reset(self, seed=None):
-        """Draw the scenario of `seed` (the scene, then the start) and put the arm there.
+    def _draw_scenario(self, rng):
+        """reset's scenario: install the scene and return the start (6,).
 
-        Rejection sampling with one rng stream, so the scenario is a deterministic function of seed. A
-        scene is re-drawn when its witness (the goal posture) collides or its goal has fewer than
-        min_goal_configurations free IK solutions (EngineReach3D's own goal set, also in a variant that
-        narrows it: the same scenes), or when no start is found (_draw_start).
+        Rejection sampling from one rng stream: a scene is re-drawn when its witness (the goal posture) collides
+        or its goal has fewer than min_goal_configurations free IK solutions (EngineReach3D's own goal set, also
+        in a variant that narrows it: the same scenes), or when none of 256 starts fits. The start (the authors'):
+        the first draw uniform within the joint limits that is clear of everything by start_clearance, its TCP at
+        least start_goal_min_dist from the goal.
         """
-        seed, rng = self._scenario_rng(seed)
+        cfg = self.cfg
         while True:
             obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
             self._set_obstacles(obstacles, kinds)
             self._goal = goal
             if self.in_collision(self.witness):
                 continue
-            if len(EngineReach3D.goal_configurations(self)) < self.cfg.min_goal_configurations:
+            if len(EngineReach3D.goal_configurations(self)) < cfg.min_goal_configurations:
                 continue
-            start = self._draw_start(rng)
-            if start is not None:
-                break
-        self.seed = seed
-        self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
-        self.set_state(start)
-        return self.make_obs(self._q, self._q_prev), {"q": self.q, "goal": self.goal, "seed": self.seed}
-
-    def _draw_start(self, rng, n=256):
-        """The authors' start: the first of n draws uniform within the joint limits that is clear of everything
-        by start_clearance, its TCP at least start_goal_min_dist from the goal; (6,) or None."""
-        cfg = self.cfg
-        q = rng.uniform(self._lo, self._hi, size=(n, self.dof))
-        far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
-        ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
-        return q[np.argmax(ok)] if ok.any() else None
+            q = rng.uniform(self._lo, self._hi, size=(256, self.dof))
+            far = np.linalg.norm(self.ee(q) - self._goal, axis=1) >= cfg.start_goal_min_dist
+            ok = far & ~self.in_collision(q, margin=cfg.start_clearance)
+            if ok.any():
+                self.set_scene(self.obstacles, self._goal, self.obstacle_kinds)
+                return q[np.argmax(ok)]
 
     # ---- observations -------------------------------------------------------------------------
     def make_obs(self, q, q_prev):
@@ -1178,18 +1045,6 @@ class EngineReach3D(ArmEnv):
         obs, _, single = self._joint_goal_obs(q, q_prev)
         obs[:, 2 * self.dof + self.dim:] = self._obstacle_obs
         return obs[0] if single else obs
-
-    def _joint_goal_obs(self, q, q_prev):
-        """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:15], the rest
-        for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
-        q, single = _as_batch(q, self.dof, "q")
-        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
-        obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
-        d = self.dof
-        obs[:, :d] = q
-        obs[:, d:2 * d] = np.broadcast_to(q_prev, q.shape)
-        obs[:, 2 * d:2 * d + self.dim] = self._goal
-        return obs, q, single
 
     simulator_in_collision = pybullet_in_collision  # the contact check that judges a step: the simulator's
 
@@ -1202,22 +1057,19 @@ class EngineReach3D(ArmEnv):
         cam = ENGINE_CAMERA
         view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
         projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
-        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection,
-                                             renderer=pb.ER_TINY_RENDERER,
-                                             lightDirection=[0.6, -0.5, 1.0], shadow=0,
-                                             physicsClientId=self._client)
+        _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
+                                             lightDirection=[0.6, -0.5, 1.0], shadow=0, physicsClientId=self._client)
         return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[..., :3]
 
     def render(self, ax, q=None):
-        """Draw the scene with the arm at q (default: current; (dof,) or (B, dof): the first) on a matplotlib
-        axis: the camera image of camera_image (Fig. 5)."""
+        """Fig. 5: camera_image of the scene with the arm at q (default: current; (dof,) or (B, dof): the first)."""
         q = self._q if q is None else np.asarray(q, dtype=np.float64)
         ax.imshow(self.camera_image(np.atleast_2d(q)[0], 480, 360))
         ax.set_axis_off()
         return ax
 
     def close(self):
-        """Disconnect the pybullet client (reset() connects a new one)."""
+        """Disconnect the pybullet client (set_scene or reset connects a new one)."""
         if self._client is not None:
             pb.disconnect(physicsClientId=self._client)
             self._client = None
@@ -1230,16 +1082,11 @@ class EngineReach3D(ArmEnv):
             pass
 
 
-# ----------------------------------------------------------------------------------------------
-# Capsule geometry and UR5 kinematics (EngineReach3D)
-# ----------------------------------------------------------------------------------------------
+# ---- Capsule geometry and UR5 kinematics (EngineReach3D) -----------------------------------------
 def segment_distance_3d(a0, a1, b0, b1):
-    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...).
-
-    Closest points of two segments (Ericson, Real-Time Collision Detection, Sec. 5.1.9): the closest
-    points of the infinite lines, clamped to the segments, re-projected once (a zero-length segment: its
-    squared length floored at 1e-18). Components first keep every operation on contiguous memory: 4-5x faster.
-    """
+    """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...) (contiguous
+    memory: 4-5x faster). Ericson, Real-Time Collision Detection, Sec. 5.1.9: the closest points of the infinite
+    lines, clamped to the segments, re-projected once (a zero-length segment: squared length floored at 1e-18)."""
     (ax, ay, az), (bx, by, bz) = a0, b0
     ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
     vx, vy, vz = b1[0] - bx, b1[1] - by, b1[2] - bz
@@ -1349,9 +1196,7 @@ def _quaternion_z_to(direction):
     return quat / np.linalg.norm(quat, axis=1, keepdims=True)
 
 
-# ----------------------------------------------------------------------------------------------
-# Environments by name
-# ----------------------------------------------------------------------------------------------
+# ---- Environments by name ------------------------------------------------------------------------
 # name -> (env class, its config); a research variant adds its own on import of its module (a subclass of
 # EngineReach3D: experiment/image_obs.py 'engine3d_image', experiment/oriented_goal.py 'engine3d_oriented')
 ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig), "engine3d": (EngineReach3D, EngineConfig)}
@@ -1374,15 +1219,10 @@ def paper_env(env):
                  if env_class is not None and issubclass(env_class, ENVIRONMENTS[name][0])), None)
 
 
-# ----------------------------------------------------------------------------------------------
-# The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations
-# ----------------------------------------------------------------------------------------------
+# ---- The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations ------------
 def median_step(episodes):
-    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit).
-
-    Only moving entries count: exact zeros (a joint pinned at a limit, or the arm standing still at
-    the end of an episode) are ignored, so a demo that waits does not shrink the unit.
-    """
+    """Median per-step joint displacement |q[t+1] - q[t]| over all steps and joints (Sec. V unit). Exact zeros
+    (a joint pinned at a limit, an arm standing still) are ignored: a demo that waits does not shrink the unit."""
     steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
     steps = np.concatenate(steps) if steps else np.zeros(0)
     steps = steps[steps > 0]
@@ -1391,22 +1231,19 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit, a fact of the authors' demos (PAPER_SETUP.md §1): the median over their demonstration
-# steps of the L2 norm over the joints of one 30 Hz frame (every sigma and W of the paper counts it). Ours
-# (median_step) is per joint at the env's dt. A per-joint sigma in rad: sigma_ours * median_step = sigma_paper * this.
+# The paper's own unit (PAPER_SETUP.md §1): the median over the authors' demo steps of the L2 norm over the joints
+# of one 30 Hz frame; ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step =
+# sigma_paper * this.
 PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
 
 
 def paper_median_step(env):
-    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where the
-    paper has none (then only radians and our median steps can be given)."""
+    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where it has none."""
     return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
-# ----------------------------------------------------------------------------------------------
-# Episode files (the run folder's datasets) and a stand-in expert for tests and demos
-# ----------------------------------------------------------------------------------------------
+# ---- Episode files (the run folder's datasets) and a stand-in expert for tests and demos ---------
 def save_episodes(path, episodes):
     """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
     episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
@@ -1469,9 +1306,7 @@ def straight_line_episode(env, seed, peak=0.04, expert_from=5):
             "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
 
 
-# ----------------------------------------------------------------------------------------------
-# Fig. 5: the UR5's scene (the planar one: PlanarReacher.render under a demonstration, oracle.py)
-# ----------------------------------------------------------------------------------------------
+# ---- Fig. 5: the UR5's scene (the planar one: PlanarReacher.render, oracle.py) -------------------
 def render_scene_image(env, path, q=None, width=640, height=480):
     """Save env.camera_image (the scene, arm at q) to path (.png) for figures; returns the image."""
     from matplotlib.image import imsave
@@ -1489,12 +1324,8 @@ if __name__ == "__main__":
     env = make_env("planar")
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
     for ax, seed in zip(axes, env.eval_seeds()):
-        obs, info = env.reset(seed=seed)
+        env.reset(seed=seed)
         env.render(ax)
-        goal_q = env.goal_configurations()
-        env.render(ax, q=goal_q[np.argmin(np.abs(goal_q - env.q).sum(1))], alpha=0.4,
-                   color="tab:orange", show_scene=False)
-        ax.set_title(f"seed {seed}: {len(env.obstacles)} obstacles")
+        ax.set_title(f"seed {seed}: {len(env.goal_configurations())} free goal configurations")
     fig.savefig("planar_scenes.png", dpi=80)
-    print("wrote planar_scenes.png; obs_dim", env.obs_dim, "collision at start:",
-          bool(env.in_collision(env.q)))
+    print("wrote planar_scenes.png; obs_dim", env.obs_dim)

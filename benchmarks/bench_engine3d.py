@@ -43,8 +43,6 @@ def speed_rows(env, seconds, n_scenes, rng):
     q = rng.uniform(lo, hi, size=(1000, env.dof))
     rows.append(("numpy in_collision, margin 0.01 m, batch 1000",
                  rate(lambda: env.in_collision(q, margin=0.01), 1000, seconds), "checks/s", ""))
-    rows.append(("numpy clearance (exact, no broad phase), batch 1000",
-                 rate(lambda: env.clearance(q), 1000, seconds), "checks/s", ""))
     q_small = q[:200]
     rows.append(("pybullet contacts, one config at a time",
                  rate(lambda: env.pybullet_in_collision(q_small), 200, seconds), "checks/s", ""))
