@@ -283,9 +283,10 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
 
     The reference r_k = trajectory[t_proj + lookahead + k], held at the segment's last point (t_end - 1): the
     chunk REJOINS the trajectory, then follows it. With e_k = q_k - r_k and u_k = r_k - r_{k-1}, PD plus the
-    reference's acceleration as feed-forward, a_k = -Kp e_k - Kd (v_k - u_k) + (u_{k+1} - u_k), makes e obey the
-    map of `critically_damped_gains` (settling in ~settle_steps, default H/2) while |a| <= accel_max and
-    |v| <= max_step are inactive. In cascade form the closing speed w* = -(Kp/Kd) e is capped at
+    reference's acceleration as feed-forward,
+        a_k = -Kp e_k - Kd (v_k - u_k) + (u_{k+1} - u_k),
+    makes e obey the map of `critically_damped_gains` (settling in ~settle_steps, default H/2) while
+    |a| <= accel_max and |v| <= max_step are inactive. In cascade form the closing speed w* = -(Kp/Kd) e is capped at
     √(2 accel_max |e|), so the clamped deceleration can still stop at the path (overshoot 25 % of e0 -> 8 %).
     Sec. IV-E's "a few timesteps further" is lookahead 0: the feed-forward removes the lag (benchmarks/README.md).
 
