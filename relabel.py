@@ -170,11 +170,9 @@ def covariance_factor(cov: np.ndarray) -> np.ndarray:
 def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, horizon: int, t_index=None,
                    median_step: float | None = None, max_tries: int = RelabelConfig.max_tries):
     """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode` (Sec. IV-A step 3).
-
     sigma: see `noise_factors`. t_index: None -> t uniform over the steps with a valid label of H = `horizon`
     (`label_steps`); an int -> all n around that step; an array (n,) -> one state around each given step.
-    Returns (q̃ (m, dof), t (m,)), m <= n: states still in collision or off limits after `max_tries` are dropped.
-    """
+    Returns (q̃ (m, dof), t (m,)), m <= n: states still in collision or off limits after `max_tries` are dropped."""
     q, expert = _episode_arrays(episode)
     if not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"n must be an integer >= 0, got {n!r}")
@@ -430,11 +428,10 @@ class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool): noised
     intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
-    A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free);
-    v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, the recorded obs);
-    chunk, mask = `corrective_labels` (PAPER_SETUP.md §6). Pairs are made in batches into a pool each call draws
-    from, all randomness from the call's rng. sigma: as in `noise_factors`; for 'per_step' a pair per episode (a
-    list aligned with `episodes` or a dict {episode index: pair}). make_env: a no-argument env factory."""
+    A pair (PAPER_SETUP.md §6): (episode, t) uniform over the labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
+    v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
+    mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
+    sigma: as in `noise_factors`, for 'per_step' a list or dict {episode index: pair}. make_env: an env factory."""
     label_steps = staticmethod(label_steps)  # the paper's label rule (a variant's subclass brings its own)
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
@@ -446,8 +443,7 @@ class AugmentationSampler:
         if noise == "pooled" and np.ndim(sigma) != 2:
             raise ValueError(f"noise='pooled' needs sigma of shape (dof, dof), got {np.shape(sigma)}")
         self.cfg, self.noise, self.stats, self._make_env, self._envs = cfg, noise, stats, make_env, {}
-        # one flat table of every labelable intervention step, the episodes concatenated so that projection and
-        # labels run once per batch
+        # one flat table of every labelable step, the episodes concatenated: projection and labels run once a batch
         arrays = [_episode_arrays(ep) for ep in episodes]  # (q (T, dof), expert (T,)) each
         steps = [self.label_steps(expert, cfg.horizon) for _, expert in arrays]  # (t, seg_end) each
         labelled = [e for e, (t, _) in enumerate(steps) if t.size]
