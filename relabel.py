@@ -12,10 +12,9 @@ augmented data D̂_k of Sec. IV-A steps 3-4. Top to bottom:
                        ChunkSampler, MixtureSampler: a fine-tuning batch's intervention rows, round by round
   plot_recovery        Fig. 1
 
-Units per control step: joints rad, velocities rad/step, accelerations rad/step² (the env's `max_step` is the
-velocity clamp); noise levels and most RelabelConfig knobs in median steps m. Sec. V's observation noise is
-diffusion.TrainConfig.obs_noise. The env is used only through envs.py's interface; which steps teach is the
-label rule diffusion.label_mask. Imports: numpy and that rule (matplotlib inside `plot_recovery`).
+Units per control step: joints rad, velocities rad/step, accelerations rad/step²; noise levels and most
+RelabelConfig knobs in median steps m. The env is used only through envs.py's interface; which steps teach is
+the label rule diffusion.label_mask (matplotlib only inside `plot_recovery`).
 """
 from __future__ import annotations
 
@@ -79,12 +78,9 @@ class DemoStats:
 
 def demo_stats(episodes: Sequence[dict], median_step: float, max_step,
                paper_median_step: float | None = None, frames_per_step: float | None = None) -> DemoStats:
-    """Statistics of the base demonstrations D0 that shape the corrective labels.
-
-    `median_step` is `envs.median_step(episodes)`; `max_step` the env's per-step joint speed limit (scalar or
-    (dof,)). The acceleration clamp is the 99th percentile of |q[t+1] - 2 q[t] + q[t-1]| per joint (not the
-    max: one odd step does not set every label's clamp).
-    """
+    """Statistics of the base demonstrations D0 that shape the labels. `median_step` is `envs.median_step`;
+    `max_step` the env's per-step joint speed limit (scalar or (dof,)). The acceleration clamp is the 99th
+    percentile of |q[t+1] - 2 q[t] + q[t-1]| per joint (not the max: one odd step does not set every clamp)."""
     if not np.isfinite(median_step) or median_step <= 0:
         raise ValueError(f"median_step must be a finite positive number (rad), got {median_step!r}")
     qs = [np.asarray(ep["q"], dtype=np.float64) for ep in episodes]  # (T, dof) each
@@ -155,14 +151,11 @@ def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None 
 
 
 def covariance_factor(cov: np.ndarray) -> np.ndarray:
-    """L with L Lᵀ = Σ for a batch of covariances (..., dof, dof): an eigendecomposition, not a Cholesky,
-    since Σ̂ from a handful of policy samples is often (near-)singular (a flat ellipse). Eigenvalues negative
-    only by round-off are set to 0; clearly negative ones mean Σ is not a covariance (ValueError)."""
+    """L with L Lᵀ = Σ for covariances (..., dof, dof): an eigendecomposition, not a Cholesky, since Σ̂ from a
+    handful of policy samples is often (near-)singular. Eigenvalues negative only by round-off are set to 0."""
     cov = np.asarray(cov, dtype=np.float64)
-    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
-        raise ValueError(f"a covariance must be (..., dof, dof), got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise ValueError("covariance contains NaN or inf; valid covariances are finite")
+    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2] or not np.all(np.isfinite(cov)):
+        raise ValueError(f"a covariance must be finite (no NaN or inf) and (..., dof, dof), got shape {cov.shape}")
     scale = float(np.abs(cov).max(initial=0.0))  # relative tolerances: covariances are ~1e-4 rad²
     if np.abs(cov - np.swapaxes(cov, -1, -2)).max(initial=0.0) > 1e-8 * scale:
         raise ValueError("covariance is not symmetric; valid covariances satisfy Σ = Σᵀ")
@@ -176,13 +169,10 @@ def covariance_factor(cov: np.ndarray) -> np.ndarray:
 
 def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, horizon: int, t_index=None,
                    median_step: float | None = None, max_tries: int = RelabelConfig.max_tries):
-    """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode`.
-
+    """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode` (Sec. IV-A step 3).
     sigma: see `noise_factors`. t_index: None -> t uniform over the steps with a valid label of H = `horizon`
     (`label_steps`); an int -> all n around that step; an array (n,) -> one state around each given step.
-    env: reset to the episode's scenario for the collision checks. Returns (q̃ (m, dof), t (m,)), m <= n:
-    states still in collision or outside the joint limits after `max_tries` draws are dropped.
-    """
+    Returns (q̃ (m, dof), t (m,)), m <= n: states still in collision or off limits after `max_tries` are dropped."""
     q, expert = _episode_arrays(episode)
     if not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"n must be an integer >= 0, got {n!r}")
@@ -203,15 +193,12 @@ def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, 
 
 def _episode_arrays(episode: dict) -> tuple[np.ndarray, np.ndarray]:
     """(q (T, dof) float64, expert (T,) bool) of an episode, checked."""
-    for key in ("q", "expert", "seed"):
-        if key not in episode:
-            raise ValueError(f"episode is missing '{key}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
-    q = np.asarray(episode["q"], dtype=np.float64)
-    expert = np.asarray(episode["expert"], dtype=bool)
-    if q.ndim != 2 or len(q) == 0:
-        raise ValueError(f"episode['q'] must be (T, dof) with T >= 1, got shape {q.shape}")
-    if expert.shape != (len(q),):
-        raise ValueError(f"episode['expert'] must be ({len(q)},) like q, got shape {expert.shape}")
+    missing = [key for key in ("q", "expert", "seed") if key not in episode]
+    if missing:
+        raise ValueError(f"episode is missing '{missing[0]}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
+    q, expert = np.asarray(episode["q"], dtype=np.float64), np.asarray(episode["expert"], dtype=bool)
+    if q.ndim != 2 or len(q) == 0 or expert.shape != (len(q),):
+        raise ValueError(f"an episode needs q (T, dof) with T >= 1 and expert (T,); got {q.shape} and {expert.shape}")
     return q, expert
 
 
@@ -240,14 +227,11 @@ def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generato
 # ---- 3. Monotone closest-point projection (Sec. IV-E)
 
 def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: int | None = None, t_end=None):
-    """Index of the trajectory point closest to q among t_start <= t < min(t_start + window, t_end).
-
-    "Monotone": the search never looks before t_start, so a noised copy of the state at step t is
-    associated with step t or later even when an earlier point of the path is closer -- the label
-    never tells the robot to go back in time. Ties go to the earliest index.
-    q: (B, dof) or (dof,); trajectory (T, dof); t_start, t_end: int or (B,) (t_end exclusive,
-    default T); window: steps, None = no bound. Returns (B,) int64 (or an int for a single q).
-    """
+    """Index of the trajectory point closest to q among t_start <= t < min(t_start + window, t_end) (Sec. IV-E).
+    "Monotone": never before t_start, so a noised copy of the state at step t maps to step t or later even where
+    an earlier point is closer (a label never goes back in time); ties go to the earliest index.
+    q: (B, dof) or (dof,); trajectory (T, dof); t_start, t_end: int or (B,) (t_end exclusive, default T);
+    window: steps, None = no bound. Returns (B,) int64 (or an int for a single q)."""
     trajectory = np.asarray(trajectory, dtype=np.float64)
     q = np.asarray(q, dtype=np.float64)
     single = q.ndim == 1
@@ -293,22 +277,19 @@ def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
 
 def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, lookahead,
                     accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None) -> np.ndarray:
-    """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory.
+    """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory (Sec. IV-E).
 
-    The reference at step k is r_k = trajectory[t_proj + lookahead + k], held at the segment's last
-    point (index t_end - 1): the chunk REJOINS the trajectory, then follows it. With e_k = q_k - r_k
-    and u_k = r_k - r_{k-1}, the control is PD plus the reference's acceleration as feed-forward,
+    The reference r_k = trajectory[t_proj + lookahead + k], held at the segment's last point (t_end - 1): the
+    chunk REJOINS the trajectory, then follows it. With e_k = q_k - r_k and u_k = r_k - r_{k-1}, PD plus the
+    reference's acceleration as feed-forward,
         a_k = -Kp e_k - Kd (v_k - u_k) + (u_{k+1} - u_k),
-    so e obeys the map of `critically_damped_gains` exactly (settling in ~settle_steps, default H/2)
-    while |a| <= accel_max (per joint, the demos') and |v| <= max_step (the env's) are inactive. In
-    cascade form, a = Kd (w* - (v - u)) with closing speed w* = -(Kp/Kd) e, capped at √(2 accel_max |e|)
-    so the clamped deceleration can still stop at the path (a saturated PD overshot by 25 % of e0 without
-    the cap, 8 % with it). Sec. IV-E's target "a state a few timesteps further" is lookahead 0 here: the
-    feed-forward removes the lag a lookahead makes up for (benchmarks/README.md, "The PD label's lookahead").
+    makes e obey the map of `critically_damped_gains` (settling in ~settle_steps, default H/2) while
+    |a| <= accel_max and |v| <= max_step are inactive. In cascade form the closing speed w* = -(Kp/Kd) e is capped at
+    √(2 accel_max |e|), so the clamped deceleration can still stop at the path (overshoot 25 % of e0 -> 8 %).
+    Sec. IV-E's "a few timesteps further" is lookahead 0: the feed-forward removes the lag (benchmarks/README.md).
 
-    q0, v0: (B, dof) or (dof,) rad, rad/step; trajectory (T, dof); t_proj, lookahead, t_end: int or
-    (B,) steps; accel_max rad/step², max_step rad/step; limits: optional (lo, hi) joint limits.
-    Returns the absolute joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
+    q0, v0: (B, dof) or (dof,) rad, rad/step; trajectory (T, dof); t_proj, lookahead, t_end: int or (B,) steps;
+    limits: optional (lo, hi). Returns the joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
     """
     trajectory = np.asarray(trajectory, dtype=np.float64)
     q = np.asarray(q0, dtype=np.float64)
@@ -360,21 +341,14 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
 
 def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, stats: DemoStats,
                        cfg: RelabelConfig, t_end=None, limits=None) -> tuple[np.ndarray, np.ndarray]:
-    """The label every profile uses: the authors' clamped servo (their code, PAPER_SETUP.md §6), a critically
-    damped servo tracking the expert segment at its own cursor.
-
-    Every step k the cursor c_k is the monotone projection of the label's own point x_k, at most
-    `cursor_advance` indices past c_{k-1} (c starts at t_proj), and with m = stats.median_step:
-        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),   r_c = trajectory[c], u_c = r_{c+1} - r_c (0 at the end),
-        a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m),  Kp = a_clamp / max(d0, gain_floor · m),
-        Kd critically damped,  d0 = ‖q0 - trajectory[t_proj]‖;
-    then ‖a_k‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m,
-    speed_cap_v0 · ‖v0‖) (the authors' norm caps), |v| <= stats.max_step per joint, x within `limits`.
-    Held tail: once the cursor is at the segment's end and the arm has stopped (every joint moves
-    < hold_tol · m) for the rest of the chunk, those steps repeat the end pose: mask False, out of the loss.
-
-    q0, v0: (B, dof); trajectory (T, dof); t_proj, t_end: int or (B,) (t_end exclusive, default T).
-    Returns (chunk (B, H, dof) absolute joint targets x_1 .. x_H, mask (B, H) bool, True = in the loss).
+    """The label every profile uses: the authors' clamped servo (PAPER_SETUP.md §6), a critically damped servo
+    tracking the expert segment at its own cursor c_k: the monotone projection of x_k, at most `cursor_advance`
+    past c_{k-1} (from t_proj). With m = stats.median_step and r_c = trajectory[c], u_c = r_{c+1} - r_c:
+        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),  Kp = a_clamp / max(d0, gain_floor · m),  d0 = ‖q0 - r_{t_proj}‖,
+    then ‖a‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m, speed_cap_v0 · ‖v0‖),
+    |v| <= stats.max_step, x within `limits`. The held tail (cursor at the end, every joint < hold_tol · m per
+    step to the chunk's end) is out of the loss. q0, v0: (B, dof); t_proj, t_end: int or (B,) (t_end exclusive).
+    Returns (chunk (B, H, dof) joint targets x_1 .. x_H, mask (B, H) bool, True = in the loss).
     """
     trajectory = np.asarray(trajectory, dtype=np.float64)
     x = np.atleast_2d(np.asarray(q0, dtype=np.float64)).copy()
@@ -424,11 +398,9 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
 
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
                       stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None) -> tuple[np.ndarray, np.ndarray]:
-    """The labelling of Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) that came from
-    steps t (m,): monotone projection -> return chunk by `cfg.label` ('servo' or 'pd', the reference
-    time-matched: lookahead 0). `t_end` (m,) is the (exclusive) end of each state's expert segment in
-    `trajectory`; `t_proj` (m,) may pass projections already computed.
-    Returns (chunks (m, H, dof), mask (m, H) bool, True = in the loss; all True for 'pd')."""
+    """Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) from steps t (m,): monotone projection
+    (or `t_proj` given) -> return chunk by `cfg.label` ('servo' or 'pd', lookahead 0); t_end (m,): the exclusive
+    end of each state's expert segment. Returns (chunks (m, H, dof), mask (m, H) bool; all True for 'pd')."""
     if t_proj is None:
         t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
     if cfg.label == "servo":
@@ -444,10 +416,9 @@ NOISE_KINDS = ("isotropic", "pooled", "per_step")
 
 
 def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
-    """rad per env step: the std of a noised state's per-joint velocity noise. The authors add
-    N(0, (0.3 m_p)²) per 30 Hz frame, m_p their median step; over one of our steps, which spans
-    frames_per_step of their frames, that is velocity_noise · m_p · frames_per_step (0.3 · 0.0176 · 3 =
-    0.0158 rad per 0.1 s planar step; PAPER_SETUP.md §6). Without the env's units: velocity_noise · m."""
+    """rad per env step: the std of the per-joint velocity noise, the authors' N(0, (0.3 m_p)²) per 30 Hz frame
+    (m_p their median step) over frames_per_step frames (0.3 · 0.0176 · 3 = 0.0158 rad planar; PAPER_SETUP.md
+    §6). Without the env's units: velocity_noise · m."""
     if stats.paper_median_step is None or stats.frames_per_step is None:
         return cfg.velocity_noise * stats.median_step
     return cfg.velocity_noise * stats.paper_median_step * stats.frames_per_step
@@ -457,12 +428,10 @@ class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool): noised
     intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
-    A pair: (episode, t) uniform among the labelable intervention steps; q̃ ~ N(q_t, Σ_t) (collision-free,
-    within limits); v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v,
-    the recorded observation of t) in the episode's scenario (PAPER_SETUP.md §6); chunk, mask =
-    `corrective_labels`. Pairs are made in batches into a pool that each call draws from; all randomness
-    comes from each call's rng. sigma: as in `noise_factors`, for 'per_step' one pair per episode (a list
-    aligned with `episodes` or a dict {episode index: pair}). make_env: a no-argument env factory."""
+    A pair (PAPER_SETUP.md §6): (episode, t) uniform over the labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
+    v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
+    mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
+    sigma: as in `noise_factors`, for 'per_step' a list or dict {episode index: pair}. make_env: an env factory."""
     label_steps = staticmethod(label_steps)  # the paper's label rule (a variant's subclass brings its own)
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
@@ -474,38 +443,28 @@ class AugmentationSampler:
         if noise == "pooled" and np.ndim(sigma) != 2:
             raise ValueError(f"noise='pooled' needs sigma of shape (dof, dof), got {np.shape(sigma)}")
         self.cfg, self.noise, self.stats, self._make_env, self._envs = cfg, noise, stats, make_env, {}
-        # One flat table of every labelable intervention step (`label_steps`), the episodes concatenated so
-        # that projection and labels run once per batch
-        H = cfg.horizon
-        traj, center, vel, t_glob, end_glob, factors, seeds, ep_of, offset = [], [], [], [], [], [], [], [], 0
-        self._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
-        for e, ep in enumerate(episodes):
-            q, expert = _episode_arrays(ep)
-            t, seg_end = self.label_steps(expert, H)
-            traj.append(q)
-            if t.size:
-                factors.append(noise_factors(self._episode_sigma(sigma, e), t, q.shape[1],
-                                             median_step=stats.median_step))
-                center.append(q[t])
-                vel.append(q[t] - q[np.maximum(t - 1, 0)])  # at t = 0 the arm starts at rest (q_prev = q)
-                t_glob.append(offset + t)
-                end_glob.append(offset + seg_end)
-                seeds.append(np.full(t.size, int(ep["seed"])))
-                ep_of.append(np.full(t.size, e))
-            offset += len(q)
-        if not center:
-            raise ValueError(f"no intervention step with a valid label (expert run >= H={H}) in "
+        # one flat table of every labelable step, the episodes concatenated: projection and labels run once a batch
+        arrays = [_episode_arrays(ep) for ep in episodes]  # (q (T, dof), expert (T,)) each
+        steps = [self.label_steps(expert, cfg.horizon) for _, expert in arrays]  # (t, seg_end) each
+        labelled = [e for e, (t, _) in enumerate(steps) if t.size]
+        if not labelled:
+            raise ValueError(f"no intervention step with a valid label (expert run >= H={cfg.horizon}) in "
                              f"{len(episodes)} episodes")
-        self.trajectory = np.concatenate(traj)  # (sum T, dof) the episodes' joints, one after the other
-        self.center = np.concatenate(center)  # (N, dof) q_t
-        self.velocity = np.concatenate(vel)  # (N, dof) q_t - q_{t-1}
-        self.t_glob = np.concatenate(t_glob)  # (N,) index of q_t in self.trajectory
-        self.end_glob = np.concatenate(end_glob)  # (N,) exclusive end of its expert segment
-        self.factors = np.ascontiguousarray(np.concatenate(factors))  # (N, dof, dof) L_t, L Lᵀ = Σ_t
-        self.seeds = np.concatenate(seeds)  # (N,) scenario seed
-        self.episode_of = np.concatenate(ep_of)  # (N,) episode index ...
-        ep_start = np.concatenate([[0], np.cumsum([len(q) for q in traj])])  # the episodes' offsets
-        self.step_of = self.t_glob - ep_start[self.episode_of]  # ... and step
+        self._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
+        first = np.cumsum([0] + [len(q) for q, _ in arrays])  # each episode's first row in self.trajectory
+        self.trajectory = np.concatenate([q for q, _ in arrays])  # (sum T, dof) the episodes' joints in turn
+        self.episode_of = np.concatenate([np.full(steps[e][0].size, e) for e in labelled])  # (N,) episode ...
+        self.step_of = np.concatenate([steps[e][0] for e in labelled])  # (N,) ... and step t
+        self.t_glob = first[self.episode_of] + self.step_of  # (N,) index of q_t in self.trajectory
+        self.end_glob = first[self.episode_of] + np.concatenate([steps[e][1] for e in labelled])  # (N,) its run's end
+        self.center = self.trajectory[self.t_glob]  # (N, dof) q_t
+        t_prev = np.where(self.step_of > 0, self.t_glob - 1, self.t_glob)  # at t = 0 the arm starts at rest
+        self.velocity = self.center - self.trajectory[t_prev]  # (N, dof) q_t - q_{t-1}
+        self.seeds = np.array([int(ep["seed"]) for ep in episodes])[self.episode_of]  # (N,) scenario seed
+        dof = self.trajectory.shape[1]
+        factors = [noise_factors(self._episode_sigma(sigma, e), steps[e][0], dof, median_step=stats.median_step)
+                   for e in labelled]
+        self.factors = np.concatenate(factors)  # (N, dof, dof) L_t, L Lᵀ = Σ_t
         # the contiguous block of rows of each episode, for the "episodes first" draw
         self._ep_ids, self._ep_start, self._ep_count = np.unique(self.episode_of, return_index=True, return_counts=True)
         self._pool_obs = self._pool_chunks = self._pool_mask = None
@@ -519,10 +478,10 @@ class AugmentationSampler:
         try:
             per_ep = sigma[e]
         except (KeyError, IndexError, TypeError):
-            raise ValueError(f"noise='per_step': no covariances for episode {e}; pass a list aligned with "
-                             "episodes or a dict {episode index: (timesteps, covs)}") from None
+            per_ep = None
         if not isinstance(per_ep, tuple):
-            raise ValueError(f"noise='per_step': sigma[{e}] must be a pair (timesteps, covs)")
+            raise ValueError(f"noise='per_step': no covariances for episode {e} (a pair (timesteps, covs)); pass a "
+                             "list aligned with episodes or a dict {episode index: (timesteps, covs)}")
         return per_ep
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -537,10 +496,9 @@ class AugmentationSampler:
                 if self._filled >= cfg.pool_size:
                     break
             if self._filled == 0:
-                raise ValueError(f"every perturbed state was in collision or outside the joint limits after "
-                                 f"{cfg.max_tries} tries, or too near its segment's end after "
-                                 f"{cfg.max_redraws} redraws; the noise ({self.noise}) is too large for these "
-                                 "scenarios")
+                raise ValueError(f"every perturbed state was in collision or off the joint limits after "
+                                 f"{cfg.max_tries} tries, or too near its segment's end after {cfg.max_redraws} "
+                                 f"redraws; the noise ({self.noise}) is too large for these scenarios")
         elif self._served >= cfg.reuse * cfg.refresh_size:
             self._refresh_pool(rng)
             self._served = 0
@@ -552,15 +510,16 @@ class AugmentationSampler:
         """Replace the `refresh_size` oldest pairs of the pool (a ring buffer) by fresh ones."""
         obs, chunks, mask = self.generate(self.cfg.refresh_size, rng)
         P = self.cfg.pool_size
-        if self._pool_obs is None and len(obs):
+        if len(obs) == 0:
+            return
+        if self._pool_obs is None:
             self._pool_obs = np.empty((P, obs.shape[1]), np.float32)
             self._pool_chunks = np.empty((P, *chunks.shape[1:]), np.float32)
             self._pool_mask = np.empty((P, chunks.shape[1]), bool)
-        if len(obs):
-            slots = (self._write + np.arange(len(obs))) % P
-            self._pool_obs[slots], self._pool_chunks[slots], self._pool_mask[slots] = obs, chunks, mask
-            self._write = int((self._write + len(obs)) % P)
-            self._filled = min(P, self._filled + len(obs))
+        slots = (self._write + np.arange(len(obs))) % P
+        self._pool_obs[slots], self._pool_chunks[slots], self._pool_mask[slots] = obs, chunks, mask
+        self._write = int((self._write + len(obs)) % P)
+        self._filled = min(P, self._filled + len(obs))
 
     def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """m fresh pairs (fewer if states were dropped): obs (m', obs_dim) float32, chunks (m', H, dof)
@@ -705,6 +664,8 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     import matplotlib
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
     q, expert = _episode_arrays(episode)
     valid_t, seg_end = label_steps(expert, cfg.horizon)
     if valid_t.size == 0:
@@ -747,12 +708,25 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
             ax.plot(rec[0, 0], rec[0, 1], "o", color="tab:orange", ms=3)
         ax.plot(*xy(q[seg[0]:end]).T, color="tab:blue", lw=2.0)
         ax.set_aspect("equal")
-    # close-up: the fan of returns from the middle state and its ellipse
+    # close-up: the fan of returns from the middle state and its ellipse, the path a chunk either side of it in
+    # view, with a margin of the ellipse's 2σ radius (m) cut at the frame (a briefly trained policy's is wide)
     cov_mid = cov_at(np.array([mid]))
     env.draw_noise_ellipses(axes[1], q[mid:mid + 1], cov_mid, "tab:blue", alpha=0.2)
     fan = [rec for rec, ti in zip(recoveries, t) if ti == mid]
-    _fig1_windows(axes, env, q, seg[0], end, mid, fan, cov_mid[0], cfg.horizon)
-    _fig1_legend(fig, top_view)
+    pts = np.concatenate([xy(q[max(mid - cfg.horizon // 2, seg[0]):min(mid + cfg.horizon + 1, end)]), *fan])
+    jac = env.ee_jacobian(q[mid:mid + 1])[0, :2]  # (2, dof)
+    radius = 2 * np.sqrt(max(np.linalg.eigvalsh(jac @ cov_mid[0] @ jac.T).max(), 0))  # 2σ, m
+    span = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
+    env.square_view(axes[1], pts, min(radius, max(span, 0.05)))
+    handles = [Line2D([], [], color="tab:blue", lw=2, label="expert intervention (end effector)"),
+               Patch(facecolor="tab:blue", alpha=0.2, label="policy-calibrated noise (2σ)"),
+               Line2D([], [], color="tab:orange", label="sampled recovery trajectories")]
+    if top_view:  # the scene around the path, the goal and the base (a planar env's render sets its own window)
+        scene = np.concatenate([xy(q[seg[0]:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]])
+        env.square_view(axes[0], scene, 0.05)
+        handles += [Line2D([], [], marker="*", color="tab:green", ls="", ms=10, label="goal"),
+                    Line2D([], [], marker="s", color="k", ls="", ms=6, label="arm base")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)  # below the panels
     axes[0].set_title("scene (top view)" if top_view else "scene")
     axes[1].set_title("close-up (top view)" if top_view else "close-up")
     fig.suptitle("Policy-calibrated noise around an intervention and the return labels (paper Fig. 1)")
@@ -762,43 +736,10 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     return path
 
 
-def _fig1_windows(axes, env, q: np.ndarray, start: int, end: int, mid: int, fan: list, cov_mid: np.ndarray,
-                  horizon: int) -> None:
-    """Fig. 1's view windows: the close-up around the fan and the path a chunk either side of the middle
-    state, with a margin of its ellipse's 2σ radius (m); on a 3-D env also the scene around the path, the
-    goal and the base (a planar env's render sets its own window)."""
-    xy = lambda qs: env.ee(qs)[:, :2]
-    near = xy(q[max(mid - horizon // 2, start):min(mid + horizon + 1, end)])
-    jac = env.ee_jacobian(q[mid:mid + 1])[0, :2]  # (2, dof)
-    radius = 2 * np.sqrt(max(np.linalg.eigvalsh(jac @ cov_mid @ jac.T).max(), 0))  # 2σ, m
-    pts = np.concatenate([near, *fan])
-    span = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
-    # a close-up stays a close-up: a wide ellipse (a briefly trained policy's noise) is cut at the frame
-    env.square_view(axes[1], pts, min(radius, max(span, 0.05)))
-    if env.dim == 3:
-        env.square_view(axes[0], np.concatenate([xy(q[start:end]), env.goal[None, :2], env.fk(q[:1])[0, :1, :2]]), 0.05)
-
-
-def _fig1_legend(fig, goal_marker: bool) -> None:
-    """Fig. 1's legend, below the panels (outside the data)."""
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-    handles = [Line2D([], [], color="tab:blue", lw=2, label="expert intervention (end effector)"),
-               Patch(facecolor="tab:blue", alpha=0.2, label="policy-calibrated noise (2σ)"),
-               Line2D([], [], color="tab:orange", label="sampled recovery trajectories")]
-    if goal_marker:
-        handles += [Line2D([], [], marker="*", color="tab:green", ls="", ms=10, label="goal"),
-                    Line2D([], [], marker="s", color="k", ls="", ms=6, label="arm base")]
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-
-
 if __name__ == "__main__":
-    # Demo on the planar env: stand-in "interventions" (straight joint-space paths from a scenario's start
-    # toward its nearest goal configuration, stopped before the first collision; dagger.py uses the RRT
-    # oracle's), noised with an anisotropic Σ of 3-5 median steps per joint (the paper's calibrated range),
-    # labelled, timed and drawn.
-    import time
-
+    # Demo on the planar env: stand-in interventions (straight joint-space paths toward the goal, stopped before
+    # the first collision; dagger.py uses the RRT oracle's), noised with a pooled Σ of 3-5 median steps per joint
+    # (the paper's calibrated range), labelled and drawn. Timings: benchmarks/bench_relabel.py.
     import envs  # the demo only; the module itself never imports the env
 
     env = envs.make_env("planar")
@@ -807,16 +748,9 @@ if __name__ == "__main__":
     episodes = [ep for ep in (envs.straight_line_episode(env, s) for s in range(40)) if len(ep["q"]) >= 40]
     stats = demo_stats(episodes, envs.median_step(episodes), env.max_step,
                        paper_median_step=envs.paper_median_step(env), frames_per_step=env.dt / envs.PAPER_FRAME_DT)
-    print(f"{len(episodes)} episodes; median step {stats.median_step:.4f} rad, "
-          f"accel clamp {np.round(stats.accel_max, 4)} rad/step²")
     sigma = np.diag([5.0, 3.0, 4.0]) ** 2 * stats.median_step ** 2  # a pooled Σ̄^α stand-in
     sampler = AugmentationSampler(episodes, lambda: envs.make_env("planar"), stats, "pooled", sigma, cfg)
-    sampler(128, rng)  # fills the pool
-    t0 = time.perf_counter()
-    for _ in range(200):
-        obs, chunks, mask = sampler(128, rng)
-    print(f"sampler: obs {obs.shape} {obs.dtype}, chunks {chunks.shape} {chunks.dtype}, "
-          f"{mask.mean():.0%} of steps in the loss; "
-          f"{(time.perf_counter() - t0) / 200 * 1e3:.2f} ms per call of 128 pairs; "
-          f"{sampler.n_kept / sampler.n_drawn:.1%} of noised states collision-free")
+    obs, chunks, mask = sampler(128, rng)
+    print(f"{len(episodes)} episodes, median step {stats.median_step:.4f} rad; obs {obs.shape}, chunks {chunks.shape}, "
+          f"{mask.mean():.0%} of steps in the loss, {sampler.n_kept / sampler.n_drawn:.1%} of noised states kept")
     print("wrote", plot_recovery(env, episodes[0], sigma, "fig1_recovery_demo.png", rng, stats, cfg))
