@@ -110,7 +110,7 @@ class TrainConfig:
     schedule_steps: int = 0          # step at which the cosine reaches 0 (0: steps; pi_0 continued: PAPER_SETUP.md §2)
     lr_schedule: str = "cosine"      # an LR_SCHEDULES name: the authors' warm-up + cosine (a variant adds its own)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
-    obs_noise: object = 0.0          # observation noise std, raw units (the authors': 0.01 rad, 0.005 m): one or (obs_dim,)
+    obs_noise: object = 0.0          # observation noise std in raw units (authors': 0.01 rad, 0.005 m), or (obs_dim,)
     # not in the paper
     ema_decay: float = 0.999         # EMA of the weights used for sampling, over ~1/(1 - decay) steps (authors: none)
     seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
@@ -143,8 +143,8 @@ def check_array(name, x, shape):
     """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
     x = np.asarray(x) if not torch.is_tensor(x) else x
     if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
-        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
-                         f"got {tuple(x.shape)}")
+        want = tuple("N" if s is None else s for s in shape)
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     if not (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or inf")
     return x
@@ -616,8 +616,7 @@ RETIRED_POLICY_FIELDS = {
 
 
 class CheckpointDamagedError(ValueError):
-    """A checkpoint file that cannot be read: truncated (a run killed while copying it), overwritten, or no
-    torch file at all."""
+    """A checkpoint file that cannot be read: truncated (a run killed while copying it), or no checkpoint at all."""
 
 
 def _read_checkpoint(path):
@@ -737,8 +736,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
                                 device=dev)                            # (obs_dim,)
     noisy = bool((noise_std > 0).any())
 
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                  foreach=True)
+    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
     rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
     step = 0
@@ -764,9 +762,8 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
     policy.train()
     t0, losses, last_step = time.time(), [], step                      # progress lines: mean loss, rate, time left
     while step < cfg.steps:
-        lr = lr_at(step, cfg)                                          # warmup + cosine
         for group in optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr_at(step, cfg)                             # warmup + cosine
         idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
         o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
         mask = None                                                    # None: every step is in the loss
