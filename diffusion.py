@@ -83,8 +83,9 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig.obs_encoder_args {self.obs_encoder_args!r} do not fit the obs_encoder "
                              f"{self.obs_encoder!r}: {err}") from None
         if self.low_dim < 2 * self.dof:
-            raise ValueError(f"PolicyConfig.obs_dim={self.obs_dim} must be longer: it starts with (q_t, q_t-1), "
-                             f"2 * dof = {2 * self.dof} numbers, before the obs_encoder's {self.encoder_sizes[0]}")
+            raise ValueError(f"PolicyConfig.obs_dim={self.obs_dim} must be longer: the observation starts with "
+                             f"(q_t, q_t-1), 2 * dof = {2 * self.dof} numbers, before the {self.encoder_sizes[0]} "
+                             f"entries the obs_encoder reads")
 
     @property
     def encoder_sizes(self):     # (observation entries at its end the encoder reads, features it gives for them)
