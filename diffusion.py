@@ -233,8 +233,9 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
     clean chunk as in DDPM's code and diffusion policy:
         a0_hat = (a_k - sqrt(1 - alphabar_k) eps_pred) / sqrt(alphabar_k), clipped to [-1, 1]
         a_{k-1} = posterior_mean_coef1 a0_hat + posterior_mean_coef2 a_k + sqrt(posterior_variance) z
-    Unclipped this is exactly Eq. (6) with sigma_k^2 = the posterior variance (tested); the clip keeps the chunk in
-    the normalized action box of the data (diffusion policy's clip_sample). noise: z (B, H, dof), else drawn."""
+    Unclipped, the mean is (a_k - beta_k / sqrt(1 - alphabar_k) eps_pred) / sqrt(alpha_k): Eq. (6) with sigma_k^2 =
+    the posterior variance (tested). The clip keeps the chunk in the normalized action box of the data (diffusion
+    policy's clip_sample). noise: the z to use (B, H, dof); drawn from `generator` when None."""
     # >>> exercise 2: the DDPM posterior and one reverse step p_sample (Eq. 6)
     a0_hat = (_per_row(schedule.sqrt_recip_alphas_cumprod, k, a_k) * a_k
               - _per_row(schedule.sqrt_recipm1_alphas_cumprod, k, a_k) * eps_pred)
@@ -338,11 +339,13 @@ class FiLMNetwork(nn.Module):
 class ConditionalUnet1D(FiLMNetwork):
     """eps_theta(a_k, k | o): the noisy chunk (B, H, dof) in, the predicted noise (B, H, dof) out.
 
-    With down_dims (c_0, .., c_L) and T = H: encoder level l, two residual blocks to width c_l at length T / 2^l,
-    kept as a skip, then a stride-2 Conv1d halves the length (not after the deepest level); middle, two blocks at
-    c_L; decoder, L steps of: concatenate the skip of the same length, two blocks to the next shallower width, a
-    ConvTranspose1d doubles the length. As in Chi et al.'s network the shallowest skip goes unused. Output: a
-    Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
+    With down_dims (c_0, .., c_L) and T = H:
+      encoder, level l:  two residual blocks to width c_l at length T / 2^l, kept as a skip, then a stride-2
+                         Conv1d halves the length (not after the deepest level);
+      middle:            two residual blocks at width c_L;
+      decoder, L steps:  concatenate the skip of the same length, two residual blocks to the next shallower
+                         width, a ConvTranspose1d doubles the length (as in Chi et al.'s, c_0's skip goes unused);
+      output:            a Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
     """
 
     def build(self, cfg, cond_dim):
