@@ -9,18 +9,15 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - action chunks of horizon H; the label rule (Sec. IV-C) ............... expert_runs, label_mask, chunk_dataset
   - BC, co-training, fine-tuning (Sec. IV-A steps 1, 4, 6) ............... train (lr schedule, EMA, checkpoints)
 
-Index convention (read this once, it is used everywhere):
-  The paper numbers the diffusion steps k = 1..K, with alphabar_k = prod_{s=1..k} alpha_s and
-  alphabar_0 = 1 (the clean chunk a_0). In code the arrays are indexed k = 0..K-1 and
-      code index k  <->  paper step k + 1.
-  So schedule.betas[k] = beta_{k+1}, schedule.alphas_cumprod[k] = alphabar_{k+1} and
-  schedule.alphas_cumprod_prev[k] = alphabar_k (= 1 at k = 0). A chunk "at level k" (code) is distributed
-  like q_sample(schedule, a0, k, eps) = sqrt(alphabar_{k+1}) a0 + sqrt(1 - alphabar_{k+1}) eps, the network
-  is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 it returns the
-  clean chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
+Index convention (used everywhere): the paper numbers the diffusion steps k = 1..K, alphabar_k = prod_{s<=k}
+alpha_s, alphabar_0 = 1 (the clean chunk a_0); the code indexes its arrays k = 0..K-1, so code index k <-> paper
+step k + 1: betas[k] = beta_{k+1}, alphas_cumprod[k] = alphabar_{k+1}, alphas_cumprod_prev[k] = alphabar_k.
+A chunk "at level k" is q_sample(schedule, a0, k, eps) = sqrt(alphabar_{k+1}) a0 + sqrt(1 - alphabar_{k+1}) eps,
+the network is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 the clean
+chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
-The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al.
-2023); on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py).
+The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
+on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py).
 """
 
 import copy
@@ -35,10 +32,7 @@ import torch
 import torch.nn as nn
 
 
-# ----------------------------------------------------------------------------------------------
-# Config
-
-
+# ---- Config ------------------------------------------------------------------------------------------------------
 @dataclass
 class PolicyConfig:
     # the paper (Sec. IV-B/C) and the authors' setup (PAPER_SETUP.md §1-2); dagger.Config holds H, n_act, K
@@ -47,23 +41,22 @@ class PolicyConfig:
     horizon: int                 # H: actions per predicted chunk (steps)
     n_act: int                   # actions of a chunk executed before re-planning (steps; used by the rollout loop)
     K: int                       # diffusion steps (the authors': 100)
-    # the epsilon network: 'unet', the authors' (ConditionalUnet1D); 'mlp', a residual MLP with the same FiLM
-    # interface (ResidualMLP; ~8x the training samples per CPU second: benchmarks/README.md)
-    network: str = "unet"
+    network: str = "unet"        # a NETWORKS name: 'unet' (the authors'), 'mlp' (~8x the samples per CPU second)
     down_dims: tuple = (64, 128, 256)  # U-Net channels per level (the authors: (128, 256, 512))
     mlp_width: int = 256         # network='mlp': width of the hidden layers
     mlp_blocks: int = 3          # network='mlp': FiLM-conditioned residual blocks
     kernel_size: int = 5         # temporal convolution kernel (steps; odd: padding k // 2 keeps the length)
     n_groups: int = 8            # GroupNorm groups; every down_dim must be a multiple
     step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
-    obs_encoder: str = "flat"    # how the network reads the observation: an OBS_ENCODERS name ('flat': as numbers)
+    obs_encoder: str = "flat"    # an OBS_ENCODERS name: how the network reads the observation ('flat': as numbers)
     obs_encoder_args: dict = field(default_factory=dict)   # its keyword arguments (a variant's env gives both)
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
         """ValueError on a bad field, naming it and what would be valid; down_dims becomes an int tuple."""
-        if self.network not in NETWORKS:
-            raise ValueError(f"PolicyConfig.network must be one of {', '.join(NETWORKS)}, got {self.network!r}")
+        for name, table in (("network", NETWORKS), ("obs_encoder", OBS_ENCODERS)):   # a variant registers its own
+            if getattr(self, name) not in table:
+                raise ValueError(f"PolicyConfig.{name} must be one of {', '.join(table)}, got {getattr(self, name)!r}")
         for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim",
                      "mlp_width", "mlp_blocks"):
             value = getattr(self, name)
@@ -84,9 +77,6 @@ class PolicyConfig:
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"PolicyConfig needs {'; '.join(broken)}; got {self}")
-        if self.obs_encoder not in OBS_ENCODERS:
-            raise ValueError(f"PolicyConfig.obs_encoder must be one of {', '.join(OBS_ENCODERS)}, got "
-                             f"{self.obs_encoder!r} (a variant registers its own, e.g. experiment.image_obs)")
         try:
             self.encoder_sizes                                         # the encoder checks its own arguments
         except TypeError as err:                                       # an argument it does not take
@@ -118,12 +108,10 @@ class TrainConfig:
     lr: float = 1e-3                 # peak AdamW learning rate (after warmup)
     weight_decay: float = 1e-6       # AdamW weight decay (the authors')
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
-    schedule_steps: int = 0          # step at which the cosine reaches 0 (0: steps). The authors' pi_0 is the 75k
-    #                                  point of one 175k-step schedule that their fine-tuning continues (continue_from)
+    schedule_steps: int = 0          # step at which the cosine reaches 0 (0: steps; pi_0 continued: PAPER_SETUP.md §2)
     lr_schedule: str = "cosine"      # an LR_SCHEDULES name: the authors' warm-up + cosine (a variant adds its own)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
-    obs_noise: object = 0.0          # observation noise std, raw units (rad, m; the authors': 0.01, 0.005): one or
-    #                                  one per entry (obs_dim,)
+    obs_noise: object = 0.0          # observation noise std in raw units (authors': 0.01 rad, 0.005 m), or (obs_dim,)
     # not in the paper
     ema_decay: float = 0.999         # EMA of the weights used for sampling, over ~1/(1 - decay) steps (authors: none)
     seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
@@ -143,31 +131,27 @@ class TrainConfig:
                      noise.ndim <= 1 and np.all(np.isfinite(noise)) and np.all(noise >= 0),
                  "schedule_steps 0 (= steps) or >= steps":
                      self.schedule_steps == 0 or self.schedule_steps >= self.steps,
-                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES}
+                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES,
+                 "a checkpoint_path for the checkpoint_steps": self.checkpoint_path or not self.checkpoint_steps}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"TrainConfig needs {'; '.join(broken)}; got {self}")
         self.obs_noise = float(noise) if noise.ndim == 0 else tuple(float(x) for x in noise)
         self.checkpoint_steps = tuple(int(s) for s in self.checkpoint_steps)
-        if self.checkpoint_steps and not self.checkpoint_path:
-            raise ValueError("TrainConfig.checkpoint_steps given but checkpoint_path is empty")
 
 
 def check_array(name, x, shape):
     """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
     x = np.asarray(x) if not torch.is_tensor(x) else x
     if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
-        raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
-                         f"got {tuple(x.shape)}")
+        want = tuple("N" if s is None else s for s in shape)
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     if not (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or inf")
     return x
 
 
-# ----------------------------------------------------------------------------------------------
-# Noise schedule, forward and reverse process (DDPM, Ho et al. 2020; names follow the DDPM paper)
-
-
+# ---- Noise schedule, forward and reverse process (DDPM, Ho et al. 2020; names follow the DDPM paper) -------------
 @dataclass
 class Schedule:
     """All per-step DDPM coefficients, float32 tensors of shape (K,), indexed k = 0..K-1 = paper k + 1."""
@@ -177,7 +161,7 @@ class Schedule:
     alphas_cumprod_prev: torch.Tensor            # alphabar_k, with alphabar_0 = 1
     sqrt_alphas_cumprod: torch.Tensor            # Eq. (5) closed form: mean coefficient
     sqrt_one_minus_alphas_cumprod: torch.Tensor  # Eq. (5) closed form: noise coefficient
-    sqrt_recip_alphas_cumprod: torch.Tensor      # x0 from eps: a0 = sqrt(1/abar) a_k - sqrt(1/abar - 1) eps
+    sqrt_recip_alphas_cumprod: torch.Tensor      # a0 from eps: a0 = sqrt(1/abar) a_k - sqrt(1/abar - 1) eps
     sqrt_recipm1_alphas_cumprod: torch.Tensor
     posterior_variance: torch.Tensor             # beta~ = beta (1 - abar_prev) / (1 - abar)  ("fixed small")
     posterior_mean_coef1: torch.Tensor           # multiplies the (clipped) predicted clean chunk a0
@@ -192,8 +176,7 @@ class Schedule:
 
 
 def make_schedule(K):
-    """The DDPM coefficients of the squared-cosine schedule (the authors') for K steps (computed in float64,
-    stored as float32 tensors)."""
+    """The DDPM coefficients of the squared-cosine schedule (the authors') for K steps (float64, stored float32)."""
     if not isinstance(K, (int, np.integer)) or K < 1:
         raise ValueError(f"K must be a positive int, got {K!r}")
     # Nichol & Dhariwal (2021): alphabar(t) = f(t) / f(0), f(t) = cos^2((t + s) / (1 + s) * pi / 2).
@@ -227,9 +210,7 @@ def make_schedule(K):
 
 def _per_row(coef, k, like):
     """coef[k] shaped to broadcast against `like` (B, ...). k: int or (B,) long tensor."""
-    if not torch.is_tensor(k):
-        k = torch.tensor(k, device=coef.device)
-    k = k.to(coef.device).long()
+    k = torch.as_tensor(k, device=coef.device).long()
     if k.numel() and (int(k.min()) < 0 or int(k.max()) >= coef.shape[0]):
         raise ValueError(f"diffusion step k must be in 0..{coef.shape[0] - 1}, got {k.tolist()}")
     value = coef[k]
@@ -237,12 +218,9 @@ def _per_row(coef, k, like):
 
 
 def q_sample(schedule, a0, k, eps):
-    """Forward process: the chunk a0 diffused to code level k (paper step k + 1) with noise eps.
-
-    Eq. (5) applied k + 1 times, a_k = sqrt(alpha_k) a_{k-1} + sqrt(1 - alpha_k) eps_k, collapses (the sum of
-    independent Gaussians is Gaussian) to the closed form
-        a_k = sqrt(alphabar_k) a_0 + sqrt(1 - alphabar_k) eps,   eps ~ N(0, I).
-    """
+    """Forward process: the chunk a0 diffused to code level k (paper step k + 1) with noise eps. Eq. (5) applied
+    k + 1 times, a_k = sqrt(alpha_k) a_{k-1} + sqrt(1 - alpha_k) eps_k, collapses (a sum of independent Gaussians
+    is Gaussian) to a_k = sqrt(alphabar_k) a_0 + sqrt(1 - alphabar_k) eps, eps ~ N(0, I)."""
     # >>> exercise 1: the noise schedule and q_sample (Eq. 5)
     # Eq. (5), closed form over k + 1 steps.
     return (_per_row(schedule.sqrt_alphas_cumprod, k, a0) * a0
@@ -251,17 +229,13 @@ def q_sample(schedule, a0, k, eps):
 
 
 def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
-    """Reverse process: one step from code level k to k - 1 (from k = 0: the clean chunk).
-
-    Implemented through the predicted clean chunk, as in DDPM's code and diffusion policy:
+    """Reverse process: one step from code level k to k - 1 (from k = 0: the clean chunk), through the predicted
+    clean chunk as in DDPM's code and diffusion policy:
         a0_hat = (a_k - sqrt(1 - alphabar_k) eps_pred) / sqrt(alphabar_k), clipped to [-1, 1]
-        mean   = posterior_mean_coef1 * a0_hat + posterior_mean_coef2 * a_k
-        a_{k-1} = mean + sqrt(posterior_variance) z,   z ~ N(0, I)
-    Without the clip, substituting a0_hat gives mean = (a_k - beta_k / sqrt(1 - alphabar_k) eps_pred) / sqrt(alpha_k),
-    which is exactly Eq. (6) with sigma_k^2 = posterior variance (tested). The clip keeps the chunk inside the
-    normalized action box [-1, 1] that the data came from (diffusion policy's clip_sample).
-    noise: the z to use (B, H, dof); drawn from `generator` when None.
-    """
+        a_{k-1} = posterior_mean_coef1 a0_hat + posterior_mean_coef2 a_k + sqrt(posterior_variance) z
+    Unclipped, the mean is (a_k - beta_k / sqrt(1 - alphabar_k) eps_pred) / sqrt(alpha_k): Eq. (6) with sigma_k^2 =
+    the posterior variance (tested). The clip keeps the chunk in the normalized action box of the data (diffusion
+    policy's clip_sample). noise: the z to use (B, H, dof); drawn from `generator` when None."""
     # >>> exercise 2: the DDPM posterior and one reverse step p_sample (Eq. 6)
     a0_hat = (_per_row(schedule.sqrt_recip_alphas_cumprod, k, a_k) * a_k
               - _per_row(schedule.sqrt_recipm1_alphas_cumprod, k, a_k) * eps_pred)
@@ -278,11 +252,7 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
     # <<< exercise 2
 
 
-# ----------------------------------------------------------------------------------------------
-# The epsilon network eps_theta(a_k, k | o): Chi et al.'s 1-D temporal convolution U-Net, FiLM-conditioned
-# on (k, o). The paper does not describe its network; this is the authors' (PAPER_SETUP.md §2).
-
-
+# ---- eps_theta(a_k, k | o): Chi et al.'s 1-D temporal conv U-Net, FiLM-conditioned on (k, o) (PAPER_SETUP.md §2) --
 def step_embedding(k, dim):
     """Sinusoidal embedding of the diffusion step (Vaswani et al.; as in DDPM): (N,) -> (N, dim)."""
     half = dim // 2
@@ -301,9 +271,8 @@ class Conv1dBlock(nn.Sequential):
 
 
 class ConditionalResidualBlock(nn.Module):
-    """Two Conv1dBlocks with FiLM between them, plus a residual path (1 x 1 conv if the width changes).
-    FiLM (Perez et al.), per channel: h <- scale * h + bias, (scale, bias) = film(Mish(cond)). The block owns
-    its linear map `film` but receives its result (FiLMNetwork computes it in two parts)."""
+    """Two Conv1dBlocks with FiLM (Perez et al.) between them, h <- scale * h + bias per channel, plus a residual
+    path (1 x 1 conv if the width changes). It owns its map `film` but receives film(Mish(cond)) (FiLMNetwork)."""
 
     def __init__(self, in_channels, out_channels, cond_dim, kernel_size, n_groups):
         super().__init__()
@@ -314,7 +283,7 @@ class ConditionalResidualBlock(nn.Module):
                          else nn.Identity())
 
     def forward(self, x, film):
-        """x (B, in_channels, T), film (B, 2 * out_channels) = self.film(Mish(cond)) -> (B, out_channels, T)."""
+        """x (B, in_channels, T), film (B, 2 * out_channels) -> (B, out_channels, T)."""
         h = self.conv1(x)                                            # (B, out, T)
         scale, bias = film[:, :, None].chunk(2, dim=1)               # (B, out, 1) each
         h = scale * h + bias
@@ -324,21 +293,22 @@ class ConditionalResidualBlock(nn.Module):
 class FiLMNetwork(nn.Module):
     """What both epsilon networks share: every residual block's FiLM is film(Mish([step features, obs features])).
 
-    Splitting the weight W = [W_s | W_o] along its input gives film = (W_s Mish(step) + b) + W_o Mish(obs):
-    step_table() computes the first term for all K steps at once, obs_terms() the second once per sampling call
-    (the observation encoder included), and forward(a, film) takes their sum, all blocks' (scale, bias) in one
-    row (film_size wide). A subclass builds its blocks between _init_step_features() and _init_film(), and
-    lists them in residual_blocks() in the order its forward() uses them.
+    Splitting the weight W = [W_s | W_o] along its input, film = (W_s Mish(step) + b) + W_o Mish(obs): step_table()
+    computes the first term for all K steps at once, obs_terms() the second once per sampling call, and
+    forward(a, film) takes their sum, all blocks' (scale, bias) in one row. A subclass builds its blocks and its
+    output layer `final` in build() and lists the blocks in residual_blocks() in the order forward() uses them.
     """
 
-    def _init_step_features(self, cfg):
+    def __init__(self, cfg):
+        super().__init__()
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
         # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
         self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
-        return dsed + cfg.cond_input_dim                             # FiLM input: [step features, obs features]
-
-    def _init_film(self, cfg):
+        self.build(cfg, dsed + cfg.cond_input_dim)                    # FiLM input: [step features, obs features]
+        # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
+        nn.init.zeros_(self.final[-1].weight)
+        nn.init.zeros_(self.final[-1].bias)
         self.film_sizes = [b.film.out_features for b in self.residual_blocks()]
         self.film_size = sum(self.film_sizes)
         # built last, so an encoder with weights leaves the others' initialisation as without it
@@ -350,14 +320,10 @@ class FiLMNetwork(nn.Module):
         bias = torch.cat([b.film.bias for b in self.residual_blocks()])       # (F,)
         return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
 
-    def obs_features(self, obs_norm):
-        """normalize_obs's output (B, ...) -> (B, cond_input_dim): the observation encoder's (OBS_ENCODERS)."""
-        return self.obs_encoder(obs_norm)
-
     def obs_terms(self, obs_norm):
-        """(B, F): the observation part W_o Mish(obs features) of every block's FiLM."""
+        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS)."""
         _, w_obs, _ = self.film_weights()
-        return nn.functional.mish(self.obs_features(obs_norm)) @ w_obs.T      # (B, F)
+        return nn.functional.mish(self.obs_encoder(obs_norm)) @ w_obs.T      # (B, F)
 
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
@@ -373,21 +339,17 @@ class FiLMNetwork(nn.Module):
 class ConditionalUnet1D(FiLMNetwork):
     """eps_theta(a_k, k | o): the noisy chunk (B, H, dof) in, the predicted noise (B, H, dof) out.
 
-    With down_dims (c_0, .., c_L) (L + 1 levels) and T = H:
-      encoder, level l:  two residual blocks to width c_l at length T / 2^l, keep the result as a skip,
-                         then a stride-2 Conv1d (kernel 3) halves the length (not after the deepest level);
-      middle:            two residual blocks at width c_L, length T / 2^L;
-      decoder, L steps:  concatenate the skip of the same length (the width doubles), two residual blocks
-                         to the next shallower width, ConvTranspose1d (kernel 4, stride 2) doubles the length.
-    As in Chi et al.'s network the decoder has one level fewer than the encoder: its skips come from levels
-    L, L-1, .., 1, and its last upsampling restores the length T, so the shallowest skip goes unused.
-    Output: a Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
+    With down_dims (c_0, .., c_L) and T = H:
+      encoder, level l:  two residual blocks to width c_l at length T / 2^l, kept as a skip, then a stride-2
+                         Conv1d halves the length (not after the deepest level);
+      middle:            two residual blocks at width c_L;
+      decoder, L steps:  concatenate the skip of the same length, two residual blocks to the next shallower
+                         width, a ConvTranspose1d doubles the length (as in Chi et al.'s, c_0's skip goes unused);
+      output:            a Conv1dBlock and a 1 x 1 Conv1d back to dof channels.
     """
 
-    def __init__(self, cfg):
-        super().__init__()
+    def build(self, cfg, cond_dim):
         dims = cfg.down_dims
-        cond_dim = self._init_step_features(cfg)                     # [step features, obs features]
 
         def block(in_channels, out_channels):
             return ConditionalResidualBlock(in_channels, out_channels, cond_dim, cfg.kernel_size, cfg.n_groups)
@@ -404,10 +366,6 @@ class ConditionalUnet1D(FiLMNetwork):
             self.up.append(nn.ModuleList([block(2 * c_deep, c_out), block(c_out, c_out), upsample]))
         self.final = nn.Sequential(Conv1dBlock(dims[0], dims[0], cfg.kernel_size, cfg.n_groups),
                                    nn.Conv1d(dims[0], cfg.dof, 1))
-        # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
-        nn.init.zeros_(self.final[-1].weight)
-        nn.init.zeros_(self.final[-1].bias)
-        self._init_film(cfg)
 
     def residual_blocks(self):
         """All ConditionalResidualBlocks in the order forward() uses them: the layout of the FiLM vector."""
@@ -457,17 +415,12 @@ class ResidualMLP(FiLMNetwork):
     Linear(H dof -> width), mlp_blocks MLPResidualBlocks, LayerNorm, Mish, Linear(width -> H dof). The same
     FiLM interface as ConditionalUnet1D, so nothing else knows which one it holds. Measured: benchmarks/README.md."""
 
-    def __init__(self, cfg):
-        super().__init__()
-        cond_dim = self._init_step_features(cfg)
+    def build(self, cfg, cond_dim):
         self.horizon, self.dof = cfg.horizon, cfg.dof
         self.inp = nn.Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
         self.blocks = nn.ModuleList([MLPResidualBlock(cfg.mlp_width, cond_dim) for _ in range(cfg.mlp_blocks)])
         self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), nn.Mish(),
                                    nn.Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
-        nn.init.zeros_(self.final[-1].weight)                        # as the U-Net: starts predicting eps = 0
-        nn.init.zeros_(self.final[-1].bias)
-        self._init_film(cfg)
 
     def residual_blocks(self):
         yield from self.blocks
@@ -484,9 +437,9 @@ NETWORKS = {"unet": ConditionalUnet1D, "mlp": ResidualMLP}
 
 
 class FlatObservation(nn.Module):
-    """OBS_ENCODERS['flat']: the normalized observation (and velocity) are the observation features as they are.
-    An encoder may own the observation's last entries (sizes(): how many, and the features it gives for them);
-    normalize_obs hands those on unnormalized, at the end (experiment/image_obs.py registers 'image_cnn')."""
+    """OBS_ENCODERS['flat']: the normalized observation and velocity are the features as they are. An encoder
+    may own the observation's last entries (sizes(): how many, and the features it gives for them); normalize_obs
+    hands those on unnormalized, at the end (experiment/image_obs.py registers 'image_cnn')."""
 
     @staticmethod
     def sizes():
@@ -499,18 +452,14 @@ class FlatObservation(nn.Module):
 OBS_ENCODERS = {"flat": FlatObservation}
 
 
-# ----------------------------------------------------------------------------------------------
-# The policy: normalizer, the DDPM loss, sampling by the reverse process
-
-
+# ---- The policy: normalizer, the DDPM loss, sampling by the reverse process --------------------------------------
 class DiffusionPolicy(nn.Module):
     """pi_theta(a_{t:t+H} | o_t): DDPM over action chunks, with an EMA copy of eps_theta for sampling.
 
-    The observation starts with (q_t, q_{t-1}). Chunks are learned relative to q_t and the network also sees
-    the velocity q_t - q_{t-1}: ~8x more precise first actions than absolute chunks (benchmarks/README.md,
-    "Things that did not lift BC"; commit 745d117). Observations, velocities and relative chunks are min-max
-    normalized to [-1, 1] (fitted on the dataset, saved with the weights). The interface stays in joint units
-    and absolute targets: sample() returns chunks of joint positions.
+    The observation starts with (q_t, q_{t-1}). Chunks are learned relative to q_t and the network also sees the
+    velocity q_t - q_{t-1}: ~8x more precise first actions than absolute chunks (measured at commit 745d117).
+    Observations, velocities and relative chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved
+    with the weights); the interface stays in joint units: sample() returns chunks of joint positions.
     """
 
     def __init__(self, cfg, device="cpu"):
@@ -585,9 +534,8 @@ class DiffusionPolicy(nn.Module):
         return (self.ema_net if use_ema else self.net)(a_k_norm, film)   # (B, H, dof)
 
     def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
-        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}.
-        mask: optional (B, H) bool, True = the chunk step is in the loss (a servo label's held steps are not
-        the expert's: PAPER_SETUP.md §6)."""
+        """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}. mask: optional
+        (B, H) bool, True = the chunk step is in the loss (a servo label's held steps are not: PAPER_SETUP.md §6)."""
         B = chunk_norm.shape[0]
         gdev = generator.device if generator is not None else self.device
         k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
@@ -602,24 +550,15 @@ class DiffusionPolicy(nn.Module):
 
     @torch.inference_mode()
     def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
-        """Run Eq. (6) from per-row code level k_start (B,) down to the clean chunk.
-
-        a_k (B, H, dof) normalized, row i at level k_start[i]; k_start[i] = -1 means row i is already clean
-        and is returned unchanged. z (B, K, H, dof): z[:, k] is the noise of the step at level k.
-        """
+        """Eq. (6) from per-row code level k_start (B,) down to the clean chunk. a_k (B, H, dof) normalized, row i
+        at level k_start[i] (-1: already clean, returned unchanged); z (B, K, H, dof), z[:, k] the noise at level k."""
         cond = self.condition(obs_norm, use_ema)
         a = a_k.clone()
         top = int(k_start.max()) if len(k_start) else -1
         for k in range(top, -1, -1):
-            active = k_start >= k                                      # rows that have reached level k
-            idx = active.nonzero().squeeze(1) if not bool(active.all()) else None
-            if idx is None:
-                eps = self.predict_eps(a, k, None, use_ema, cond=cond)
-                a = p_sample(self.schedule, eps, a, k, noise=z[:, k])   # Eq. (6)
-            else:
-                sub_cond = (cond[0][idx], cond[1])
-                eps = self.predict_eps(a[idx], k, None, use_ema, cond=sub_cond)
-                a[idx] = p_sample(self.schedule, eps, a[idx], k, noise=z[idx, k])
+            rows = (k_start >= k).nonzero().squeeze(1)                 # the rows that have reached level k
+            eps = self.predict_eps(a[rows], k, None, use_ema, cond=(cond[0][rows], cond[1]))
+            a[rows] = p_sample(self.schedule, eps, a[rows], k, noise=z[rows, k])   # Eq. (6)
         return a
 
     def draw_noise(self, B, generator=None):
@@ -669,10 +608,7 @@ class DiffusionPolicy(nn.Module):
         return policy
 
 
-# ----------------------------------------------------------------------------------------------
-# Checkpoint files
-
-
+# ---- Checkpoint files --------------------------------------------------------------------------------------------
 CHECKPOINT_FORMAT = "diffusion-policy-v2"
 # PolicyConfig fields a checkpoint of an earlier version holds: (the one value this code reads, else why not)
 RETIRED_POLICY_FIELDS = {
@@ -684,8 +620,7 @@ RETIRED_POLICY_FIELDS = {
 
 
 class CheckpointDamagedError(ValueError):
-    """A checkpoint file that cannot be read: truncated (a run killed while copying it), overwritten, or not
-    a torch file at all."""
+    """A checkpoint file that cannot be read: truncated (a run killed while copying it), or no checkpoint at all."""
 
 
 def _read_checkpoint(path):
@@ -695,9 +630,9 @@ def _read_checkpoint(path):
         raise FileNotFoundError(f"no policy checkpoint at {path!r}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except OSError:                                                    # unreadable (permissions, disk): not damage
-        raise
     except Exception as err:                                           # EOFError, zip RuntimeError, Unpickling...
+        if isinstance(err, OSError):                                   # unreadable (permissions, disk): not damage
+            raise
         raise CheckpointDamagedError(f"checkpoint {path} is damaged (truncated or not a checkpoint; torch.load "
                                      f"raised {type(err).__name__}): delete it and run again to re-make it") from None
     if not isinstance(payload, dict):
@@ -709,33 +644,28 @@ def _read_checkpoint(path):
     return payload
 
 
-def _as_torch(x):
-    """numpy arrays -> tensors inside nested dicts / lists (checkpoints are read with weights_only=True)."""
+def _nested(x, leaf):
+    """leaf(v) for every v inside nested dicts / lists / tuples (a tuple becomes a list)."""
     if isinstance(x, dict):
-        return {k: _as_torch(v) for k, v in x.items()}
+        return {k: _nested(v, leaf) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_as_torch(v) for v in x]
-    return torch.from_numpy(np.ascontiguousarray(x)) if isinstance(x, np.ndarray) else x
+        return [_nested(v, leaf) for v in x]
+    return leaf(x)
 
 
-def _as_numpy(x):
-    """The inverse of _as_torch."""
-    if isinstance(x, dict):
-        return {k: _as_numpy(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_as_numpy(v) for v in x]
-    return x.numpy() if torch.is_tensor(x) else x
+def _as_torch(x):   # numpy arrays -> tensors, for a sampler's state in a checkpoint (read with weights_only=True)
+    return _nested(x, lambda v: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v)
 
 
-# ----------------------------------------------------------------------------------------------
-# Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps)
+def _as_numpy(x):   # the inverse of _as_torch
+    return _nested(x, lambda v: v.numpy() if torch.is_tensor(v) else v)
 
 
+# ---- Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps) --------------------
 def expert_runs(expert, H):
-    """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that
-    can label chunks of H steps. A run counts if it is at least H steps long, or if it is the whole episode
-    (a demonstration, padded at its end however short). A shorter intervention teaches nothing with chunks
-    of H and is discarded, also when it ends the episode. Every other module derives its labels from here."""
+    """The paper's label rule, part 1 (Sec. IV-C): the maximal runs [start, end) of expert-driven steps that label
+    chunks of H steps: at least H steps long, or the whole episode (a demonstration, padded at its end however
+    short). A shorter intervention is discarded, also at the episode's end. Every other module's labels use this."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], expert.astype(np.int8), [0]])))  # run starts, ends
@@ -744,9 +674,8 @@ def expert_runs(expert, H):
 
 
 def label_mask(expert, H):
-    """The paper's label rule, part 2: (T,) bool, True where the chunk starting at t is a valid label, i.e.
-    t lies in a run of expert_runs and the chunk stays inside it: t + H <= end, or the run ends the episode
-    (the chunk is then padded with the last action)."""
+    """The label rule, part 2: (T,) bool, True where the chunk starting at t is a label: t lies in a run of
+    expert_runs and t + H <= its end, or the run ends the episode (the chunk is then padded with the last action)."""
     expert = np.asarray(expert, dtype=bool)
     T = len(expert)
     mask = np.zeros(T, dtype=bool)
@@ -778,23 +707,18 @@ def chunk_dataset(episodes, H):
     return np.concatenate(obs_list), np.concatenate(chunk_list)
 
 
-# ----------------------------------------------------------------------------------------------
-# Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6)
-
-
+# ---- Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6) -----------------------------
 def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_from=None, log=print):
     """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
 
-    - Fits the normalizer on (obs, chunks) only if the policy has none yet; fine-tuning a loaded checkpoint
-      keeps the checkpoint's normalizer, a fresh optimizer and runs cfg.steps steps.
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)) or (obs, chunks, mask (n, H) bool): augmented
-      pairs made on the fly; they fill round(cfg.aug_fraction * batch_size) rows of every batch (co-training,
-      Sec. IV-A step 4). With a mask, only its True steps enter the loss (base rows: every step).
-    - resume_from: a checkpoint written by this function (cfg.checkpoint_steps): the run goes on with the same
-      numbers as an uninterrupted one (weights, AdamW, both random streams, the sampler's state).
-    - continue_from: a checkpoint written by this function, e.g. pi_0 at the end of BC: its weights, AdamW
-      state and step count continue (the step counts on to cfg.steps, the lr along cfg's schedule), with
-      this run's own data and random streams: the authors' fine-tuning (PAPER_SETUP.md §2).
+    - The normalizer is fitted on (obs, chunks) only if the policy has none (a loaded checkpoint keeps its own).
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): augmented pairs made on the
+      fly for round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps
+      stay out of the loss.
+    - resume_from: a checkpoint of cfg.checkpoint_steps; the run goes on as an uninterrupted one would (weights,
+      AdamW, both random streams, the sampler's state).
+    - continue_from: such a checkpoint, e.g. pi_0: its weights, AdamW state and step count go on along cfg's lr
+      schedule with this run's data and random streams (the authors' fine-tuning, PAPER_SETUP.md §2).
     """
     pc = policy.cfg
     obs = check_array("obs", obs, (None, pc.obs_dim))
@@ -816,8 +740,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
                                 device=dev)                            # (obs_dim,)
     noisy = bool((noise_std > 0).any())
 
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                  foreach=True)
+    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
     rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
     step = 0
@@ -843,18 +766,15 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
     policy.train()
     t0, losses, last_step = time.time(), [], step                      # progress lines: mean loss, rate, time left
     while step < cfg.steps:
-        lr = lr_at(step, cfg)                                          # warmup + cosine
         for group in optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr_at(step, cfg)                             # warmup + cosine
         idx = torch.as_tensor(rng.integers(0, len(obs_t), n_base), device=dev)
         o, a = obs_t[idx], chunks_n[idx]                               # raw (B, obs_dim), normalized (B, H, dof)
         mask = None                                                    # None: every step is in the loss
         if n_aug:                                                      # co-training (Sec. IV-A step 4)
-            o, a, mask = _append_augmented(policy, sampler, n_aug, rng, o, a)   # + n_aug rows, mask or None
+            o, a, mask = _append_augmented(policy, sampler, n_aug, rng, o, a)
         with torch.no_grad():
-            if noisy:
-                # Observation noise in raw units, labels unchanged (Sec. V; PAPER_SETUP.md §2): the chunk stays
-                # relative to the true q_t, so the policy learns to act well from a slightly wrong reading.
+            if noisy:   # Sec. V, PAPER_SETUP.md §2: labels unchanged, the policy learns from a slightly wrong reading
                 o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
             o = policy.normalize_obs(o)                                # (B, cond input)
         loss = policy.loss(o, a, generator=gen, mask=mask)
@@ -880,25 +800,24 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
 
 
 def _append_augmented(policy, sampler, n_aug, rng, o, a):
-    """train()'s co-training rows: n_aug pairs from the sampler, checked, appended to the base rows o (raw,
-    (n_base, obs_dim)) and a (normalized, (n_base, H, dof)). Returns (o, a, mask): mask (B, H) bool with the
-    base rows all True if the sampler gives a mask, else None."""
+    """train()'s co-training rows: n_aug pairs from the sampler appended to the base rows o (raw, (n_base, obs_dim))
+    and a (normalized, (n_base, H, dof)) -> (o, a, mask (B, H) bool with the base rows True, or None: no mask)."""
     pc, dev = policy.cfg, policy.device
     drawn = sampler(n_aug, rng)
-    o_aug = check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim))
-    a_aug = check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof))
     m_aug = np.asarray(drawn[2]) if len(drawn) == 3 else None
     if len(drawn) not in (2, 3) or (m_aug is not None and (m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool)):
         raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask (n, H) bool), got "
                          f"{[getattr(x, 'shape', x) for x in drawn]}")
     with torch.no_grad():
-        o_aug = torch.as_tensor(o_aug, dtype=torch.float32, device=dev)
-        a_aug = torch.as_tensor(a_aug, dtype=torch.float32, device=dev)
+        o_aug = torch.as_tensor(check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim)), dtype=torch.float32,
+                                device=dev)
+        a_aug = torch.as_tensor(check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof)),
+                                dtype=torch.float32, device=dev)
         o, a = torch.cat([o, o_aug]), torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
-        if m_aug is None:
-            return o, a, None
-        base = torch.ones(len(o) - n_aug, pc.horizon, dtype=torch.bool, device=dev)   # base rows: every step
-        return o, a, torch.cat([base, torch.as_tensor(m_aug, device=dev)])            # (B, H)
+    if m_aug is None:
+        return o, a, None
+    base = torch.ones(len(o) - n_aug, pc.horizon, dtype=torch.bool, device=dev)   # base rows: every step
+    return o, a, torch.cat([base, torch.as_tensor(m_aug, device=dev)])            # (B, H)
 
 
 def lr_at(step, cfg):
@@ -907,8 +826,7 @@ def lr_at(step, cfg):
 
 
 def warmup_cosine(step, cfg):
-    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.schedule_steps (0: cfg.steps)
-    (the authors')."""
+    """Linear warmup to cfg.lr over warmup_steps, then cosine decay to 0 at cfg.schedule_steps (0: cfg.steps)."""
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     end = cfg.schedule_steps or cfg.steps
@@ -916,7 +834,7 @@ def warmup_cosine(step, cfg):
     return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
-LR_SCHEDULES = {"cosine": warmup_cosine}  # experiment/lever.py adds the authors' lever runs' 'constant'
+LR_SCHEDULES = {"cosine": warmup_cosine}  # the authors'; experiment/lever.py adds its 'constant'
 
 
 @torch.no_grad()
@@ -927,10 +845,7 @@ def update_ema(policy, step, decay):
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
 
 
-# ----------------------------------------------------------------------------------------------
-# Demo: a toy task with two modes (go up-right or down-left); the policy must keep both.
-
-
+# ---- Demo: a toy task with two modes (go up-right or down-left); the policy must keep both ------------------------
 def toy_two_mode_data(n, H=4, seed=0):
     """A 2-joint arm at rest at q ~ U[-1, 1]^2: obs = (q_t, q_{t-1}) = (q, q), (n, 4); chunk = q + t * v for
     t = 1..H (n, H, 2), v = +(0.5, 0.5) / H or -(0.5, 0.5) / H at random."""

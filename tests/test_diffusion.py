@@ -1,5 +1,6 @@
 """Tests of diffusion.py: the DDPM equations against closed forms, the policy, the dataset, training."""
 
+import io
 import math
 import re
 
@@ -10,8 +11,6 @@ import torch.nn as nn
 
 from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, expert_runs, label_mask, lr_at,
                        make_schedule, p_sample, q_sample, toy_two_mode_data, train)
-
-
 
 
 # A two-level U-Net (one downsampling) small enough for tests: one torch thread, a few seconds of training.
@@ -137,11 +136,14 @@ def test_unet_output_has_the_chunk_shape(B, H, dof, down_dims):
     assert eps.shape == (B, H, dof) and torch.isfinite(eps).all() and eps.abs().max() > 0
 
 
-def test_separated_film_equals_one_linear_map_of_the_concatenated_condition():
+@pytest.mark.parametrize("network", [dict(down_dims=(8, 16, 32), horizon=8),
+                                     dict(network="mlp", horizon=7, mlp_width=32, mlp_blocks=2)])
+def test_separated_film_equals_one_linear_map_of_the_concatenated_condition(network):
     """condition() = (W_o Mish(obs features), W_s Mish(step features) + b) must equal every block's
-    film(Mish([step features, obs features])), and the network's output must be the same either way."""
-    policy = tiny_policy(down_dims=(8, 16, 32), horizon=8, K=20)
-    net = policy.net
+    film(Mish([step features, obs features])), and the network's output must be the same either way
+    (both networks: the MLP has no divisibility rule on H)."""
+    policy = tiny_policy(K=20, **network)
+    net, H = policy.net, policy.cfg.horizon
     gen = torch.Generator().manual_seed(0)
     for p in net.parameters():                                        # the zero output would hide a mistake
         p.data = torch.randn(p.shape, generator=gen) * 0.3
@@ -150,17 +152,23 @@ def test_separated_film_equals_one_linear_map_of_the_concatenated_condition():
     obs_part, step_table = policy.condition(obs_norm, use_ema=False)
     assert obs_part.shape == (6, net.film_size) and step_table.shape == (20, net.film_size)
     separated = obs_part + step_table[k]                              # (6, F)
-    cond = torch.cat([net.step_features(k), net.obs_features(obs_norm)], dim=1)       # (6, dsed + obs features)
+    cond = torch.cat([net.step_features(k), net.obs_encoder(obs_norm)], dim=1)       # (6, dsed + obs features)
     direct = torch.cat([block.film(nn.functional.mish(cond)) for block in net.residual_blocks()], dim=1)
     assert torch.allclose(separated, direct, atol=1e-5)
-    a = torch.randn(6, 8, 2, generator=gen)
-    assert torch.allclose(policy.predict_eps(a, k, obs_norm, use_ema=False), net(a, direct), atol=1e-5)
+    a = torch.randn(6, H, 2, generator=gen)
+    eps = policy.predict_eps(a, k, obs_norm, use_ema=False)
+    assert eps.shape == (6, H, 2) and torch.allclose(eps, net(a, direct), atol=1e-5)
+    # the step enters: the same chunk and observation at another step give another prediction
+    assert not torch.allclose(eps, policy.predict_eps(a, (k + 1) % 20, obs_norm, use_ema=False))
 
 
-def test_untrained_net_predicts_zero_noise():
-    policy = tiny_policy(obs_dim=5)
+@pytest.mark.parametrize("network,blocks", [("unet", 8), ("mlp", 2)])
+def test_untrained_net_predicts_zero_noise(network, blocks):
+    policy = tiny_policy(obs_dim=5, network=network, mlp_width=32, mlp_blocks=2)
+    assert type(policy.net).__name__ == {"unet": "ConditionalUnet1D", "mlp": "ResidualMLP"}[network]
+    assert len(list(policy.net.residual_blocks())) == blocks          # U-Net (16, 32): 2 x 2 down, 2 mid, 2 up
     eps = policy.predict_eps(torch.randn(16, 4, 2), torch.randint(0, 50, (16,)), torch.randn(16, 5 + 2))
-    assert torch.equal(eps, torch.zeros(16, 4, 2))                    # zero output conv: a stable start
+    assert torch.equal(eps, torch.zeros(16, 4, 2))                    # zero output layer: a stable start
 
 
 @pytest.mark.parametrize("overrides,match", [
@@ -173,8 +181,10 @@ def test_untrained_net_predicts_zero_noise():
     (dict(step_embed_dim=7), "step_embed_dim even"),
     (dict(n_act=17), "n_act <= horizon"),
     (dict(obs_dim=3), re.escape("(q_t, q_t-1), 2 * dof = 4")),     # no room for the two joint readings
+    (dict(network="transformer"), "network must be one of"),
+    (dict(network="mlp", mlp_width=0), "mlp_width must be a positive int"),
 ])
-def test_bad_unet_configs_raise(overrides, match):
+def test_bad_configs_raise(overrides, match):
     with pytest.raises(ValueError, match=match):
         PolicyConfig(**{"obs_dim": 4, "dof": 2, "horizon": 16, "n_act": 2, "K": 10, **overrides})
 
@@ -227,7 +237,7 @@ def test_a_checkpoint_of_a_deleted_option_loads_at_the_kept_value_and_is_refused
 
 
 def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
-    """A truncated file (half of a real checkpoint), junk bytes and an empty file: load and resume raise
+    """A truncated file (half of a real checkpoint), junk bytes, an empty file and a saved tensor: load and resume raise
     CheckpointDamagedError (a ValueError) naming the file and saying how to re-make it, never a raw
     EOFError / RuntimeError / UnpicklingError."""
     from diffusion import CheckpointDamagedError
@@ -236,7 +246,10 @@ def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
     train(tiny_policy(), obs, chunks, TrainConfig(steps=2, batch_size=8, warmup_steps=1, log_every=0,
                                                   checkpoint_steps=(2,), checkpoint_path=full))
     data = open(full, "rb").read()
-    damaged = {"half.pt": data[:len(data) // 2], "junk.pt": bytes(range(256)) * 4, "empty.pt": b""}
+    not_a_dict = io.BytesIO()
+    torch.save(torch.zeros(3), not_a_dict)                             # a torch file, but no checkpoint
+    damaged = {"half.pt": data[:len(data) // 2], "junk.pt": bytes(range(256)) * 4, "empty.pt": b"",
+               "tensor.pt": not_a_dict.getvalue()}
     for name, content in damaged.items():
         path = str(tmp_path / name)
         with open(path, "wb") as f:
@@ -433,18 +446,14 @@ class PoolSampler:
         self.pool = None if state["pool"] is None else np.array(state["pool"], dtype=np.float32)
 
 
-def _aug_sampler(calls):
-    return PoolSampler(calls)
-
-
 def test_resume_equals_uninterrupted(tmp_path):
     obs, chunks = toy_two_mode_data(300, H=4, seed=1)
     cfg = TrainConfig(steps=40, batch_size=32, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25,
                       obs_noise=0.05, checkpoint_steps=(20,), checkpoint_path=str(tmp_path / "ck_{step}.pt"))
     calls = []
-    full = train(tiny_policy(), obs, chunks, cfg, sampler=_aug_sampler(calls))
+    full = train(tiny_policy(), obs, chunks, cfg, sampler=PoolSampler(calls))
     assert calls == [8] * 40, "aug_fraction 0.25 of 32 = 8 augmented rows per step"
-    resumed = train(tiny_policy(seed=99), obs, chunks, cfg, sampler=_aug_sampler([]),
+    resumed = train(tiny_policy(seed=99), obs, chunks, cfg, sampler=PoolSampler([]),
                     resume_from=str(tmp_path / "ck_20.pt"))
     a, b = full.state_dict(), resumed.state_dict()
     assert all(torch.equal(a[key], b[key]) for key in a)
@@ -452,10 +461,10 @@ def test_resume_equals_uninterrupted(tmp_path):
     DiffusionPolicy.load(str(tmp_path / "ck_20.pt"))
     # Same seed -> same weights; another seed -> different weights.
     again = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": ()}),
-                  sampler=_aug_sampler([]))
+                  sampler=PoolSampler([]))
     assert all(torch.equal(a[key], again.state_dict()[key]) for key in a)
     other = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": (), "seed": 4}),
-                  sampler=_aug_sampler([]))
+                  sampler=PoolSampler([]))
     first_conv = "net.down.0.0.conv1.0.weight"
     assert not torch.equal(a[first_conv], other.state_dict()[first_conv])
 
@@ -556,30 +565,6 @@ def test_train_accepts_a_sampler_with_a_mask():
 
 # ---------------------------------------------------------------------------------------------- the MLP option
 
-def test_mlp_network_shares_the_film_interface_and_output_shape():
-    """network='mlp': the same split FiLM (obs part + step table = every block's film of the concatenated
-    condition), a zero output before training, and chunks of the right shape (no divisibility rule on H)."""
-    policy = tiny_policy(horizon=7, K=20, network="mlp", mlp_width=32, mlp_blocks=2)
-    net = policy.net
-    assert type(net).__name__ == "ResidualMLP" and len(list(net.residual_blocks())) == 2
-    eps0 = policy.predict_eps(torch.randn(5, 7, 2), torch.randint(0, 20, (5,)), torch.randn(5, 4 + 2))
-    assert torch.equal(eps0, torch.zeros(5, 7, 2))
-    gen = torch.Generator().manual_seed(0)
-    for p in net.parameters():
-        p.data = torch.randn(p.shape, generator=gen) * 0.3
-    obs_norm = policy.normalize_obs(torch.randn(6, 4, generator=gen))
-    k = torch.tensor([0, 3, 19, 7, 7, 12])
-    obs_part, step_table = policy.condition(obs_norm, use_ema=False)
-    cond = torch.cat([net.step_features(k), net.obs_features(obs_norm)], dim=1)
-    direct = torch.cat([block.film(nn.functional.mish(cond)) for block in net.residual_blocks()], dim=1)
-    assert torch.allclose(obs_part + step_table[k], direct, atol=1e-5)
-    a = torch.randn(6, 7, 2, generator=gen)
-    eps = policy.predict_eps(a, k, obs_norm, use_ema=False)
-    assert eps.shape == (6, 7, 2) and torch.allclose(eps, net(a, direct), atol=1e-5)
-    # the step enters: the same chunk and observation at another step give another prediction
-    assert not torch.allclose(eps, policy.predict_eps(a, (k + 1) % 20, obs_norm, use_ema=False))
-
-
 def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
     obs, chunks = toy_two_mode_data(2000, H=4, seed=0)
     policy = tiny_policy(network="mlp", mlp_width=64, mlp_blocks=2)
@@ -592,13 +577,6 @@ def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
     loaded = DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
     assert loaded.cfg.network == "mlp"
     assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in policy.state_dict().items())
-
-
-@pytest.mark.parametrize("overrides,match", [(dict(network="transformer"), "network must be one of"),
-                                             (dict(network="mlp", mlp_width=0), "mlp_width must be a positive int")])
-def test_bad_mlp_configs_raise(overrides, match):
-    with pytest.raises(ValueError, match=match):
-        PolicyConfig(obs_dim=4, dof=2, horizon=4, n_act=2, K=10, **overrides)
 
 
 # ---------------------------------------------------------------------------------------------- continuation
