@@ -509,7 +509,7 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
     segments = cal.blend_schedule(episodes, policy.cfg.horizon, cfg)[1]
-    long_enough = {e for e, (a, b) in cal.segments_longest_first(episodes, policy.cfg.horizon)
+    long_enough = {e for e, ep in enumerate(episodes) for a, b in cal.expert_segments(ep, policy.cfg.horizon)
                    if b - a >= cfg.min_rollout_steps}
     assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
     assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
