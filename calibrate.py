@@ -82,11 +82,6 @@ def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
     return expert_runs(episode["expert"], horizon)
 
 
-def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask)."""
-    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
-
-
 def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
     """actions[t:t+H], actions at or past `end` (default: the episode end) replaced by the last one before
     it: past an intervention the recorded actions are the policy's (diffusion.chunk_dataset's padding)."""
@@ -120,7 +115,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int, n_samples: int,
                          f"n_samples={n_samples}, n_act={n_act}")
     obs_rows, chunks, ep_idx, steps = [], [], [], []
     for e, ep in enumerate(episodes):
-        starts = label_starts(ep, H)
+        starts = np.flatnonzero(label_mask(ep["expert"], H))                  # steps with a valid expert label
         actions = np.asarray(ep["action"], dtype=np.float64)
         for start, end in expert_segments(ep, H):
             for t in starts[(starts >= start) & (starts < end)][::stride]:   # every other step
@@ -333,10 +328,8 @@ def equilibrium(s, W, r):
     """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* (Eq. 8) with u* = K* (-x) (Eq. 9),
     u_theta = K_theta (W - x) (Eq. 10) at rest, u = 0 (Eq. 11); r = K*/K_theta > 0, x(0) = 0, x(1) = W."""
     s = np.asarray(s, dtype=np.float64)
-    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if not r > 0:
-        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)) or not r > 0:
+        raise ValueError(f"need s = sigma^2_k_sw in [0, 1] and the gain ratio r = K*/K_theta > 0, got s = {s}, r = {r}")
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     # Eq. (12): x = W s / (s + r (1 - s))
     return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
@@ -669,12 +662,11 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
         ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
         ax.set_title(title, fontsize=10)
 
-    # (a) each sampled chunk's executed steps from its state, and Sigma_hat_t
+    # (a) each sampled chunk's executed steps from its state
     for t, chunks in zip(steps, open_loop.samples):
         for chunk in chunks:
             axes[0].plot(*env.ee(np.concatenate([q_exp[t][None], chunk[:cfg.n_act]]))[:, :2].T,
                          color="tab:orange", lw=0.7, alpha=0.6)
-    env.draw_noise_ellipses(axes[0], q_exp[steps], open_loop.sigma, "tab:orange", alpha=0.35)
     axes[0].plot([], [], color="tab:orange", label="policy chunks")
 
     # (b) the blended rollouts, dashed where discarded, with their settling error x
@@ -686,10 +678,11 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
                      label=rf"$\beta$={beta:.2f}, x={blend.x[b] / c.median_step:.1f} med. steps"
                            + ("" if blend.kept[b] else " (discarded)"))
 
-    # (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14); (d) the pooled Sigma_bar^alpha (Eq. 16)
-    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(open_loop.sigma, c.W), "tab:red", alpha=0.35)
-    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(c.pooled[None], len(steps), axis=0), "tab:purple",
-                            alpha=0.35)
+    # (a) Sigma_hat_t, (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14), (d) the pooled Sigma_bar^alpha
+    for ax, cov, color in ((axes[0], open_loop.sigma, "tab:orange"),
+                           (axes[2], calibrated_sigma(open_loop.sigma, c.W), "tab:red"),
+                           (axes[3], np.repeat(c.pooled[None], len(steps), axis=0), "tab:purple")):
+        env.draw_noise_ellipses(ax, q_exp[steps], cov, color, alpha=0.35)
 
     # per-joint sigma and the legends below the panels (outside the data), a common zoom on the intervention
     per_joint = ", ".join(f"{v:.1f}" for v in c.sigma_per_joint)
@@ -700,8 +693,8 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
     fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = {c.W / c.median_step:.2f} median steps = "
                  f"{other_units(c.W, c.paper_median_step)}; ellipses 2 sigma" + ("" if planar else "; top view") + ")")
-    env.square_view(list(axes), np.concatenate([expert_path, *paths, np.empty((0, 2)) if planar else env.goal[None, :2]]),
-                    0.06)
+    goal = np.empty((0, 2)) if planar else env.goal[None, :2]
+    env.square_view(list(axes), np.concatenate([expert_path, *paths, goal]), 0.06)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
     plt.close(fig)
@@ -775,7 +768,8 @@ if __name__ == "__main__":
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100,
                                           down_dims=(32, 64, 128)))
     train(policy, *chunk_dataset(episodes, 16), TrainConfig(steps=1000, warmup_steps=100, log_every=250))
-    calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(n_act=8), torch.Generator().manual_seed(0))
+    calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(n_act=8),
+                            torch.Generator().manual_seed(0))
     print(calibration.report())
     plot_blend_fit(calibration, unit, "fig4_blend_fit.png")
     plot_method_overview(env, episodes[int(calibration.blend_episode[0])], calibration, policy,

@@ -152,7 +152,7 @@ def test_segments_and_label_starts_follow_the_contract():
     ep = _episode(expert)
     assert cal.expert_segments(ep, H) == [(0, 6), (14, 19)]      # the 3-step run is too short
     # first segment ends inside the episode: t + H <= 6; the last reaches the end: every step
-    np.testing.assert_array_equal(cal.label_starts(ep, H), [0, 1, 2, 14, 15, 16, 17, 18])
+    np.testing.assert_array_equal(np.flatnonzero(diffusion.label_mask(ep["expert"], H)), [0, 1, 2, 14, 15, 16, 17, 18])
     chunk = cal.expert_chunk(ep["action"], 4, H, end=6)          # padded with the segment's last action
     np.testing.assert_array_equal(chunk, ep["action"][[4, 5, 5, 5]])
 
