@@ -700,12 +700,11 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     plt.close(fig)
 
 
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
-                   min_survivors: int = CalibrationConfig.min_survivors) -> None:
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
     """Fig. 4: settling error vs sigma^2_{k_sw} in median steps (median_step rad; None: the calibration's):
     every blended rollout (kept: dots; discarded: crosses), the per-ratio RMS of the kept ones with their
     spread (fitted: filled; too few kept: open), the fitted Eq. (12), W and its 95 % bootstrap interval."""
-    plt, c = _pyplot(), calibration
+    plt, c, min_survivors = _pyplot(), calibration, CalibrationConfig.min_survivors
     unit = c.median_step if median_step is None else median_step
     fig, ax = plt.subplots(figsize=(10.5, 3.8))
     kept = c.blend_kept
