@@ -149,7 +149,7 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
                          f"2-D or 3-D workspace; got {obs.shape}, {expert_chunk.shape}, dim = {env.dim}")
     planar = env.dim == 2
     levels = [float(b) for b in _check_beta(np.atleast_1d(betas))] + [1.0]      # and unguided
-    names = [rf"$\beta$ = {b:.2f}" for b in levels[:-1]] + [r"unguided ($\beta$ = 1)"]
+    names = [rf"$\beta$ = {b:.2f}" for b in levels[:-1]] + [r"unguided policy, $\beta$ = 1"]
     q = np.asarray(env.q if q is None else q, dtype=np.float64)
     start = env.ee(q[None])[:, :2]                              # (1, 2): the plane, or the top view (x, y)
     rows = n_samples * len(levels)
