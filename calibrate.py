@@ -17,10 +17,8 @@ The paper measures both offline, without an expert in the loop (Sec. IV-D). In t
 5. `calibrate` - steps 1-4 for one DAgger round, returned as a JSON-serializable `Calibration`.
 6. Figures: `plot_method_overview` (Fig. 2) and `plot_blend_fit` (Fig. 4).
 
-Units: joint deviations, W and covariances in radians (rad^2); step counts in env steps (0.1 s). Reports
-and figures are in our median steps (`envs.median_step`) and beside them in radians and in the paper's
-median step (`envs.paper_median_step`, 0.0176 rad planar: the unit of every sigma and W the paper quotes;
-PAPER_SETUP.md §1). `diverge_threshold` counts the paper's median steps; `diverge_rad` is radians.
+Units: radians (rad^2) and env steps (0.1 s); reports and figures add our median steps and the paper's
+(0.0176 rad planar, the unit of every sigma and W it quotes; PAPER_SETUP.md §1).
 """
 
 from __future__ import annotations
@@ -36,9 +34,7 @@ from diffusion import expert_runs, label_mask
 from partial_denoise import noise_fraction, partial_denoise
 
 
-# ----------------------------------------------------------------------------------------------
-# Config
-# ----------------------------------------------------------------------------------------------
+# ---- Config ------------------------------------------------------------------------------------------------
 
 @dataclass
 class CalibrationConfig:
@@ -51,8 +47,8 @@ class CalibrationConfig:
     settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
     settle_start: int = 13               # steps: settling error = RMS over steps [settle_start, settle_end] of
     settle_end: int = 40                 # a rollout, after the transient (authors: frames 40-120)
-    diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout whose nearest-state
-                                         # distance reaches this has diverged and is discarded (`diverge_radius`)
+    diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout that gets this far
+                                         # from the expert's states has diverged and is discarded
     min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
     min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
     W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
@@ -63,8 +59,8 @@ class CalibrationConfig:
 
 
 def diverge_radius(threshold: float, median_step: float, paper_median_step: float | None) -> float:
-    """Radians: `threshold` of the paper's median steps (15 * 0.0176 = 0.264 rad planar, 0.249 rad UR5; a
-    distance, so our 10 Hz does not change it; PAPER_SETUP.md §5); without a paper unit, of ours."""
+    """Radians: `threshold` of the paper's median steps (15 * 0.0176 = 0.264 rad planar; PAPER_SETUP.md §5);
+    for an env without a paper unit, of ours."""
     return threshold * (median_step if paper_median_step is None else paper_median_step)
 
 
@@ -78,24 +74,12 @@ def other_units(rad, paper_median_step: float | None, digits: int = 2) -> str:
     return text
 
 
-# ----------------------------------------------------------------------------------------------
-# The expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py)
-# ----------------------------------------------------------------------------------------------
-
-def policy_horizon(policy) -> int:
-    """The chunk length H the policy predicts (PolicyConfig.horizon)."""
-    return int(policy.cfg.horizon)
-
+# ---- The expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py) -----------
 
 def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
     """The expert runs [start, end) of >= `horizon` steps (diffusion.expert_runs): a demonstration gives
     one, an intervention episode one per long enough intervention."""
     return expert_runs(episode["expert"], horizon)
-
-
-def label_starts(episode: dict, horizon: int) -> np.ndarray:
-    """Steps t whose chunk actions[t:t+H] is a valid expert label (diffusion.label_mask)."""
-    return np.flatnonzero(label_mask(episode["expert"], horizon)).astype(np.int64)
 
 
 def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
@@ -106,9 +90,7 @@ def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = No
     return actions[idx]                                                     # (H, dof)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 1: open-loop Sigma_hat_t along the expert data (Eq. 1)
-# ----------------------------------------------------------------------------------------------
+# ---- Step 1: open-loop Sigma_hat_t along the expert data (Eq. 1) -------------------------------------------
 
 @dataclass
 class StepCovariances:
@@ -116,25 +98,24 @@ class StepCovariances:
     sigma: np.ndarray           # (M, dof, dof)
     episode_index: np.ndarray   # (M,) index into the episode list
     timestep: np.ndarray        # (M,) step t inside that episode
+    samples: np.ndarray | None = None   # (M, n_samples, H, dof) the policy's chunks (drawn in Fig. 2a)
 
 
 def open_loop_sigma(policy, episodes: list[dict], stride: int, n_samples: int,
                     generator: torch.Generator | None = None, max_batch: int = 2048,
                     n_act: int | None = None) -> StepCovariances:
-    """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data.
-
-    At step t the policy samples `n_samples` chunks from the recorded obs[t]; d = sampled chunk - expert
-    chunk over the first n_act steps (the executed ones; default policy.cfg.n_act). Sigma_hat_t = the mean
-    of d d^T over samples and steps (dof, dof), uncentered: Eq. (1) compares with the expert.
+    """Sigma_hat_t of Eq. (1) at every `stride`-th valid label step of the expert data: the mean of d d^T,
+    d = sampled chunk - expert chunk, over `n_samples` samples from the recorded obs[t] and the first n_act
+    steps (the executed ones; default policy.cfg.n_act). Uncentered: Eq. (1) compares with the expert.
     """
-    H = policy_horizon(policy)
+    H = int(policy.cfg.horizon)
     n_act = int(getattr(policy.cfg, "n_act", H)) if n_act is None else int(n_act)
     if stride < 1 or n_samples < 1 or not 1 <= n_act <= H:
         raise ValueError(f"need stride >= 1, n_samples >= 1 and n_act in 1..H = {H}, got stride={stride}, "
                          f"n_samples={n_samples}, n_act={n_act}")
     obs_rows, chunks, ep_idx, steps = [], [], [], []
     for e, ep in enumerate(episodes):
-        starts = label_starts(ep, H)
+        starts = np.flatnonzero(label_mask(ep["expert"], H))                  # steps with a valid expert label
         actions = np.asarray(ep["action"], dtype=np.float64)
         for start, end in expert_segments(ep, H):
             for t in starts[(starts >= start) & (starts < end)][::stride]:   # every other step
@@ -153,7 +134,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int, n_samples: int,
     d = (samples - np.stack(chunks)[:, None])[:, :, :n_act]                     # (M, n, n_act, dof): executed steps
     # Eq. (1): mean over samples and executed chunk steps of the outer product d d^T
     sigma = np.einsum("mnhi,mnhj->mij", d, d) / (n_samples * n_act)             # (M, dof, dof)
-    return StepCovariances(sigma, np.asarray(ep_idx, dtype=np.int64), np.asarray(steps, dtype=np.int64))
+    return StepCovariances(sigma, np.asarray(ep_idx, dtype=np.int64), np.asarray(steps, dtype=np.int64), samples)
     # <<< exercise 5
 
 
@@ -164,15 +145,14 @@ def _sample_batched(policy, obs: np.ndarray, generator, max_batch: int) -> np.nd
     return np.concatenate(parts, axis=0)                                    # (B, H, dof)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 2: closed-loop rollouts blended toward the expert by partial denoising, their settling error
-# ----------------------------------------------------------------------------------------------
+# ---- Step 2: closed-loop rollouts blended toward the expert by partial denoising, their settling error -----
 
 def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -> tuple[np.ndarray, list]:
     """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
     one rollout from each expert segment long enough to be kept (>= min_rollout_steps; the authors: one per
     source intervention); if none is, from the longest (too short: the fit falls back, and says so)."""
-    segs = segments_longest_first(episodes, horizon)
+    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
+    segs = sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))   # longest first
     if not segs:
         raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
     segs = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
@@ -180,10 +160,23 @@ def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -
     return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
 
 
-def segments_longest_first(episodes: list[dict], horizon: int) -> list[tuple[int, tuple[int, int]]]:
-    """(episode index, segment) of every expert segment, longest first (ties: earlier first)."""
-    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
-    return sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))
+@dataclass
+class Rollouts:
+    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ).
+    Entries of the (B, L + 1[, dof]) arrays past a rollout's n_recorded repeat its last one."""
+    trajectory: np.ndarray      # (B, L + 1, dof) joint positions
+    reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
+    n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
+    n_recorded: np.ndarray      # (B,) steps executed
+    diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
+    cursor: np.ndarray          # (B, L + 1) expert index the monotone projection assigned to each step
+    nearest_error: np.ndarray   # (B, L + 1) distance to the nearest expert state in the window (rad)
+    min_steps: int = 0          # rollouts that recorded fewer steps are discarded
+
+    @property
+    def discarded(self) -> np.ndarray:
+        """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
+        return self.diverged | (self.n_recorded < self.min_steps)          # (B,)
 
 
 @dataclass
@@ -198,24 +191,72 @@ class BlendRollouts:
 
 def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas, cfg: CalibrationConfig,
                    generator: torch.Generator | None, diverge_rad: float) -> BlendRollouts:
-    """Sec. IV-D's blended rollouts: one closed loop per job (episode, segment), partial-denoised (Eq. 4)
-    toward the expert at betas[b].
-
-    Every decision executes the first cfg.n_act actions of partial_denoise(policy, obs, expert chunk at the
-    cursor, beta), for all live rollouts in one call. Rollouts whose nearest-state distance reaches
-    diverge_rad (radians, `diverge_radius`) or that record fewer than cfg.min_rollout_steps steps are not
-    kept ("we discard the blended trajectories that diverge"), but run their segment's full length, as the
-    authors' rollouts do: Fig. 4 shows their settling error.
+    """Sec. IV-D's blended rollouts, one per job (episode, segment) from its first state for its length: each
+    decision executes the first cfg.n_act actions of partial_denoise (Eq. 4) toward the expert chunk at the
+    rollout's cursor (`advance_cursor`), at betas[b]. A rollout that gets diverge_rad (rad) from the expert's
+    states or records < cfg.min_rollout_steps steps is discarded but runs on (Fig. 4 shows it). Contacts are
+    not checked: benchmarks/README.md, the estimator now.
     """
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
         raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
+    H, n_act, B = int(policy.cfg.horizon), cfg.n_act, len(jobs)
+    refs = []                                         # (n + 1, dof) each: the expert states a cursor moves on
+    for episode, (start, end) in jobs:
+        q_exp = np.asarray(episode["q"], dtype=np.float64)
+        n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
+        if n < 1:
+            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
+        refs.append(q_exp[start:start + n + 1])
+    n_steps = np.array([len(r) - 1 for r in refs], dtype=np.int64)
+    L = int(n_steps.max())
+    reference = np.stack([np.concatenate([r, np.repeat(r[-1:], L + 1 - len(r), axis=0)]) for r in refs])
+    traj = np.repeat(reference[:, :1], L + 1, axis=1)                        # (B, L + 1, dof)
+    q = reference[:, 0].copy()                                               # (B, dof)
+    q_prev = np.stack([np.asarray(ep["q"], dtype=np.float64)[max(start - 1, 0)] for ep, (start, _) in jobs])
+    n_recorded = np.zeros(B, dtype=np.int64)
+    cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
+    nearest_error = np.zeros((B, L + 1))                                     # 0 at the start
+    diverged = np.zeros(B, dtype=bool)
+    seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
 
-    def chunk_fn(obs, expert, rows):                 # one call for all live rollouts, a beta per row
-        return partial_denoise(policy, obs, expert, betas[rows], generator=generator)
-
-    roll = closed_loop_rollouts(env, jobs, chunk_fn, policy_horizon(policy), cfg.n_act, diverge_rad,
-                                cfg.settle_window, cfg.min_rollout_steps)
+    obs = np.zeros((B, env.obs_dim), dtype=np.float32)
+    for seed in np.unique(seeds):                                            # first observations
+        env.reset(seed=int(seed))
+        rows = np.flatnonzero(seeds == seed)
+        obs[rows] = env.make_obs(q[rows], q_prev[rows])                      # (b, obs_dim)
+    scenario = seeds.max()                                                   # the seed the env holds now
+    recorded = np.stack([np.asarray(ep["obs"][start], dtype=np.float32) for ep, (start, _) in jobs])
+    wrong = np.flatnonzero(~np.isclose(obs, recorded, atol=1e-4).all(axis=1))
+    if len(wrong):
+        b = wrong[0]
+        raise ValueError(f"the env's scenario for seed {seeds[b]} does not reproduce the recorded observation "
+                         f"at step {jobs[b][1][0]}: the episode was recorded with another env version or config; "
+                         "re-record it")
+    for t in range(0, L, n_act):
+        rows = np.flatnonzero(n_steps > t)                                   # the live rollouts
+        # the expert chunk from where the cursor is on the segment (not from step start + t)
+        expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
+                                        jobs[b][1][0] + int(cursor[b, t]), H, jobs[b][1][1])
+                           for b in rows])                                   # (b, H, dof)
+        chunks = partial_denoise(policy, obs[rows], expert, betas[rows], generator=generator)   # (b, H, dof)
+        for row in np.argsort(seeds[rows], kind="stable"):                   # grouped by scenario
+            b, chunk = rows[row], chunks[row]
+            if seeds[b] != scenario:
+                env.reset(seed=int(seeds[b]))
+                scenario = seeds[b]
+            env.set_state(q[b], q_prev[b])
+            for j in range(min(n_act, n_steps[b] - t)):
+                env.set_state(env.clip_action(env.q, chunk[j]), env.q)   # env.step's motion, no contact check
+                i = t + j + 1
+                traj[b, i:] = env.q
+                n_recorded[b] = i
+                c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), cfg.settle_window)
+                cursor[b, i:], nearest_error[b, i:] = c, err
+                diverged[b] |= err >= diverge_rad
+            q[b], q_prev[b] = env.q, env.q_prev
+            obs[b] = env.make_obs(q[b], q_prev[b])
+    roll = Rollouts(traj, reference, n_steps, n_recorded, diverged, cursor, nearest_error, cfg.min_rollout_steps)
     # s = sigma^2_{k_sw} = 1 - alphabar_{k_sw}, k_sw = round(beta K): the noise our sampler injects
     # (the authors' code reads round(beta (K - 1)), its sampler's switch: at most one step apart)
     s = np.asarray(noise_fraction(policy.schedule, betas), dtype=np.float64)   # (B,)
@@ -223,117 +264,10 @@ def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas,
     return BlendRollouts(betas, s, x, ~roll.discarded, roll)
 
 
-@dataclass
-class Rollouts:
-    """B closed-loop rollouts, each from the first state of an expert segment (scenarios may differ).
-    Entries of the (B, L + 1[, dof]) arrays past a rollout's n_recorded repeat its last one."""
-    trajectory: np.ndarray      # (B, L + 1, dof) joint positions
-    reference: np.ndarray       # (B, L + 1, dof) time-matched expert joint positions (padded with the last)
-    n_steps: np.ndarray         # (B,) length of each rollout's expert segment, in steps (L = max)
-    n_recorded: np.ndarray      # (B,) steps executed (a rollout may stop early on divergence)
-    diverged: np.ndarray        # (B,) True if the nearest-state distance ever reached the threshold
-    cursor: np.ndarray          # (B, L + 1) expert index the monotone projection assigned to each step
-    nearest_error: np.ndarray   # (B, L + 1) distance to the nearest expert state in the window (rad)
-    min_steps: int = 0          # rollouts that recorded fewer steps are discarded
-
-    @property
-    def discarded(self) -> np.ndarray:
-        """True for rollouts that left the expert's route or are too short (Sec. IV-D discards them)."""
-        return self.diverged | (self.n_recorded < self.min_steps)          # (B,)
-
-
-def closed_loop_rollouts(env, jobs: list[tuple[dict, tuple[int, int]]], chunk_fn, horizon: int, n_act: int,
-                         diverge_rad: float, window: int = CalibrationConfig.settle_window,
-                         min_steps: int = 0) -> Rollouts:
-    """One closed-loop rollout per job (episode, segment), tracked along that segment's expert states.
-
-    Rollout b starts at the segment's first recorded state and runs for the segment's length; after every
-    env step its cursor on the segment moves by `advance_cursor`. At every decision (each n_act steps)
-    chunk_fn(obs (b, obs_dim), expert (b, H, dof), rows) gives the chunks of all live rollouts in ONE call
-    (expert = the expert's chunk from the cursor on); each executes its first n_act actions by the env's
-    motion rule (env.clip_action). One env serves all rollouts (set_state per rollout, reset(seed) only when
-    the scenario changes). A rollout whose nearest-state distance reaches diverge_rad is marked diverged.
-    Contacts are not checked: the env is
-    kinematic, and in these cluttered scenes a deviation of a few median steps already grazes an obstacle,
-    so discarding on contact would keep only the luckiest rollouts (benchmarks/README.md, the estimator now).
-    """
-    B = len(jobs)
-    lengths, refs, q0, q_prev0 = [], [], [], []
-    for episode, (start, end) in jobs:
-        q_exp = np.asarray(episode["q"], dtype=np.float64)
-        n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
-        if n < 1:
-            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
-        lengths.append(n)
-        refs.append(q_exp[start:start + n + 1])       # (n + 1, dof): the expert states the cursor moves on
-        q0.append(q_exp[start])
-        q_prev0.append(q_exp[max(start - 1, 0)])
-    L = max(lengths)
-    reference = np.stack([np.concatenate([r, np.repeat(r[-1:], L + 1 - len(r), axis=0)]) for r in refs])
-    traj = np.repeat(reference[:, :1], L + 1, axis=1)                        # (B, L + 1, dof)
-    q, q_prev = np.stack(q0), np.stack(q_prev0)                               # (B, dof) each
-    n_steps = np.asarray(lengths, dtype=np.int64)
-    n_recorded = np.zeros(B, dtype=np.int64)
-    cursor = np.zeros((B, L + 1), dtype=np.int64)                            # starts on the expert's first state
-    nearest_error = np.zeros((B, L + 1))                                     # (B, L + 1), 0 at the start
-    diverged = np.zeros(B, dtype=bool)
-    live = np.ones(B, dtype=bool)
-    seeds = np.array([int(ep["seed"]) for ep, _ in jobs])
-    scenario = [None]                                                        # seed the env holds now
-
-    def use_scenario(seed):
-        if scenario[0] != seed:
-            env.reset(seed=int(seed))
-            scenario[0] = seed
-
-    obs = np.zeros((B, env.obs_dim), dtype=np.float32)
-    for seed in np.unique(seeds):                                            # first observations
-        use_scenario(seed)
-        rows = np.flatnonzero(seeds == seed)
-        obs[rows] = env.make_obs(q[rows], q_prev[rows])                      # (b, obs_dim)
-        for b in rows:
-            episode, (start, _) = jobs[b]
-            if not np.allclose(obs[b], np.asarray(episode["obs"][start], dtype=np.float32), atol=1e-4):
-                raise ValueError(f"the env's scenario for seed {seed} does not reproduce the recorded "
-                                 f"observation at step {start}: the episode was recorded with another "
-                                 "env version or config; re-record it")
-    for t in range(0, L, n_act):
-        live &= n_steps > t
-        rows = np.flatnonzero(live)
-        if len(rows) == 0:
-            break
-        # the expert chunk from where the cursor is on the segment (not from step start + t)
-        expert = np.stack([expert_chunk(np.asarray(jobs[b][0]["action"], dtype=np.float64),
-                                        jobs[b][1][0] + int(cursor[b, t]), horizon, jobs[b][1][1])
-                           for b in rows])                                   # (b, H, dof)
-        chunks = chunk_fn(obs[rows], expert, rows)                           # (b, H, dof), one call
-        for seed in np.unique(seeds[rows]):
-            use_scenario(seed)
-            for b, chunk in zip(rows, chunks):
-                if seeds[b] != seed:
-                    continue
-                env.set_state(q[b], q_prev[b])
-                for j in range(min(n_act, n_steps[b] - t)):
-                    env.set_state(env.clip_action(env.q, chunk[j]), env.q)   # env.step's motion, no contact check
-                    i = t + j + 1
-                    traj[b, i:] = env.q
-                    n_recorded[b] = i
-                    c, err = advance_cursor(env.q, refs[b], int(cursor[b, i - 1]), window)
-                    cursor[b, i:], nearest_error[b, i:] = c, err
-                    diverged[b] |= err >= diverge_rad
-                q[b], q_prev[b] = env.q, env.q_prev
-                obs[b] = env.make_obs(q[b], q_prev[b])
-    return Rollouts(traj, reference, n_steps, n_recorded, diverged, cursor, nearest_error, min_steps)
-
-
 def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
-    """One env step of the monotone, windowed nearest-state projection onto the expert segment
-    -> (the new cursor, the distance from q to the nearest expert state around it).
-
-    The paper compares a rollout with the "time-matched" expert; as in the authors' code the match is a
-    cursor that moves toward the nearest expert state in the window, never back and at most one index a
-    step, so a rollout at another pace is compared with where it is on the path.
-    """
+    """The paper's "time-matched" expert state, as the authors' code finds it: one step of a cursor on the
+    expert segment that moves toward the nearest state in the window, never back and at most one index a
+    step -> (the new cursor, the distance from q to the nearest expert state around it)."""
     j, _ = nearest_expert_state(q, expert_q, cursor, window)
     cursor = min(max(j, cursor), cursor + 1)                                 # monotone, <= 1 index per step
     _, distance = nearest_expert_state(q, expert_q, cursor, window)
@@ -342,7 +276,7 @@ def advance_cursor(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int
 
 def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, window: int) -> tuple[int, float]:
     """The expert state nearest to q (dof,) among expert_q (m + 1, dof) within window // 2 steps of the
-    cursor (cut, not padded, at the segment's ends) -> (its index, ||q - q*_j|| in radians)."""
+    cursor -> (its index, ||q - q*_j|| in radians)."""
     lo, hi = max(cursor - window // 2, 0), min(cursor + window // 2 + 1, len(expert_q))
     dist = np.linalg.norm(expert_q[lo:hi] - q, axis=-1)                       # (w,)
     j = int(np.argmin(dist))
@@ -351,9 +285,9 @@ def nearest_expert_state(q: np.ndarray, expert_q: np.ndarray, cursor: int, windo
 
 def settling_error(rollouts: Rollouts, settle_start: int = CalibrationConfig.settle_start,
                    settle_end: int = CalibrationConfig.settle_end) -> np.ndarray:
-    """x of Eq. (12) per rollout: sqrt(mean_t e_t^2) over the recorded steps t in [settle_start, settle_end]
-    (before them: the transient), e_t = the nearest-state distance (rad; the norm, see `fit_equilibrium`).
-    A rollout that stopped before settle_start (discarded anyway) gets the RMS over all its steps."""
+    """x of Eq. (12) per rollout: sqrt(mean_t e_t^2), e_t the nearest-state distance (rad), over the recorded
+    steps t in [settle_start, settle_end] (before: the transient); a rollout that stopped before settle_start
+    (discarded anyway) over all its steps."""
     x = np.zeros(len(rollouts.n_recorded))
     for b, n in enumerate(rollouts.n_recorded):
         e = rollouts.nearest_error[b, settle_start:min(settle_end, n) + 1]   # (steps,)
@@ -388,21 +322,14 @@ def ratio_cells(betas, s, x, kept, min_survivors: int = CalibrationConfig.min_su
                       spread, n >= min_survivors)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 3: the equilibrium of expert and policy (Eqs. 8-12) and its fit for W
-# ----------------------------------------------------------------------------------------------
+# ---- Step 3: the equilibrium of expert and policy (Eqs. 8-12) and its fit for W ----------------------------
 
 def equilibrium(s, W, r):
-    """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* at noise fraction s (Eq. 8).
-
-    With u* = K* (-x) (Eq. 9), u_theta = K_theta (W - x) (Eq. 10) and u = 0 (Eq. 11):
-    x = W s / (s + r (1 - s)), r = K*/K_theta > 0. x(0) = 0 (pure expert), x(1) = W (pure policy).
-    """
+    """Eq. (12): settling error of the blend u = s u_theta + (1 - s) u* (Eq. 8) with u* = K* (-x) (Eq. 9),
+    u_theta = K_theta (W - x) (Eq. 10) at rest, u = 0 (Eq. 11); r = K*/K_theta > 0, x(0) = 0, x(1) = W."""
     s = np.asarray(s, dtype=np.float64)
-    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
-    if not r > 0:
-        raise ValueError(f"the gain ratio r = K*/K_theta must be > 0, got {r}")
+    if np.any((s < 0) | (s > 1)) or not np.all(np.isfinite(s)) or not r > 0:
+        raise ValueError(f"need s = sigma^2_k_sw in [0, 1] and the gain ratio r = K*/K_theta > 0, got s = {s}, r = {r}")
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     # Eq. (12): x = W s / (s + r (1 - s))
     return np.asarray(W, dtype=np.float64) * s / (s + r * (1.0 - s))
@@ -411,6 +338,7 @@ def equilibrium(s, W, r):
 
 @dataclass
 class EquilibriumFit:
+    """fit_equilibrium's result."""
     W: float                    # settling error of the unguided policy (same units as x)
     r: float                    # gain ratio K*/K_theta
     n_points: int               # points used
@@ -419,13 +347,9 @@ class EquilibriumFit:
 
 def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
                     n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
-    """Least squares for W and r > 0 in Eq. (12) from the finite points (s_i, x_i).
-
-    For a fixed r the model is linear in W: W in closed form (`_best_W`), r on a log grid over r_bounds,
-    the grid's best refined by `refine_fit_robust`. x is the *norm* of the joint deviation: with isotropic
-    gains every joint follows x_j = W_j g(s), so ||x|| = ||W|| g(s) is Eq. (12) again and Eq. (14) needs
-    only ||W||^2. Needs >= 3 finite points with >= 2 distinct s > 0; every x = 0 gives W = 0, r = 1.
-    """
+    """Least squares for W and r > 0 in Eq. (12) from the finite points (s_i, x_i): W in closed form for each
+    r (`_best_W`), r on a log grid over r_bounds, refined by `refine_fit_robust`. x is the norm of the joint
+    deviation (with isotropic gains ||x|| = ||W|| g(s), Eq. 12 again; Eq. 14 needs only ||W||^2)."""
     s = np.asarray(s, dtype=np.float64).reshape(-1)
     x = np.asarray(x, dtype=np.float64).reshape(-1)
     if s.shape != x.shape:
@@ -461,10 +385,8 @@ def _best_W(s, x, w, r):
 
 def refine_fit_robust(s, x, log_r_grid: np.ndarray, i: int, huber_k: float = 1.345,
                       n_iter: int = 30) -> tuple[float, float]:
-    """fit_equilibrium's refinement of its grid search -> (W, r): golden-section search in log r between
-    the grid neighbours of the best point i (W in closed form), then iteratively reweighted least squares
-    with Huber weights (huber_k times the MAD scale of the residuals) that down-weight outliers, the grid
-    searched again each round, for at most n_iter rounds (n_iter = 1: plain least squares, as calibrate)."""
+    """-> (W, r): golden section in log r between the grid neighbours of point i, then at most n_iter rounds
+    of Huber-weighted least squares against outliers (n_iter = 1: plain least squares, as calibrate)."""
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
     n_grid = len(log_r_grid)
     w = np.ones_like(x)                                                     # (n,) Huber weights
@@ -504,42 +426,22 @@ def _golden_min(f, a: float, b: float, n_iter: int = 60) -> float:
     return (a + b) / 2
 
 
-def bound_W(W: float, W_range: tuple, unit: float) -> tuple[float, str]:
-    """(W, fit note): the fitted W held within W_range (radians; the authors' curve_fit bounds, [1, 60] of
-    their median steps, `unit` rad each). W is x extrapolated to s = 1; the note says when it was held."""
-    lo, hi = W_range
-    if W > hi or W < lo:
-        edge = hi if W > hi else lo
-        return edge, (f"fit, W at the fit's bound {edge / unit:.0f} (the fit extrapolated to "
-                      f"{W / unit:.1f}; units: the paper's median steps)")
-    return W, "fit"
-
-
-def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tuple[float, float] | None:
+def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tuple[float, float]:
     """W's 95 % bootstrap interval: cfg.bootstrap resamples of the kept rollouts within each ratio (with
-    replacement), each averaged per ratio (`ratio_cells`) and fitted like W, held within W_range (radians).
-    None if nothing could be fitted."""
+    replacement), each averaged per ratio (`ratio_cells`) and fitted like W, held within W_range (radians)."""
     betas, s, x, kept = (np.asarray(a) for a in (betas, s, x, kept))
     rng = np.random.default_rng(cfg.bootstrap_seed)
     groups = [np.flatnonzero((betas == b) & kept) for b in np.unique(betas)]
     Ws = []
     for _ in range(cfg.bootstrap):
-        idx = np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups if len(g)] or [np.zeros(0, int)])
+        idx = np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups if len(g)])
         cells = ratio_cells(betas[idx], s[idx], x[idx], np.ones(len(idx), dtype=bool), cfg.min_survivors)
-        try:
-            fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
-        except ValueError:
-            continue
-        Ws.append(min(max(fit.W, W_range[0]), W_range[1]))
-    if not Ws:
-        return None
-    lo, hi = np.percentile(Ws, [2.5, 97.5])
+        Ws.append(fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1).W)
+    lo, hi = np.percentile(np.clip(Ws, *W_range), [2.5, 97.5])
     return float(lo), float(hi)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16)
-# ----------------------------------------------------------------------------------------------
+# ---- Step 4: scale Sigma_hat to the closed-loop error (Eqs. 2, 13-16) --------------------------------------
 
 def dart_alpha(W, T: int) -> float:
     """Eq. (13): DART's alpha approximated by the settling error, alpha = T ||W||^2."""
@@ -558,11 +460,9 @@ def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
 
 
 def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
-    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack.
-
-    Eq. (2) with alpha from Eq. (13) (T cancels); W the scalar norm or a vector. A step with
-    tr(Sigma_hat_t) = 0 has no direction to keep: it gets ||W||^2 / d I (the same trace).
-    """
+    """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack: Eq. (2) with
+    alpha from Eq. (13) (T cancels); W the scalar norm or a vector. A step with tr(Sigma_hat_t) = 0 has no
+    direction to keep: it gets ||W||^2 / d I (the same trace)."""
     sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
     if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
         raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
@@ -588,24 +488,16 @@ def pooled_sigma(sigma_hats: np.ndarray, W) -> np.ndarray:
     # <<< exercise 7
 
 
-# ----------------------------------------------------------------------------------------------
-# One calibration per DAgger round, and its record
-# ----------------------------------------------------------------------------------------------
+# ---- One calibration per DAgger round, and its record ------------------------------------------------------
 
 def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: CalibrationConfig,
               generator: torch.Generator | None = None, log=None) -> Calibration:
-    """Sec. IV-D for one round: Sigma_hat_t open loop, W from blended rollouts, Sigma^alpha_t, Sigma_bar^alpha.
-
-    episodes: the round's intervention episodes D_k (demonstrations work too); median_step in radians;
-    log: an optional callable(str) told when each step is done. If the fit is impossible (fewer than 3
-    ratios with min_survivors kept rollouts), W falls back to the open-loop error, ||W||^2 = tr(Sigma_bar)
-    (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note starts with "FALLBACK"; never NaN.
-    """
+    """Sec. IV-D for one round on its intervention episodes (median_step in rad; log: an optional callable(str)).
+    Without a fit (fewer than 3 ratios with min_survivors kept rollouts) W falls back to the open-loop error,
+    ||W||^2 = tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says "FALLBACK"."""
     if not median_step > 0:
         raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
-    H = policy_horizon(policy)
     paper_unit = envs.paper_median_step(env)                                 # rad, or None
-    threshold = diverge_radius(cfg.diverge_threshold, median_step, paper_unit)   # the paper's 15 -> radians
     say = log or (lambda msg: None)
 
     # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)
@@ -614,27 +506,30 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
 
     # Step 2 (Fig. 2b): blended rollouts, one per ratio from every long enough segment, all batched,
     # averaged per ratio (the authors' cells)
-    blend_beta, chosen = blend_schedule(episodes, H, cfg)
-    blend = blend_rollouts(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg,
-                           generator, threshold)
+    blend_beta, chosen = blend_schedule(episodes, int(policy.cfg.horizon), cfg)
+    blend = blend_rollouts(env, policy, [(episodes[e], seg) for e, seg in chosen], blend_beta, cfg, generator,
+                           diverge_radius(cfg.diverge_threshold, median_step, paper_unit))
     s, x, kept = blend.s, blend.x, blend.kept
     cells = ratio_cells(blend_beta, s, x, kept, cfg.min_survivors)
     say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
         f"ratios with >= {cfg.min_survivors} of them; fitting W")
 
-    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages, W within the authors' bounds
+    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages (plain least squares, n_iter=1, as the authors'
+    # curve_fit); W held within the authors' bounds, in radians (W is x extrapolated to s = 1)
     unit = median_step if paper_unit is None else paper_unit
-    W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)               # radians
+    W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)
     try:
-        # the cells are averages: plain least squares (n_iter=1), as the authors' curve_fit
         fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
-        r = fit.r
-        W, note = bound_W(fit.W, W_range, unit)
-        W_ci = W_interval(blend_beta, s, x, kept, W_range, cfg)
     except ValueError as err:
         W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
         r, note, W_ci = None, f"FALLBACK: no fit, W from the open-loop error ({err})", None
         say(f"!! {note}")
+    else:
+        r, W, note = fit.r, min(max(fit.W, W_range[0]), W_range[1]), "fit"
+        if W != fit.W:
+            note = (f"fit, W at the fit's bound {W / unit:.0f} (the fit extrapolated to {fit.W / unit:.1f}; "
+                    "units: the paper's median steps)")
+        W_ci = W_interval(blend_beta, s, x, kept, W_range, cfg)
 
     # Step 4 (Fig. 2c, 2d): Eq. (14) per step, Eqs. (15)-(16) pooled
     return Calibration(W=W, r=r, fit_note=note, median_step=float(median_step),
@@ -682,18 +577,12 @@ class Calibration:
     def from_dict(cls, data: dict) -> "Calibration":
         """The inverse of to_dict (calibration.json; older files: without W_ci or paper_median_step, and
         with the deleted unguided control's 'unguided_pooled' / 'closed_loop_pooled', dropped)."""
-        kwargs = {}
-        for k, v in data.items():
-            if k in ("unguided_pooled", "closed_loop_pooled"):
-                continue
-            if k in ("sigma_hat", "sigma_alpha", "pooled", "blend_s", "blend_x", "blend_beta",
-                     "sigma_per_joint") and v is not None:
-                v = np.asarray(v, dtype=np.float64)
-            elif k in ("episode_index", "timestep", "blend_episode", "blend_start"):
-                v = np.asarray(v, dtype=np.int64)
-            elif k == "blend_kept":
-                v = np.asarray(v, dtype=bool)
-            kwargs[k] = v
+        dtypes = {"episode_index": np.int64, "timestep": np.int64, "blend_episode": np.int64,
+                  "blend_start": np.int64, "blend_kept": bool}
+        kwargs = {k: v for k, v in data.items() if k not in ("unguided_pooled", "closed_loop_pooled")}
+        for k, v in kwargs.items():
+            if isinstance(v, list) and k != "W_ci":                          # the arrays
+                kwargs[k] = np.asarray(v, dtype=dtypes.get(k, np.float64))
         return cls(**kwargs)
 
     def report(self) -> str:
@@ -727,9 +616,7 @@ def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
     return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
 
 
-# ----------------------------------------------------------------------------------------------
-# Figures
-# ----------------------------------------------------------------------------------------------
+# ---- Figures -----------------------------------------------------------------------------------------------
 
 def _pyplot():
     """matplotlib.pyplot on the file-only Agg backend."""
@@ -739,11 +626,6 @@ def _pyplot():
     return plt
 
 
-def _ee_xy(env, q: np.ndarray) -> np.ndarray:
-    """(..., 2) end-effector positions: the planar env's plane, or a 3-D env's top view (x, y)."""
-    return env.ee(q)[..., :2]
-
-
 def plot_method_overview(env, episode: dict, calibration: Calibration, policy, path,
                          betas=(0.2, 0.5, 0.7, 0.9), n_samples: int = 6, stride: int = 6,
                          generator: torch.Generator | None = None) -> None:
@@ -751,102 +633,78 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     blended rollouts at `betas`, both with the policy's n_act. Covariances are 2-sigma ellipses of
     J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y), with its goal.
     """
-    plt = _pyplot()
-    env.reset(seed=int(episode["seed"]))
     if env.dim not in (2, 3):
         raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
-    planar = env.dim == 2
+    plt, c, planar = _pyplot(), calibration, env.dim == 2
+    env.reset(seed=int(episode["seed"]))
     cfg = CalibrationConfig(n_samples=n_samples, n_act=int(policy.cfg.n_act), stride=stride)
     q_exp = np.asarray(episode["q"], dtype=np.float64)
-    # Eq. (1) on this segment as in open_loop_sigma, keeping the samples: steps (m,), samples (m, n, H, dof)
-    (start, end), steps, samples, sigma_hat = _overview_open_loop(policy, episode, cfg, generator)
-    radius = diverge_radius(cfg.diverge_threshold, calibration.median_step, calibration.paper_median_step)
+    start, end = max(expert_segments(episode, int(policy.cfg.horizon)), key=lambda se: se[1] - se[0])
+    # Eq. (1) on that segment alone, then the blended rollouts from its first state
+    t = np.arange(len(episode["expert"]))
+    segment = dict(episode, expert=(t >= start) & (t < end))
+    open_loop = open_loop_sigma(policy, [segment], stride, n_samples, generator, n_act=cfg.n_act)
+    steps = open_loop.timestep                                               # (m,)
+    radius = diverge_radius(cfg.diverge_threshold, c.median_step, c.paper_median_step)
     blend = blend_rollouts(env, policy, [(episode, (start, end))] * len(betas), betas, cfg, generator, radius)
 
     # each panel: a planar env's scene (env.render at the segment's first state) or a 3-D env's goal, the expert
-    expert_path = _ee_xy(env, q_exp[start:end])                              # (n, 2) end effector
+    expert_path = env.ee(q_exp[start:end])[:, :2]                            # (n, 2): the plane or the top view
     fig, axes = plt.subplots(1, 4, figsize=(18, 5.8))
     titles = [r"(a) open-loop samples, $\hat\Sigma_t$ (Eq. 1)", r"(b) blended rollouts, partial denoising at $\beta$",
               r"(c) per-step $\Sigma^\alpha_t$ (Eq. 14)", r"(d) pooled $\bar\Sigma^\alpha$ (Eq. 16)"]
     for ax, title in zip(axes, titles):
-        if planar:
+        if planar:                                   # the planar render labels its axes in metres itself
             env.render(ax, q=q_exp[start], alpha=0.5)
         else:
             ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none", label="goal")
+            ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
         ax.plot(*expert_path.T, color="tab:blue", lw=2, label="expert intervention")
         ax.set_title(title, fontsize=10)
-        if not planar:  # the planar render labels its axes in metres itself
-            ax.set_aspect("equal")
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
 
-    # (a) each sampled chunk's executed steps from its state, and Sigma_hat_t
-    for t, chunks in zip(steps, samples):
+    # (a) each sampled chunk's executed steps from its state
+    for t, chunks in zip(steps, open_loop.samples):
         for chunk in chunks:
-            axes[0].plot(*_ee_xy(env, np.concatenate([q_exp[t][None], chunk[:cfg.n_act]])).T,
+            axes[0].plot(*env.ee(np.concatenate([q_exp[t][None], chunk[:cfg.n_act]]))[:, :2].T,
                          color="tab:orange", lw=0.7, alpha=0.6)
-    env.draw_noise_ellipses(axes[0], q_exp[steps], sigma_hat, "tab:orange", alpha=0.35)
     axes[0].plot([], [], color="tab:orange", label="policy chunks")
 
     # (b) the blended rollouts, dashed where discarded, with their settling error x
+    paths = [env.ee(blend.rollouts.trajectory[b])[:, :2] for b in range(len(blend.betas))]    # (L + 1, 2) each
     colors = plt.cm.viridis(np.linspace(0.1, 0.9, len(blend.betas)))
     for b, (beta, color) in enumerate(zip(blend.betas, colors)):
-        path_ee = _ee_xy(env, blend.rollouts.trajectory[b, :blend.rollouts.n_recorded[b] + 1])
-        axes[1].plot(*path_ee.T, color=color, lw=1.5, linestyle="-" if blend.kept[b] else "--",
-                     label=rf"$\beta$={beta:.2f}, x={blend.x[b] / calibration.median_step:.1f} med. steps"
+        axes[1].plot(*paths[b][:blend.rollouts.n_recorded[b] + 1].T, color=color, lw=1.5,
+                     linestyle="-" if blend.kept[b] else "--",
+                     label=rf"$\beta$={beta:.2f}, x={blend.x[b] / c.median_step:.1f} med. steps"
                            + ("" if blend.kept[b] else " (discarded)"))
 
-    # (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14); (d) the pooled Sigma_bar^alpha (Eq. 16)
-    env.draw_noise_ellipses(axes[2], q_exp[steps], calibrated_sigma(sigma_hat, calibration.W), "tab:red",
-                            alpha=0.35)
-    env.draw_noise_ellipses(axes[3], q_exp[steps], np.repeat(calibration.pooled[None], len(steps), axis=0),
-                            "tab:purple", alpha=0.35)
+    # (a) Sigma_hat_t, (c) Sigma^alpha_t = Sigma_hat_t scaled to ||W||^2 (Eq. 14), (d) the pooled Sigma_bar^alpha
+    for ax, cov, color in ((axes[0], open_loop.sigma, "tab:orange"),
+                           (axes[2], calibrated_sigma(open_loop.sigma, c.W), "tab:red"),
+                           (axes[3], np.repeat(c.pooled[None], len(steps), axis=0), "tab:purple")):
+        env.draw_noise_ellipses(ax, q_exp[steps], cov, color, alpha=0.35)
 
-    # per-joint sigma, legends below panels (a)-(b), title, a common zoom on the intervention, the file
-    per_joint = ", ".join(f"{v:.1f}" for v in calibration.sigma_per_joint)
-    where = dict(x=0.5, y=-0.14, ha="center", va="top")  # below the axis, outside the data
-    rad = np.sqrt(np.diag(calibration.pooled))                               # (dof,) per-joint sigma, rad
-    axes[3].text(s=f"per-joint sigma: {per_joint} median steps\n= {other_units(rad, calibration.paper_median_step, 1)}",
-                 transform=axes[3].transAxes, fontsize=8, **where)
-    for ax in axes[:2]:  # below the panel, outside the data
+    # per-joint sigma and the legends below the panels (outside the data), a common zoom on the intervention
+    per_joint = ", ".join(f"{v:.1f}" for v in c.sigma_per_joint)
+    axes[3].text(0.5, -0.14, f"per-joint sigma: {per_joint} median steps\n= "
+                 f"{other_units(np.sqrt(np.diag(c.pooled)), c.paper_median_step, 1)}",
+                 transform=axes[3].transAxes, fontsize=8, ha="center", va="top")
+    for ax in axes[:2]:
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
-    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = "
-                 f"{calibration.W / calibration.median_step:.2f} median steps = "
-                 f"{other_units(calibration.W, calibration.paper_median_step)}; ellipses 2 sigma"
-                 + ("" if planar else "; top view") + ")")
-    pts = np.concatenate([expert_path, *[_ee_xy(env, blend.rollouts.trajectory[b]) for b in range(len(blend.betas))],
-                          np.empty((0, 2)) if planar else env.goal[None, :2]])
-    env.square_view(list(axes), pts, 0.06)
+    fig.suptitle(f"Policy calibration on scenario {episode['seed']} (W = {c.W / c.median_step:.2f} median steps = "
+                 f"{other_units(c.W, c.paper_median_step)}; ellipses 2 sigma" + ("" if planar else "; top view") + ")")
+    goal = np.empty((0, 2)) if planar else env.goal[None, :2]
+    env.square_view(list(axes), np.concatenate([expert_path, *paths, goal]), 0.06)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # the legends below the panels stay in the picture
     plt.close(fig)
 
 
-def _overview_open_loop(policy, episode: dict, cfg: CalibrationConfig, generator):
-    """Fig. 2a's data on the episode's longest expert segment: Eq. (1) at every cfg.stride-th label step,
-    as in open_loop_sigma, keeping the samples -> ((start, end), steps (m,), samples (m, n, H, dof),
-    Sigma_hat (m, dof, dof))."""
-    H, n, n_act = policy_horizon(policy), cfg.n_samples, cfg.n_act
-    start, end = max(expert_segments(episode, H), key=lambda se: se[1] - se[0])
-    actions = np.asarray(episode["action"], dtype=np.float64)
-    starts = label_starts(episode, H)
-    steps = starts[(starts >= start) & (starts < end)][::cfg.stride]         # (m,)
-    obs = np.repeat(np.asarray(episode["obs"], dtype=np.float32)[steps], n, axis=0)
-    samples = _sample_batched(policy, obs, generator, 4096).reshape(len(steps), n, H, -1)
-    d = samples - np.stack([expert_chunk(actions, int(t), H, end) for t in steps])[:, None]
-    d = d[:, :, :n_act]                                                      # (m, n, n_act, dof): executed steps
-    sigma_hat = np.einsum("mnhi,mnhj->mij", d, d) / (n * n_act)              # Eq. (1), (m, dof, dof)
-    return (start, end), steps, samples, sigma_hat
-
-
-def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
-                   min_survivors: int = CalibrationConfig.min_survivors) -> None:
-    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps: every blended rollout (kept: dots;
-    discarded: crosses), the per-ratio RMS of the kept ones with their spread (fitted: filled; too few
-    kept: open), the fitted Eq. (12), W and its 95 % bootstrap interval (an error bar at s = 1).
-    median_step in radians (None: the calibration's)."""
-    plt = _pyplot()
-    c = calibration
+def plot_blend_fit(calibration: Calibration, median_step: float | None, path) -> None:
+    """Fig. 4: settling error vs sigma^2_{k_sw} in median steps (median_step rad; None: the calibration's):
+    every blended rollout (kept: dots; discarded: crosses), the per-ratio RMS of the kept ones with their
+    spread (fitted: filled; too few kept: open), the fitted Eq. (12), W and its 95 % bootstrap interval."""
+    plt, c, min_survivors = _pyplot(), calibration, CalibrationConfig.min_survivors
     unit = c.median_step if median_step is None else median_step
     fig, ax = plt.subplots(figsize=(10.5, 3.8))
     kept = c.blend_kept
@@ -874,37 +732,31 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path,
         s = np.linspace(0.0, 1.0, 201)
         ax.plot(s, equilibrium(s, c.W, c.r) / unit, color="C1",
                 label=f"Eq. (12) fit, r = K*/K$_\\theta$ = {c.r:.3g}")
-    ax.axhline(c.W / unit, color="k", linestyle="--", linewidth=1,
-               label=f"W = {c.W / unit:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
+    W = c.W / unit
+    ax.axhline(W, color="k", linestyle="--", linewidth=1,
+               label=f"W = {W:.2f} median steps = {other_units(c.W, c.paper_median_step)}"
                      + ("" if c.r is not None else " (FALLBACK: no fit)"))
     if c.W_ci is not None:                                                       # an error bar at s = 1
-        lo, hi, W = c.W_ci[0] / unit, c.W_ci[1] / unit, c.W / unit
+        lo, hi = c.W_ci[0] / unit, c.W_ci[1] / unit
         ax.errorbar([1.0], [W], yerr=[[max(W - lo, 0.0)], [max(hi - W, 0.0)]], fmt="o", color="k", capsize=4,
                     clip_on=False, zorder=4, label=f"W, 95 % bootstrap interval {lo:.2f}–{hi:.2f}")
-    ax.set_ylim(0, top)
     # the right axis: the paper's median steps (the unit of its Fig. 4 and W = 8.0), or rad without one
     scale = unit / (c.paper_median_step or 1.0)
     right = ax.secondary_yaxis("right", functions=(lambda y: y * scale, lambda y: y / scale))
     right.set_ylabel("[the paper's median steps]" if c.paper_median_step else "[rad]")
-    ax.set_xlim(0, 1.04)  # room for W's error bar at s = 1, clear of the right-hand axis
-    ax.set_xlabel(r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$")
-    ax.set_ylabel("settling error [our median steps]")
-    ax.set_title("Blend fit for W (paper Fig. 4)")
+    ax.set(ylim=(0, top), xlim=(0, 1.04), title="Blend fit for W (paper Fig. 4)",   # x: room for W's error bar
+           xlabel=r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$",
+           ylabel="settling error [our median steps]")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.16, 1.0), frameon=False)  # outside the data
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
 
 
-# ----------------------------------------------------------------------------------------------
-# Demo
-# ----------------------------------------------------------------------------------------------
+# ---- Demo: a small policy trained on 100 oracle demonstrations, calibrated; Figs. 2 and 4 in this folder ---
+# (the oracle is imported here only: the method itself needs no expert in the loop)
 
 if __name__ == "__main__":
-    # Calibrate a small policy trained on 100 oracle demonstrations and draw Figs. 2 and 4 into the current
-    # folder. The oracle is imported here only: the method itself needs no expert in the loop.
-    import time
-
     import oracle
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train
 
@@ -912,18 +764,12 @@ if __name__ == "__main__":
     expert = oracle.Oracle(oracle.OracleConfig(seed=0, n_attempts=1))
     episodes = [expert.demonstrate(env, seed) for seed in env.train_seeds(100)]
     unit = envs.median_step(episodes)
-    print(f"{len(episodes)} oracle demonstrations, median step {unit:.4f} rad; training a small policy")
     policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100,
                                           down_dims=(32, 64, 128)))
-    train(policy, *chunk_dataset(episodes, policy.cfg.horizon),
-          TrainConfig(steps=1000, warmup_steps=100, log_every=250))
-    t0 = time.time()
-    cfg = CalibrationConfig(n_samples=4, n_act=policy.cfg.n_act)
-    calibration = calibrate(env, policy, episodes[:8], unit, cfg, torch.Generator().manual_seed(0))
-    print(f"calibrate: {time.time() - t0:.1f} s")
+    train(policy, *chunk_dataset(episodes, 16), TrainConfig(steps=1000, warmup_steps=100, log_every=250))
+    calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(n_act=8),
+                            torch.Generator().manual_seed(0))
     print(calibration.report())
     plot_blend_fit(calibration, unit, "fig4_blend_fit.png")
-    first = int(calibration.blend_episode[0])
-    plot_method_overview(env, episodes[first], calibration, policy, "fig2_method_overview.png",
-                         generator=torch.Generator().manual_seed(1))
-    print("wrote fig2_method_overview.png, fig4_blend_fit.png")
+    plot_method_overview(env, episodes[int(calibration.blend_episode[0])], calibration, policy,
+                         "fig2_method_overview.png", generator=torch.Generator().manual_seed(1))

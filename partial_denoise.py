@@ -13,16 +13,12 @@ Partial diffusion (Yoneda et al., "To the noise and back"; SDEdit, Meng et al.):
 forward to an intermediate noise level with Eq. (5), then let the policy run the reverse process Eq. (6)
 back to a clean chunk. beta = 0 keeps the expert chunk, beta = 1 forgets it (unguided sampling).
 
-Index convention (where public code for this method is off by one). With the paper's steps k = 1..K,
-beta picks k_sw = ToInteger(beta K) in 0..K, and
-  1. forward:  a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps     (Eq. 5, closed form),
-     exactly k_sw forward steps, noise fraction sigma^2_{k_sw} = 1 - alphabar_{k_sw} (noise_fraction(),
-     the s of calibrate.py's Eqs. 8-12);
-  2. reverse:  Eq. (6) at paper steps k_sw, k_sw - 1, ..., 1 (k_sw steps; the first expects the level of 1.).
-In diffusion.py's 0-based code (code k <-> paper step k + 1): q_sample(schedule, a*, k_sw - 1, eps), then
-reverse_process from code level k_sw - 1 down to 0; the paper's "k_sw - 1 timesteps" is that code index.
-The first reverse step must get the noise level the chunk holds (tests/test_partial_denoise.py checks it).
-k_sw = 0 returns the expert chunk unchanged; k_sw = K starts from pure noise up to sqrt(alphabar_K) a*.
+Index convention (where public code for this method is off by one): beta picks the paper's step
+k_sw = ToInteger(beta K) in 0..K; forward, a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps
+(Eq. 5 in closed form, noise fraction sigma^2_{k_sw} = 1 - alphabar_{k_sw}); reverse, Eq. (6) at paper steps
+k_sw, ..., 1. In diffusion.py's 0-based code (code k = paper step k + 1) that is q_sample at k_sw - 1, then
+reverse_process from code level k_sw - 1 down to 0: the first reverse step gets the noise level the chunk holds.
+k_sw = 0 returns the expert chunk unchanged.
 """
 
 import math
@@ -41,8 +37,7 @@ def _check_beta(beta):
     return b
 
 
-# ----------------------------------------------------------------------------------------------
-# Blending: Eq. (3), then the learned interpolator of Eq. (4) by partial diffusion
+# ---- Blending: Eq. (3), then the learned interpolator of Eq. (4) by partial diffusion ----------------------
 
 def lerp_blend(a_policy, a_expert, beta):
     """Eq. (3): a_lerp = beta a_policy + (1 - beta) a_expert (beta = 0: the expert, 1: the policy)."""
@@ -74,12 +69,9 @@ def switch_step(beta, K):
 
 
 def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=True):
-    """a_hat = f_theta(a*, beta | o) (Eq. 4) by partial diffusion, batched over B states.
-
-    obs (B, obs_dim), expert_chunk (B, H, dof) in joint units; beta a scalar or (B,) per row -> (B, H, dof)
-    float64 in joint units. Index convention: the module docstring. Random draws in policy.sample's per-row
-    layout (DiffusionPolicy.draw_noise): beta = 1 is policy.sample up to the sqrt(alphabar_K) a* term.
-    """
+    """a_hat = f_theta(a*, beta | o) (Eq. 4) by partial diffusion: obs (B, obs_dim), expert_chunk (B, H, dof),
+    beta a scalar or (B,) -> (B, H, dof) float64, joint units. Index convention: the module docstring. Noise in
+    policy.sample's per-row layout: beta = 1 is policy.sample up to the sqrt(alphabar_K) a* term."""
     cfg = policy.cfg
     obs = check_array("obs", obs, (None, cfg.obs_dim))
     B = obs.shape[0]
@@ -108,17 +100,12 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
     return out
 
 
-# ----------------------------------------------------------------------------------------------
-# How far the blend may move: Eq. (7) and the noise fraction sigma^2_{k_sw} (Sec. IV-D)
+# ---- How far the blend may move: Eq. (7) and the noise fraction sigma^2_{k_sw} (Sec. IV-D) -----------------
 
 def sdedit_bound(sigma2, bound, d, delta):
     """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
-    and a noise prediction with ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1).
-
-    Read it as the scale of the blend, sigma^2_{k_sw} (as Eqs. 8-12 use it), not as a guarantee for this
-    sampler: it counts only the forward noise, not DDPM's posterior noise (tests/test_partial_denoise.py,
-    test_eq7_counts_only_the_forward_noise).
-    """
+    and ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1). The scale of the blend, sigma^2_{k_sw}, not a
+    guarantee for this sampler: it counts only the forward noise (test_eq7_counts_only_the_forward_noise)."""
     sigma2 = np.asarray(sigma2, dtype=np.float64)
     if not (np.all(np.isfinite(sigma2)) and np.all((sigma2 >= 0) & (sigma2 <= 1)) and bound >= 0 and d >= 1
             and 0 < delta < 1):
@@ -143,19 +130,14 @@ def noise_fraction(schedule, beta):
     # <<< exercise 4
 
 
-# ----------------------------------------------------------------------------------------------
-# Fig. 3
+# ---- Fig. 3 ------------------------------------------------------------------------------------------------
 
 def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None,
                            n_samples=16):
-    """The paper's Fig. 3: at one state, the expert chunk, n_samples partial-denoising samples per beta and
-    unguided ones (beta = 1) as end-effector paths (no mean path: at large beta the samples split between
-    modes); one panel per beta, the scene in the first.
-
-    obs (obs_dim,), expert_chunk (H, dof) joint targets (env.ee of a target is where it leads); q (dof,)
-    the joints at obs (default env.q). A planar env is drawn in its plane over its scene, a 3-D env in the
-    top view (x, y in m) with the goal as a marker.
-    """
+    """The paper's Fig. 3: at one state (obs (obs_dim,), joints q, default env.q), the expert chunk (H, dof) and
+    n_samples partial-denoising samples per beta and unguided (beta = 1) as end-effector paths (no mean path:
+    at large beta the samples split between modes); the scene with every path, then one panel per beta. A
+    planar env in its plane over its scene, a 3-D env in the top view (x, y in m) with the goal."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -166,21 +148,18 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
         raise ValueError(f"plot_partial_denoising draws one state, obs (obs_dim,) and expert_chunk (H, dof), in a "
                          f"2-D or 3-D workspace; got {obs.shape}, {expert_chunk.shape}, dim = {env.dim}")
     planar = env.dim == 2
-    betas = [float(b) for b in _check_beta(np.atleast_1d(betas))]
+    levels = [float(b) for b in _check_beta(np.atleast_1d(betas))] + [1.0]      # and unguided
+    names = [rf"$\beta$ = {b:.2f}" for b in levels[:-1]] + [r"unguided policy, $\beta$ = 1"]
     q = np.asarray(env.q if q is None else q, dtype=np.float64)
     start = env.ee(q[None])[:, :2]                              # (1, 2): the plane, or the top view (x, y)
-
-    def ee_path(chunk):                                        # (H, dof) -> (H + 1, 2)
-        return np.concatenate([start, env.ee(chunk)[:, :2]])
-
-    levels = betas + [1.0]                                     # and unguided
     rows = n_samples * len(levels)
     samples = partial_denoise(policy, np.repeat(obs[None], rows, axis=0), np.repeat(expert_chunk[None], rows, axis=0),
                               np.repeat(levels, n_samples), generator=generator)   # (n * L, H, dof)
-    paths = np.stack([ee_path(chunk) for chunk in samples]).reshape(len(levels), n_samples, -1, 2)
-    expert_xy = ee_path(expert_chunk)                          # (H + 1, 2)
+    paths = np.stack([np.concatenate([start, env.ee(chunk)[:, :2]]) for chunk in samples])   # (n * L, H + 1, 2)
+    paths = paths.reshape(len(levels), n_samples, -1, 2)
+    expert_xy = np.concatenate([start, env.ee(expert_chunk)[:, :2]])                # (H + 1, 2)
 
-    # Panel 0: the whole scene with every path; panels 1..L: one beta each, zoomed to all paths.
+    # panel 0: the whole scene with every path; panels 1..L: one beta each, zoomed to all paths
     ncols = min(3, len(levels) + 1)
     nrows = math.ceil((len(levels) + 1) / ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 4.4 * nrows + 0.6), squeeze=False)
@@ -194,32 +173,24 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
             env.render(ax, q=q, alpha=0.35)
         else:
             ax.plot(*env.goal[:2], marker="*", markersize=14, color="tab:green", linestyle="none")
-            ax.set_aspect("equal")
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
+            ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
         ax.plot(*expert_xy.T, "-o", color="tab:blue", lw=2.5, ms=3, alpha=0.9, zorder=5)   # on top: the reference
         for i in (range(len(levels)) if p == 0 else [p - 1]):
             for path_xy in paths[i]:
                 ax.plot(*path_xy.T, "-", color=colors[i], lw=1.0, alpha=0.6)
         ax.plot(*start[0], "ko", ms=5)
-        if p == 0:
-            ax.set_title("the scene, every beta" + ("" if planar else " (top view)"), fontsize=10)
-        else:
-            i = p - 1
-            name = r"unguided policy, $\beta$ = 1" if i == len(betas) else rf"$\beta$ = {levels[i]:.2f}"
-            ax.set_title(rf"{name} ($k_{{sw}}$ = {switch_step(levels[i], policy.cfg.K)}, "
-                         rf"$\sigma^2_{{k_{{sw}}}}$ = {sigma2[i]:.3f})", fontsize=10)
+        ax.set_title("the scene, every beta" + ("" if planar else " (top view)") if p == 0 else
+                     rf"{names[p - 1]} ($k_{{sw}}$ = {switch_step(levels[p - 1], policy.cfg.K)}, "
+                     rf"$\sigma^2_{{k_{{sw}}}}$ = {sigma2[p - 1]:.3f})", fontsize=10)
     all_xy = np.concatenate([paths.reshape(-1, 2), expert_xy])
     env.square_view(list(axes[1:len(levels) + 1]), all_xy, 0.02)    # the same close-up for every beta
     if not planar:                                             # the scene panel: paths, start and goal
         env.square_view(axes[0], np.concatenate([all_xy, env.goal[None, :2]]), 0.02)
 
-    # One legend for all panels, below them (outside the data).
+    # one legend for all panels, below them (outside the data)
     handles = [plt.Line2D([], [], color="tab:blue", marker="o", ms=3, lw=2.5, label="expert chunk"),
                plt.Line2D([], [], color="k", marker="o", lw=0, label="end effector now")]
-    handles += [plt.Line2D([], [], color=c, lw=1.5, label=(r"unguided ($\beta$ = 1)" if i == len(betas)
-                                                            else rf"$\beta$ = {levels[i]:.2f}"))
-                for i, c in enumerate(colors)]
+    handles += [plt.Line2D([], [], color=c, lw=1.5, label=name) for c, name in zip(colors, names)]
     handles.append(plt.Line2D([], [], lw=0, label=f"{n_samples} samples per beta"))
     if not planar:
         handles.append(plt.Line2D([], [], color="tab:green", marker="*", ms=12, lw=0, label="goal"))
@@ -232,8 +203,8 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     return path
 
 
-# ----------------------------------------------------------------------------------------------
-# Demo: on the two-mode toy task (chunks go up-right or down-left), an expert chunk that bends off the up-right
+# ---- Demo --------------------------------------------------------------------------------------------------
+# On the two-mode toy task (chunks go up-right or down-left), an expert chunk that bends off the up-right
 # mode. Small beta keeps the bend; at beta = 1 half of the samples take the other mode (Fig. 3 in numbers).
 
 if __name__ == "__main__":

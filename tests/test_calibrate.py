@@ -152,7 +152,7 @@ def test_segments_and_label_starts_follow_the_contract():
     ep = _episode(expert)
     assert cal.expert_segments(ep, H) == [(0, 6), (14, 19)]      # the 3-step run is too short
     # first segment ends inside the episode: t + H <= 6; the last reaches the end: every step
-    np.testing.assert_array_equal(cal.label_starts(ep, H), [0, 1, 2, 14, 15, 16, 17, 18])
+    np.testing.assert_array_equal(np.flatnonzero(diffusion.label_mask(ep["expert"], H)), [0, 1, 2, 14, 15, 16, 17, 18])
     chunk = cal.expert_chunk(ep["action"], 4, H, end=6)          # padded with the segment's last action
     np.testing.assert_array_equal(chunk, ep["action"][[4, 5, 5, 5]])
 
@@ -239,7 +239,7 @@ def _expert_path(n=60, dof=3):
 
 def _project_onto_expert(trajectory, expert_q, window):
     """cal.advance_cursor along a whole recorded trajectory (n + 1, dof), the cursor starting at 0, as
-    closed_loop_rollouts does it online -> the cursor (n + 1,) and the nearest-state distance (n + 1,)."""
+    blend_rollouts does it online -> the cursor (n + 1,) and the nearest-state distance (n + 1,)."""
     cursor = np.zeros(len(trajectory), dtype=np.int64)
     distance = np.zeros(len(trajectory))
     distance[0] = cal.nearest_expert_state(trajectory[0], expert_q, 0, window)[1]
@@ -249,7 +249,7 @@ def _project_onto_expert(trajectory, expert_q, window):
 
 
 def _tracked(trajectory, expert, min_steps=20):
-    """Rollouts for one recorded trajectory, tracked as closed_loop_rollouts does it."""
+    """Rollouts for one recorded trajectory, tracked as blend_rollouts does it."""
     cursor, error = _project_onto_expert(trajectory, expert, window=16)
     n = len(trajectory) - 1
     reference = expert[np.minimum(np.arange(n + 1), len(expert) - 1)]
@@ -278,7 +278,7 @@ def test_settling_error_is_the_nearest_state_distance_not_the_time_matched_one()
 def test_settling_error_is_the_rms_over_the_inclusive_window_of_recorded_steps():
     """settling_error's window exactly, on hand-made nearest-state errors e_t = t (rad): steps settle_start..
     settle_end, both included, and never past the last recorded step n (entries past it repeat its value, as
-    closed_loop_rollouts pads them); a rollout that stopped before settle_start takes steps 1..n (step 0, the start
+    blend_rollouts pads them); a rollout that stopped before settle_start takes steps 1..n (step 0, the start
     on the expert, and the padding out). Catches a window end or start one step off in either branch (the
     short-rollout one, `1:n + 1` -> `1:n - 1`, survived the other tests) and a mean instead of the RMS."""
     L = 60
@@ -509,7 +509,7 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
     segments = cal.blend_schedule(episodes, policy.cfg.horizon, cfg)[1]
-    long_enough = {e for e, (a, b) in cal.segments_longest_first(episodes, policy.cfg.horizon)
+    long_enough = {e for e, ep in enumerate(episodes) for a, b in cal.expert_segments(ep, policy.cfg.horizon)
                    if b - a >= cfg.min_rollout_steps}
     assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
     assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
