@@ -4,7 +4,6 @@ Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per 
 each step's function in the loop's order, Table I's statistics, the paper's figures, the report and the entry point.
 
 Paper map (paper.tex):
-  Sec. IV-A, steps 1-6 ..... policy_calibrated_dagger
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
   Sec. IV-A step 2, Sec. V . collect_interventions / rollout: HG-DAgger collection gated by the RRT oracle
                              (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
@@ -79,16 +78,14 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
         if "closed_loop" in cfg.methods:
-            # Table I's closed-loop pooled row: steps 2-5 read literally, the round's noised (calibrated)
-            # policy collects the next round and is measured again; its own chain of rounds from round 1's data
+            # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain of rounds from round 1's
             closed_loop_chain(run, lineage, demos, stats, rounds_data[0], calibrations[0])
     bc_row.wait()
 
 
 # ---- Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py ------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
-TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
-                   "pooled", "per_step", "closed_loop")
+TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS], "pooled", "per_step", "closed_loop")
 ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS)  # and a research control's rows (experiment/controls.py)
 OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
 TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
@@ -170,8 +167,8 @@ def oracle_demonstrations(run):
 
     def demonstrate():
         env, expert = make_run_env(cfg), make_oracle(cfg)
-        demos, seed, failures, t0 = [], 0, 0, time.time()
-        t_log = t0  # the last progress line
+        demos, seed, failures = [], 0, 0
+        t0 = t_log = time.time()  # the start and the last progress line
         run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
         while len(demos) < cfg.n_demos:
             seed += 1
