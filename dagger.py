@@ -1,30 +1,24 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
 Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, the config and
-each step's function in the loop's order, Table I's statistics, the paper's figures, the report and the entry
-point.
+each step's function in the loop's order, Table I's statistics, the paper's figures, the report and the entry point.
 
 Paper map (paper.tex):
-  Sec. IV-A, steps 1-6 ..... policy_calibrated_dagger: D0 from the oracle, BC pi_0, HG-DAgger rounds,
-                             calibration, augmentation, co-training, fine-tuning from pi_0, evaluation
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
-  Sec. IV-A step 2, Sec. V . collect_interventions / rollout: expert-gated (HG-DAgger) collection with the
-                             RRT oracle (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
+  Sec. IV-A step 2, Sec. V . collect_interventions / rollout: HG-DAgger collection gated by the RRT oracle
+                             (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
   Sec. IV-D ................ calibrate_noise -> calibrate.calibrate, once per round with the HG-DAgger policy
-  Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler:
-                             D0 plus the interventions, noised and relabelled on the fly (the noised arms)
+  Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler
   Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost, summarize
 
-The experiment's plumbing -- the run folder (stages, resume, atomic writes), worker processes, the command
-line, the result files and report.md -- is in experiment/; a student may skip it. So are the research variants,
-which plug into the core's tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods): image
-observations (experiment/image_obs.py), the authors' 10-degree goal (oriented_goal.py), the authors' lever recipe
-(lever.py), the sigma = 0 control (controls.py). Every step below wraps its work in one `run.stage(name,
-compute)`: if the stage's file is in runs/<name>/, it is loaded, else it is computed and written, so a stopped
-run resumes from its last finished stage.
+What a student may skip is in experiment/ (its __init__.py lists it): the plumbing (run folder, worker processes,
+command line, result files, report.md) and the research variants, which plug into the core's tables
+(envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods). Every step wraps its work in one
+`run.stage(file, compute)`: loaded if runs/<name>/<file> exists, else computed and written, so a stopped run
+resumes from its last finished stage.
 
-Usage: `python dagger.py` (the quick profile: the whole loop on the planar env in minutes), `--profile smoke`
-(what CI runs), `--profile mid` (Table I's analogue on 2 cores), `--help`; README.md, "Profiles and options".
+Usage: `python dagger.py` (the quick profile), `--profile smoke` (what CI runs), `--profile mid` (Table I's
+analogue on 2 cores), `--help`; README.md, "Profiles and options".
 """
 from __future__ import annotations
 
@@ -49,13 +43,10 @@ from experiment.run_folder import Run, copy_from, export_lineages, export_start,
 from experiment.workers import InBackground, in_parallel
 
 
-# ----------------------------------------------------------------------------------------------
-# The loop: Sec. IV-A, steps 1-6
-# ----------------------------------------------------------------------------------------------
+# ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
 def policy_calibrated_dagger(run, lineages, workers=1):
-    """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only); PAPER_SETUP.md
-    §2 and §4 say how the authors ran them. workers > 1: a round's noised arms, and the BC row, run in worker
-    processes. Each call loads its result from the run folder if that step already finished."""
+    """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
+    PAPER_SETUP.md §2, §4). workers > 1: a round's noised arms and the BC row run in worker processes."""
     cfg, recipe = run.cfg, RECIPES[run.cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
     demos = oracle_demonstrations(run)
@@ -74,7 +65,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
             rounds_data.append(collect_interventions(run, source, k, collector, collector_success))
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
-            hg, hg_success = hg_dagger_round(run, lineage, k, demos, rounds_data, stats)
+            hg, hg_success = train_and_evaluate(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
@@ -87,18 +78,14 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
         if "closed_loop" in cfg.methods:
-            # Table I's closed-loop pooled row: steps 2-5 read literally, the round's noised (calibrated)
-            # policy collects the next round and is measured again; its own chain of rounds from round 1's data
+            # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain of rounds from round 1's
             closed_loop_chain(run, lineage, demos, stats, rounds_data[0], calibrations[0])
     bc_row.wait()
 
 
-# ----------------------------------------------------------------------------------------------
-# Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py
-# ----------------------------------------------------------------------------------------------
+# ---- Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py ------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
-TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS],
-                   "pooled", "per_step", "closed_loop")
+TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS], "pooled", "per_step", "closed_loop")
 ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS)  # and a research control's rows (experiment/controls.py)
 OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
 TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
@@ -121,8 +108,7 @@ class Config:
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
     intervention_fraction: float = 0.3  # the intervention frames' share of every fine-tuning batch (PAPER_SETUP.md §2)
-    recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' planar runs; their lever runs'
-    #                        is a variant, experiment/lever.py)
+    recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
     # --- not in the paper ---
@@ -140,9 +126,8 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train around the paper's steps: the authors' planar runs (PAPER_SETUP.md §2), Table
-    I's. A recipe is this set of hooks, called by the steps below; a research variant brings its own
-    (experiment/lever.py: the authors' lever runs)."""
+    """How pi_0 and every arm train around the paper's steps: the authors' planar runs, Table I's (PAPER_SETUP.md
+    §2). A recipe is this set of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
         return cfg.bc_steps + cfg.finetune_steps
@@ -175,17 +160,15 @@ RECIPES = {"paper": PaperRecipe, **lever.RECIPES}
 PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 1: D0 and pi_0
-# ----------------------------------------------------------------------------------------------
+# ---- Step 1: D0 and pi_0 -----------------------------------------------------------------------------------------
 def oracle_demonstrations(run):
     """D0: cfg.n_demos oracle demonstrations on training scenarios (skipping scenes the planner cannot solve)."""
     cfg = run.cfg
 
     def demonstrate():
         env, expert = make_run_env(cfg), make_oracle(cfg)
-        demos, seed, failures, t0 = [], 0, 0, time.time()
-        t_log = t0
+        demos, seed, failures = [], 0, 0
+        t0 = t_log = time.time()  # the start and the last progress line
         run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
         while len(demos) < cfg.n_demos:
             seed += 1
@@ -219,8 +202,8 @@ def behavior_cloning(run, demos):
 
 
 def bc_row_arm(root, cfg_fields):
-    """Table I's BC row (a worker's job): the recipe's BC policy (the paper's: pi_0 continued on D0 alone to
-    bc_steps + finetune_steps, so every row has trained the same steps), evaluated."""
+    """Table I's BC row (a worker's job), evaluated: the recipe's BC policy (the paper's: pi_0 continued on D0 alone
+    to bc_steps + finetune_steps, the steps every row has trained)."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
 
@@ -234,8 +217,8 @@ def bc_row_arm(root, cfg_fields):
 
 
 def demo_statistics(cfg, demos):
-    """The base demonstrations' median step (the unit of noise) and speed/acceleration limits, with the env's
-    units for what the authors set in theirs (the paper's median step; their 30 Hz frames per env step)."""
+    """relabel.demo_stats of D0: its median step (the unit of noise), speed/acceleration limits, and the authors'
+    units (the paper's median step; their 30 Hz frames per env step)."""
     env = make_run_env(cfg)
     return relabel.demo_stats(demos, envs.median_step(demos), env.max_step,
                               paper_median_step=envs.paper_median_step(cfg.env),
@@ -254,28 +237,20 @@ def make_oracle(cfg, *keys):
 
 
 def make_policy(cfg, env):
-    """A fresh diffusion policy for this run's env and network (diffusion.PolicyConfig); the env says how the
-    policy reads its observation (env.obs_encoder)."""
-    pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act,
-                                K=cfg.K, down_dims=cfg.down_dims, network=cfg.network,
-                                mlp_width=cfg.mlp_width, mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
-                                obs_encoder_args=dict(env.obs_encoder_args),
-                                seed=stage_seed(cfg, "init"))
+    """A fresh diffusion policy for this run's env and network; the env says how it reads its observation."""
+    pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act, K=cfg.K,
+                                down_dims=cfg.down_dims, network=cfg.network, mlp_width=cfg.mlp_width,
+                                mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
+                                obs_encoder_args=dict(env.obs_encoder_args), seed=stage_seed(cfg, "init"))
     return diffusion.DiffusionPolicy(pc, device=cfg.device)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 2: HG-DAgger data collection, many episodes in lockstep
-# ----------------------------------------------------------------------------------------------
+# ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
 def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
-    """D_k, HG-DAgger rollouts of the lineage's current policy (PAPER_SETUP.md §4).
-
-    The authors' protocol: each round rolls the policy on the evaluation scenarios, skipping those its own
-    evaluation (policy_success, (scenarios, repeats) bool) solved every time, and records interventions on the
-    rest, so the evaluation scenarios enter the training data (the unseen scenarios are the held-out check:
-    evaluate_policy). The recipe keeps the interventions it labels (the paper's: those of at least H steps, Sec.
-    IV-C); episodes without any are not kept. chain: None, or 'closed_loop' for that row's own chain of rounds (its
-    folder and seeds).
+    """D_k: HG-DAgger rollouts of the lineage's current policy, the authors' protocol (PAPER_SETUP.md §4): on the
+    evaluation scenarios, skipping those its own evaluation (policy_success, (scenarios, repeats) bool) solved
+    every time; the unseen scenarios stay the held-out check. Kept: the episodes with an intervention the recipe
+    keeps (the paper's: at least H steps, Sec. IV-C). chain: None, or 'closed_loop' (that row's folder and seeds).
     """
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
@@ -283,17 +258,11 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     label = f"lineage {lineage} round {k}" + (f" ({chain} chain)" if chain else "")
 
     def collect():
-        env = make_run_env(cfg)
-        seeds = env.eval_seeds()[: cfg.eval_scenarios]
+        seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
         solved = np.asarray(policy_success, bool).all(axis=1)
         run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
                 f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
-        seeds = np.asarray(seeds)[~solved]
-        t0, env_list = time.time(), []
-        for s in seeds:
-            e = make_run_env(cfg)
-            e.reset(seed=int(s))
-            env_list.append(e)
+        t0, env_list = time.time(), reset_envs(cfg.env, np.asarray(seeds)[~solved])
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
@@ -313,29 +282,38 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     return run.stage(f"{where}/D.npz", collect)
 
 
-def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
-    """Run one episode in each (already reset) env until all end. Returns episode dicts.
+def reset_envs(env_name, seeds):
+    """A fresh env of env_name per scenario seed, reset to it: the episodes of one lockstep rollout."""
+    env_list = []
+    for s in seeds:
+        env_list.append(envs.make_env(env_name))
+        env_list[-1].reset(seed=int(s))
+    return env_list
 
-    Without an oracle: the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) with the
-    authors' gate (PAPER_SETUP.md §3, oracle.Gate): before every policy step the gate looks at the
-    pending actions; on a predicted collision the oracle plans from the current state and velocity, on
-    a stall or a time trigger the episode is first rewound a few steps (the rewound policy steps are
-    dropped from the record), and the expert drives (expert=True) a random 20-67 steps, then hands
-    back; at most max_interventions per episode. `seed` seeds the gates' random draws. Each episode
-    dict also gets 'interventions' (how many times the expert drove).
+
+def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
+    """One episode in each (already reset) env, in lockstep, until all end; returns the episode dicts.
+
+    Without an oracle the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) with the authors'
+    gate (PAPER_SETUP.md §3, oracle.Gate; `seed` seeds its draws). Before every policy step the gate reads the
+    pending actions; on a predicted collision the oracle plans from the current state, on a stall or a time
+    trigger the episode first rewinds a few policy steps (dropped from the record); the expert then drives
+    (expert=True) a random 20-67 steps and hands back. Each episode also counts its 'interventions'.
     """
     E = len(envs_list)
     rec = [{"obs": [], "q": [], "action": [], "expert": []} for _ in range(E)]
-    start = [(e.q.copy(), e.q_prev.copy()) for e in envs_list]  # for a rewind to step 0
+    q_prev_start = [e.q_prev.copy() for e in envs_list]  # for a rewind to step 0
     obs_now = [e.make_obs(e.q, e.q_prev) for e in envs_list]
     queue = [[] for _ in range(E)]  # pending (action, by_expert) per episode, executed in order
     pending = [np.zeros((0,)) for _ in range(E)]  # the policy's whole remaining chunk (the gate's lookahead)
-    done = np.zeros(E, bool)
-    success = np.zeros(E, bool)
+    done, success = np.zeros(E, bool), np.zeros(E, bool)
     gates = None
     if oracle is not None:
         gates = [oracle.gate(e, np.random.default_rng([seed, int(e.seed)])) for e in envs_list]
     triggers = {"collision": 0, "stall": 0, "time": 0, "unplanned": 0}
+
+    def follow_policy(i, chunk):  # (H, dof): execute the first n_act, the gate looks at all of them
+        queue[i], pending[i] = [(a, False) for a in chunk[:n_act]], np.asarray(chunk)
 
     def take_over(i, reason):
         """The expert's actions after a trigger (None if no plan was found)."""
@@ -345,7 +323,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
             policy_tail = len(r["expert"]) - (max(np.flatnonzero(r["expert"]), default=-1) + 1)
             n = gate.rewind_steps(policy_tail)
             if n:
-                q, q_prev = r["q"][-n], (r["q"][-n - 1] if len(r["q"]) > n else start[i][1])  # state n steps ago
+                q, q_prev = r["q"][-n], (r["q"][-n - 1] if len(r["q"]) > n else q_prev_start[i])  # n steps ago
                 for key in r:
                     del r[key][-n:]
                 env.set_state(q, q_prev, step_count=env.step_count)  # the episode clock keeps running
@@ -369,8 +347,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
         if need:
             chunks = policy.sample(np.stack([obs_now[i] for i in need]), generator=generator)  # (B, H, dof)
             for i, chunk in zip(need, chunks):
-                queue[i] = [(a, False) for a in chunk[:n_act]]
-                pending[i] = np.asarray(chunk)
+                follow_policy(i, chunk)
         for i in range(E):
             if done[i]:
                 continue
@@ -381,8 +358,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
                     if plan is not None:
                         queue[i], pending[i] = [(a, True) for a in plan], np.zeros((0,))
                     elif reason != "collision":  # rewound, no plan: the policy decides afresh
-                        chunk = policy.sample(obs_now[i][None], generator=generator)[0]
-                        queue[i], pending[i] = [(a, False) for a in chunk[:n_act]], np.asarray(chunk)
+                        follow_policy(i, policy.sample(obs_now[i][None], generator=generator)[0])
             action, by_expert = queue[i].pop(0)
             if not by_expert:
                 pending[i] = pending[i][1:]
@@ -397,7 +373,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
             if terminated or truncated:
                 done[i], success[i], queue[i] = True, info["success"], []
     episodes = []
-    for i, (e, r, ok) in enumerate(zip(envs_list, rec, success)):
+    for e, r, ok in zip(envs_list, rec, success):
         episodes.append({"obs": np.asarray(r["obs"], np.float32).reshape(len(r["obs"]), -1),
                          "q": np.asarray(r["q"]).reshape(len(r["q"]), -1),
                          "action": np.asarray(r["action"]).reshape(len(r["action"]), -1),
@@ -411,16 +387,8 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     return episodes
 
 
-def hg_dagger_round(run, lineage, k, demos, rounds_data, stats):
-    """The HG-DAgger row of round k (steps 4 and 6 without noise): pi_0 fine-tuned on D0 and D_1..D_k as
-    recorded, and its evaluation. Returns (policy, success (scenarios, repeats) bool)."""
-    hg = fine_tune(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
-    return hg, evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/hg_dagger.json", hg,
-                               f"hg_dagger (lineage {lineage}, K={k})")
-
-
 def drop_short_interventions(expert, H):
-    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; mark them False
+    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; marked False
     (diffusion.expert_runs, the paper's label rule)."""
     kept = np.zeros(len(expert), bool)
     for start, end in diffusion.expert_runs(expert, H):
@@ -428,13 +396,10 @@ def drop_short_interventions(expert, H):
     return kept
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 3: calibration (Sec. IV-D, calibrate.py)
-# ----------------------------------------------------------------------------------------------
+# ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
 def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
-    """calibrate.calibrate with the round's HG-DAgger policy on the interventions of rounds 1..k
-    (PAPER_SETUP.md §5); chain='closed_loop': that row's policy on its chain's interventions (its folder and
-    seed). Returns the calibrate.Calibration."""
+    """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (PAPER_SETUP.md
+    §5); chain='closed_loop': of that row's policy on its chain's interventions (its folder and seed)."""
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
     keys = (lineage, k) + ((chain,) if chain else ())
@@ -454,32 +419,24 @@ def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
 
 
 def calibration_config(cfg):
-    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts (one blended
-    rollout per ratio from every long enough intervention segment, calibrate.blend_schedule)."""
+    """calibrate.CalibrationConfig of this run: the authors' settings but for the sampling counts."""
     return calibrate.CalibrationConfig(n_act=cfg.n_act)
 
 
-# ----------------------------------------------------------------------------------------------
-# Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0
-# ----------------------------------------------------------------------------------------------
+# ---- Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0 -------------------------
 def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
-    """(noise kind, sigma) for relabel.AugmentationSampler. For 'per_step', `episodes` are the indices
-    (into the calibrated episode list) of the sampler's episodes, in order.
-
-    'fixed_<s>' is Table I's sigma = s in the paper's median steps (the authors' 0.0176 rad planar, L2 over
-    the joints at 30 Hz: envs.paper_median_step), per joint s * paper_median_step rad; the sampler counts
-    our median step (median_step, rad), so it gets s * paper_median_step / median_step (fixed_4 planar:
-    4 * 0.0176 / 0.0245 = 2.87 of ours = 0.070 rad). Without both units: s of our median steps."""
+    """(noise kind, sigma) of `method` for relabel.AugmentationSampler, sigma in our median steps (median_step,
+    rad; PAPER_SETUP.md §1). For 'per_step', `episodes` are the sampler's episodes' indices into the calibration's."""
     if method.startswith("fixed_"):
-        sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps
+        sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
-            return "isotropic", sigma
-        return "isotropic", sigma * paper_median_step / median_step
+            return "isotropic", sigma  # without both units: s of our median steps
+        return "isotropic", sigma * paper_median_step / median_step  # fixed_4 planar: 4 * 0.0176 / 0.0245 = 2.87
     if method in ("pooled", "closed_loop"):  # Eq. (16); closed_loop's measured on its own chain (closed_loop_chain)
         return "pooled", cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
         per_episode = {}
-        for j, e in enumerate(episodes if episodes is not None else np.unique(cal.episode_index)):
+        for j, e in enumerate(episodes):
             rows = cal.episode_index == e
             if rows.any():
                 per_episode[j] = (cal.timestep[rows], cal.sigma_alpha[rows])
@@ -491,9 +448,8 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     """The intervention rows of a fine-tuning batch: rounds 1..k in the recipe's shares (the paper's: equal);
-    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled (relabel.AugmentationSampler),
-    as in the authors' code. (The paper's text also co-trains on the recorded chunks: measured, not adopted,
-    benchmarks/README.md, "The co-training mix".)"""
+    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled, as in the authors' code
+    (benchmarks/README.md, "The co-training mix")."""
     recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
     for D in rounds_data:
         if method == "hg_dagger":
@@ -509,9 +465,8 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
 
 
 def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
-    """Steps 3-4 (PAPER_SETUP.md §2): fine-tune pi_0 on D0 and, in intervention_fraction of every batch, the
-    interventions of rounds 1..k split equally over rounds -- as recorded (HG-DAgger) or every drawn frame
-    noised and relabelled with the method's noise (the noised methods); D0 is never noised."""
+    """Steps 3-4 (PAPER_SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
+    interventions of rounds 1..k (intervention_sampler); D0 is never noised."""
     cfg = run.cfg
     name = f"lineage_{lineage}/round_{k}/checkpoints/{method}.pt"
 
@@ -533,8 +488,8 @@ def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0
     """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name`, continuing its AdamW state and step count to
     bc_steps + finetune_steps along the recipe's schedule (the paper's: pi_0's own cosine, to its end)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
-    total = cfg.bc_steps + cfg.finetune_steps
-    tc = train_config(cfg, policy, total, seed, aug_fraction=aug_fraction, **RECIPES[cfg.recipe].arm_training(cfg))
+    tc = train_config(cfg, policy, cfg.bc_steps + cfg.finetune_steps, seed, aug_fraction=aug_fraction,
+                      **RECIPES[cfg.recipe].arm_training(cfg))
     return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
 
 
@@ -548,37 +503,37 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 
 def observation_noise(policy_cfg):
-    """Per-entry std (obs_dim,) of the training observation noise, raw units (PAPER_SETUP.md §2): the
-    joints at t and t-1 get OBS_NOISE_JOINTS rad, the other low-dimensional numbers OBS_NOISE_ENV m, the entries
-    an observation encoder owns (a variant's camera image) none."""
+    """Per-entry std (obs_dim,) of the training observation noise (PAPER_SETUP.md §2): OBS_NOISE_JOINTS on the joints
+    at t and t-1, OBS_NOISE_ENV on the other low-dimensional numbers, none on an encoder's entries (an image)."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
     std[2 * policy_cfg.dof:policy_cfg.low_dim] = OBS_NOISE_ENV
     return std
 
 
+def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats):
+    """One row of round k (steps 4 and 6): pi_0 fine-tuned with the method's noise (fine_tune), evaluated.
+    Returns (policy, success (scenarios, repeats) bool)."""
+    policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats)
+    return policy, evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
+                                   f"{method} (lineage {lineage}, K={k})")
+
+
 def noised_arm(root, cfg_fields, lineage, k, method):
-    """One noised method of round k, fine-tuned and evaluated (a worker's job: its inputs come from the run
-    folder)."""
+    """One noised method of round k, fine-tuned and evaluated (a worker's job: its inputs from the run folder)."""
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
     demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
     rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
     calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
-    policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
-    evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
-                    f"{method} (lineage {lineage}, K={k})")
+    train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 
 
 def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration):
-    """Table I's closed-loop pooled row (the paper ran one lineage of it; PCD paper/tables_repro/
-    planar_closed_loop.sh): Sec. IV-A's steps 2-5 as written -- the round's policy co-trained with pooled
-    Sigma_bar^alpha collects the next round's interventions, and the noise of round k is measured on that
-    policy over the chain's interventions of rounds 1..k. Round 1 is the main chain's (pi_0 collected it,
-    HG-DAgger's round-1 policy was measured: the authors copy lineage 1's round 1 too); from round 2 on the
-    chain's data and calibration are in lineage_<l>/round_<k>/closed_loop/. Every round's row is fine-tuned
-    from pi_0 (step 6), as every other row; it also collects the next round (the authors collect with a
-    chained fine-tune of the previous one, as in the main chain: see the loop's comment)."""
+    """Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5; the authors ran one
+    lineage, PCD paper/tables_repro/planar_closed_loop.sh): the round's policy, co-trained with pooled Sigma_bar^alpha
+    from pi_0, collects the next round, and round k's noise is measured on it over the chain's interventions of
+    rounds 1..k (lineage_<l>/round_<k>/closed_loop/). Round 1 is the main chain's (the authors copy it too)."""
     cfg, rounds_data, calibration = run.cfg, [first_round], first_calibration
     policy = success = None
     for k in range(1, cfg.rounds + 1):
@@ -586,19 +541,13 @@ def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration
             rounds_data.append(collect_interventions(run, lineage, k, policy, success, chain="closed_loop"))
             # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
             calibration = calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain="closed_loop")
-        policy = fine_tune(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)  # step 4
-        success = evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/closed_loop.json", policy,
-                                  f"closed_loop (lineage {lineage}, K={k})")
+        policy, success = train_and_evaluate(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)
 
 
-# ----------------------------------------------------------------------------------------------
-# Step 5: evaluation (Sec. V: 100 scenarios x 3 evaluations; success = goal reached without collision)
-# ----------------------------------------------------------------------------------------------
+# ---- Step 5: evaluation (Sec. V: 100 scenarios x 3 evaluations; success = goal reached without collision) --------
 def evaluate_policy(run, name, policy, label, unseen=None):
-    """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name` (the same
-    sampling draws for every method: paired). With unseen (default cfg.eval_unseen) also on the unseen
-    scenarios, never trained on, into <name>_unseen.json (not in the paper: under the authors' protocol HG-DAgger
-    collects on the evaluation scenarios, so they are not held out)."""
+    """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name`. With unseen (default
+    cfg.eval_unseen) also on the unseen scenarios, never trained on (not in the paper), into <name>_unseen.json."""
     ok = run.stage(name, lambda: evaluation(run, policy, label, "eval"))
     if run.cfg.eval_unseen if unseen is None else unseen:
         run.stage(unseen_name(name), lambda: evaluation(run, policy, label + ", unseen scenarios", "unseen"))
@@ -606,8 +555,8 @@ def evaluate_policy(run, name, policy, label, unseen=None):
 
 
 def evaluation(run, policy, label, scenarios):
-    """evaluate on one scenario set, 'eval' (env.eval_seeds) or 'unseen' (env.unseen_seeds): its first
-    eval_scenarios x eval_repeats, one sampling seed per set shared by every method (paired)."""
+    """evaluate on one scenario set, 'eval' or 'unseen': its first eval_scenarios x eval_repeats, with one sampling
+    seed per set shared by every method (paired)."""
     cfg, t0 = run.cfg, time.time()
     env = make_run_env(cfg)
     seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
@@ -628,13 +577,9 @@ MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}  # by the paper's env (env
 
 
 def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env default", log=None):
-    """Success (len(seeds), repeats) bool: goal reached without collision within the step limit.
-
-    The len(seeds) * repeats episodes run in lockstep (one policy call per decision), in groups of at most
-    max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once) to bound memory. The sampling
-    generator is seeded identically for every method, so methods face the same scenarios and the
-    same draws where their policies agree (a paired comparison).
-    """
+    """Success (len(seeds), repeats) bool: goal reached without collision within the step limit. The episodes run
+    in lockstep (rollouts_in_groups); `seed` seeds the sampling identically for every method, so methods face the
+    same draws where their policies agree (a paired comparison)."""
     jobs = [int(s) for _ in range(repeats) for s in seeds]
     gen = torch.Generator(device=policy.device).manual_seed(seed)
     ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, max_parallel,
@@ -645,27 +590,19 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env de
 def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="env default", log=None):
     """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
     max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once). A group's envs stay open while the
-    caller reads its pairs (e.g. to classify how an episode ended) and are closed before the next group starts,
-    so memory stays that of one group."""
+    caller reads its pairs and are closed before the next group starts."""
     if max_parallel == "env default":
         max_parallel = MAX_PARALLEL_ENVS.get(envs.paper_env(env_name))
     group = max_parallel or max(1, len(jobs))
     for start in range(0, len(jobs), group):
-        env_list = []
-        for s in jobs[start:start + group]:
-            e = envs.make_env(env_name)
-            e.reset(seed=s)
-            env_list.append(e)
+        env_list = reset_envs(env_name, jobs[start:start + group])
         yield from zip(env_list, rollout(env_list, policy, n_act, generator, log=log))
         for e in env_list:
             if hasattr(e, "close"):
                 e.close()  # free the simulator (a pybullet client) before the next group
 
 
-# ----------------------------------------------------------------------------------------------
-# Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma, over lineages.
-# Self-written, no scipy (the Student-t CDF below them); summarize applies them to the table.
-# ----------------------------------------------------------------------------------------------
+# ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma; no scipy -----------
 def paired_ttest(a, b):
     """Two-sided paired t-test of mean(a - b) = 0. Returns (t, df, p). Needs >= 2 pairs."""
     d = np.asarray(a, float) - np.asarray(b, float)
@@ -682,17 +619,12 @@ def paired_ttest(a, b):
 
 
 def tost(a, b, margin):
-    """Two one-sided tests: is mean(a - b) within (-margin, +margin)? Returns (p, t_lower, t_upper).
-
-    H0: the difference is <= -margin or >= +margin; equivalence is shown when p (the larger of the
-    two one-sided p-values) is small. Needs >= 2 pairs.
-    """
+    """Two one-sided tests: is mean(a - b) within (-margin, +margin)? Returns (p, t_lower, t_upper). H0: the
+    difference is <= -margin or >= +margin; a small p (the larger one-sided p) shows equivalence. Needs >= 2 pairs."""
     d = np.asarray(a, float) - np.asarray(b, float)
     n = d.size
-    if n < 2:
-        raise ValueError(f"TOST needs at least 2 pairs (lineages), got {n}")
-    if margin <= 0:
-        raise ValueError(f"TOST margin must be > 0, got {margin}")
+    if n < 2 or margin <= 0:
+        raise ValueError(f"TOST needs at least 2 pairs (lineages) and a margin > 0, got {n} pairs, margin {margin}")
     # >>> exercise 13: the paired t-test and TOST of Table I (Sec. V)
     mean, se = d.mean(), d.std(ddof=1) / math.sqrt(n)
     if se == 0:
@@ -729,66 +661,56 @@ def incomplete_beta(a, b, x):
     return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
 
 
-def _betacf(a, b, x, max_iter=300, eps=1e-15):
-    """Continued fraction of the regularized incomplete beta function (modified Lentz)."""
-    tiny = 1e-300
+def _betacf(a, b, x):
+    """Continued fraction of the regularized incomplete beta function (modified Lentz; 300 terms at most)."""
+    tiny = 1e-300  # keeps every denominator off zero
+
+    def lentz(num, c, d):  # one term num of the fraction: the updated (c, d)
+        d = 1.0 + num * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + num / c
+        return (c if abs(c) > tiny else tiny), d
+
     c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
     d = 1.0 / (d if abs(d) > tiny else tiny)
     h = d
-    for m in range(1, max_iter + 1):
-        # even step: d_{2m} = m (b - m) x / ((a + 2m - 1)(a + 2m))
-        num = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
-        d = 1.0 + num * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + num / c
-        c = c if abs(c) > tiny else tiny
+    for m in range(1, 301):
+        c, d = lentz(m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)), c, d)  # even step d_{2m}
         h *= d * c
-        # odd step: d_{2m+1} = -(a + m)(a + b + m) x / ((a + 2m)(a + 2m + 1))
-        num = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
-        d = 1.0 + num * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + num / c
-        c = c if abs(c) > tiny else tiny
-        delta = d * c
-        h *= delta
-        if abs(delta - 1.0) < eps:
+        c, d = lentz(-(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1)), c, d)  # odd step d_{2m+1}
+        h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
             break
     return h
 
 
 def summarize(cfg, results):
-    """Per method and round: mean, SE over lineages, count; paired tests averaged over rounds."""
+    """Per method and round: (mean, SE over lineages, count); the paired tests over the lineages that finished
+    every round (each averaged over rounds), per round, HG-DAgger vs BC, and the best fixed sigma per round.
+    results: {method: {lineage: [success per round]}}, BC's {'all': [success]}."""
     table = {}
     for method, per_lineage in results.items():
         if method == "bc":
             table[method] = [mean_se(per_lineage["all"])]
-            continue
-        table[method] = []
-        for k in range(cfg.rounds):
-            vals = [row[k] for row in per_lineage.values() if len(row) > k]
-            table[method].append(mean_se(vals) if vals else None)
-    # Paired statistics over lineages that finished every round, each lineage averaged over rounds; and the same
-    # per round, over the lineages that finished that round
-    def round_avg(method):
-        rows = results.get(method, {})
-        return {l: float(np.mean(r)) for l, r in rows.items() if len(r) == cfg.rounds}
-
-    stats = paired_statistics(cfg, round_avg)
-    stats["per_round"] = {str(k + 1): paired_statistics(cfg, lambda m, k=k: {
-        l: r[k] for l, r in results.get(m, {}).items() if len(r) > k}) for k in range(cfg.rounds)}
-    # HG-DAgger against BC at every round: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
-    stats["hg_dagger_vs_bc"] = {}
+        else:
+            rounds = [list(at_round(per_lineage, k).values()) for k in range(cfg.rounds)]
+            table[method] = [mean_se(vals) if vals else None for vals in rounds]
+    stats = paired_statistics(cfg, lambda m: {l: float(np.mean(r)) for l, r in results.get(m, {}).items()
+                                              if len(r) == cfg.rounds})
+    stats["per_round"] = {str(k + 1): paired_statistics(cfg, lambda m, k=k: at_round(results.get(m, {}), k))
+                          for k in range(cfg.rounds)}
+    stats["hg_dagger_vs_bc"], stats["best_fixed_per_round"] = {}, {}
     bc_all = results.get("bc", {}).get("all")
     for k in range(cfg.rounds):
-        hg_k = [row[k] for row in results.get("hg_dagger", {}).values() if len(row) > k]
+        # HG-DAgger against BC: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
+        hg_k = list(at_round(results.get("hg_dagger", {}), k).values())
         if bc_all and len(hg_k) >= 2:
-            t, df, p = paired_ttest(hg_k, [bc_all[0]] * len(hg_k))
+            bc = [bc_all[0]] * len(hg_k)
+            t, df, p = paired_ttest(hg_k, bc)
             stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
                                                     "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
-                                                    "n": len(hg_k), "degenerate": degenerate(hg_k, [bc_all[0]] * len(hg_k))}
-    # The best fixed sigma of each round in hindsight (beside the calibrated sigma, Sec. V)
-    stats["best_fixed_per_round"] = {}
-    for k in range(cfg.rounds):
+                                                    "n": len(hg_k), "degenerate": degenerate(hg_k, bc)}
+        # the best fixed sigma of the round in hindsight (beside the calibrated sigma, Sec. V)
         cells = {m: table[m][k][0] for m in cfg.methods
                  if m.startswith("fixed_") and m in table and table[m][k] is not None}
         if cells:
@@ -796,37 +718,46 @@ def summarize(cfg, results):
     return table, stats
 
 
+def at_round(rows, k):
+    """{lineage: success of round k + 1} of the lineages that finished it; rows: {lineage: [success per round]}."""
+    return {l: r[k] for l, r in rows.items() if len(r) > k}
+
+
 def paired_statistics(cfg, values):
     """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
     sigma (TOST, TOST_MARGIN); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
-    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}}
     hg = values("hg_dagger")
     fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
     best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
-    stats["best_fixed"] = best_fixed
+    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}, "best_fixed": best_fixed}
     for method in cfg.methods:
         if method in ("bc", "hg_dagger"):
             continue
-        mine = values(method)
-        common = sorted(set(mine) & set(hg))
-        if len(common) >= 2:
-            t, df, p = paired_ttest([mine[l] for l in common], [hg[l] for l in common])
-            stats["paired_vs_hg_dagger"][method] = {
-                "diff": float(np.mean([mine[l] - hg[l] for l in common])), "t": t, "df": df, "p": p,
-                "degenerate": degenerate([mine[l] for l in common], [hg[l] for l in common])}
-        if best_fixed and method in ("pooled", "per_step", "closed_loop"):
-            ref = values(best_fixed)
-            common = sorted(set(mine) & set(ref))
-            if len(common) >= 2:
-                p, tl, tu = tost([mine[l] for l in common], [ref[l] for l in common], TOST_MARGIN)
-                stats["tost_vs_best_fixed"][method] = {
-                    "vs": best_fixed, "diff": float(np.mean([mine[l] - ref[l] for l in common])),
-                    "p": p, "margin": TOST_MARGIN,
-                    "degenerate": degenerate([mine[l] for l in common], [ref[l] for l in common])}
+        a, b = pairs(values(method), hg)
+        if len(a) >= 2:
+            t, df, p = paired_ttest(a, b)
+            stats["paired_vs_hg_dagger"][method] = {"diff": mean_difference(a, b), "t": t, "df": df, "p": p,
+                                                    "degenerate": degenerate(a, b)}
+        a, b = pairs(values(method), values(best_fixed)) if best_fixed else ([], [])
+        if method in ("pooled", "per_step", "closed_loop") and len(a) >= 2:
+            p, _, _ = tost(a, b, TOST_MARGIN)
+            stats["tost_vs_best_fixed"][method] = {"vs": best_fixed, "diff": mean_difference(a, b), "p": p,
+                                                   "margin": TOST_MARGIN, "degenerate": degenerate(a, b)}
     return stats
 
 
+def pairs(mine, ref):
+    """The paired values of two {lineage: success}: two lists over the lineages both hold, in lineage order."""
+    common = sorted(set(mine) & set(ref))
+    return [mine[l] for l in common], [ref[l] for l in common]
+
+
+def mean_difference(a, b):
+    return float(np.mean([x - y for x, y in zip(a, b)]))
+
+
 def mean_se(values):
+    """(mean, standard error, count) of the values (SE 0 for one value)."""
     v = np.asarray(values, float)
     se = v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else 0.0
     return float(v.mean()), float(se), int(v.size)
@@ -840,9 +771,8 @@ def degenerate(a, b):
                 "so t and p are undefined")
     return None
 
-# ----------------------------------------------------------------------------------------------
-# The paper's figures (fig1-fig5) from lineage 0, round 1
-# ----------------------------------------------------------------------------------------------
+
+# ---- The paper's figures (fig1-fig5) from lineage 0, round 1 -----------------------------------------------------
 def make_figures(run, demos, stats):
     """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
     cfg = run.cfg
@@ -863,28 +793,22 @@ def make_figures(run, demos, stats):
     calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
     policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
     gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
-    # the episode with the longest intervention shows the method best
-    e = int(np.argmax([ep["expert"].sum() for ep in D1]))
-    episode = D1[e]
+    episode = max(D1, key=lambda ep: ep["expert"].sum())  # the longest intervention shows the method best
     calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
     # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
-    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"),
-                                   generator=gen())
+    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"), generator=gen())
     relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
                           np.random.default_rng(stage_seed(cfg, "fig1")), stats,
                           relabel.RelabelConfig(horizon=cfg.horizon))
-    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])
-    end = min(t + cfg.horizon, len(episode["action"]))
-    chunk = episode["action"][t:end]
-    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], cfg.horizon - len(chunk), axis=0)])
+    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])  # fig3: the first labelled state
+    chunk = episode["action"][t:t + cfg.horizon]
+    chunk = np.pad(chunk, ((0, cfg.horizon - len(chunk)), (0, 0)), mode="edge")  # past the end: the last action
     env.reset(seed=int(episode["seed"]))
     partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
-                                           fig("fig3_partial_denoising.png"), gen(),
-                                           q=episode["q"][t])
+                                           fig("fig3_partial_denoising.png"), gen(), q=episode["q"][t])
 
-# ----------------------------------------------------------------------------------------------
-# The report and the entry point (the run folder, workers, command line and profiles are in experiment/)
-# ----------------------------------------------------------------------------------------------
+
+# ---- The report and the entry point (the run folder, workers, command line and profiles are in experiment/) ------
 def write_report(run):
     """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
     table figures, the paper's figures and report.md (experiment/report.py writes them). Returns the table."""
