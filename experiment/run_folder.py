@@ -276,17 +276,18 @@ def rounds_finished(run, lineage):
 STAGE_FOLDERS = ("data", "checkpoints", "eval", "timings")  # a folder's stages, beside its lineage_<l>/ folders
 
 # A profile's shared stages committed once (benchmarks/results/<profile>/start/: config.json, D0, pi_0 with its
-# optimizer state, the BC row, their evaluations and timings), so that every lineage -- run on any machine, on any
+# optimizer state, the BC row and their evaluations), so that every lineage -- run on any machine, on any
 # day -- continues from the same pi_0 and joins the others (--join): the same seed gives another pi_0 on another
 # kind of machine. --prepare / --lineage i / a whole run copy it into a new run folder of the profile's config.
 RESULTS_ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "results")
 
 
 def start_files(root):
-    """The shared stages' files of run folder `root` (relative paths): config.json and the files under
-    STAGE_FOLDERS that no lineage owns, without partial checkpoints (*_step<n>.pt) or files being written."""
+    """The shared stages' files of run folder `root` (relative paths): config.json and the files under data/,
+    checkpoints/ and eval/ that no lineage owns, without partial checkpoints (*_step<n>.pt) or files being written
+    (not timings/: a start is the stages, not the wall times of the machine that made them)."""
     files = ["config.json"]
-    for folder in STAGE_FOLDERS:
+    for folder in ("data", "checkpoints", "eval"):
         for name in sorted(os.listdir(os.path.join(root, folder))) if os.path.isdir(os.path.join(root, folder)) else []:
             if not re.search(r"lineage_\d+|_step\d+\.pt$|\.tmp", name):
                 files.append(f"{folder}/{name}")
