@@ -752,3 +752,33 @@ def test_the_smoke_profile_calibration_fits_W():
     cells = cal.ratio_cells(c.blend_beta, c.blend_s, c.blend_x, c.blend_kept, cfg.min_survivors)
     assert cells.n.min() >= cfg.min_survivors                                 # every ratio can be fitted
     assert c.fit_note == "fit" and c.r is not None and c.W_ci is not None
+
+
+def test_W_interval_resamples_the_kept_rollouts_within_each_ratio(monkeypatch):
+    """Every bootstrap resample of W_interval holds, per ratio, exactly as many rollouts as were kept at that ratio,
+    drawn from that ratio's kept rollouts only (with replacement), and the interval holds the point fit. Fails if a
+    ratio's group takes other ratios' rollouts (a resample's counts per ratio then drift, and ratios near
+    min_survivors drop out of some fits), or if a discarded rollout enters a resample."""
+    rng = np.random.default_rng(0)
+    betas = np.repeat([0.2, 0.4, 0.6, 0.8], [3, 5, 4, 6])  # 3: exactly min_survivors at the first ratio
+    s = 1.0 - (1.0 - betas) ** 2                            # a noise fraction per ratio, rising with beta
+    x = cal.equilibrium(s, 0.2, 4.0) * (1.0 + 0.2 * rng.standard_normal(len(betas)))
+    kept = np.ones(len(betas), dtype=bool)
+    kept[[1, 9]] = False
+    x[~kept] = 99.0                                         # a discarded rollout: never resampled
+    seen = []
+    real = cal.ratio_cells
+
+    def spy(b, *args, **kwargs):
+        seen.append(dict(zip(*np.unique(b, return_counts=True))))
+        assert 99.0 not in args[1]
+        return real(b, *args, **kwargs)
+    monkeypatch.setattr(cal, "ratio_cells", spy)
+    cfg = cal.CalibrationConfig(n_act=10, bootstrap=50)
+    lo, hi = cal.W_interval(betas, s, x, kept, (0.01, 5.0), cfg)
+    expected = {b: int(np.sum((betas == b) & kept)) for b in np.unique(betas)}
+    assert len(seen) == 50 and all(counts == expected for counts in seen)
+    monkeypatch.setattr(cal, "ratio_cells", real)
+    cells = real(betas, s, x, kept, cfg.min_survivors)
+    W = cal.fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1).W
+    assert lo < W < hi
