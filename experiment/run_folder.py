@@ -306,8 +306,12 @@ def export_start(root, folder):
     written = []
     for rel in start_files(root):
         dst = os.path.join(folder, "start", rel)
-        os.makedirs(os.path.dirname(dst), exist_ok=True)
-        shutil.copyfile(os.path.join(root, rel), f"{dst}.{os.getpid()}.tmp")
+        try:
+            os.makedirs(os.path.dirname(dst), exist_ok=True)
+            shutil.copyfile(os.path.join(root, rel), f"{dst}.{os.getpid()}.tmp")
+        except OSError as err:
+            raise RunFolderError(f"--export-start {folder}: cannot write {dst}: {err.strerror or err}. Give a folder "
+                                 "you can create and write.") from None
         os.replace(f"{dst}.{os.getpid()}.tmp", dst)
         written.append(dst)
     return written

@@ -923,6 +923,10 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
                      "--export-start", str(results / "tiny")])
     assert refused.value.code == 2 and "--prepare first" in capsys.readouterr().err
     assert not os.path.exists(results / "tiny")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(run_folder.RunFolderError, match="cannot write"):
+        run_folder.export_start(full_run, str(blocker / "results"))
     run_folder.export_start(full_run, str(results / "tiny"))
     start = results / "tiny" / "start"
     assert sorted(os.path.relpath(os.path.join(top, n), start) for top, _, names in os.walk(start) for n in names) \
