@@ -414,8 +414,8 @@ def join_lineage(run, path):
                              "python dagger.py --profile P --report --export-lineages FOLDER)")
     lineage = data["lineage"]
     check_same_config(f"{path} (lineage {lineage})", data["config"], run.cfg,
-                      advice=f"A lineage joins a run folder only if it was made with the folder's config: join it "
-                             f"into a folder of its own config (--profile and options as it was run, --out).")
+                      advice="A lineage joins a run folder only if it was made with the folder's config: join it "
+                             "into a folder of its own config (--profile and options as it was run, --out).")
     pi0 = folder_pi0(run)
     if pi0 is not None and pi0 != data["pi0_sha256"]:
         raise ConfigMismatch(
