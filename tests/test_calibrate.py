@@ -595,6 +595,11 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
     assert len(beta) == 13 * 3 and all(np.sum(beta == b) == 3 for b in cfg.betas)
     beta, jobs = cal.blend_schedule(episodes, 10, cal.CalibrationConfig(n_samples=4, n_act=10, min_rollout_steps=50))
     assert {b - a for _, (a, b) in jobs} == {40} and len(beta) == 13          # none long enough: the longest
+    late = [episode([30, 12]), episode([12, 12, 12, 25])]   # a shorter segment far into its episode (steps 51-76)
+    beta, jobs = cal.blend_schedule(late, 10, cal.CalibrationConfig(n_samples=4, n_act=10, min_rollout_steps=20))
+    assert [b - a for _, (a, b) in jobs[:2]] == [30, 25]                     # by length, not by position
+    beta, jobs = cal.blend_schedule(late, 10, cal.CalibrationConfig(n_samples=4, n_act=10, min_rollout_steps=50))
+    assert {(e, b - a) for e, (a, b) in jobs} == {(0, 30)}                   # the fallback is the longest one
 
 
 def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
@@ -782,3 +787,8 @@ def test_W_interval_resamples_the_kept_rollouts_within_each_ratio(monkeypatch):
     cells = real(betas, s, x, kept, cfg.min_survivors)
     W = cal.fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1).W
     assert lo < W < hi
+    fits = []  # the interval is the 2.5th and 97.5th percentiles of the resamples' fitted W (a 95 % interval)
+    real_fit = cal.fit_equilibrium
+    monkeypatch.setattr(cal, "fit_equilibrium", lambda *a, **k: fits.append(real_fit(*a, **k)) or fits[-1])
+    assert cal.W_interval(betas, s, x, kept, (0.01, 5.0), cfg) == (lo, hi)
+    assert (lo, hi) == tuple(np.percentile(np.clip([f.W for f in fits], 0.01, 5.0), [2.5, 97.5]))
