@@ -59,6 +59,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
+        chain = None  # the closed-loop row's own chain of rounds: its interventions and its latest policy
         source = recipe.data_lineage(run, lineage)  # whose interventions and noise it trains on: its own (Table I)
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
@@ -77,9 +78,10 @@ def policy_calibrated_dagger(run, lineages, workers=1):
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
             # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
-        if "closed_loop" in cfg.methods:
-            # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain of rounds from round 1's
-            closed_loop_chain(run, lineage, demos, stats, rounds_data[0], calibrations[0])
+            if "closed_loop" in cfg.methods:
+                # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain from round 1's data
+                # and noise; its round k right after the main chain's, so that a finished round has every row
+                chain = closed_loop_round(run, lineage, k, demos, stats, chain, rounds_data[0], calibrations[0])
     bc_row.wait()
 
 
@@ -432,7 +434,7 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
         if median_step is None or paper_median_step is None:
             return "isotropic", sigma  # without both units: s of our median steps
         return "isotropic", sigma * paper_median_step / median_step  # fixed_4 planar: 4 * 0.0176 / 0.0245 = 2.87
-    if method in ("pooled", "closed_loop"):  # Eq. (16); closed_loop's measured on its own chain (closed_loop_chain)
+    if method in ("pooled", "closed_loop"):  # Eq. (16); closed_loop's measured on its own chain (closed_loop_round)
         return "pooled", cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
         per_episode = {}
@@ -529,19 +531,20 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 
 
-def closed_loop_chain(run, lineage, demos, stats, first_round, first_calibration):
-    """Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5; the authors ran one
-    lineage, PCD paper/tables_repro/planar_closed_loop.sh): the round's policy, co-trained with pooled Sigma_bar^alpha
-    from pi_0, collects the next round, and round k's noise is measured on it over the chain's interventions of
-    rounds 1..k (lineage_<l>/round_<k>/closed_loop/). Round 1 is the main chain's (the authors copy it too)."""
-    cfg, rounds_data, calibration = run.cfg, [first_round], first_calibration
-    policy = success = None
-    for k in range(1, cfg.rounds + 1):
-        if k > 1:  # the previous round's calibrated policy drives, the oracle intervenes (step 2) ...
-            rounds_data.append(collect_interventions(run, lineage, k, policy, success, chain="closed_loop"))
-            # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
-            calibration = calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain="closed_loop")
-        policy, success = train_and_evaluate(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)
+def closed_loop_round(run, lineage, k, demos, stats, chain, first_round, first_calibration):
+    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5; the
+    authors ran one lineage, PCD paper/tables_repro/planar_closed_loop.sh): the chain's round k-1 policy,
+    co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise is measured on it over
+    the chain's interventions of rounds 1..k (lineage_<l>/round_<k>/closed_loop/). Round 1 is the main chain's
+    (the authors copy it too). chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""
+    if k == 1:
+        rounds_data, calibration = [first_round], first_calibration
+    else:  # the previous round's calibrated policy drives, the oracle intervenes (step 2) ...
+        rounds_data, policy, success = chain
+        rounds_data = rounds_data + [collect_interventions(run, lineage, k, policy, success, chain="closed_loop")]
+        # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
+        calibration = calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain="closed_loop")
+    return rounds_data, *train_and_evaluate(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)
 
 
 # ---- Step 5: evaluation (Sec. V: 100 scenarios x 3 evaluations; success = goal reached without collision) --------

@@ -16,8 +16,8 @@ extrapolated linearly over rounds (calibration, whose input grows with every rou
 rows say "projected". Run it on a table1 folder itself to get the measured cost.
 
 The model is the loop as dagger.py runs it: per round, collection, HG-DAgger's cell (fine-tuning and its two
-evaluations), calibration, then the noised arms in waves of --workers; then the closed-loop row's chain
-(per round: collection and calibration from round 2, its cell), one stage after another.
+evaluations), calibration, the noised arms in waves of --workers, then the closed-loop row's round (collection
+and calibration from round 2, its cell), one stage after another.
 """
 import argparse
 import json
@@ -96,8 +96,7 @@ def lineage_wall(cfg, timings, workers):
             cell, m = per_round(timings, "train_noised", k)
             wall += add("cell: a noised arm (train + evaluations)", len(noised), cell + ev, m,
                         serial_count=math.ceil(len(noised) / workers))
-    if "closed_loop" in cfg.methods:
-        for k in range(1, cfg.rounds + 1):
+        if "closed_loop" in cfg.methods:
             if k > 1:
                 wall += add("closed-loop chain: collect", 1, *per_round(timings, "collect", k))
                 wall += add("closed-loop chain: calibrate", 1, *per_round(timings, "calibrate", k, grow=True))

@@ -229,12 +229,13 @@ def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
 
 
 def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypatch, augmentation_samplers):
-    """Fails if, in the loop (policy_calibrated_dagger, noised_arm, closed_loop_chain), a noised arm of round k is
+    """Fails if, in the loop (policy_calibrated_dagger, noised_arm, closed_loop_round), a noised arm of round k is
     given another round's calibration (round 1's or k-1's; the first calibration kept for every round) or another
     chain's: round k's pooled, per_step and fixed arms use the main chain's round-k calibration, the closed_loop
-    row round 1's main calibration at K=1 and its own chain's at K=2. Two rounds, calibrate.calibrate replaced
-    by a synthetic calibration with its own W per call, no training (finetune_from_pi0 hands back pi_0) and no
-    evaluation: only the samplers each arm builds are looked at."""
+    row round 1's main calibration at K=1 and its own chain's at K=2; and if the closed-loop row's round 1 is not
+    made before round 2 starts (a stopped lineage could then export no finished round). Two rounds,
+    calibrate.calibrate replaced by a synthetic calibration with its own W per call, no training
+    (finetune_from_pi0 hands back pi_0) and no evaluation: only the samplers each arm builds are looked at."""
     cfg = replace(TINY, rounds=2, methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"))
     made = []
 
@@ -242,7 +243,7 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
         made.append(synthetic_calibration(episodes, W=0.05 + 0.02 * len(made), seed=len(made)))
         return made[-1]
     monkeypatch.setattr(calibrate, "calibrate", fake_calibrate)
-    calibrations, arms = {}, {}  # (k, chain): the loop's calibration; (k, method): the arm's samplers
+    calibrations, arms, order = {}, {}, []  # (k, chain): the loop's calibration; (k, method): the arm's samplers
     real_calibrate_noise, real_fine_tune = dagger.calibrate_noise, dagger.fine_tune
 
     def calibrate_noise(run, lineage, k, *args, chain=None, **kwargs):
@@ -253,6 +254,7 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
         first = len(augmentation_samplers)
         policy = real_fine_tune(run, lineage, k, method, *args)
         arms[(k, method)] = augmentation_samplers[first:]
+        order.append((k, method))
         return policy
     monkeypatch.setattr(dagger, "calibrate_noise", calibrate_noise)
     monkeypatch.setattr(dagger, "fine_tune", fine_tune)
@@ -262,6 +264,7 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
     dagger.policy_calibrated_dagger(run_folder.Run(str(tmp_path), cfg), [0])
 
     assert set(calibrations) == {(1, None), (2, None), (2, "closed_loop")}
+    assert order.index((1, "closed_loop")) < order.index((2, "hg_dagger"))  # round 1 whole before round 2
     Ws = [c.W for c in calibrations.values()]
     assert len(set(Ws)) == 3                                                 # three distinguishable calibrations
     main = {k: run_folder.load_episodes(str(tmp_path / f"lineage_0/round_{k}/D.npz")) for k in (1, 2)}
