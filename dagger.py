@@ -606,9 +606,15 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="e
 
 
 # ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma; no scipy -----------
+def paired_differences(a, b):
+    """a - b per pair, to 1e-9 points: success rates are counts of episodes, so equal gains (47.0 - 46.0 and
+    47.33 - 46.33) are equal, not 1e-14 apart (which made t ~ 1e14 and p ~ 1e-15 out of float rounding)."""
+    return np.round(np.asarray(a, float) - np.asarray(b, float), 9)
+
+
 def paired_ttest(a, b):
     """Two-sided paired t-test of mean(a - b) = 0. Returns (t, df, p). Needs >= 2 pairs."""
-    d = np.asarray(a, float) - np.asarray(b, float)
+    d = paired_differences(a, b)
     n = d.size
     if n < 2:
         raise ValueError(f"a paired t-test needs at least 2 pairs (lineages), got {n}")
@@ -624,7 +630,7 @@ def paired_ttest(a, b):
 def tost(a, b, margin):
     """Two one-sided tests: is mean(a - b) within (-margin, +margin)? Returns (p, t_lower, t_upper). H0: the
     difference is <= -margin or >= +margin; a small p (the larger one-sided p) shows equivalence. Needs >= 2 pairs."""
-    d = np.asarray(a, float) - np.asarray(b, float)
+    d = paired_differences(a, b)
     n = d.size
     if n < 2 or margin <= 0:
         raise ValueError(f"TOST needs at least 2 pairs (lineages) and a margin > 0, got {n} pairs, margin {margin}")
@@ -768,7 +774,7 @@ def mean_se(values):
 
 def degenerate(a, b):
     """Why a paired test of a vs b has no p-value (the differences have no spread), or None."""
-    d = np.asarray(a, float) - np.asarray(b, float)
+    d = paired_differences(a, b)
     if d.size >= 2 and np.all(d == d[0]):
         return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
                 "so t and p are undefined")

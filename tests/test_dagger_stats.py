@@ -85,6 +85,18 @@ def test_paired_ttest_symmetry_and_errors():
         dagger.paired_ttest([1.0], [2.0])
 
 
+def test_equal_gains_in_episode_counts_have_no_spread_whatever_the_float_rounding():
+    """Fails if the paired tests take float rounding for spread: success rates are counts of 300 episodes, and
+    two lineages that both gain 3 episodes (47.0 -> 48.0, 46.67 -> 47.67) differ by 1.0 and 1.0000000000000071
+    in floats; without paired_differences' rounding t was 2.8e14 and p 2e-15 (seen in table1's unseen K = 1)."""
+    rate = lambda n: float(100 * (np.arange(300) < n).mean())  # noqa: E731 (a cell: n of 300 episodes succeed)
+    a, b = [rate(144), rate(143)], [rate(141), rate(140)]
+    assert np.subtract(a, b)[0] != np.subtract(a, b)[1]                # the float differences are not equal ...
+    assert dagger.paired_ttest(a, b) == (math.inf, 1, 0.0)              # ... but the gains are: no spread
+    assert dagger.degenerate(a, b).startswith("every lineage differs by exactly +1.0 points")
+    assert dagger.tost(a, b, 2.0)[0] == 0.0 and dagger.tost(a, b, 0.5)[0] == 1.0
+
+
 def test_tost_equivalent_and_not():
     ref = np.array([85.0, 86.0, 87.0, 88.0, 89.0])
     close = ref + np.array([0.2, -0.1, 0.1, -0.2, 0.0])
