@@ -47,8 +47,9 @@ def train_rate(cfg, env, obs, chunks, batch, steps, warm):
 
 
 def replica(cfg, env, obs, chunks, steps, warm):
-    """train()'s step at the profile's batch, rewritten here so that it can be taken apart: {label: steps/s}
-    and the ms per step of each part (synchronized)."""
+    """train()'s step at the profile's batch, rewritten here so that it can be taken apart (without the
+    observation noise's one randn and add, and without co-training rows): {label: steps/s} and the ms per step of
+    each part (synchronized)."""
     policy = dagger.make_policy(cfg, env)
     policy.fit_normalizer(obs, chunks)
     dev, rng = policy.device, np.random.default_rng(0)
