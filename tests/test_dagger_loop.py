@@ -487,17 +487,23 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     """Each README command, as written but with its profile (and the profile's folder runs/<profile>) swapped
     for a shrunken smoke profile, runs to the end in the order the README gives them, in one working folder:
     none is refused by a folder another command made (e.g. --methods right after the default run), --help
-    prints the options."""
+    prints the options. A command that the swap makes the same as an earlier one runs once (the README's
+    `python dagger.py` and `--profile mid` are both the smoke run then): its second run would only redo a
+    finished folder, which `--workers 1` and `--report` below still do."""
     smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
                     n_demos=2, bc_steps=10, finetune_steps=6)
     monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
     monkeypatch.chdir(tmp_path)
-    commands = readme_commands()
+    commands, swapped = readme_commands(), []
     assert len(commands) >= 10 and [] in commands and any("--report" in c for c in commands)
     for argv in commands:
         if "--profile" in argv:
             i = argv.index("--profile")
             argv = [a.replace(f"runs/{argv[i + 1]}", "runs/smoke") for a in argv[:i] + argv[i + 2:]]
+        if argv not in swapped:
+            swapped.append(argv)
+    assert ["--workers", "1"] in swapped and ["--report"] in swapped  # a finished folder is still run again
+    for argv in swapped:
         if "--help" in argv:
             with pytest.raises(SystemExit) as done:
                 dagger.main(argv)
