@@ -88,7 +88,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
 # ---- Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py ------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS], "pooled", "per_step", "closed_loop")
-ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS)  # and a research control's rows (experiment/controls.py)
+ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS) + tuple(controls.ROWS)  # and research controls' rows
 OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
 TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
 
@@ -268,6 +268,9 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
+        # every intervention as the oracle made it, before the recipe's rule (experiment/controls.py's
+        # authors_hg_dagger row trains on these)
+        run.stage(f"{where}/D_recorded.npz", lambda: [dict(ep) for ep in episodes if ep["expert"].any()])
         for ep in episodes:
             ep["expert"] = RECIPES[cfg.recipe].kept_interventions(ep["expert"], cfg.horizon)
         kept = [ep for ep in episodes if ep["expert"].any()]
@@ -454,13 +457,19 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     (benchmarks/README.md, "The co-training mix")."""
     recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
     for D in rounds_data:
-        if method == "hg_dagger":
-            samplers.append(recipe.ChunkSampler(D, cfg.horizon))
-        else:
-            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
+        def recorded(D=D):  # HG-DAgger's rows: the round's chunks as recorded
+            return recipe.ChunkSampler(D, cfg.horizon)
+
+        def noised(noise_method, D=D, offset=offset):  # a noised method's rows: every drawn frame noised, relabelled
+            kind, sigma = noise_model(noise_method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
-            samplers.append(recipe.AugmentationSampler(D, lambda: make_run_env(cfg), stats, kind, sigma,
-                                                       relabel.RelabelConfig(horizon=cfg.horizon)))
+            return recipe.AugmentationSampler(D, lambda: make_run_env(cfg), stats, kind, sigma,
+                                              relabel.RelabelConfig(horizon=cfg.horizon))
+
+        if method in controls.ROWS:  # a research control's own mix (experiment/controls.py)
+            samplers.append(controls.ROWS[method].sampler(D, cfg.horizon, recorded, noised))
+        else:
+            samplers.append(recorded() if method == "hg_dagger" else noised(method))
         offset += len(D)
     frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
     return relabel.MixtureSampler(samplers, recipe.round_shares(frames))
@@ -477,7 +486,8 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
         sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
         run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
                 f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-                f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else
+                f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else controls.ROWS[method].what
+                                                  if method in controls.ROWS else
                                                   ", every drawn frame noised and relabelled")
                 + f" (recipe {cfg.recipe}: continuing pi_0's optimizer)")
         return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
@@ -526,7 +536,8 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
     demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
-    rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
+    data = controls.ROWS[method].data if method in controls.ROWS else "D.npz"  # a control may read another file
+    rounds_data = [run.load(f"lineage_{source}/round_{j}/{data}") for j in range(1, k + 1)]
     calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
     train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 

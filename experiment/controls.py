@@ -1,12 +1,69 @@
-"""A research control: rows that are not the paper's, beside Table I's, to separate what a method's parts do.
+"""Research controls: rows that are not the paper's, beside Table I's, to separate what a method's parts do.
 
-    zero_noise   the noised arms' whole pipeline with sigma = 0: every intervention state relabelled by the return
-                 labels, no noise. It separates the effect of the noise from that of relabelling (a noised arm
-                 never sees the recorded intervention chunks, HG-DAgger sees nothing else). Measured on the lever:
-                 benchmarks/README.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
+    zero_noise         the noised arms' whole pipeline with sigma = 0: every intervention state relabelled by the
+                       return labels, no noise. It separates the effect of the noise from that of relabelling (a noised
+                       arm never sees the recorded intervention chunks, HG-DAgger sees nothing else). Measured on the
+                       lever: benchmarks/README.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
+    authors_hg_dagger  HG-DAgger as the authors' kit trained it (PAPER_SETUP.md §2; PCD paper/tables_repro/
+                       planar_arms.sh and lib_repro.sh): every intervention step is a chunk start, interventions
+                       shorter than H are kept, a chunk that runs past its intervention's end repeats the last
+                       action, and those padded "hold still at the hand-back point" steps stay in the loss (their
+                       hg arm leaves do_mask_loss_for_padding false). The paper's text, hg_dagger: chunks inside
+                       interventions of at least H steps (Sec. IV-C). It reads every intervention as recorded,
+                       D_recorded.npz, not D_k.
+    cotrain_fixed_8,   the paper's text's co-training (Sec. IV-A step 4, "co-train on the aggregate dataset and the
+    cotrain_pooled     augmented intervention data"): a noised row's intervention rows half as recorded (hg_dagger's
+                       chunks), half noised and relabelled (fixed sigma 8, pooled Sigma-bar^alpha). Table I's noised
+                       rows noise every frame they draw, as the authors' code does.
+Measured: benchmarks/README.md, "Why the noise's gain does not show here".
 
-Each row is a (noise kind, sigma) of relabel.AugmentationSampler; dagger.noise_model looks a control's up here and
-dagger.ALL_METHODS lists them (`python dagger.py --methods hg_dagger,fixed_4,pooled,zero_noise`). It never imports
-dagger.py.
+NOISE_MODELS rows are a (noise kind, sigma) of relabel.AugmentationSampler, looked up by dagger.noise_model; ROWS rows
+build a round's intervention sampler themselves, looked up by dagger.intervention_sampler, and name the round's data
+file they read. dagger.ALL_METHODS lists both (`python dagger.py --methods hg_dagger,authors_hg_dagger`). It never
+imports dagger.py.
 """
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import relabel
+from experiment import lever
+
 NOISE_MODELS = {"zero_noise": ("isotropic", 0.0)}
+
+
+class AuthorsChunkSampler:
+    """The authors' HG-DAgger rows: (obs, chunk) at every intervention step of every episode, however short its
+    intervention; past the intervention's end the chunk repeats its last action, and no mask: every step is in
+    the loss (lever.PaddedChunkSampler is the same cut with those steps masked, as the authors' noised arms do)."""
+
+    def __init__(self, episodes, H):
+        self.obs, self.chunks, _ = lever.padded_chunks(episodes, H)  # the padded steps' mask is not used
+
+    def __call__(self, n, rng):
+        pick = rng.integers(len(self.obs), size=n)
+        return self.obs[pick], self.chunks[pick]
+
+
+@dataclass(frozen=True)
+class Row:
+    """A row that builds a round's intervention sampler itself: sampler(D, H, recorded, noised) with recorded() the
+    round's hg_dagger sampler and noised(method) a Table I method's noised sampler; what: its rows in words (the
+    log's); data: the round file it reads."""
+    sampler: Callable
+    what: str
+    data: str = "D.npz"
+
+
+def co_trained(method):
+    """Half of the intervention rows as recorded, half noised with `method`'s noise (Sec. IV-A step 4)."""
+    return Row(lambda D, H, recorded, noised: relabel.MixtureSampler([recorded(), noised(method)], [0.5, 0.5]),
+               f", half as recorded, half noised ({method}) and relabelled")
+
+
+ROWS = {"authors_hg_dagger": Row(lambda D, H, recorded, noised: AuthorsChunkSampler(D, H),
+                                 ", every intervention step as recorded, short ones kept, padded steps in the loss",
+                                 data="D_recorded.npz"),
+        "cotrain_fixed_8": co_trained("fixed_8"),
+        "cotrain_pooled": co_trained("pooled")}

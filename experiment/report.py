@@ -25,6 +25,9 @@ METHOD_LABELS = {
     "per_step": "Per-step Sigma^alpha (Ours)",
     "closed_loop": "Closed-loop pooled Sigma-bar^alpha (Ours)",
     "zero_noise": "Co-training control (sigma=0; not in the paper)",
+    "authors_hg_dagger": "HG-DAgger as the authors' kit trained it (not in the paper)",
+    "cotrain_fixed_8": "Half recorded, half fixed sigma=8 (the paper's co-training; not in its table)",
+    "cotrain_pooled": "Half recorded, half pooled Sigma-bar^alpha (the paper's co-training; not in its table)",
 }
 
 

@@ -318,20 +318,19 @@ def export_start(root, folder):
 
 
 def committed_start(profile, cfg, root):
-    """RESULTS_ROOT/<profile>/start/ if the repository holds a start of this run's config (methods aside: the
-    shared stages do not depend on them; its methods among this run's) that run folder `root` still lacks; None
+    """RESULTS_ROOT/<profile>/start/ if the repository holds a start of this run's config (methods and rounds aside:
+    the shared stages depend on neither) that run folder `root` still lacks; None
     (and a line saying why) where it is another config's, or where `root` already has a pi_0 of its own."""
     start = os.path.join(RESULTS_ROOT, profile, "start")
     if not os.path.isfile(os.path.join(start, "config.json")):
         return None
     stored = without_retired_fields(start, read_json(os.path.join(start, "config.json")))
     try:
-        check_same_config(start, {**stored, "methods": cfg.methods, "name": cfg.name}, cfg, advice="")
+        check_same_config(start, {**stored, "methods": cfg.methods, "name": cfg.name, "rounds": cfg.rounds}, cfg,
+                          advice="")
     except ConfigMismatch as err:
         print(f"not loading the committed start: {str(err).strip()} (this run computes its own shared stages)")
         return None
-    if not set(stored.get("methods", ())) <= set(cfg.methods):
-        return None  # copy_from would refuse it: a start of more methods than this run's
     if all(os.path.exists(os.path.join(root, rel)) for rel in start_files(start)):
         return None  # loaded before (or made here): nothing to copy
     pi0 = os.path.join(root, "checkpoints", "bc.pt")
@@ -350,24 +349,28 @@ def copy_from(run, src):
     stages run. The stage seeds do not depend on the methods list: the copied stages are those this run would
     compute. If src ran the other of the recipes authors_lever / authors_lever_seeds (independent lineages there,
     training seeds on lineage 0's interventions here, or the reverse), only the shared stages and lineage 0 are
-    copied: lineage 0 is the same run under both, the others are not. Refused (ConfigMismatch) if src differs in
-    any other field (FOLDER_FREE_FIELDS aside), runs a method this run lacks, or has another pi_0 than one already
-    here; files already here are kept. Returns the count."""
+    copied: lineage 0 is the same run under both, the others are not. A src of shared stages only (no lineage
+    folder: a committed start) may run other methods and rounds, on which those stages do not depend. Refused
+    (ConfigMismatch) if src differs in any other field (FOLDER_FREE_FIELDS aside), runs a method this run lacks,
+    or has another pi_0 than one already here; files already here are kept. Returns the count."""
     path = os.path.join(src, "config.json")
     if not os.path.isfile(path):
         raise RunFolderError(f"--copy-from {src}: not a run folder (no config.json there)")
     if os.path.realpath(src) == os.path.realpath(run.root):
         raise RunFolderError(f"--copy-from {src}: that is this run's own folder; name the finished run to copy from")
     old, cfg = read_json(path), run.cfg
+    # a folder of shared stages only (a start: D0, pi_0, the BC row) serves any methods and rounds
+    shared_only = not any(re.fullmatch(r"lineage_\d+", name) for name in os.listdir(src))
     extra = [m for m in old.get("methods", ()) if m not in cfg.methods]
-    if extra:
+    if extra and not shared_only:
         raise ConfigMismatch(f"--copy-from {src}: it runs {', '.join(extra)}, which this run does not; copy only from "
                              f"a folder whose methods are among this run's ({', '.join(cfg.methods)})")
     old = without_retired_fields(src, old)
     lever = {"authors_lever", "authors_lever_seeds"}
     lineage_0_only = old.get("recipe", "paper") != cfg.recipe and {old.get("recipe"), cfg.recipe} == lever
     check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name,
-                            **({"recipe": cfg.recipe} if lineage_0_only else {})}, cfg,
+                            **({"recipe": cfg.recipe} if lineage_0_only else {}),
+                            **({"rounds": cfg.rounds} if shared_only else {})}, cfg,
                       advice="--copy-from takes the stages of a run that differs only in its methods (or in "
                              "authors_lever / authors_lever_seeds): run the other fields' change from scratch in its "
                              "own folder.")
