@@ -1,0 +1,146 @@
+"""experiment/controls.py's rows beside Table I's (research controls, issue 52): HG-DAgger as the authors' kit trained
+it, and the paper's text's co-training (half recorded, half noised); the record of every intervention they read; a
+committed start serving a run of other methods and rounds; benchmarks/noise_trade.py's class split."""
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import calibrate
+import dagger
+import diffusion
+import relabel
+from experiment import controls, run_folder
+
+H = 20
+ROWS = ("authors_hg_dagger", "cotrain_fixed_8", "cotrain_pooled")
+TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp", mlp_width=16, mlp_blocks=1,
+                     bc_steps=30, finetune_steps=12, batch_size=32, methods=("bc", "hg_dagger") + ROWS,
+                     eval_scenarios=3, eval_repeats=1, eval_unseen=False)
+
+
+def episode():
+    """60 steps, joints 3; action[t] = t on every joint; the expert drives [5, 35) (30 >= H steps) and [45, 50)
+    (5 < H steps, a short intervention)."""
+    expert = np.zeros(60, bool)
+    expert[5:35] = expert[45:50] = True
+    t = np.arange(60, dtype=float)
+    return {"obs": np.repeat(t[:, None], 4, axis=1).astype(np.float32), "q": np.zeros((60, 3)),
+            "action": np.repeat(t[:, None], 3, axis=1), "expert": expert, "seed": 7}
+
+
+def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_padded_and_short_steps():
+    """Fails if a step of an intervention starts no chunk (the paper's rule cut in), if a chunk past its
+    intervention's end is padded with anything but that intervention's last action, if a chunk the paper's rule
+    makes differs, or if the sampler hands train a mask (the padded steps would leave the loss, as in the authors'
+    noised arms and lever.PaddedChunkSampler)."""
+    ep = episode()
+    authors = controls.AuthorsChunkSampler([ep], H)
+    paper_obs, paper_chunks = diffusion.chunk_dataset([ep], H)
+    starts = authors.obs[:, 0].astype(int)
+    assert starts.tolist() == list(range(5, 35)) + list(range(45, 50))  # every intervention step, the short one too
+    assert paper_obs[:, 0].astype(int).tolist() == list(range(5, 16))  # the paper's: t + H <= the run's end
+    for t, chunk in zip(starts, authors.chunks):
+        end = 35 if t < 35 else 50
+        want = np.minimum(np.arange(t, t + H), end - 1)  # past the run's end: its last action, held
+        assert chunk[:, 0].tolist() == want.tolist()
+    same = np.isin(starts, paper_obs[:, 0])
+    assert np.array_equal(authors.chunks[same], paper_chunks)  # where both rules label, the same chunk
+    rows = authors(64, np.random.default_rng(0))
+    assert len(rows) == 2  # (obs, chunks): no mask, every padded step is in the loss
+    sampler = dagger.intervention_sampler(TINY, "authors_hg_dagger", [[ep]], None, None)
+    assert isinstance(sampler.samplers[0], controls.AuthorsChunkSampler)
+    assert len(sampler(32, np.random.default_rng(1))) == 2
+    assert controls.ROWS["authors_hg_dagger"].data == "D_recorded.npz"  # it reads every intervention as recorded
+
+
+@pytest.fixture(scope="module")
+def controls_run(tmp_path_factory):
+    """A finished tiny run with the three control rows."""
+    root = str(tmp_path_factory.mktemp("controls"))
+    dagger.run_experiment(TINY, root, workers=1)
+    return root
+
+
+def load(root, name):
+    return run_folder.load_episodes(os.path.join(root, name))
+
+
+def test_every_intervention_is_recorded_beside_d_k_and_the_rows_train_and_report(controls_run):
+    """D_recorded.npz holds every episode with an expert step and its flags as the oracle made them; D_k is that record
+    under the paper's rule (interventions shorter than H dropped, Sec. IV-C). Fails if the record is cut like D_k, if
+    D_k changes, or if a control row is not trained, evaluated and named in the table."""
+    recorded, D = load(controls_run, "lineage_0/round_1/D_recorded.npz"), load(controls_run, "lineage_0/round_1/D.npz")
+    assert len(recorded) >= len(D) and all(ep["expert"].any() for ep in recorded)
+    by_seed = {int(ep["seed"]): ep for ep in recorded}
+    for ep in D:
+        raw = by_seed[int(ep["seed"])]["expert"]
+        assert np.array_equal(ep["expert"], dagger.drop_short_interventions(raw, H))
+    for m in ROWS:
+        assert os.path.exists(os.path.join(controls_run, "lineage_0", "round_1", "eval", f"{m}.json"))
+    table = open(os.path.join(controls_run, "table.md")).read()
+    assert "HG-DAgger as the authors' kit trained it" in table and "Half recorded, half pooled" in table
+
+
+def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_noise(controls_run,
+                                                                                     augmentation_samplers):
+    """Fails if a co-training row's mix is not half and half, if its recorded half is not HG-DAgger's chunks, or if its
+    noised half has another noise than fixed sigma = 8 / pooled Sigma-bar^alpha (dagger.noise_model's)."""
+    D, demos = load(controls_run, "lineage_0/round_1/D.npz"), load(controls_run, "data/D0.npz")
+    stats = dagger.demo_statistics(TINY, demos)
+    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(controls_run,
+                                                                       "lineage_0/round_1/calibration.json")))
+    for method, noise in (("cotrain_fixed_8", "fixed_8"), ("cotrain_pooled", "pooled")):
+        augmentation_samplers.clear()
+        mix = dagger.intervention_sampler(TINY, method, [D], cal, stats).samplers[0]
+        assert isinstance(mix, relabel.MixtureSampler) and np.allclose(mix.p, [0.5, 0.5])
+        recorded, noised = mix.samplers
+        assert isinstance(recorded, relabel.ChunkSampler)
+        assert np.array_equal(recorded.obs, diffusion.chunk_dataset(D, H)[0])
+        kind, sigma = dagger.noise_model(noise, cal, range(len(D)), stats.median_step, stats.paper_median_step)
+        (built,) = augmentation_samplers
+        assert built["sampler"] is noised and built["noise"] == kind and np.allclose(built["sigma"], sigma)
+        obs, chunks, mask = mix(400, np.random.default_rng(0))
+        assert 0.4 < mask.all(axis=1).mean() <= 1.0 and obs.shape == (400, recorded.obs.shape[1])
+
+
+def test_a_committed_start_serves_a_run_of_other_methods_and_rounds_and_a_run_folder_does_not(controls_run,
+                                                                                               tmp_path):
+    """The shared stages (D0, pi_0, the BC row) depend on neither the methods nor the rounds: table1's committed start
+    loads into a one-round run of the control rows. A folder with lineages of another round count is refused."""
+    cfg = replace(dagger.PROFILES["table1"], rounds=1, methods=("bc", "hg_dagger") + ROWS)
+    start = run_folder.committed_start("table1", cfg, str(tmp_path / "k1"))
+    assert start is not None and start.endswith(os.path.join("table1", "start"))
+    run = run_folder.Run(str(tmp_path / "k1"), cfg)
+    assert run_folder.copy_from(run, start) == len(run_folder.start_files(start)) - 1  # all but config.json
+    with pytest.raises(run_folder.ConfigMismatch, match="rounds"):
+        run_folder.copy_from(run_folder.Run(str(tmp_path / "two"), replace(TINY, rounds=2)), controls_run)
+
+
+def files_of(pi0, rows):
+    """A lineage's files: pi_0's evaluation (scenarios x 3) and round-1 rows {method: (scenarios x 3)}."""
+    files = {"eval/pi0.json": {"success": pi0.tolist(), "seeds": list(range(len(pi0)))}}
+    for m, s in rows.items():
+        files[f"lineage_0/round_1/eval/{m}.json"] = {"success": s.tolist(), "seeds": list(range(len(pi0)))}
+    return files
+
+
+def test_the_class_split_takes_each_rows_difference_on_the_scenarios_of_pi0s_class(load_benchmark):
+    """Fails if a scenario lands in another class than pi_0's count of solved repeats says (0: never, all: always),
+    if a class's difference is taken over other scenarios, or if a lineage whose HG-DAgger differs is joined."""
+    nt = load_benchmark("noise_trade")
+    pi0 = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]], bool)
+    assert nt.pi0_classes(files_of(pi0, {})).tolist() == ["never", "sometimes", "sometimes", "always"]
+    hg = np.array([[1, 1, 1], [0, 0, 0], [1, 0, 0], [1, 1, 1]], bool)
+    row = np.array([[0, 0, 0], [1, 1, 1], [1, 1, 0], [1, 1, 1]], bool)
+    d = nt.class_differences({0: files_of(pi0, {"hg_dagger": hg, "row": row})}, 1, "row")
+    assert d["never"] == [-100.0] and d["always"] == [0.0]
+    assert d["sometimes"] == pytest.approx([100.0 * (5 / 6 - 1 / 6)]) and d["all"] == pytest.approx([100.0 * (8 - 7) / 12])
+    main = {0: files_of(pi0, {"hg_dagger": hg, "fixed_8": row})}
+    same = {0: files_of(pi0, {"hg_dagger": hg, "new": row})}
+    other = {0: files_of(pi0, {"hg_dagger": row, "new": row})}
+    merged, ok = nt.merge(main, same, [1])
+    assert ok == {0: True} and {"fixed_8", "new"} <= set(nt.rows_of(merged, 1))
+    merged, ok = nt.merge(main, other, [1])
+    assert ok == {0: False} and "fixed_8" not in nt.rows_of(merged, 1)  # another round 1: only its own rows
