@@ -268,9 +268,6 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
-        # every intervention as the oracle made it, before the recipe's rule (experiment/controls.py's
-        # authors_hg_dagger row trains on these)
-        run.stage(f"{where}/D_recorded.npz", lambda: [dict(ep) for ep in episodes if ep["expert"].any()])
         for ep in episodes:
             ep["expert"] = RECIPES[cfg.recipe].kept_interventions(ep["expert"], cfg.horizon)
         kept = [ep for ep in episodes if ep["expert"].any()]
@@ -536,8 +533,7 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     cfg = Config(**cfg_fields)
     run = Run(root, cfg)
     demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
-    data = controls.ROWS[method].data if method in controls.ROWS else "D.npz"  # a control may read another file
-    rounds_data = [run.load(f"lineage_{source}/round_{j}/{data}") for j in range(1, k + 1)]
+    rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
     calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
     train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 

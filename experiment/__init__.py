@@ -12,7 +12,9 @@ and the research variants, which plug into the core's tables when dagger.py impo
     oriented_goal.py  the authors' 10-degree goal posture: envs.ENVIRONMENTS['engine3d_oriented']
     lever.py          the authors' lever recipe: dagger.RECIPES['authors_lever'(_seeds)], diffusion.LR_SCHEDULES
                       ['constant'], padded short interventions (python dagger.py --recipe authors_lever)
-    controls.py       the sigma = 0 row zero_noise (dagger.ALL_METHODS, dagger.noise_model)
+    controls.py       rows beside Table I's: the sigma = 0 row zero_noise (dagger.noise_model), HG-DAgger as the
+                      authors' kit trained it (authors_hg_dagger) and the paper's text's co-training (cotrain_fixed_8,
+                      cotrain_pooled) (dagger.intervention_sampler); all listed in dagger.ALL_METHODS
 
 It imports the concept modules (envs, diffusion, relabel, calibrate) but never dagger.py; dagger.py passes in what it
 needs (its profiles, its statistics' results, its worker functions). A student may skip this folder.

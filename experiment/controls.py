@@ -4,13 +4,15 @@
                        return labels, no noise. It separates the effect of the noise from that of relabelling (a noised
                        arm never sees the recorded intervention chunks, HG-DAgger sees nothing else). Measured on the
                        lever: benchmarks/README.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
-    authors_hg_dagger  HG-DAgger as the authors' kit trained it (PAPER_SETUP.md §2; PCD paper/tables_repro/
-                       planar_arms.sh and lib_repro.sh): every intervention step is a chunk start, interventions
-                       shorter than H are kept, a chunk that runs past its intervention's end repeats the last
-                       action, and those padded "hold still at the hand-back point" steps stay in the loss (their
-                       hg arm leaves do_mask_loss_for_padding false). The paper's text, hg_dagger: chunks inside
-                       interventions of at least H steps (Sec. IV-C). It reads every intervention as recorded,
-                       D_recorded.npz, not D_k.
+    authors_hg_dagger  HG-DAgger as the authors' kit trained it (PAPER_SETUP.md §2): each intervention its own
+                       episode, every one of its steps a chunk start, a chunk that runs past the intervention's end
+                       repeating its last action, and those padded "hold still at the hand-back point" steps in the
+                       loss (PCD paper/tables_repro/planar_arms.sh: the hg arm passes only dart_relabel=false, so it
+                       keeps the BC config's do_mask_loss_for_padding false; the lerobot fork's dataset clamps a
+                       chunk's indices to its episode). Interventions shorter than 2 s are dropped, as in D_k: the
+                       kit's collection passes teleop_pad_short_episodes=false with 60-frame episodes at least (2 s at
+                       30 Hz = H at our 10 Hz). The paper's text, hg_dagger: only chunks that end inside their
+                       intervention (t + H <= its end, Sec. IV-C).
     cotrain_fixed_8,   the paper's text's co-training (Sec. IV-A step 4, "co-train on the aggregate dataset and the
     cotrain_pooled     augmented intervention data"): a noised row's intervention rows half as recorded (hg_dagger's
                        chunks), half noised and relabelled (fixed sigma 8, pooled Sigma-bar^alpha). Table I's noised
@@ -18,8 +20,7 @@
 Measured: benchmarks/README.md, "Why the noise's gain does not show here".
 
 NOISE_MODELS rows are a (noise kind, sigma) of relabel.AugmentationSampler, looked up by dagger.noise_model; ROWS rows
-build a round's intervention sampler themselves, looked up by dagger.intervention_sampler, and name the round's data
-file they read. dagger.ALL_METHODS lists both (`python dagger.py --methods hg_dagger,authors_hg_dagger`). It never
+build a round's intervention sampler themselves, looked up by dagger.intervention_sampler. dagger.ALL_METHODS lists both (`python dagger.py --methods hg_dagger,authors_hg_dagger`). It never
 imports dagger.py.
 """
 from __future__ import annotations
@@ -34,9 +35,9 @@ NOISE_MODELS = {"zero_noise": ("isotropic", 0.0)}
 
 
 class AuthorsChunkSampler:
-    """The authors' HG-DAgger rows: (obs, chunk) at every intervention step of every episode, however short its
-    intervention; past the intervention's end the chunk repeats its last action, and no mask: every step is in
-    the loss (lever.PaddedChunkSampler is the same cut with those steps masked, as the authors' noised arms do)."""
+    """The authors' HG-DAgger rows: (obs, chunk) at every intervention step of the episodes (every expert run their
+    flags hold); past the intervention's end the chunk repeats its last action, and no mask: every step is in the
+    loss (lever.PaddedChunkSampler is the same cut with those steps masked, as the authors' noised arms do)."""
 
     def __init__(self, episodes, H):
         self.obs, self.chunks, _ = lever.padded_chunks(episodes, H)  # the padded steps' mask is not used
@@ -50,10 +51,9 @@ class AuthorsChunkSampler:
 class Row:
     """A row that builds a round's intervention sampler itself: sampler(D, H, recorded, noised) with recorded() the
     round's hg_dagger sampler and noised(method) a Table I method's noised sampler; what: its rows in words (the
-    log's); data: the round file it reads."""
+    log's)."""
     sampler: Callable
     what: str
-    data: str = "D.npz"
 
 
 def co_trained(method):
@@ -63,7 +63,6 @@ def co_trained(method):
 
 
 ROWS = {"authors_hg_dagger": Row(lambda D, H, recorded, noised: AuthorsChunkSampler(D, H),
-                                 ", every intervention step as recorded, short ones kept, padded steps in the loss",
-                                 data="D_recorded.npz"),
+                                 ", every intervention step a chunk start, the padded steps in the loss"),
         "cotrain_fixed_8": co_trained("fixed_8"),
         "cotrain_pooled": co_trained("pooled")}

@@ -1,6 +1,6 @@
 """experiment/controls.py's rows beside Table I's (research controls, issue 52): HG-DAgger as the authors' kit trained
-it, and the paper's text's co-training (half recorded, half noised); the record of every intervention they read; a
-committed start serving a run of other methods and rounds; benchmarks/noise_trade.py's class split."""
+it, and the paper's text's co-training (half recorded, half noised); a committed start serving a run of other methods
+and rounds; benchmarks/noise_trade.py's class split."""
 import os
 from dataclasses import replace
 
@@ -22,16 +22,17 @@ TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network=
 
 def episode():
     """60 steps, joints 3; action[t] = t on every joint; the expert drives [5, 35) (30 >= H steps) and [45, 50)
-    (5 < H steps, a short intervention)."""
+    (5 < H steps: dropped from D_k, as the authors' collection drops interventions under 2 s)."""
     expert = np.zeros(60, bool)
     expert[5:35] = expert[45:50] = True
     t = np.arange(60, dtype=float)
     return {"obs": np.repeat(t[:, None], 4, axis=1).astype(np.float32), "q": np.zeros((60, 3)),
-            "action": np.repeat(t[:, None], 3, axis=1), "expert": expert, "seed": 7}
+            "action": np.repeat(t[:, None], 3, axis=1), "expert": dagger.drop_short_interventions(expert, H),
+            "seed": 7}
 
 
-def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_padded_and_short_steps():
-    """Fails if a step of an intervention starts no chunk (the paper's rule cut in), if a chunk past its
+def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_last_steps_of_each_intervention():
+    """Fails if a step of a kept intervention starts no chunk (the paper's t + H <= end cut in), if a chunk past its
     intervention's end is padded with anything but that intervention's last action, if a chunk the paper's rule
     makes differs, or if the sampler hands train a mask (the padded steps would leave the loss, as in the authors'
     noised arms and lever.PaddedChunkSampler)."""
@@ -39,20 +40,17 @@ def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_padded_and_short
     authors = controls.AuthorsChunkSampler([ep], H)
     paper_obs, paper_chunks = diffusion.chunk_dataset([ep], H)
     starts = authors.obs[:, 0].astype(int)
-    assert starts.tolist() == list(range(5, 35)) + list(range(45, 50))  # every intervention step, the short one too
+    assert starts.tolist() == list(range(5, 35))  # every step of the kept intervention, none of the dropped one
     assert paper_obs[:, 0].astype(int).tolist() == list(range(5, 16))  # the paper's: t + H <= the run's end
     for t, chunk in zip(starts, authors.chunks):
-        end = 35 if t < 35 else 50
-        want = np.minimum(np.arange(t, t + H), end - 1)  # past the run's end: its last action, held
+        want = np.minimum(np.arange(t, t + H), 34)  # past the run's end: its last action, held
         assert chunk[:, 0].tolist() == want.tolist()
     same = np.isin(starts, paper_obs[:, 0])
     assert np.array_equal(authors.chunks[same], paper_chunks)  # where both rules label, the same chunk
-    rows = authors(64, np.random.default_rng(0))
-    assert len(rows) == 2  # (obs, chunks): no mask, every padded step is in the loss
+    assert len(authors(64, np.random.default_rng(0))) == 2  # (obs, chunks): no mask, every padded step in the loss
     sampler = dagger.intervention_sampler(TINY, "authors_hg_dagger", [[ep]], None, None)
     assert isinstance(sampler.samplers[0], controls.AuthorsChunkSampler)
     assert len(sampler(32, np.random.default_rng(1))) == 2
-    assert controls.ROWS["authors_hg_dagger"].data == "D_recorded.npz"  # it reads every intervention as recorded
 
 
 @pytest.fixture(scope="module")
@@ -67,17 +65,10 @@ def load(root, name):
     return run_folder.load_episodes(os.path.join(root, name))
 
 
-def test_every_intervention_is_recorded_beside_d_k_and_the_rows_train_and_report(controls_run):
-    """D_recorded.npz holds every episode with an expert step and its flags as the oracle made them; D_k is that record
-    under the paper's rule (interventions shorter than H dropped, Sec. IV-C). Fails if the record is cut like D_k, if
-    D_k changes, or if a control row is not trained, evaluated and named in the table."""
-    recorded, D = load(controls_run, "lineage_0/round_1/D_recorded.npz"), load(controls_run, "lineage_0/round_1/D.npz")
-    assert len(recorded) >= len(D) and all(ep["expert"].any() for ep in recorded)
-    by_seed = {int(ep["seed"]): ep for ep in recorded}
-    for ep in D:
-        raw = by_seed[int(ep["seed"])]["expert"]
-        assert np.array_equal(ep["expert"], dagger.drop_short_interventions(raw, H))
+def test_the_control_rows_train_evaluate_and_are_named_in_the_table(controls_run):
+    """Fails if a control row is not fine-tuned, evaluated or named in table.md (the report's METHOD_LABELS)."""
     for m in ROWS:
+        assert os.path.exists(os.path.join(controls_run, "lineage_0", "round_1", "checkpoints", f"{m}.pt"))
         assert os.path.exists(os.path.join(controls_run, "lineage_0", "round_1", "eval", f"{m}.json"))
     table = open(os.path.join(controls_run, "table.md")).read()
     assert "HG-DAgger as the authors' kit trained it" in table and "Half recorded, half pooled" in table
@@ -85,7 +76,7 @@ def test_every_intervention_is_recorded_beside_d_k_and_the_rows_train_and_report
 
 def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_noise(controls_run,
                                                                                      augmentation_samplers):
-    """Fails if a co-training row's mix is not half and half, if its recorded half is not HG-DAgger's chunks, or if its
+    """controls.co_trained. Fails if a co-training row's mix is not half and half, if its recorded half is not HG-DAgger's chunks, or if its
     noised half has another noise than fixed sigma = 8 / pooled Sigma-bar^alpha (dagger.noise_model's)."""
     D, demos = load(controls_run, "lineage_0/round_1/D.npz"), load(controls_run, "data/D0.npz")
     stats = dagger.demo_statistics(TINY, demos)
