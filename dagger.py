@@ -451,7 +451,7 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     """The intervention rows of a fine-tuning batch: rounds 1..k in the recipe's shares (the paper's: equal);
     HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled, as in the authors' code
-    (benchmarks/README.md, "The co-training mix")."""
+    (benchmarks/README.md, "The co-training mix"); a research control's row its own (experiment/controls.py)."""
     recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
     for D in rounds_data:
         def recorded(D=D):  # HG-DAgger's rows: the round's chunks as recorded
@@ -481,12 +481,11 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
     def co_train():
         obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
         sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
+        rows = ("" if method == "hg_dagger" else controls.ROWS[method].what if method in controls.ROWS
+                else ", every drawn frame noised and relabelled")
         run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
                 f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-                f"{len(rounds_data)} round(s)" + ("" if method == "hg_dagger" else controls.ROWS[method].what
-                                                  if method in controls.ROWS else
-                                                  ", every drawn frame noised and relabelled")
-                + f" (recipe {cfg.recipe}: continuing pi_0's optimizer)")
+                f"{len(rounds_data)} round(s){rows} (recipe {cfg.recipe}: continuing pi_0's optimizer)")
         return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
                                  cfg.intervention_fraction)
 
