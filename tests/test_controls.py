@@ -135,3 +135,26 @@ def test_the_class_split_takes_each_rows_difference_on_the_scenarios_of_pi0s_cla
     assert ok == {0: True} and {"fixed_8", "new"} <= set(nt.rows_of(merged, 1))
     merged, ok = nt.merge(main, other, [1])
     assert ok == {0: False} and "fixed_8" not in nt.rows_of(merged, 1)  # another round 1: only its own rows
+
+
+def test_the_dose_response_is_the_slope_of_each_lineages_difference_on_sigma(load_benchmark):
+    """noise_trade.dose_response and compare: fails if the slope is not of (fixed sigma - HG-DAgger) on sigma per
+    lineage, or if a comparison pairs the wrong rows or scenarios."""
+    nt = load_benchmark("noise_trade")
+    pi0 = np.zeros((12, 3), bool)
+    pi0[6:] = True  # 6 never, 6 always
+    hg = np.zeros((12, 3), bool)
+    lineages = {}
+    for l, gain in enumerate((1, 2)):  # lineage l: fixed_s solves s // 2 * gain more never-scenarios' repeats
+        rows = {"hg_dagger": hg}
+        for s in (2, 4, 8):
+            row = hg.copy()
+            row.reshape(-1)[: (s // 2) * gain] = True  # the first scenarios are never-class
+            rows[f"fixed_{s}"] = row
+        lineages[l] = {k.replace("lineage_0", f"lineage_{l}"): v for k, v in files_of(pi0, rows).items()}
+    slopes, sigmas, _ = nt.dose_response(lineages, 1)
+    assert sigmas == [2, 4, 8]
+    # never: s // 2 * gain of 18 episodes -> 100 * gain / 36 points per unit of sigma
+    assert slopes["never"] == pytest.approx([100 / 36, 200 / 36]) and slopes["always"] == pytest.approx([0, 0])
+    (mean, se, t, df, p, n), (m2, *_rest) = nt.compare(lineages, 1, "fixed_8", "hg_dagger")
+    assert n == 2 and mean == pytest.approx(100 * (4 + 8) / 2 / 36) and m2 == pytest.approx(mean)
