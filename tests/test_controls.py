@@ -156,5 +156,7 @@ def test_the_dose_response_is_the_slope_of_each_lineages_difference_on_sigma(loa
     assert sigmas == [2, 4, 8]
     # never: s // 2 * gain of 18 episodes -> 100 * gain / 36 points per unit of sigma
     assert slopes["never"] == pytest.approx([100 / 36, 200 / 36]) and slopes["always"] == pytest.approx([0, 0])
+    two = {l: {k: v for k, v in files.items() if "fixed_8" not in k} for l, files in lineages.items()}
+    assert nt.dose_response(two, 1)[0]["never"] == pytest.approx([100 / 36, 200 / 36])  # two sigmas make a slope
     (mean, se, t, df, p, n), (m2, *_rest) = nt.compare(lineages, 1, "fixed_8", "hg_dagger")
     assert n == 2 and mean == pytest.approx(100 * (4 + 8) / 2 / 36) and m2 == pytest.approx(mean)
