@@ -114,14 +114,16 @@ def fixed_sigmas(lineages, k):
 
 
 def dose_response(lineages, k, base="hg_dagger"):
-    """{class or 'all': per-lineage slopes (points per paper median step) of fixed_s - base on s}, and the sigmas."""
+    """({class or 'all': per-lineage slopes (points per paper median step) of fixed_s - base on s, over the lineages
+    holding every fixed sigma}, the sigmas, {s: class_differences of fixed_s} over every lineage holding it)."""
     sigmas = fixed_sigmas(lineages, k)
     per_sigma = {s: class_differences(lineages, k, f"fixed_{s}", base) for s in sigmas}
-    slopes = {}
-    for c in CLASSES + ("all",):
-        n = min(len(per_sigma[s][c]) for s in sigmas) if sigmas else 0
-        slopes[c] = [float(np.polyfit(sigmas, [per_sigma[s][c][i] for s in sigmas], 1)[0]) for i in range(n)] \
-            if len(sigmas) >= 2 else []
+    complete = {l: f for l, f in lineages.items()
+                if all(success(f, l, k, m) is not None for m in [base] + [f"fixed_{s}" for s in sigmas])}
+    diffs = {s: class_differences(complete, k, f"fixed_{s}", base) for s in sigmas}  # aligned: one per lineage
+    slopes = {c: [float(np.polyfit(sigmas, [diffs[s][c][i] for s in sigmas], 1)[0])
+                  for i in range(len(diffs[sigmas[0]][c]))] if len(sigmas) >= 2 else []
+              for c in CLASSES + ("all",)}
     return slopes, sigmas, per_sigma
 
 

@@ -158,5 +158,12 @@ def test_the_dose_response_is_the_slope_of_each_lineages_difference_on_sigma(loa
     assert slopes["never"] == pytest.approx([100 / 36, 200 / 36]) and slopes["always"] == pytest.approx([0, 0])
     two = {l: {k: v for k, v in files.items() if "fixed_8" not in k} for l, files in lineages.items()}
     assert nt.dose_response(two, 1)[0]["never"] == pytest.approx([100 / 36, 200 / 36])  # two sigmas make a slope
+    def renamed(files, l):
+        return {k.replace("lineage_0/", f"lineage_{l}/").replace("lineage_1/", f"lineage_{l}/"): v
+                for k, v in files.items()}
+    # lineage 9, sorted first, lacks fixed_4 and fixed_8: the slopes pair each lineage's own differences
+    partial = {9: renamed(files_of(pi0, {"hg_dagger": hg, "fixed_2": hg}), 9),
+               10: renamed(lineages[0], 10), 11: renamed(lineages[1], 11)}
+    assert nt.dose_response(partial, 1)[0]["never"] == pytest.approx([100 / 36, 200 / 36])  # complete lineages only
     (mean, se, t, df, p, n), (m2, *_rest) = nt.compare(lineages, 1, "fixed_8", "hg_dagger")
     assert n == 2 and mean == pytest.approx(100 * (4 + 8) / 2 / 36) and m2 == pytest.approx(mean)
