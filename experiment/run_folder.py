@@ -350,7 +350,8 @@ def copy_from(run, src):
     compute. If src ran the other of the recipes authors_lever / authors_lever_seeds (independent lineages there,
     training seeds on lineage 0's interventions here, or the reverse), only the shared stages and lineage 0 are
     copied: lineage 0 is the same run under both, the others are not. A src of shared stages only (no lineage
-    folder: a committed start) may run other methods and rounds, on which those stages do not depend. Refused
+    folder: a committed start) may run other methods and rounds, on which those stages do not depend; a src of fewer
+    rounds gives this run its first rounds (more rounds: --rounds 2 --copy-from a one-round folder). Refused
     (ConfigMismatch) if src differs in any other field (FOLDER_FREE_FIELDS aside), runs a method this run lacks,
     or has another pi_0 than one already here; files already here are kept. Returns the count."""
     path = os.path.join(src, "config.json")
@@ -359,8 +360,10 @@ def copy_from(run, src):
     if os.path.realpath(src) == os.path.realpath(run.root):
         raise RunFolderError(f"--copy-from {src}: that is this run's own folder; name the finished run to copy from")
     old, cfg = read_json(path), run.cfg
-    # a folder of shared stages only (a start: D0, pi_0, the BC row) serves any methods and rounds
+    # a folder of shared stages only (a start: D0, pi_0, the BC row) serves any methods and rounds; a folder of fewer
+    # rounds holds this run's first rounds (no stage's result or seed depends on the round count)
     shared_only = not any(re.fullmatch(r"lineage_\d+", name) for name in os.listdir(src))
+    fewer_rounds = shared_only or old.get("rounds", cfg.rounds) <= cfg.rounds
     extra = [m for m in old.get("methods", ()) if m not in cfg.methods]
     if extra and not shared_only:
         raise ConfigMismatch(f"--copy-from {src}: it runs {', '.join(extra)}, which this run does not; copy only from "
@@ -370,7 +373,7 @@ def copy_from(run, src):
     lineage_0_only = old.get("recipe", "paper") != cfg.recipe and {old.get("recipe"), cfg.recipe} == lever
     check_same_config(src, {**old, "methods": cfg.methods, "name": cfg.name,
                             **({"recipe": cfg.recipe} if lineage_0_only else {}),
-                            **({"rounds": cfg.rounds} if shared_only else {})}, cfg,
+                            **({"rounds": cfg.rounds} if fewer_rounds else {})}, cfg,
                       advice="--copy-from takes the stages of a run that differs only in its methods (or in "
                              "authors_lever / authors_lever_seeds): run the other fields' change from scratch in its "
                              "own folder.")

@@ -105,8 +105,21 @@ def test_a_committed_start_serves_a_run_of_other_methods_and_rounds_and_a_run_fo
     assert start is not None and start.endswith(os.path.join("table1", "start"))
     run = run_folder.Run(str(tmp_path / "k1"), cfg)
     assert run_folder.copy_from(run, start) == len(run_folder.start_files(start)) - 1  # all but config.json
-    with pytest.raises(run_folder.ConfigMismatch, match="rounds"):
-        run_folder.copy_from(run_folder.Run(str(tmp_path / "two"), replace(TINY, rounds=2)), controls_run)
+    longer = run_folder.Run(str(tmp_path / "src2"), replace(TINY, rounds=2)).root
+    os.makedirs(os.path.join(longer, "lineage_0"))
+    with pytest.raises(run_folder.ConfigMismatch, match="rounds"):  # lineages of more rounds than this run's: refused
+        run_folder.copy_from(run_folder.Run(str(tmp_path / "half"), TINY), longer)
+
+
+def test_a_folder_of_fewer_rounds_gives_a_longer_run_its_first_rounds(controls_run, tmp_path, trained_stages):
+    """--rounds 2 --copy-from a one-round folder: only round 2 trains, and round 1's stages are the folder's (no stage
+    depends on the round count). Fails if round 1 retrains or the copy is refused."""
+    root = str(tmp_path / "two")
+    dagger.run_experiment(replace(TINY, rounds=2), root, copy_src=controls_run)
+    assert sorted(trained_stages) == sorted(f"lineage_0/round_2/checkpoints/{m}.pt" for m in ("hg_dagger",) + ROWS)
+    for name in ("D.npz", "eval/hg_dagger.json", "eval/authors_hg_dagger.json"):
+        a, b = (open(os.path.join(r, "lineage_0", "round_1", name), "rb").read() for r in (controls_run, root))
+        assert a == b
 
 
 def files_of(pi0, rows):
