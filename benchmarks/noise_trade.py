@@ -161,27 +161,29 @@ def compare_line(lineages, k, a, b, unseen=False):
 
 
 def plot(panels, path, k):
-    """One panel per folder: fixed sigma - hg_dagger against sigma, one line per class, SE bars over lineages."""
+    """One panel per folder: fixed sigma - hg_dagger against sigma, one line per class, SE bars over lineages; the
+    class sizes in each panel's title, the legend outside the data."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1.8, 3.6), squeeze=False, sharey=True)
     for ax, (name, lineages) in zip(axes[0], panels):
         _, sigmas, per_sigma = dose_response(lineages, k)
-        sizes = {c: int((pi0_classes(next(iter(lineages.values()))) == c).sum()) for c in CLASSES}
+        cls = pi0_classes(next(iter(lineages.values())))
         for c, color in zip(CLASSES + ("all",), ("tab:red", "tab:orange", "tab:green", "black")):
             means = [np.mean(per_sigma[s][c]) for s in sigmas]
             ses = [np.std(per_sigma[s][c], ddof=1) / np.sqrt(len(per_sigma[s][c])) for s in sigmas]
-            label = f"{c} ({sizes[c]} scenarios)" if c != "all" else "all"
-            ax.errorbar(sigmas, means, yerr=ses, marker="o", capsize=3, color=color, label=label,
+            ax.errorbar(sigmas, means, yerr=ses, marker="o", capsize=3, color=color, label=c,
                         linestyle="--" if c == "all" else "-")
         ax.axhline(0, color="gray", lw=0.8)
         n = len(per_sigma[sigmas[0]]["all"]) if sigmas else 0
-        ax.set_title(f"{name} (K = {k}, {n} lineages)")
+        sizes = " / ".join(str(int((cls == c).sum())) for c in CLASSES)
+        ax.set_title(f"{name}, K = {k}, {n} lineages\nscenarios never / sometimes / always: {sizes}", fontsize=9)
         ax.set_xlabel("fixed σ (paper median steps)")
         ax.set_xticks(sigmas)
-    axes[0][0].set_ylabel("fixed σ − HG-DAgger (points)")
-    axes[0][0].legend(fontsize=7, title="π0's class", title_fontsize=7)
+    axes[0][0].set_ylabel("fixed σ − HG-DAgger (success points)")
+    axes[0][-1].legend(title="π0 solved the scenario", fontsize=8, title_fontsize=8, loc="center left",
+                       bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     fig.savefig(path, dpi=120)
