@@ -345,11 +345,11 @@ class EquilibriumFit:
     rms_residual: float         # RMS of x - equilibrium(s, W, r) over the points used
 
 
-def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
-                    n_grid: int = 241, n_iter: int = 30) -> EquilibriumFit:
-    """Least squares for W and r > 0 in Eq. (12) from the finite points (s_i, x_i): W in closed form for each
-    r (`_best_W`), r on a log grid over r_bounds, refined by `refine_fit_robust`. x is the norm of the joint
-    deviation (with isotropic gains ||x|| = ||W|| g(s), Eq. 12 again; Eq. 14 needs only ||W||^2)."""
+def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), n_grid: int = 241) -> EquilibriumFit:
+    """Least squares for W and r > 0 in Eq. (12) from the finite points (s_i, x_i), as the authors' curve_fit:
+    W in closed form for each r (`_best_W`), r on a log grid over r_bounds, then golden section in log r between
+    the best grid point's neighbours. x is the norm of the joint deviation (with isotropic gains
+    ||x|| = ||W|| g(s), Eq. 12 again; Eq. 14 needs only ||W||^2)."""
     s = np.asarray(s, dtype=np.float64).reshape(-1)
     x = np.asarray(x, dtype=np.float64).reshape(-1)
     if s.shape != x.shape:
@@ -364,11 +364,14 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), huber_k: float = 1.345,
     if not np.any(x != 0):
         return EquilibriumFit(0.0, 1.0, len(s), 0.0)
     # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
+    w = np.ones_like(x)                                                # (n,) every point weighs the same
     log_r_grid = np.linspace(math.log(r_bounds[0]), math.log(r_bounds[1]), n_grid)   # (G,)
-    W_grid, sse = _best_W(s, x, np.ones_like(x), np.exp(log_r_grid))   # closed-form W at every r, (G,) each
-    i = int(np.argmin(sse))                        # the grid's best fit: W_grid[i], r = exp(log_r_grid[i])
-    W, r = refine_fit_robust(s, x, log_r_grid, i, huber_k, n_iter)    # refined around it
-    res = x - W * s / (s + r * (1 - s))                               # residuals of Eq. (12)
+    _, sse = _best_W(s, x, w, np.exp(log_r_grid))                     # closed-form W at every r: its SSE (G,)
+    i = int(np.argmin(sse))                                            # the grid's best r ...
+    a, b = log_r_grid[max(i - 1, 0)], log_r_grid[min(i + 1, n_grid - 1)]
+    log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)   # ... refined between its
+    W, r = float(_best_W(s, x, w, np.exp([log_r]))[0][0]), math.exp(log_r)          # neighbours
+    res = x - W * s / (s + r * (1 - s))                                # residuals of Eq. (12)
     return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
     # <<< exercise 6
 
@@ -380,32 +383,6 @@ def _best_W(s, x, w, r):
     W = np.sum(w * g * x, axis=1) / np.maximum(np.sum(w * g * g, axis=1), 1e-300)
     sse = np.sum(w * (x[None] - W[:, None] * g) ** 2, axis=1)
     return W, sse
-    # <<< exercise 6
-
-
-def refine_fit_robust(s, x, log_r_grid: np.ndarray, i: int, huber_k: float = 1.345,
-                      n_iter: int = 30) -> tuple[float, float]:
-    """-> (W, r): golden section in log r between the grid neighbours of point i, then at most n_iter rounds
-    of Huber-weighted least squares against outliers (n_iter = 1: plain least squares, as calibrate)."""
-    # >>> exercise 6: the blend equilibrium and its fit for W (Eqs. 8-12)
-    n_grid = len(log_r_grid)
-    w = np.ones_like(x)                                                     # (n,) Huber weights
-    for it in range(n_iter):
-        if it > 0:                                                          # the grid again, reweighted
-            _, sse = _best_W(s, x, w, np.exp(log_r_grid))
-            i = int(np.argmin(sse))
-        a, b = log_r_grid[max(i - 1, 0)], log_r_grid[min(i + 1, n_grid - 1)]
-        log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)
-        W = float(_best_W(s, x, w, np.exp([log_r]))[0][0])
-        res = x - W * s / (s + math.exp(log_r) * (1 - s))
-        scale = 1.4826 * float(np.median(np.abs(res)))                      # MAD scale (normal-consistent)
-        if scale <= 1e-12 * max(1.0, float(np.max(np.abs(x)))):
-            break                                                           # exact fit: nothing to reweight
-        w_new = np.minimum(1.0, huber_k * scale / np.maximum(np.abs(res), 1e-300))
-        if np.max(np.abs(w_new - w)) < 1e-6:
-            break
-        w = w_new
-    return W, math.exp(log_r)
     # <<< exercise 6
 
 
@@ -436,7 +413,7 @@ def W_interval(betas, s, x, kept, W_range: tuple, cfg: CalibrationConfig) -> tup
     for _ in range(cfg.bootstrap):
         idx = np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups if len(g)])
         cells = ratio_cells(betas[idx], s[idx], x[idx], np.ones(len(idx), dtype=bool), cfg.min_survivors)
-        Ws.append(fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1).W)
+        Ws.append(fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds).W)
     lo, hi = np.percentile(np.clip(Ws, *W_range), [2.5, 97.5])
     return float(lo), float(hi)
 
@@ -514,12 +491,11 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
     say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
         f"ratios with >= {cfg.min_survivors} of them; fitting W")
 
-    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages (plain least squares, n_iter=1, as the authors'
-    # curve_fit); W held within the authors' bounds, in radians (W is x extrapolated to s = 1)
+    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages (least squares, as the authors' curve_fit); W held within the authors' bounds, in radians (W is x extrapolated to s = 1)
     unit = median_step if paper_unit is None else paper_unit
     W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)
     try:
-        fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds, n_iter=1)
+        fit = fit_equilibrium(cells.s[cells.fitted], cells.x[cells.fitted], r_bounds=cfg.r_bounds)
     except ValueError as err:
         W = math.sqrt(float(np.trace(steps.sigma.mean(axis=0))))          # ||W||^2 = tr(Sigma_bar)
         r, note, W_ci = None, f"FALLBACK: no fit, W from the open-loop error ({err})", None

@@ -44,9 +44,17 @@ def test_fit_recovers_W_and_r_at_the_papers_blend_ratios(W, r):
     assert fit.n_points == 13 and fit.rms_residual < 0.02 * W
 
 
-def test_fit_shrugs_off_an_outlier():
+def test_fit_is_least_squares_even_with_an_outlier():
+    """The run's fit is plain least squares, as the authors' curve_fit: an outlier moves it, and no (W, r) near
+    the fit has a smaller sum of squares (a fit left at the grid's point, or a wrong golden section, has)."""
     s = noise_fraction(make_schedule(100), BETAS)
     x = equilibrium(s, 2.0, 0.5)
     x[6] *= 3.0                                                        # one rollout nearly diverged
     fit = fit_equilibrium(s, x)
-    assert fit.W == pytest.approx(2.0, rel=0.02) and fit.r == pytest.approx(0.5, rel=0.05)
+    sse = lambda W, r: float(np.sum((x - equilibrium(s, W, r)) ** 2))   # noqa: E731
+    best = sse(fit.W, fit.r)
+    for r in fit.r * np.exp(np.linspace(-0.05, 0.05, 21)):             # the best W of each r nearby
+        W = _best_W(s, x, np.ones_like(s), np.array([r]))[0][0]
+        assert best <= sse(W, r) + 1e-12
+    assert fit.rms_residual == pytest.approx(np.sqrt(best / 13), rel=1e-9)
+    assert abs(fit.W - 2.0) > 0.05                                     # the outlier pulled it: not a robust fit
