@@ -24,7 +24,7 @@ Units: radians (rad^2) and env steps (0.1 s); reports and figures add our median
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -545,45 +545,6 @@ class Calibration:
         if self.W_ci is not None:
             self.W_ci = (float(self.W_ci[0]), float(self.W_ci[1]))         # JSON gives a list
 
-    def to_dict(self) -> dict:
-        """Plain lists and numbers, for json.dump."""
-        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "Calibration":
-        """The inverse of to_dict (calibration.json; older files: without W_ci or paper_median_step, and
-        with the deleted unguided control's 'unguided_pooled' / 'closed_loop_pooled', dropped)."""
-        dtypes = {"episode_index": np.int64, "timestep": np.int64, "blend_episode": np.int64,
-                  "blend_start": np.int64, "blend_kept": bool}
-        kwargs = {k: v for k, v in data.items() if k not in ("unguided_pooled", "closed_loop_pooled")}
-        for k, v in kwargs.items():
-            if isinstance(v, list) and k != "W_ci":                          # the arrays
-                kwargs[k] = np.asarray(v, dtype=dtypes.get(k, np.float64))
-        return cls(**kwargs)
-
-    def report(self) -> str:
-        """The paper's summary: W and the per-joint sigma of Sigma_bar^alpha in median steps (Sec. V), then
-        in radians and in the paper's median steps (its numbers compare only in its unit)."""
-        p = self.paper_median_step
-        ci = ("" if self.W_ci is None else
-              f"95 % bootstrap interval {self.W_ci[0] / self.median_step:.2f}–"
-              f"{self.W_ci[1] / self.median_step:.2f}, ")
-        fitted = ratio_cells(self.blend_beta, self.blend_s, self.blend_x, self.blend_kept).fitted
-        return "\n".join([
-            f"W = {self.W / self.median_step:.2f} median steps ({ci}||W||, {self.fit_note}"
-            + (f", r = K*/K_theta = {self.r:.3g})" if self.r is not None else ")"),
-            f"kept blend rollouts: {int(self.blend_kept.sum())}/{len(self.blend_kept)} over "
-            f"{len(np.unique(self.blend_beta))} ratios, {int(fitted.sum())} "
-            f"with >= {CalibrationConfig.min_survivors} kept (fitted)",
-            "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
-            + ", ".join(f"{v:.2f}" for v in self.sigma_per_joint),
-            f"units: our median step {self.median_step:.4f} rad (per joint, base demos); "
-            + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {self.median_step / p:.2f}x theirs"
-               if p is not None else "the paper gives none for this env: radians only"),
-            f"W = {other_units(self.W, p)}" + ("" if self.W_ci is None else
-                                               f" (95 % interval {other_units(self.W_ci, p)})"),
-            f"pooled Sigma_bar^alpha per-joint sigma = {other_units(np.sqrt(np.diag(self.pooled)), p)}"])
-
 
 def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
     """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
@@ -745,7 +706,8 @@ if __name__ == "__main__":
     train(policy, *chunk_dataset(episodes, 16), TrainConfig(steps=1000, warmup_steps=100, log_every=250))
     calibration = calibrate(env, policy, episodes[:8], unit, CalibrationConfig(n_act=8),
                             torch.Generator().manual_seed(0))
-    print(calibration.report())
+    print(f"W = {calibration.W / unit:.2f} median steps ({calibration.fit_note}); pooled Sigma_bar^alpha per-joint "
+          f"sigma {np.round(calibration.sigma_per_joint, 2)} median steps")
     plot_blend_fit(calibration, unit, "fig4_blend_fit.png")
     plot_method_overview(env, episodes[int(calibration.blend_episode[0])], calibration, policy,
                          "fig2_method_overview.png", generator=torch.Generator().manual_seed(1))

@@ -414,10 +414,10 @@ def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
         cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
                                   gen, log=lambda msg: run.log("  calibration: " + msg))
         run.log(f"{label}: calibration on {len(episodes)} intervention episodes "
-                f"({time.time() - t0:.0f} s)\n  " + cal.report().replace("\n", "\n  "))
-        return cal.to_dict()
+                f"({time.time() - t0:.0f} s)\n  " + report.calibration_text(cal).replace("\n", "\n  "))
+        return cal
 
-    return calibrate.Calibration.from_dict(run.stage(f"{where}/calibration.json", measure))
+    return run.stage(f"{where}/calibration.json", measure)
 
 
 def calibration_config(cfg):
@@ -533,7 +533,7 @@ def noised_arm(root, cfg_fields, lineage, k, method):
     run = Run(root, cfg)
     demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
     rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
-    calibration = calibrate.Calibration.from_dict(run.load(f"lineage_{source}/round_{k}/calibration.json"))
+    calibration = run.load(f"lineage_{source}/round_{k}/calibration.json")
     train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
 
 
@@ -803,7 +803,7 @@ def make_figures(run, demos, stats):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")
         return
     D1 = run.load("lineage_0/round_1/D.npz")
-    cal = calibrate.Calibration.from_dict(run.load("lineage_0/round_1/calibration.json"))
+    cal = run.load("lineage_0/round_1/calibration.json")
     # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
     calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
     policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")

@@ -7,7 +7,7 @@ Paper map (paper.tex, Sec. IV-B "Partial Denoising as a Learned Action Interpola
   - epsilon network eps_theta(a_k, k | o) over a chunk (the authors') .... ConditionalUnet1D (NETWORKS)
   - the policy pi_theta(a_{t:t+H} | o_t): normalizer, DDPM loss, sampling  DiffusionPolicy
   - action chunks of horizon H; the label rule (Sec. IV-C) ............... expert_runs, label_mask, chunk_dataset
-  - BC, co-training, fine-tuning (Sec. IV-A steps 1, 4, 6) ............... train (lr schedule, EMA, checkpoints)
+  - BC, co-training, fine-tuning (Sec. IV-A steps 1, 4, 6) ............... train (lr schedule, EMA)
 
 Index convention (used everywhere): the paper numbers the diffusion steps k = 1..K, alphabar_k = prod_{s<=k}
 alpha_s, alphabar_0 = 1 (the clean chunk a_0); the code indexes its arrays k = 0..K-1, so code index k <-> paper
@@ -21,11 +21,9 @@ on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py)
 """
 
 import copy
-import json
 import math
-import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -117,8 +115,7 @@ class TrainConfig:
     seed: int = 0                    # seeds batch indices (numpy) and diffusion noise (torch)
     log_every: int = 500             # optimizer steps between progress lines (0 = silent)
     log_seconds: float = 10.0        # ... and a line at least this often (seconds, wall clock) unless silent
-    checkpoint_steps: tuple = ()     # optimizer steps after which a checkpoint is written
-    checkpoint_path: str = ""        # where; '{step}' in the path is replaced by the step number
+    checkpoint_steps: tuple = ()     # optimizer steps after which train() hands its state to on_checkpoint
 
     def __post_init__(self):
         """ValueError on a bad field; obs_noise becomes a float or a tuple of floats."""
@@ -131,8 +128,7 @@ class TrainConfig:
                      noise.ndim <= 1 and np.all(np.isfinite(noise)) and np.all(noise >= 0),
                  "schedule_steps 0 (= steps) or >= steps":
                      self.schedule_steps == 0 or self.schedule_steps >= self.steps,
-                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES,
-                 "a checkpoint_path for the checkpoint_steps": self.checkpoint_path or not self.checkpoint_steps}
+                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"TrainConfig needs {'; '.join(broken)}; got {self}")
@@ -588,83 +584,6 @@ class DiffusionPolicy(nn.Module):
             a0 = self.reverse_process(a_K, k_start, obs_norm, noise[:, 1:], use_ema)
             return self.unnormalize_actions(a0.double(), obs_t.double()).cpu().numpy()
 
-    def save(self, path, extra=None):
-        """Config, weights, EMA weights, normalizer (+ extra) in one file, via path.tmp: never half-written."""
-        payload = {"format": CHECKPOINT_FORMAT, "config": asdict(self.cfg),
-                   "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
-        if extra is not None:
-            payload["train_state"] = extra
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        torch.save(payload, f"{path}.tmp")
-        os.replace(f"{path}.tmp", path)
-
-    @classmethod
-    def load(cls, path, device="cpu"):
-        """The policy saved at path (a variant's obs_encoder must be registered first). FileNotFoundError,
-        CheckpointDamagedError (a ValueError), or ValueError for a config of a deleted option."""
-        payload = _read_checkpoint(path)
-        config = dict(payload["config"])
-        for name, (kept, deleted) in RETIRED_POLICY_FIELDS.items():
-            stored = config.pop(name, kept)
-            if (tuple(stored) if isinstance(stored, list) else stored) != kept:
-                raise ValueError(f"{path!r} holds a policy with {name}={stored!r}: {deleted}; retrain the policy")
-        policy = cls(PolicyConfig(**config), device=device)
-        policy.load_state_dict(payload["state_dict"])
-        return policy
-
-
-# ---- Checkpoint files --------------------------------------------------------------------------------------------
-CHECKPOINT_FORMAT = "diffusion-policy-v2"
-# PolicyConfig fields a checkpoint of an earlier version holds: (the one value this code reads, else why not)
-RETIRED_POLICY_FIELDS = {
-    "schedule": ("squaredcos", "the linear noise schedule was deleted (the squared-cosine one is the only one)"),
-    "joint_obs": (True, "absolute chunks (joint_obs False) were deleted: chunks are relative to q_t"),
-    "image_shape": ((), "image observations are the research variant experiment/image_obs.py (--env engine3d_image)"),
-    "image_features": (64, "image observations are the research variant experiment/image_obs.py"),
-}
-
-
-class CheckpointDamagedError(ValueError):
-    """A checkpoint file that cannot be read: truncated (a run killed while copying it), or no checkpoint at all."""
-
-
-def _read_checkpoint(path):
-    """The payload dict of a file written by DiffusionPolicy.save. FileNotFoundError if there is no file,
-    CheckpointDamagedError if it cannot be read, ValueError if it is another format."""
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no policy checkpoint at {path!r}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:                                           # EOFError, zip RuntimeError, Unpickling...
-        if isinstance(err, OSError):                                   # unreadable (permissions, disk): not damage
-            raise
-        raise CheckpointDamagedError(f"checkpoint {path} is damaged (truncated or not a checkpoint; torch.load "
-                                     f"raised {type(err).__name__}): delete it and run again to re-make it") from None
-    if not isinstance(payload, dict):
-        raise CheckpointDamagedError(f"checkpoint {path} is damaged (it holds a {type(payload).__name__}, not a "
-                                     f"checkpoint): delete it and run again to re-make it")
-    if payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path!r} is not a {CHECKPOINT_FORMAT} checkpoint (format {payload.get('format')!r}): "
-                         f"retrain the policy")
-    return payload
-
-
-def _nested(x, leaf):
-    """leaf(v) for every v inside nested dicts / lists / tuples (a tuple becomes a list)."""
-    if isinstance(x, dict):
-        return {k: _nested(v, leaf) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_nested(v, leaf) for v in x]
-    return leaf(x)
-
-
-def _as_torch(x):   # numpy arrays -> tensors, for a sampler's state in a checkpoint (read with weights_only=True)
-    return _nested(x, lambda v: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v)
-
-
-def _as_numpy(x):   # the inverse of _as_torch
-    return _nested(x, lambda v: v.numpy() if torch.is_tensor(v) else v)
-
 
 # ---- Chunk dataset (Sec. IV-C: a chunk is a label only if the expert drove all of its H steps) --------------------
 def expert_runs(expert, H):
@@ -713,17 +632,19 @@ def chunk_dataset(episodes, H):
 
 
 # ---- Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6) -----------------------------
-def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_from=None, log=print):
+def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None, log=print):
     """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
 
     - The normalizer is fitted on (obs, chunks) only if the policy has none (a loaded checkpoint keeps its own).
     - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): augmented pairs made on the
       fly for round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps
       stay out of the loss.
-    - resume_from: a checkpoint of cfg.checkpoint_steps; the run goes on as an uninterrupted one would (weights,
-      AdamW, both random streams, the sampler's state).
-    - continue_from: such a checkpoint, e.g. pi_0: its weights, AdamW state and step count go on along cfg's lr
-      schedule with this run's data and random streams (the authors' fine-tuning, PAPER_SETUP.md §2).
+    - start: None (step 0, a fresh AdamW), or a state that on_checkpoint handed over: from its 'step' with its
+      'optimizer' state along cfg's lr schedule (the authors' fine-tuning continues pi_0 so, PAPER_SETUP.md §2,
+      with this run's own random streams); with its 'numpy_rng' and 'torch_rng' too, as the uninterrupted run
+      would go on (a resumed run: the weights and the sampler's pool are the caller's to restore).
+    - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng',
+      'torch_rng'} (experiment/checkpoints.py keeps it in the run folder).
     """
     pc = policy.cfg
     obs = check_array("obs", obs, (None, pc.obs_dim))
@@ -749,24 +670,13 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
     rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
     step = 0
-    if resume_from is not None or continue_from is not None:
-        path = resume_from if resume_from is not None else continue_from
-        payload = _read_checkpoint(path)
-        if "train_state" not in payload:
-            raise ValueError(f"{path!r} holds no training state (the optimizer): it must be a checkpoint of "
-                             f"train()'s checkpoint_steps, not of policy.save")
-        state = payload["train_state"]
-        step = int(state["step"])
-        if continue_from is not None and step >= cfg.steps:
-            raise ValueError(f"continue_from={path!r} is at step {step}; TrainConfig.steps={cfg.steps} counts the "
-                             f"total, so it must be larger to train on")
-        policy.load_state_dict(payload["state_dict"])
-        optimizer.load_state_dict(state["optimizer"])
-        if resume_from is not None:                                    # the random streams too
-            rng.bit_generator.state = json.loads(state["numpy_rng"])
-            gen.set_state(state["torch_rng"])
-            if state.get("sampler") is not None and hasattr(sampler, "load_state_dict"):
-                sampler.load_state_dict(_as_numpy(state["sampler"]))
+    if start is not None:                                              # a checkpoint's state, going on
+        step = int(start["step"])
+        assert step < cfg.steps, f"start is at step {step}; TrainConfig.steps={cfg.steps} counts the total"
+        optimizer.load_state_dict(start["optimizer"])
+        if "numpy_rng" in start:                                       # resumed: the random streams too
+            rng.bit_generator.state = start["numpy_rng"]
+            gen.set_state(start["torch_rng"])
 
     policy.train()
     t0, losses, last_step = time.time(), [], step                      # progress lines: mean loss, rate, time left
@@ -794,12 +704,9 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
             log(f"step {step}/{cfg.steps} | loss {np.mean(losses):.4f} | {rate:.0f} steps/s | "
                 f"{(cfg.steps - step) / max(rate, 1e-9):.0f} s left")
             t0, losses, last_step = time.time(), [], step
-        if step in cfg.checkpoint_steps:                               # all a resumed run needs to go on alike
-            policy.save(cfg.checkpoint_path.replace("{step}", str(step)), extra={
-                "step": step, "optimizer": optimizer.state_dict(),
-                "numpy_rng": json.dumps(rng.bit_generator.state), "torch_rng": gen.get_state(),
-                "train_config": json.dumps(asdict(cfg)),
-                "sampler": _as_torch(sampler.state_dict()) if hasattr(sampler, "state_dict") else None})
+        if step in cfg.checkpoint_steps and on_checkpoint is not None:  # all a resumed run needs besides weights
+            on_checkpoint({"step": step, "optimizer": optimizer.state_dict(), "numpy_rng": rng.bit_generator.state,
+                           "torch_rng": gen.get_state()})
     policy.eval()
     return policy
 

@@ -433,6 +433,8 @@ class AugmentationSampler:
     mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
     sigma: as in `noise_factors`, for 'per_step' a list or dict {episode index: pair}. make_env: an env factory."""
     label_steps = staticmethod(label_steps)  # the paper's label rule (a variant's subclass brings its own)
+    # the pool and its counters: what a resumed training run restores (experiment/checkpoints.py)
+    resume_state = ("_pool_obs", "_pool_chunks", "_pool_mask", "_filled", "_write", "_served", "n_drawn", "n_kept")
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
                  noise: str, sigma, cfg: RelabelConfig):
@@ -597,21 +599,6 @@ class AugmentationSampler:
             self._envs[seed] = env
         return self._envs[seed]
 
-    def state_dict(self) -> dict:
-        """The pool and its counters, for a resumed training run (the caller restores its rng). Plain ints:
-        the checkpoint's safe loader refuses numpy scalars."""
-        copy = lambda a: None if a is None else a.copy()
-        return {"pool_obs": copy(self._pool_obs), "pool_chunks": copy(self._pool_chunks),
-                "pool_mask": copy(self._pool_mask), "filled": int(self._filled), "write": int(self._write),
-                "served": int(self._served), "n_drawn": int(self.n_drawn), "n_kept": int(self.n_kept)}
-
-    def load_state_dict(self, state: dict) -> None:
-        copy = lambda a, dtype: None if a is None else np.array(a, dtype=dtype)
-        self._pool_obs, self._pool_chunks = copy(state["pool_obs"], np.float32), copy(state["pool_chunks"], np.float32)
-        self._pool_mask = copy(state["pool_mask"], bool)
-        self._filled, self._write, self._served = int(state["filled"]), int(state["write"]), int(state["served"])
-        self.n_drawn, self.n_kept = int(state["n_drawn"]), int(state["n_kept"])
-
 
 class ChunkSampler:
     """Intervention frames as recorded: (obs, expert chunk) at every valid label start (HG-DAgger's data)."""
@@ -642,14 +629,6 @@ class MixtureSampler:
             return obs, chunks
         masks = [p[2] if len(p) == 3 else np.ones(p[1].shape[:2], bool) for p in parts]
         return obs, chunks, np.concatenate(masks)
-
-    def state_dict(self):
-        return {str(i): s.state_dict() for i, s in enumerate(self.samplers) if hasattr(s, "state_dict")}
-
-    def load_state_dict(self, state):
-        for i, s in enumerate(self.samplers):
-            if hasattr(s, "load_state_dict") and str(i) in state:
-                s.load_state_dict(state[str(i)])
 
 
 # ---- 6. Fig. 1: expert trajectory, policy-calibrated noise ellipses, sampled recovery trajectories

@@ -25,9 +25,8 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
-import diffusion  # noqa: E402
 import envs  # noqa: E402
-from experiment import oriented_goal  # noqa: E402
+from experiment import checkpoints, oriented_goal  # noqa: E402
 
 
 def ending(env, episode):
@@ -115,7 +114,7 @@ def roll_out(checkpoint, args):
     The episodes run as in dagger.evaluate (dagger.rollouts_in_groups: lockstep, in groups of at most
     dagger.MAX_PARALLEL_ENVS[env], engine3d 100 pybullet clients, each group closed before the next), and every
     episode is classified while its env is open: memory stays that of one group, however many policies."""
-    policy = diffusion.DiffusionPolicy.load(checkpoint)
+    policy = checkpoints.load_policy(checkpoint)
     jobs = [int(s) for _ in range(args.repeats) for s in envs.eval_seeds()]
     gen = torch.Generator().manual_seed(args.seed)
     rows, angles, scene = [], [], None

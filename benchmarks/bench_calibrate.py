@@ -36,6 +36,7 @@ import calibrate as cal  # noqa: E402
 import oracle  # noqa: E402
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train  # noqa: E402
 from envs import make_env, median_step, paper_median_step  # noqa: E402
+from experiment import checkpoints  # noqa: E402
 
 
 def timed(fn):
@@ -79,7 +80,7 @@ def main():
     print(f"{len(demos)} oracle demos in {time.perf_counter() - t0:.0f} s")
     unit = median_step(demos)
     if args.policy:
-        policy = DiffusionPolicy.load(args.policy)
+        policy = checkpoints.load_policy(args.policy)
     else:
         policy = DiffusionPolicy(PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=16, n_act=8, K=100,
                                                   down_dims=(32, 64, 128)))

@@ -134,6 +134,30 @@ def scenario_paired(run, scenarios="eval"):
 PAPER_CALIBRATION = {"planar": {"sigma": "3.9–5.1", "W": "8.0"}, "engine3d": {"sigma": "1.3–4.2", "W": "7.9–8.1"}}
 
 
+def calibration_text(cal):
+    """A calibrate.Calibration as the log says it: W and the per-joint sigma of Sigma_bar^alpha in median steps
+    (Sec. V), then in radians and in the paper's median steps (its numbers compare only in its unit)."""
+    p = cal.paper_median_step
+    ci = ("" if cal.W_ci is None else
+          f"95 % bootstrap interval {cal.W_ci[0] / cal.median_step:.2f}–"
+          f"{cal.W_ci[1] / cal.median_step:.2f}, ")
+    fitted = calibrate.ratio_cells(cal.blend_beta, cal.blend_s, cal.blend_x, cal.blend_kept).fitted
+    return "\n".join([
+        f"W = {cal.W / cal.median_step:.2f} median steps ({ci}||W||, {cal.fit_note}"
+        + (f", r = K*/K_theta = {cal.r:.3g})" if cal.r is not None else ")"),
+        f"kept blend rollouts: {int(cal.blend_kept.sum())}/{len(cal.blend_kept)} over "
+        f"{len(np.unique(cal.blend_beta))} ratios, {int(fitted.sum())} "
+        f"with >= {calibrate.CalibrationConfig.min_survivors} kept (fitted)",
+        "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
+        + ", ".join(f"{v:.2f}" for v in cal.sigma_per_joint),
+        f"units: our median step {cal.median_step:.4f} rad (per joint, base demos); "
+        + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {cal.median_step / p:.2f}x theirs"
+           if p is not None else "the paper gives none for this env: radians only"),
+        f"W = {calibrate.other_units(cal.W, p)}" + ("" if cal.W_ci is None else
+                                                     f" (95 % interval {calibrate.other_units(cal.W_ci, p)})"),
+        f"pooled Sigma_bar^alpha per-joint sigma = {calibrate.other_units(np.sqrt(np.diag(cal.pooled)), p)}"])
+
+
 def calibration_summary(run, chain=None):
     """Per round: the pooled Sigma_bar^alpha's per-joint sigma and W per lineage, in our median steps
     ('sigma_per_joint', 'W', 'W_ci'), in radians ('..._rad') and in the paper's median steps ('..._paper';

@@ -20,8 +20,10 @@ from dataclasses import asdict, fields, replace
 import numpy as np
 import torch
 
+import calibrate
 import diffusion
 import envs
+from experiment import checkpoints
 
 
 class ConfigMismatch(ValueError):
@@ -112,7 +114,8 @@ class Run:
     def stage(self, name, compute):
         """Load stage `name` (a path under the run folder, '/'-separated) if it finished, else compute() it,
         write it atomically and record its wall time. By the file's kind: .npz a list of episodes
-        (envs.save_episodes), .json a JSON dict, .pt a policy (compute writes it: Run.train)."""
+        (envs.save_episodes), calibration.json a calibrate.Calibration, .json a JSON dict, .pt a policy (compute
+        writes it: Run.train)."""
         path = self.path(*name.split("/"))
         lineage = re.match(r"lineage_(\d+)/", name)
         if lineage:
@@ -121,7 +124,9 @@ class Run:
             return self.load(name)
         t0 = time.time()
         value = compute()
-        if not name.endswith(".pt"):
+        if name.endswith("calibration.json"):
+            write_json(path, calibration_to_json(value))
+        elif not name.endswith(".pt"):
             (save_episodes if name.endswith(".npz") else write_json)(path, value)
         self.record_time(timing_name(name), time.time() - t0)  # of this process: a resumed run counts its last part
         return value
@@ -135,41 +140,49 @@ class Run:
         if name.endswith(".npz"):
             return load_episodes(path)
         data = read_json(path)
+        if name.endswith("calibration.json"):
+            return calibration_from_json(data)
         if is_evaluation(name):
             check_evaluation(path, data, self.cfg, EVALUATION_ADVICE)
         return data
 
     def train(self, name, policy, obs, chunks, train_cfg, sampler=None, continue_from=None, keep_state=False):
         """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
-        run (a stopped run resumes from the last one), then the final file.
+        run (a stopped run resumes from the last one: weights, AdamW, random streams, the sampler's pool), then
+        the final file.
 
-        continue_from: the name of a finished policy with training state (pi_0)
+        continue_from: the name of a finished policy with training state (pi_0), the policy given loaded from it,
         whose optimizer and step count go on to train_cfg.steps; keep_state: the final file keeps the
         optimizer state, for runs that continue from it.
         """
         final_path = self.path(*name.split("/"))
-        first = 0
+        start = None
         if continue_from is not None:
             continue_from = os.path.join(self.root, *continue_from.split("/"))
-            first = int(load_stage_file(continue_from, torch.load, map_location="cpu",
-                                        weights_only=True)["train_state"]["step"])
-        steps = train_cfg.steps
+            payload = load_stage_file(continue_from, checkpoints.read_checkpoint)
+            start = checkpoints.train_state(continue_from, payload, random_streams=False)
+        first, steps = (start["step"] if start else 0), train_cfg.steps
         part = final_path.replace(".pt", "_step{step}.pt")
         marks = tuple(sorted({first + max(1, (steps - first) * i // 4) for i in (1, 2, 3)}
                              | ({steps} if keep_state else set())))
-        train_cfg = replace(train_cfg, log_every=max(1, (steps - first) // 5), checkpoint_steps=marks,
-                            checkpoint_path=part)
+        train_cfg = replace(train_cfg, log_every=max(1, (steps - first) // 5), checkpoint_steps=marks)
         resume = next((part.format(step=m) for m in reversed(marks)
                        if m < steps and os.path.exists(part.format(step=m))), None)
         if resume:
-            load_stage_file(resume, torch.load, map_location="cpu", weights_only=True)  # a damaged one is named
+            payload = load_stage_file(resume, checkpoints.read_checkpoint)  # a damaged one is named
+            policy.load_state_dict(payload["state_dict"])
+            start = checkpoints.train_state(resume, payload, sampler)
             self.log(f"  resuming from {os.path.relpath(resume, self.root)}")
-        diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, resume_from=resume,
-                        continue_from=None if resume else continue_from, log=lambda m: self.log("  " + m))
+
+        def save(state):  # train()'s state at a checkpoint step, with the weights and the sampler's pool
+            checkpoints.save_policy(policy, part.format(step=state["step"]), state, sampler, train_cfg)
+
+        diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, start=start, on_checkpoint=save,
+                        log=lambda m: self.log("  " + m))
         if keep_state:  # the last checkpoint holds the weights and the optimizer: it is the final file
             os.replace(part.format(step=steps), final_path)
         else:
-            policy.save(final_path)
+            checkpoints.save_policy(policy, final_path)
         for m in marks:  # the finished checkpoint supersedes the partial ones
             if os.path.exists(part.format(step=m)):
                 os.remove(part.format(step=m))
@@ -616,7 +629,7 @@ def load_stage_file(path, loader, *args, **kwargs):
     except (FileNotFoundError, KeyboardInterrupt):
         raise
     except Exception as err:
-        why = ("truncated, or not a checkpoint" if isinstance(err, diffusion.CheckpointDamagedError)  # it says so
+        why = ("truncated, or not a checkpoint" if isinstance(err, checkpoints.CheckpointDamagedError)  # it says so
                else f"{type(err).__name__}: {err}")
         raise RunFolderError(f"{path} is damaged ({why}). Delete it and run the same "
                              "command again: that stage is made again, the other finished stages are kept.") from None
@@ -636,5 +649,21 @@ def load_episodes(path):
 
 
 def load_policy(path, device):
-    return load_stage_file(path, diffusion.DiffusionPolicy.load, device=device)
+    return load_stage_file(path, checkpoints.load_policy, device=device)
 
+
+def calibration_to_json(cal):
+    """A calibrate.Calibration as plain lists and numbers (calibration.json)."""
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(cal).items()}
+
+
+def calibration_from_json(data):
+    """The inverse of calibration_to_json (older files: without W_ci or paper_median_step, and with the deleted
+    unguided control's 'unguided_pooled' / 'closed_loop_pooled', dropped)."""
+    dtypes = {"episode_index": np.int64, "timestep": np.int64, "blend_episode": np.int64,
+              "blend_start": np.int64, "blend_kept": bool}
+    kwargs = {k: v for k, v in data.items() if k not in ("unguided_pooled", "closed_loop_pooled")}
+    for k, v in kwargs.items():
+        if isinstance(v, list) and k != "W_ci":                        # the arrays
+            kwargs[k] = np.asarray(v, dtype=dtypes.get(k, np.float64))
+    return calibrate.Calibration(**kwargs)

@@ -12,6 +12,7 @@ import calibrate as cal
 import dagger
 import diffusion
 import envs
+from experiment.run_folder import calibration_to_json
 
 
 # ----------------------------------------------------------------------------------------------
@@ -341,47 +342,6 @@ def test_diverge_radius_is_the_authors_15_median_steps_in_radians():
     assert cal.CalibrationConfig.diverge_threshold == 15.0
 
 
-def test_report_gives_sigma_and_W_in_radians_and_the_papers_unit():
-    c = _calibration()                                                       # median step 0.01 rad, W 0.05 rad
-    assert "paper median steps" not in c.report() and "W = 0.050 rad" in c.report()   # no paper unit: rad only
-    c.paper_median_step = 0.0176
-    text = c.report()
-    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in text           # ours, unchanged
-    assert f"W = 0.050 rad = {0.05 / 0.0176:.2f} paper median steps" in text
-    assert f"95 % interval 0.040, 0.062 rad = {0.04 / 0.0176:.2f}, {0.062 / 0.0176:.2f} paper median steps" in text
-    sigma = np.sqrt(np.diag(c.pooled))
-    assert ", ".join(f"{v / 0.0176:.2f}" for v in sigma) + " paper median steps" in text
-    back = cal.Calibration.from_dict(json.loads(json.dumps(c.to_dict())))
-    assert back.paper_median_step == 0.0176 and back.report() == text
-
-
-def test_calibration_json_round_trip(tmp_path):
-    c = _calibration()
-    path = tmp_path / "calibration.json"
-    path.write_text(json.dumps(c.to_dict()))
-    back = cal.Calibration.from_dict(json.loads(path.read_text()))
-    for key, value in c.to_dict().items():
-        got = getattr(back, key)
-        if isinstance(getattr(c, key), np.ndarray):
-            assert got.dtype == getattr(c, key).dtype, key
-            np.testing.assert_array_equal(got, getattr(c, key))
-        else:
-            assert got == value, key
-    assert "median steps" in back.report()
-    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in back.report()
-    np.testing.assert_allclose(back.sigma_per_joint, np.sqrt(np.diag(c.pooled)) / 0.01)
-    # a calibration written before W_ci existed still loads
-    old = json.loads(path.read_text())
-    del old["W_ci"]
-    assert cal.Calibration.from_dict(old).W_ci is None
-    assert "bootstrap" not in cal.Calibration.from_dict(old).report()
-    # and one written with the unguided control (now experiment/unguided.py), under either of its names
-    for key in ("unguided_pooled", "closed_loop_pooled"):
-        assert cal.Calibration.from_dict(dict(old, **{key: c.pooled.tolist()})).to_dict() == \
-            cal.Calibration.from_dict(old).to_dict()
-        assert cal.Calibration.from_dict(dict(old, **{key: None})).W == c.W
-
-
 def test_plot_blend_fit_writes_a_figure(tmp_path):
     path = tmp_path / "fig4.png"
     cal.plot_blend_fit(_calibration(), None, path)
@@ -511,9 +471,9 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     assert np.trace(c.pooled) == pytest.approx(c.W ** 2)
     # deterministic: same seed, same calibration
     again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
-    assert again.to_dict() == c.to_dict()
+    assert calibration_to_json(again) == calibration_to_json(c)
     assert c.paper_median_step == envs.PAPER_MEDIAN_STEP["planar"]           # recorded for the report
-    json.dumps(c.to_dict())
+    json.dumps(calibration_to_json(c))
     cal.plot_blend_fit(c, unit, tmp_path / "fig4.png")
     cal.plot_method_overview(env, episodes[0], c, policy, tmp_path / "fig2.png", n_samples=2,
                              generator=torch.Generator().manual_seed(1))

@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import calibrate
 import dagger
 import diffusion
 import relabel
@@ -80,7 +79,7 @@ def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_
     noised half has another noise than fixed sigma = 8 / pooled Sigma-bar^alpha (dagger.noise_model's)."""
     D, demos = load(controls_run, "lineage_0/round_1/D.npz"), load(controls_run, "data/D0.npz")
     stats = dagger.demo_statistics(TINY, demos)
-    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(controls_run,
+    cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(controls_run,
                                                                        "lineage_0/round_1/calibration.json")))
     for method, noise in (("cotrain_fixed_8", "fixed_8"), ("cotrain_pooled", "pooled")):
         augmentation_samplers.clear()

@@ -11,10 +11,9 @@ import torch
 
 import calibrate
 import dagger
-import diffusion
 import envs
 import relabel
-from experiment import run_folder
+from experiment import checkpoints, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
@@ -33,8 +32,8 @@ def test_continue_saves_pi0_with_its_optimizer_and_the_bc_row_continues_it(two_w
     state = torch.load(os.path.join(two_workers, "checkpoints", "bc.pt"), weights_only=True)["train_state"]
     assert state["step"] == TINY.bc_steps and state["optimizer"]["state"]          # AdamW moments kept
     assert json.loads(state["train_config"])["schedule_steps"] == TINY.bc_steps + TINY.finetune_steps
-    pi0 = diffusion.DiffusionPolicy.load(os.path.join(two_workers, "checkpoints", "bc.pt")).state_dict()
-    row = diffusion.DiffusionPolicy.load(os.path.join(two_workers, "checkpoints", "bc_continued.pt")).state_dict()
+    pi0 = checkpoints.load_policy(os.path.join(two_workers, "checkpoints", "bc.pt")).state_dict()
+    row = checkpoints.load_policy(os.path.join(two_workers, "checkpoints", "bc_continued.pt")).state_dict()
     assert any(not torch.equal(pi0[k], row[k]) for k in pi0 if k.startswith("net."))
     assert os.path.isfile(os.path.join(two_workers, "eval", "pi0.json"))          # round 1's collector
     assert os.path.isfile(os.path.join(two_workers, "eval", "bc.json"))           # the table's BC row
@@ -48,8 +47,8 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
     b = json.load(open(os.path.join(root, "results.json")))
     assert a["success"] == b["success"]
     for m in ("hg_dagger", "fixed_4", "pooled"):
-        wa = diffusion.DiffusionPolicy.load(os.path.join(two_workers, "lineage_0/round_1/checkpoints", f"{m}.pt"))
-        wb = diffusion.DiffusionPolicy.load(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
+        wa = checkpoints.load_policy(os.path.join(two_workers, "lineage_0/round_1/checkpoints", f"{m}.pt"))
+        wb = checkpoints.load_policy(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         assert all(torch.equal(v, wb.state_dict()[k]) for k, v in wa.state_dict().items())
     assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
 
@@ -58,7 +57,7 @@ def test_hg_dagger_draws_the_recorded_chunks_and_a_noised_arm_only_noised_states
     D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
     demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
     stats = dagger.demo_statistics(TINY, demos)
-    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(two_workers,
+    cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(two_workers,
                                                                        "lineage_0/round_1/calibration.json")))
     kinds = lambda s: [type(x).__name__ for x in s.samplers]
     hg = dagger.intervention_sampler(TINY, "hg_dagger", [D, D], None, stats)

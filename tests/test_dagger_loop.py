@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 
-import calibrate
 import dagger
 import diffusion
 import envs
@@ -65,7 +64,7 @@ def test_every_output_file(full_run):
         {m: [pytest.approx(v)] for m, v in success.items() if m != "bc"}
     for ep in envs.load_episodes(at("lineage_0/round_1/D.npz")):  # every kept episode teaches: a run >= H
         assert any(end - start >= TINY.horizon for start, end in diffusion.expert_runs(ep["expert"], 1))
-    cal = calibrate.Calibration.from_dict(json.load(open(at("lineage_0/round_1/calibration.json"))))
+    cal = run_folder.calibration_from_json(json.load(open(at("lineage_0/round_1/calibration.json"))))
     assert cal.W > 0 and np.allclose(cal.pooled, cal.pooled.T) and np.all(np.linalg.eigvalsh(cal.pooled) >= 0)
     table = open(at("table.md")).read()
     for method in TINY.methods:
@@ -665,7 +664,7 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
     cl1, data1, cal1 = made[(1, "closed_loop")]
     hg1_data = made[(1, "hg_dagger")][1]
     assert len(data1) == 1 and data1[0] is hg1_data[0]  # round 1: pi_0's interventions, as HG-DAgger's
-    main_cal1 = calibrate.Calibration.from_dict(json.load(open(tmp_path / "lineage_0/round_1/calibration.json")))
+    main_cal1 = run_folder.calibration_from_json(json.load(open(tmp_path / "lineage_0/round_1/calibration.json")))
     np.testing.assert_array_equal(cal1.pooled, main_cal1.pooled)
     # round 2: collected by the round-1 closed_loop policy with its own evaluation as the skip list
     assert chain_collect[3] is cl1 and chain_collect[2] == 2

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import dagger
-from experiment import report, run_folder
+from experiment import checkpoints, report, run_folder
 
 
 def t_pdf(x, df):
@@ -276,7 +276,7 @@ def test_failure_rollout_runs_in_groups_and_closes_each_group_before_the_next(mo
     policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(obs_dim=e.obs_dim, dof=e.dof, horizon=4, n_act=2, K=5,
                                                               down_dims=(16, 32), n_groups=4, step_embed_dim=32))
     path = str(tmp_path / "p.pt")
-    policy.save(path)
+    checkpoints.save_policy(policy, path)
     args = argparse.Namespace(env="planar", repeats=2, seed=0)
     rows, angles, scene = failures.roll_out(path, args)
     assert len(rows) == 6 and all(r[0] in ("success", "timeout") or r[0].startswith("collision") for r in rows)

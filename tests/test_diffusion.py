@@ -1,6 +1,6 @@
 """Tests of diffusion.py: the DDPM equations against closed forms, the policy, the dataset, training."""
 
-import io
+import copy
 import math
 import re
 
@@ -11,6 +11,7 @@ import torch.nn as nn
 
 from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, expert_runs, label_mask, lr_at,
                        make_schedule, p_sample, q_sample, toy_two_mode_data, train)
+from experiment import checkpoints
 
 
 # A two-level U-Net (one downsampling) small enough for tests: one torch thread, a few seconds of training.
@@ -203,67 +204,6 @@ def test_two_mode_toy_policy_keeps_both_modes(toy_trained):
     assert np.abs(err).max(axis=(1, 2)).mean() < 0.06, "samples must stay near the data modes"
 
 
-def test_save_load_round_trip(toy_trained, tmp_path):
-    path = str(tmp_path / "policy.pt")
-    toy_trained.save(path)
-    loaded = DiffusionPolicy.load(path)
-    obs = np.random.default_rng(0).uniform(-1, 1, (32, 4)).astype(np.float32)
-    a = toy_trained.sample(obs, generator=torch.Generator().manual_seed(3))
-    b = loaded.sample(obs, generator=torch.Generator().manual_seed(3))
-    assert np.array_equal(a, b)
-    assert loaded.cfg == toy_trained.cfg
-    c = loaded.sample(obs, generator=torch.Generator().manual_seed(4))
-    assert not np.array_equal(a, c), "a different generator must give different samples"
-    with pytest.raises(FileNotFoundError):
-        DiffusionPolicy.load(str(tmp_path / "missing.pt"))
-    torch.save({"format": "diffusion-policy-v1", "config": {}, "state_dict": {}}, tmp_path / "mlp.pt")
-    with pytest.raises(ValueError, match="not a diffusion-policy-v2 checkpoint"):
-        DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
-
-
-def test_a_checkpoint_of_a_deleted_option_loads_at_the_kept_value_and_is_refused_at_another(toy_trained, tmp_path):
-    """Checkpoints written before PolicyConfig.schedule / joint_obs were deleted name them: 'squaredcos' and
-    joint_obs True (every profile's) load as before; 'linear' and absolute chunks are refused, naming the file."""
-    toy_trained.save(str(tmp_path / "policy.pt"))
-    payload = torch.load(tmp_path / "policy.pt", weights_only=True)
-    for name, value in (("schedule", "squaredcos"), ("schedule", "linear"), ("joint_obs", True), ("joint_obs", False)):
-        torch.save({**payload, "config": {**payload["config"], name: value}}, tmp_path / f"{name}_{value}.pt")
-    assert DiffusionPolicy.load(str(tmp_path / "schedule_squaredcos.pt")).cfg == toy_trained.cfg
-    assert DiffusionPolicy.load(str(tmp_path / "joint_obs_True.pt")).cfg == toy_trained.cfg
-    with pytest.raises(ValueError, match=r"schedule_linear\.pt.*linear noise schedule"):
-        DiffusionPolicy.load(str(tmp_path / "schedule_linear.pt"))
-    with pytest.raises(ValueError, match=r"joint_obs_False\.pt.*absolute chunks"):
-        DiffusionPolicy.load(str(tmp_path / "joint_obs_False.pt"))
-
-
-def test_a_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path):
-    """A truncated file (half of a real checkpoint), junk bytes, an empty file and a saved tensor: load and resume raise
-    CheckpointDamagedError (a ValueError) naming the file and saying how to re-make it, never a raw
-    EOFError / RuntimeError / UnpicklingError."""
-    from diffusion import CheckpointDamagedError
-    obs, chunks = toy_two_mode_data(100, H=4, seed=0)
-    full = str(tmp_path / "full.pt")
-    train(tiny_policy(), obs, chunks, TrainConfig(steps=2, batch_size=8, warmup_steps=1, log_every=0,
-                                                  checkpoint_steps=(2,), checkpoint_path=full))
-    data = open(full, "rb").read()
-    not_a_dict = io.BytesIO()
-    torch.save(torch.zeros(3), not_a_dict)                             # a torch file, but no checkpoint
-    damaged = {"half.pt": data[:len(data) // 2], "junk.pt": bytes(range(256)) * 4, "empty.pt": b"",
-               "tensor.pt": not_a_dict.getvalue()}
-    for name, content in damaged.items():
-        path = str(tmp_path / name)
-        with open(path, "wb") as f:
-            f.write(content)
-        for read in (lambda: DiffusionPolicy.load(path),
-                     lambda: train(tiny_policy(), obs, chunks, TrainConfig(steps=4, batch_size=8, log_every=0),
-                                   resume_from=path)):
-            with pytest.raises(CheckpointDamagedError, match="damaged") as err:
-                read()
-            assert isinstance(err.value, ValueError)
-            assert path in str(err.value) and "delete it" in str(err.value)
-    DiffusionPolicy.load(full)                                         # the intact file still loads
-
-
 def test_batched_sampling_equals_looped(toy_trained):
     obs = np.random.default_rng(1).uniform(-1, 1, (3, 4)).astype(np.float32)
     batched = toy_trained.sample(obs, generator=torch.Generator().manual_seed(5))
@@ -350,8 +290,6 @@ def test_bad_inputs_raise():
                       (dict(warmup_steps=-1), "warmup_steps >= 0"), (dict(ema_decay=1.0), "ema_decay in")):
         with pytest.raises(ValueError, match=re.escape(rule)):
             TrainConfig(**bad)
-    with pytest.raises(ValueError, match="checkpoint_path"):
-        TrainConfig(checkpoint_steps=(5,))
 
 
 # ---------------------------------------------------------------------------------------------- dataset
@@ -423,50 +361,6 @@ def test_lr_schedule_warmup_and_cosine():
     assert lr_at(99, cfg) == pytest.approx(1e-3)
     assert lr_at(550, cfg) == pytest.approx(0.5e-3)
     assert lr_at(1000, cfg) == pytest.approx(0.0, abs=1e-12)
-
-
-class PoolSampler:
-    """A co-training sampler with state (a pool of pairs, partly refreshed every call), like relabel's."""
-
-    def __init__(self, calls):
-        self.calls, self.pool = calls, None
-
-    def __call__(self, n, rng):
-        self.calls.append(n)
-        if self.pool is None:
-            self.pool = rng.uniform(-1, 1, (16, 4)).astype(np.float32)
-        self.pool[rng.integers(0, 16)] = rng.uniform(-1, 1, 4)
-        obs = self.pool[rng.integers(0, 16, n)] + self.pool.mean(0)       # depends on the whole pool
-        return obs, np.repeat(obs[:, None, :2], 4, axis=1)
-
-    def state_dict(self):
-        return {"pool": None if self.pool is None else self.pool.copy()}
-
-    def load_state_dict(self, state):
-        self.pool = None if state["pool"] is None else np.array(state["pool"], dtype=np.float32)
-
-
-def test_resume_equals_uninterrupted(tmp_path):
-    obs, chunks = toy_two_mode_data(300, H=4, seed=1)
-    cfg = TrainConfig(steps=40, batch_size=32, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25,
-                      obs_noise=0.05, checkpoint_steps=(20,), checkpoint_path=str(tmp_path / "ck_{step}.pt"))
-    calls = []
-    full = train(tiny_policy(), obs, chunks, cfg, sampler=PoolSampler(calls))
-    assert calls == [8] * 40, "aug_fraction 0.25 of 32 = 8 augmented rows per step"
-    resumed = train(tiny_policy(seed=99), obs, chunks, cfg, sampler=PoolSampler([]),
-                    resume_from=str(tmp_path / "ck_20.pt"))
-    a, b = full.state_dict(), resumed.state_dict()
-    assert all(torch.equal(a[key], b[key]) for key in a)
-    # The checkpoint is also a plain policy file (fine-tuning starts from it with a fresh optimizer).
-    DiffusionPolicy.load(str(tmp_path / "ck_20.pt"))
-    # Same seed -> same weights; another seed -> different weights.
-    again = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": ()}),
-                  sampler=PoolSampler([]))
-    assert all(torch.equal(a[key], again.state_dict()[key]) for key in a)
-    other = train(tiny_policy(), obs, chunks, TrainConfig(**{**cfg.__dict__, "checkpoint_steps": (), "seed": 4}),
-                  sampler=PoolSampler([]))
-    first_conv = "net.down.0.0.conv1.0.weight"
-    assert not torch.equal(a[first_conv], other.state_dict()[first_conv])
 
 
 def test_training_lowers_loss_and_logs_progress():
@@ -573,8 +467,8 @@ def test_mlp_policy_learns_the_two_mode_toy_and_round_trips(tmp_path):
     up = last.sum(axis=1) > 0
     assert 0.2 < up.mean() < 0.8                                       # both modes kept
     assert np.allclose(last[up].mean(0), [0.5, 0.5], atol=0.1) and np.allclose(last[~up].mean(0), [-0.5, -0.5], atol=0.1)
-    policy.save(str(tmp_path / "mlp.pt"))
-    loaded = DiffusionPolicy.load(str(tmp_path / "mlp.pt"))
+    checkpoints.save_policy(policy, str(tmp_path / "mlp.pt"))
+    loaded = checkpoints.load_policy(str(tmp_path / "mlp.pt"))
     assert loaded.cfg.network == "mlp"
     assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in policy.state_dict().items())
 
@@ -589,28 +483,29 @@ def test_schedule_steps_sets_where_the_cosine_ends():
         TrainConfig(steps=600, schedule_steps=500)
 
 
-def test_continuing_a_schedule_equals_running_it_in_one_piece_with_the_same_stream(tmp_path):
-    """train(continue_from=pi_0) goes on from pi_0's weights, AdamW state and step along the one schedule: with
-    the same data and seed it is the uninterrupted run (which a fresh optimizer would not be); with its own
-    seed it is another run from the same point."""
+def test_continuing_a_schedule_goes_on_from_the_state_on_checkpoint_handed_over():
+    """train(start=pi_0's state) goes on from pi_0's AdamW state and step along the one schedule: with both
+    random streams it is the uninterrupted run bit for bit (a resumed run); with only the step and optimizer
+    (fine-tuning pi_0) another run from the same point, closer to the one-piece run than a fresh optimizer's."""
     obs, chunks = toy_two_mode_data(300, H=4, seed=1)
     base = dict(batch_size=32, warmup_steps=5, log_every=0, seed=3, schedule_steps=60)
-    pi0 = train(tiny_policy(), obs, chunks, TrainConfig(steps=30, checkpoint_steps=(30,),
-                                                        checkpoint_path=str(tmp_path / "pi0_{step}.pt"), **base))
+    states = []
+    pi0 = train(tiny_policy(), obs, chunks, TrainConfig(steps=30, checkpoint_steps=(20, 30), **base),
+                on_checkpoint=states.append)
+    assert [s["step"] for s in states] == [20, 30]
+    weights = copy.deepcopy(pi0.state_dict())
     whole = train(tiny_policy(), obs, chunks, TrainConfig(steps=60, **base)).state_dict()
-    # the continued run draws its batches from its own seed's streams, so it is close to, not equal to, the one-piece run
-    cont = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks, TrainConfig(steps=60, **base),
-                 continue_from=str(tmp_path / "pi0_30.pt")).state_dict()
-    restart = train(DiffusionPolicy.load(str(tmp_path / "pi0_30.pt")), obs, chunks,
-                    TrainConfig(steps=30, **{**base, "schedule_steps": 0})).state_dict()
+
+    def from_pi0(**start_keys):
+        policy = tiny_policy()
+        policy.load_state_dict(weights)
+        return train(policy, obs, chunks, TrainConfig(steps=60, **base), start=start_keys or None).state_dict()
+
+    assert all(torch.equal(whole[k], v) for k, v in from_pi0(**states[1]).items())       # resumed: bit for bit
+    cont = from_pi0(step=30, optimizer=states[1]["optimizer"])          # fine-tuned: its own streams
+    restart = train(tiny_policy(), obs, chunks, TrainConfig(steps=30, **{**base, "schedule_steps": 0})).state_dict()
     key = "net.down.0.0.conv1.0.weight"
-    assert not torch.equal(pi0.state_dict()[key], cont[key])          # it trained on
-    # same starting point and schedule: closer to the one-piece run than a restart with a fresh optimizer
+    assert not torch.equal(weights[key], cont[key]) and not torch.equal(whole[key], cont[key])
     d_cont = sum(float((cont[k] - whole[k]).abs().sum()) for k in whole if k.startswith("net."))
     d_restart = sum(float((restart[k] - whole[k]).abs().sum()) for k in whole if k.startswith("net."))
     assert d_cont < 0.5 * d_restart
-    with pytest.raises(ValueError, match="must be larger"):
-        train(tiny_policy(), obs, chunks, TrainConfig(steps=30, **base), continue_from=str(tmp_path / "pi0_30.pt"))
-    DiffusionPolicy(tiny_policy().cfg).save(str(tmp_path / "plain.pt"))
-    with pytest.raises(ValueError, match="no training state"):
-        train(tiny_policy(), obs, chunks, TrainConfig(steps=60, **base), continue_from=str(tmp_path / "plain.pt"))

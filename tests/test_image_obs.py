@@ -16,7 +16,7 @@ import diffusion
 import envs
 import relabel
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train
-from experiment import run_folder, workers
+from experiment import checkpoints, run_folder, workers
 from experiment.image_obs import EngineImageConfig, EngineReach3DImage, ImageEncoder
 
 TINY_NET = dict(down_dims=(16, 32), n_groups=4, step_embed_dim=32)  # as tests/test_diffusion.py's
@@ -174,8 +174,8 @@ def test_image_policy_normalizer_layout_and_round_trip(tmp_path):
     code = torch.nn.functional.silu(encoder.fc(encoder.conv(image).flatten(1)))
     assert torch.allclose(encoder(feats), torch.cat([feats[:, :6], code], dim=1))
     path = tmp_path / "image_policy.pt"
-    policy.save(path)
-    loaded = DiffusionPolicy.load(path)                             # the CNN rebuilt from the saved config
+    checkpoints.save_policy(policy, path)
+    loaded = checkpoints.load_policy(path)                          # the CNN rebuilt from the saved config
     assert loaded.cfg.obs_encoder == "image_cnn" and tuple(loaded.cfg.obs_encoder_args["shape"]) == (1, 8, 8)
     a = policy.sample(obs[:5], generator=torch.Generator().manual_seed(1))
     b = loaded.sample(obs[:5], generator=torch.Generator().manual_seed(1))
@@ -209,18 +209,18 @@ def test_checkpoints_of_earlier_versions_load_without_an_image_and_are_refused_w
     image (image_shape ()) loads as it is; one with an image names the variant and asks for a retrain."""
     policy = tiny_policy(obs_dim=6)
     path = str(tmp_path / "old.pt")
-    policy.save(path)
+    checkpoints.save_policy(policy, path)
     payload = torch.load(path, weights_only=True)
     payload["config"].update(image_shape=(), image_features=64)
     torch.save(payload, path)
-    loaded = DiffusionPolicy.load(path)
+    loaded = checkpoints.load_policy(path)
     obs = np.zeros((2, 6), np.float32)
     assert np.array_equal(loaded.sample(obs, generator=torch.Generator().manual_seed(0)),
                           policy.sample(obs, generator=torch.Generator().manual_seed(0)))
     payload["config"].update(image_shape=(1, 8, 8))
     torch.save(payload, path)
     with pytest.raises(ValueError, match="image_shape=.*engine3d_image.*retrain"):
-        DiffusionPolicy.load(path)
+        checkpoints.load_policy(path)
 
 
 # ---- the augmentation ----------------------------------------------------------------------------------------------

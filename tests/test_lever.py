@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-import calibrate
 import dagger
 import diffusion
 from experiment import lever, run_folder
@@ -72,7 +71,7 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(pape
     assert np.allclose(dagger.intervention_sampler(TINY, "hg_dagger", [D, small], None, stats).p, 0.5)  # the paper's
     by_frames = dagger.intervention_sampler(LEVER, "hg_dagger", [D, small], None, stats)
     assert np.allclose(by_frames.p, frames / frames.sum())
-    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(paper_run,
+    cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(paper_run,
                                                                        "lineage_0/round_1/calibration.json")))
     assert np.allclose(dagger.intervention_sampler(LEVER, "fixed_4", [D, small], cal, stats).p, frames / frames.sum())
 
@@ -103,7 +102,7 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
     assert len(recorded(64, np.random.default_rng(0))) == 2  # the paper's rows carry no loss mask
     o, c, m = dagger.intervention_sampler(LEVER, "hg_dagger", [[short]], None, stats)(256, np.random.default_rng(0))
     assert m.all(axis=1).mean() < 1 and m[:, 0].all()
-    cal = calibrate.Calibration.from_dict(run_folder.read_json(os.path.join(paper_run,
+    cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(paper_run,
                                                                        "lineage_0/round_1/calibration.json")))
     padded, paper = (dagger.intervention_sampler(c, "fixed_4", [[short]], cal, stats).samplers[0]
                      for c in (LEVER, TINY))

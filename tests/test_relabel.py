@@ -14,6 +14,7 @@ import torch
 import diffusion
 import envs
 import relabel
+from experiment import checkpoints
 from dataclasses import replace
 
 from relabel import (AugmentationSampler, ChunkSampler, MixtureSampler, RelabelConfig, corrective_labels,
@@ -672,15 +673,15 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
     rng = np.random.default_rng(9)
     for _ in range(3):
         a(np.int64(32), rng)  # relabel.MixtureSampler passes its multinomial counts: numpy ints
-    state, rng_state = a.state_dict(), rng.bit_generator.state
+    state, rng_state = checkpoints.sampler_state(a), rng.bit_generator.state
     expect = [a(32, rng) for _ in range(4)]
     b, _ = make_sampler(stats)
     # the state goes through a checkpoint file, read back as train() reads it (torch's safe loader, which
     # refuses numpy scalars: a stopped co-training run could not resume)
     buffer = io.BytesIO()
-    torch.save({"sampler": diffusion._as_torch(state)}, buffer)
+    torch.save({"sampler": checkpoints._as_torch(state)}, buffer)
     buffer.seek(0)
-    b.load_state_dict(diffusion._as_numpy(torch.load(buffer, weights_only=True)["sampler"]))
+    checkpoints.restore_sampler(b, checkpoints._as_numpy(torch.load(buffer, weights_only=True)["sampler"]))
     rng2 = np.random.default_rng()
     rng2.bit_generator.state = rng_state
     for first, second in zip(expect, [b(32, rng2) for _ in range(4)]):
@@ -901,13 +902,13 @@ def test_servo_masks_the_held_tail_and_sampler_redraws_short_labels(stats):
     assert nearest.max() < 80 - 3 + 2  # (the nearest point overall may sit slightly past the projection)
 
 
-def test_sampler_pool_mask_survives_state_dict(stats):
+def test_sampler_pool_mask_survives_its_resume_state(stats):
     a, _ = make_sampler(stats)
     a(16, np.random.default_rng(0))
-    state = a.state_dict()
+    state = checkpoints.sampler_state(a)
     assert state["pool_mask"].dtype == bool and state["pool_mask"].shape == (256, 16)
     b, _ = make_sampler(stats)
-    b.load_state_dict(state)
+    checkpoints.restore_sampler(b, state)
     np.testing.assert_array_equal(b._pool_mask, a._pool_mask)
 
 
@@ -939,8 +940,8 @@ def test_chunk_and_mixture_samplers_draw_rows_in_proportion(stats):
     n_recorded = np.random.default_rng(1).multinomial(400, [0.75, 0.25])[0]  # the mixture's first draw
     assert 250 < n_recorded < 350 and mask[:n_recorded].all()  # the recorded rows come first, all in the loss
     assert MixtureSampler([recorded, recorded], [1, 1])(10, np.random.default_rng(2))[1].shape == (10, H, DOF)
-    state = mix.state_dict()  # the noised sampler's pool, under its index
+    state = checkpoints.sampler_state(mix)  # the noised sampler's pool, under its index
     assert list(state) == ["1"]
     again = MixtureSampler([recorded, make_sampler(stats)[0]], [3, 1])
-    again.load_state_dict(state)
+    checkpoints.restore_sampler(again, state)
     np.testing.assert_array_equal(again.samplers[1]._pool_obs, noised._pool_obs)
