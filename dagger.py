@@ -39,7 +39,7 @@ import partial_denoise
 import relabel
 from experiment import cli, controls, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
-from experiment.run_folder import Run, copy_from, export_lineages, export_start, join_lineage, stage_seed
+from experiment.run_folder import Run, export_start, stage_seed
 from experiment.workers import InBackground, in_parallel
 
 
@@ -55,7 +55,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     pi0 = behavior_cloning(run, demos)
     pi0_success = evaluate_policy(run, "eval/pi0.json", pi0, "pi_0 (BC)", unseen=False)
     # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds)
-    bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg)), enabled=workers > 1 and bool(lineages))
+    bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg), demos), enabled=workers > 1 and bool(lineages))
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
@@ -73,7 +73,8 @@ def policy_calibrated_dagger(run, lineages, workers=1):
                 calibrations.append(calibrate_noise(run, source, k, hg, rounds_data, stats))
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
-                arms = [(run.root, asdict(cfg), lineage, k, method) for method in noised]
+                arms = [(run.root, asdict(cfg), lineage, k, method, demos, rounds_data, calibrations[-1], stats)
+                        for method in noised]
                 in_parallel(noised_arm, arms, workers, run.log)
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
             # instead: one more policy per round; see benchmarks/README.md)
@@ -203,14 +204,14 @@ def behavior_cloning(run, demos):
     return run.stage("checkpoints/bc.pt", train_pi0)
 
 
-def bc_row_arm(root, cfg_fields):
+def bc_row_arm(root, cfg_fields, demos):
     """Table I's BC row (a worker's job), evaluated: the recipe's BC policy (the paper's: pi_0 continued on D0 alone
     to bc_steps + finetune_steps, the steps every row has trained)."""
     cfg = Config(**cfg_fields)
-    run = Run(root, cfg)
+    run = Run(root, cfg)  # a worker's own handle on the run folder: its stages' files and the log
 
     def continue_on_d0():
-        obs, chunks = diffusion.chunk_dataset(run.load("data/D0.npz"), cfg.horizon)
+        obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
         run.log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
         return finetune_from_pi0(run, "checkpoints/bc_continued.pt", obs, chunks, stage_seed(cfg, "train", "bc"))
 
@@ -527,14 +528,10 @@ def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration,
                                    f"{method} (lineage {lineage}, K={k})")
 
 
-def noised_arm(root, cfg_fields, lineage, k, method):
-    """One noised method of round k, fine-tuned and evaluated (a worker's job: its inputs from the run folder)."""
-    cfg = Config(**cfg_fields)
-    run = Run(root, cfg)
-    demos, source = run.load("data/D0.npz"), RECIPES[cfg.recipe].data_lineage(run, lineage)
-    rounds_data = [run.load(f"lineage_{source}/round_{j}/D.npz") for j in range(1, k + 1)]
-    calibration = run.load(f"lineage_{source}/round_{k}/calibration.json")
-    train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, demo_statistics(cfg, demos))
+def noised_arm(root, cfg_fields, lineage, k, method, demos, rounds_data, calibration, stats):
+    """One noised method of round k, fine-tuned and evaluated (a worker's job, on the data the loop hands it)."""
+    run = Run(root, Config(**cfg_fields))  # a worker's own handle on the run folder: its stages' files and the log
+    train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats)
 
 
 def closed_loop_round(run, lineage, k, demos, stats, chain, first_round, first_calibration):
@@ -699,98 +696,19 @@ def _betacf(a, b, x):
     return h
 
 
-def summarize(cfg, results):
-    """Per method and round: (mean, SE over lineages, count); the paired tests over the lineages that finished
-    every round (each averaged over rounds), per round, HG-DAgger vs BC, and the best fixed sigma per round.
-    results: {method: {lineage: [success per round]}}, BC's {'all': [success]}."""
-    table = {}
-    for method, per_lineage in results.items():
-        if method == "bc":
-            table[method] = [mean_se(per_lineage["all"])]
-        else:
-            rounds = [list(at_round(per_lineage, k).values()) for k in range(cfg.rounds)]
-            table[method] = [mean_se(vals) if vals else None for vals in rounds]
-    stats = paired_statistics(cfg, lambda m: {l: float(np.mean(r)) for l, r in results.get(m, {}).items()
-                                              if len(r) == cfg.rounds})
-    stats["per_round"] = {str(k + 1): paired_statistics(cfg, lambda m, k=k: at_round(results.get(m, {}), k))
-                          for k in range(cfg.rounds)}
-    stats["hg_dagger_vs_bc"], stats["best_fixed_per_round"] = {}, {}
-    bc_all = results.get("bc", {}).get("all")
-    for k in range(cfg.rounds):
-        # HG-DAgger against BC: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
-        hg_k = list(at_round(results.get("hg_dagger", {}), k).values())
-        if bc_all and len(hg_k) >= 2:
-            bc = [bc_all[0]] * len(hg_k)
-            t, df, p = paired_ttest(hg_k, bc)
-            stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
-                                                    "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
-                                                    "n": len(hg_k), "degenerate": degenerate(hg_k, bc)}
-        # the best fixed sigma of the round in hindsight (beside the calibrated sigma, Sec. V)
-        cells = {m: table[m][k][0] for m in cfg.methods
-                 if m.startswith("fixed_") and m in table and table[m][k] is not None}
-        if cells:
-            stats["best_fixed_per_round"][str(k + 1)] = max(cells, key=cells.get)
-    return table, stats
-
-
-def at_round(rows, k):
-    """{lineage: success of round k + 1} of the lineages that finished it; rows: {lineage: [success per round]}."""
-    return {l: r[k] for l, r in rows.items() if len(r) > k}
-
-
-def paired_statistics(cfg, values):
-    """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
-    sigma (TOST, TOST_MARGIN); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
-    hg = values("hg_dagger")
-    fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
-    best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
-    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}, "best_fixed": best_fixed}
-    for method in cfg.methods:
-        if method in ("bc", "hg_dagger"):
-            continue
-        a, b = pairs(values(method), hg)
-        if len(a) >= 2:
-            t, df, p = paired_ttest(a, b)
-            stats["paired_vs_hg_dagger"][method] = {"diff": mean_difference(a, b), "t": t, "df": df, "p": p,
-                                                    "degenerate": degenerate(a, b)}
-        a, b = pairs(values(method), values(best_fixed)) if best_fixed else ([], [])
-        if method in ("pooled", "per_step", "closed_loop") and len(a) >= 2:
-            p, _, _ = tost(a, b, TOST_MARGIN)
-            stats["tost_vs_best_fixed"][method] = {"vs": best_fixed, "diff": mean_difference(a, b), "p": p,
-                                                   "margin": TOST_MARGIN, "degenerate": degenerate(a, b)}
-    return stats
-
-
-def pairs(mine, ref):
-    """The paired values of two {lineage: success}: two lists over the lineages both hold, in lineage order."""
-    common = sorted(set(mine) & set(ref))
-    return [mine[l] for l in common], [ref[l] for l in common]
-
-
-def mean_difference(a, b):
-    return float(np.mean([x - y for x, y in zip(a, b)]))
-
-
-def mean_se(values):
-    """(mean, standard error, count) of the values (SE 0 for one value)."""
-    v = np.asarray(values, float)
-    se = v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else 0.0
-    return float(v.mean()), float(se), int(v.size)
-
-
-def degenerate(a, b):
-    """Why a paired test of a vs b has no p-value (the differences have no spread), or None."""
-    d = paired_differences(a, b)
-    if d.size >= 2 and np.all(d == d[0]):
-        return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
-                "so t and p are undefined")
-    return None
-
-
 # ---- The paper's figures (fig1-fig5) from lineage 0, round 1 -----------------------------------------------------
-def make_figures(run, demos, stats):
-    """fig1-fig5 (the paper's analogues) from lineage 0, round 1 (skipped figures are logged)."""
+FIGURE_INPUTS = ("data/D0.npz", "lineage_0/round_1/D.npz", "lineage_0/round_1/calibration.json",
+                 "lineage_0/round_1/checkpoints/hg_dagger.pt")  # what make_figures draws from
+
+
+def make_figures(run):
+    """fig1-fig5 (the paper's analogues) from D0 and lineage 0, round 1 (skipped figures are logged)."""
     cfg = run.cfg
+    if not os.path.exists(os.path.join(run.root, "data", "D0.npz")):  # a folder of joined lineage results only
+        run.log("no data/D0.npz here (lineages joined from results files): the paper's figures need --prepare")
+        return
+    demos = run.load("data/D0.npz")
+    stats = demo_statistics(cfg, demos)
     fig = lambda name: run.path("figures", name)  # noqa: E731
     env = make_run_env(cfg)
     if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
@@ -823,48 +741,17 @@ def make_figures(run, demos, stats):
                                            fig("fig3_partial_denoising.png"), gen(), q=episode["q"][t])
 
 
-# ---- The report and the entry point (the run folder, workers, command line and profiles are in experiment/) ------
-def write_report(run):
-    """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
-    table figures, the paper's figures and report.md (experiment/report.py writes them). Returns the table."""
-    run.check_lineages()  # a lineage folder copied in from elsewhere joins only if made like this one
-    tables = {}
-    for scenarios in ("eval", "unseen"):
-        success = report.collect_results(run, scenarios)
-        table, stats = summarize(run.cfg, success)
-        stats["scenario_paired"] = report.scenario_paired(run, scenarios)
-        tables[scenarios] = (success, table, stats)
-    text = report.write_tables(run, tables)
-    if os.path.exists(os.path.join(run.root, "data", "D0.npz")):
-        demos = run.load("data/D0.npz")
-        make_figures(run, demos, demo_statistics(run.cfg, demos))
-    else:  # a folder of joined lineage results only: the table and its figures, not the paper's figures
-        run.log("no data/D0.npz here (lineages joined from results files): the paper's figures need --prepare")
-    report.write_markdown_report(run, text, tables["eval"][2], tables["unseen"][2])
-    return text
+# ---- The entry point (the run folder, workers, command line, tables and report are in experiment/) --------------
+# What the harness runs, tests and draws of the paper (experiment/report.py: run_experiment, write_report)
+PAPER = report.Paper(loop=policy_calibrated_dagger, figures=make_figures, figure_inputs=FIGURE_INPUTS,
+                     paired_ttest=paired_ttest, tost=tost, tost_margin=TOST_MARGIN,
+                     paired_differences=paired_differences)
 
 
-def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(), export_to=None,
-                   copy_src=None):
-    """The command's mode on run folder `root` (resuming whatever is already there): every lineage, or only
-    `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report. join: lineage
-    results files unpacked into the folder first; export_to: a folder to write each lineage's results file to;
-    copy_src: a finished run folder of the same config with fewer methods whose stages are copied in first."""
-    run = Run(root, cfg)
-    if copy_src:
-        copy_from(run, copy_src)
-    for path in join:
-        join_lineage(run, path)
-    t0 = time.time()
-    if not report_only:
-        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
-        lineages = [] if prepare else [lineage] if lineage is not None else list(range(cfg.lineages))
-        policy_calibrated_dagger(run, lineages, workers)
-    text = write_report(run)
-    run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
-    for path in export_lineages(run, export_to) if export_to else []:
-        run.log(f"wrote {path}")
-    return run.root
+def run_experiment(cfg, root, **mode):
+    """The command's mode (lineage, prepare, report_only, workers, join, export_to, copy_src) on run folder root,
+    resuming whatever is there: report.run_experiment with this file's loop, figures and tests."""
+    return report.run_experiment(PAPER, cfg, root, **mode)
 
 
 def parse_args(argv):
@@ -875,8 +762,8 @@ def parse_args(argv):
 def main(argv=None):
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
-    root = cli.run_command(run_experiment, cfg, args.out, args.lineage, args.prepare, args.report, args.workers,
-                           args.join, args.export_lineages, args.copy_from)
+    root = cli.run_command(report.run_experiment, PAPER, cfg, args.out, args.lineage, args.prepare, args.report,
+                           args.workers, args.join, args.export_lineages, args.copy_from)
     for path in cli.run_command(export_start, root, args.export_start) if args.export_start else []:
         print(f"wrote {path}")
     return root

@@ -1243,51 +1243,7 @@ def paper_median_step(env):
     return PAPER_MEDIAN_STEP.get(paper_env(env))
 
 
-# ---- Episode files (the run folder's datasets) and a stand-in expert for tests and demos ---------
-def save_episodes(path, episodes):
-    """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
-    episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
-    the others ('seed' always, 'success', a goal vector) must have one shape in all episodes: stacked."""
-    if len(episodes) == 0:
-        raise ValueError("save_episodes: empty episode list")
-    lengths = np.array([len(ep["q"]) for ep in episodes], dtype=np.int64)
-    keys = sorted(set().union(*[ep.keys() for ep in episodes]))
-    data = {"offsets": np.concatenate([[0], np.cumsum(lengths)])}
-    for key in keys:
-        if any(key not in ep for ep in episodes):
-            raise ValueError(f"save_episodes: key {key!r} is missing from some episodes")
-        values = [np.asarray(ep[key]) for ep in episodes]
-        if key != "seed" and all(v.ndim >= 1 and len(v) == n for v, n in zip(values, lengths)):
-            data["step/" + key] = np.concatenate(values, axis=0)
-        elif all(v.shape == values[0].shape for v in values):
-            data["episode/" + key] = np.stack(values)
-        else:
-            raise ValueError(f"save_episodes: key {key!r} is neither per-step (first axis T) nor "
-                             f"of one shape in every episode")
-    np.savez_compressed(path, **data)
-
-
-def load_episodes(path):
-    """Inverse of save_episodes: a list of episode dicts (FileNotFoundError naming a missing path)."""
-    data = np.load(path)
-    offsets = data["offsets"]
-    episodes = [dict() for _ in range(len(offsets) - 1)]
-    for name in data.files:
-        kind, _, key = name.partition("/")
-        values = data[name]
-        for i, ep in enumerate(episodes):
-            if kind == "step":
-                ep[key] = values[offsets[i]:offsets[i + 1]]
-            elif kind == "episode":
-                v = values[i]
-                if key == "seed":
-                    v = int(v)
-                elif v.ndim == 0 and v.dtype == bool:
-                    v = bool(v)
-                ep[key] = v
-    return episodes
-
-
+# ---- A stand-in expert for tests and demos --------------------------------------------------------
 def straight_line_episode(env, seed, peak=0.04, expert_from=5):
     """Stand-in expert data for demos, tests and benchmarks (no oracle needed): in scenario `seed` a straight
     joint-space line from the start toward the nearest goal configuration, stopped at 90 % of the way to the

@@ -633,7 +633,7 @@ class Oracle:
 
     def demonstrate(self, env, seed):
         """An expert episode (D0) for scenario `seed`, the plan's samples as absolute joint targets until the env
-        ends it: 'obs', 'q', 'action', 'expert' (all True), 'seed', 'success' (envs.save_episodes)."""
+        ends it: 'obs', 'q', 'action', 'expert' (all True), 'seed', 'success' (experiment/run_folder.py writes them)."""
         obs, _ = env.reset(seed=seed)
         plan = self.plan(env, env.q, np.zeros(env.dof), np.random.default_rng([self.cfg.seed, int(seed)]))
         observations, qs, success = [], [], False

@@ -489,8 +489,6 @@ class AugmentationSampler:
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """n pairs from the pool (diffusion.train's sampler hook). The first call fills the pool; afterwards
         the oldest `refresh_size` pairs are replaced every `reuse * refresh_size` pairs served."""
-        if not isinstance(n, (int, np.integer)) or n < 0:
-            raise ValueError(f"n must be an integer >= 0, got {n!r}")
         cfg = self.cfg
         if self._filled == 0:  # the first call: a bounded number of refreshes
             for _ in range(4 * cfg.pool_size // cfg.refresh_size):
@@ -526,8 +524,6 @@ class AugmentationSampler:
     def generate(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """m fresh pairs (fewer if states were dropped): obs (m', obs_dim) float32, chunks (m', H, dof)
         float32, mask (m', H) bool. Rows `_label_rows` rejects are redrawn up to `max_redraws` times."""
-        if not isinstance(m, (int, np.integer)) or m < 1:
-            raise ValueError(f"m must be a positive integer, got {m!r}")
         rows = self._draw_rows(m, rng)  # (m,) rows of the table, uniform over the labelable steps
         self.n_drawn += m
         limits = self._env(int(self.seeds[rows[0]])).joint_limits

@@ -89,7 +89,7 @@ def measure(out, name, cfg_fields, demos_path):
         os.replace(target + ".part", target)
     cfg = dagger.Config(**cfg_fields)
     dagger.run_experiment(cfg, root, prepare=True)
-    dagger.bc_row_arm(root, cfg_fields)
+    dagger.bc_row_arm(root, cfg_fields, Run(root, cfg).load("data/D0.npz"))
     path = os.path.join(root, "cpu_per_step.json")
     if not os.path.exists(path):
         write_json(path, {"seconds": cpu_seconds_per_step(cfg, Run(root, cfg).load("data/D0.npz"))})

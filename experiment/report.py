@@ -1,21 +1,25 @@
-"""Results on disk into Table I's layout: results.json, results.csv, table.md, report.md, the table figures.
+"""The command's mode (run_experiment) and the report: Table I from the results on disk -- results.json,
+results.csv, table.md, report.md, the table figures -- with the paper's figures.
 
-dagger.write_report reads the finished evaluations with collect_results / scenario_paired, computes the
-paper's statistics (dagger.summarize: mean ± SE over lineages, paired t-tests, TOST) and hands them here to
-be written. The paper's tests (paired t, TOST) stay in dagger.py; here are the run's own summaries (the
-differences paired over scenarios, the calibration in the paper's unit), the formatting and the drawing.
+write_report reads the finished evaluations (collect_results, scenario_paired) and assembles Table I (summarize:
+mean ± SE over lineages, the paired t-tests and TOST that dagger.py writes, handed over in a Paper); here too the
+run's own summaries (the differences paired over scenarios, the calibration in the paper's unit), the formatting
+and the drawing.
 """
 from __future__ import annotations
 
 import csv
 import math
 import os
+import time
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 import calibrate
 import envs
-from experiment.run_folder import read_json, write_json
+from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, read_json, write_json
 
 # Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
 METHOD_LABELS = {
@@ -48,6 +52,150 @@ PAPER_TABLES = {
                  "hg_dagger": [(57.4, 5.6, 3), (58.1, 4.0, 3)],
                  "pooled": [(68.8, 4.2, 3), (63.4, 4.8, 3)]},
 }
+
+
+# ---- What the harness runs of the paper, and Table I's assembly (the paper's tests are dagger.py's) --------------
+@dataclass(frozen=True)
+class Paper:
+    """What the report runs, tests and draws of the paper: dagger.PAPER (this folder never imports dagger.py)."""
+    loop: Callable                # policy_calibrated_dagger(run, lineages, workers): Sec. IV-A on the run folder
+    figures: Callable             # make_figures(run): the paper's figures from the run folder ...
+    figure_inputs: tuple          # ... drawn from these files (redrawn only when one of them changed)
+    paired_ttest: Callable        # (a, b) -> (t, df, p)
+    tost: Callable                # (a, b, margin) -> (p, t_lower, t_upper)
+    tost_margin: float            # Table I's equivalence margin, success points
+    paired_differences: Callable  # (a, b) -> a - b per pair, as the tests take them
+
+
+def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(),
+                   export_to=None, copy_src=None):
+    """The command's mode on run folder `root` (resuming whatever is already there): every lineage, or only
+    `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report. join: lineage
+    results files unpacked into the folder first; export_to: a folder to write each lineage's results file to;
+    copy_src: a finished run folder of the same config with fewer methods whose stages are copied in first."""
+    run = Run(root, cfg)
+    if copy_src:
+        copy_from(run, copy_src)
+    for path in join:
+        join_lineage(run, path)
+    t0 = time.time()
+    if not report_only:
+        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
+        lineages = [] if prepare else [lineage] if lineage is not None else list(range(cfg.lineages))
+        paper.loop(run, lineages, workers)
+    text = write_report(run, paper)
+    run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
+    for path in export_lineages(run, export_to) if export_to else []:
+        run.log(f"wrote {path}")
+    return run.root
+
+
+def write_report(run, paper):
+    """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
+    table figures, the paper's figures (when their inputs changed) and report.md. Returns the table."""
+    run.check_lineages()  # a lineage folder copied in from elsewhere joins only if made like this one
+    tables = {}
+    for scenarios in ("eval", "unseen"):
+        success = collect_results(run, scenarios)
+        table, stats = summarize(run.cfg, success, paper)
+        stats["scenario_paired"] = scenario_paired(run, scenarios)
+        tables[scenarios] = (success, table, stats)
+    text = write_tables(run, tables)
+    if run.inputs_changed("figures/drawn_from.json", paper.figure_inputs):
+        paper.figures(run)
+        run.record_inputs("figures/drawn_from.json", paper.figure_inputs)
+    else:
+        run.log("figures 1-5: their inputs have not changed since they were drawn (figures/drawn_from.json)")
+    write_markdown_report(run, text, tables["eval"][2], tables["unseen"][2])
+    return text
+
+
+def summarize(cfg, results, paper):
+    """Per method and round: (mean, SE over lineages, count); the paired tests over the lineages that finished
+    every round (each averaged over rounds), per round, HG-DAgger vs BC, and the best fixed sigma per round.
+    results: {method: {lineage: [success per round]}}, BC's {'all': [success]}; paper: its tests (Paper)."""
+    table = {}
+    for method, per_lineage in results.items():
+        if method == "bc":
+            table[method] = [mean_se(per_lineage["all"])]
+        else:
+            rounds = [list(at_round(per_lineage, k).values()) for k in range(cfg.rounds)]
+            table[method] = [mean_se(vals) if vals else None for vals in rounds]
+    stats = paired_statistics(cfg, paper, lambda m: {l: float(np.mean(r)) for l, r in results.get(m, {}).items()
+                                              if len(r) == cfg.rounds})
+    stats["per_round"] = {str(k + 1): paired_statistics(cfg, paper, lambda m, k=k: at_round(results.get(m, {}), k))
+                          for k in range(cfg.rounds)}
+    stats["hg_dagger_vs_bc"], stats["best_fixed_per_round"] = {}, {}
+    bc_all = results.get("bc", {}).get("all")
+    for k in range(cfg.rounds):
+        # HG-DAgger against BC: one pi_0 for all lineages, so the pairs are (HG_l,k, BC)
+        hg_k = list(at_round(results.get("hg_dagger", {}), k).values())
+        if bc_all and len(hg_k) >= 2:
+            bc = [bc_all[0]] * len(hg_k)
+            t, df, p = paper.paired_ttest(hg_k, bc)
+            stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
+                                                    "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
+                                                    "n": len(hg_k), "degenerate": degenerate(paper, hg_k, bc)}
+        # the best fixed sigma of the round in hindsight (beside the calibrated sigma, Sec. V)
+        cells = {m: table[m][k][0] for m in cfg.methods
+                 if m.startswith("fixed_") and m in table and table[m][k] is not None}
+        if cells:
+            stats["best_fixed_per_round"][str(k + 1)] = max(cells, key=cells.get)
+    return table, stats
+
+
+def at_round(rows, k):
+    """{lineage: success of round k + 1} of the lineages that finished it; rows: {lineage: [success per round]}."""
+    return {l: r[k] for l, r in rows.items() if len(r) > k}
+
+
+def paired_statistics(cfg, paper, values):
+    """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
+    sigma (TOST at paper.tost_margin); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
+    hg = values("hg_dagger")
+    fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
+    best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
+    stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}, "best_fixed": best_fixed}
+    for method in cfg.methods:
+        if method in ("bc", "hg_dagger"):
+            continue
+        a, b = pairs(values(method), hg)
+        if len(a) >= 2:
+            t, df, p = paper.paired_ttest(a, b)
+            stats["paired_vs_hg_dagger"][method] = {"diff": mean_difference(a, b), "t": t, "df": df, "p": p,
+                                                    "degenerate": degenerate(paper, a, b)}
+        a, b = pairs(values(method), values(best_fixed)) if best_fixed else ([], [])
+        if method in ("pooled", "per_step", "closed_loop") and len(a) >= 2:
+            p, _, _ = paper.tost(a, b, paper.tost_margin)
+            stats["tost_vs_best_fixed"][method] = {"vs": best_fixed, "diff": mean_difference(a, b), "p": p,
+                                                   "margin": paper.tost_margin, "degenerate": degenerate(paper, a, b)}
+    return stats
+
+
+def pairs(mine, ref):
+    """The paired values of two {lineage: success}: two lists over the lineages both hold, in lineage order."""
+    common = sorted(set(mine) & set(ref))
+    return [mine[l] for l in common], [ref[l] for l in common]
+
+
+def mean_difference(a, b):
+    return float(np.mean([x - y for x, y in zip(a, b)]))
+
+
+def mean_se(values):
+    """(mean, standard error, count) of the values (SE 0 for one value)."""
+    v = np.asarray(values, float)
+    se = v.std(ddof=1) / math.sqrt(v.size) if v.size > 1 else 0.0
+    return float(v.mean()), float(se), int(v.size)
+
+
+def degenerate(paper, a, b):
+    """Why a paired test of a vs b has no p-value (the differences have no spread), or None."""
+    d = paper.paired_differences(a, b)
+    if d.size >= 2 and np.all(d == d[0]):
+        return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
+                "so t and p are undefined")
+    return None
 
 
 def table_number(cfg):
@@ -383,7 +531,7 @@ def lineage_calibration(lineage, v, in_paper_unit):
 def write_tables(run, tables):
     """results.json, results.csv, table.md and the table figures. tables: {'eval': (success, table, stats),
     'unseen': (...)} -- success[method][lineage][k-1] in percent (collect_results), the table and stats of
-    dagger.summarize. The evaluation scenarios' stats gain the calibration and the stage times. Returns
+    summarize. The evaluation scenarios' stats gain the calibration and the stage times. Returns
     table.md's text."""
     cfg = run.cfg
     results, table, stats = tables["eval"]

@@ -114,7 +114,7 @@ class Run:
     def stage(self, name, compute):
         """Load stage `name` (a path under the run folder, '/'-separated) if it finished, else compute() it,
         write it atomically and record its wall time. By the file's kind: .npz a list of episodes
-        (envs.save_episodes), calibration.json a calibrate.Calibration, .json a JSON dict, .pt a policy (compute
+        (save_episodes), calibration.json a calibrate.Calibration, .json a JSON dict, .pt a policy (compute
         writes it: Run.train)."""
         path = self.path(*name.split("/"))
         lineage = re.match(r"lineage_(\d+)/", name)
@@ -187,6 +187,30 @@ class Run:
             if os.path.exists(part.format(step=m)):
                 os.remove(part.format(step=m))
         return policy
+
+    def inputs_changed(self, stamp, inputs):
+        """Whether the files `inputs` (names under the folder) differ -- in size or time -- from when
+        record_inputs(stamp, ...) last recorded them, or a file then in stamp's folder is gone."""
+        path = os.path.join(self.root, *stamp.split("/"))
+        if not os.path.exists(path):
+            return True
+        record = read_json(path)
+        folder = os.path.dirname(path)
+        return (record["inputs"] != self._file_states(inputs)
+                or not all(os.path.exists(os.path.join(folder, name)) for name in record["outputs"]))
+
+    def record_inputs(self, stamp, inputs):
+        """Record the inputs' sizes and times, and the files now in stamp's folder (what was made from them)."""
+        path = self.path(*stamp.split("/"))
+        outputs = sorted(n for n in os.listdir(os.path.dirname(path)) if n != os.path.basename(path))
+        write_json(path, {"inputs": self._file_states(inputs), "outputs": outputs})
+
+    def _file_states(self, names):
+        states = {}
+        for name in names:
+            p = os.path.join(self.root, *name.split("/"))
+            states[name] = [os.path.getsize(p), os.stat(p).st_mtime_ns] if os.path.exists(p) else None
+        return states
 
     def claim_lineage(self, lineage):
         """lineage_<l>/lineage.json: the config and the pi_0 (the SHA-256 of its weights) the lineage is made
@@ -617,7 +641,7 @@ def write_json(path, data):
 
 def save_episodes(path, episodes):
     tmp = f"{path}.{os.getpid()}.tmp.npz"
-    envs.save_episodes(tmp, episodes)
+    write_episodes(tmp, episodes)
     os.replace(tmp, path)
 
 
@@ -645,7 +669,51 @@ def read_json(path):
 
 
 def load_episodes(path):
-    return load_stage_file(path, envs.load_episodes)
+    return load_stage_file(path, read_episodes)
+
+
+def write_episodes(path, episodes):
+    """Write a list of episode dicts to one .npz. A key whose first axis is the episode length T in every
+    episode ('obs', 'q', 'action', 'expert', ...) is concatenated along time and cut back with 'offsets';
+    the others ('seed' always, 'success', a goal vector) must have one shape in all episodes: stacked."""
+    if len(episodes) == 0:
+        raise ValueError("write_episodes: empty episode list")
+    lengths = np.array([len(ep["q"]) for ep in episodes], dtype=np.int64)
+    keys = sorted(set().union(*[ep.keys() for ep in episodes]))
+    data = {"offsets": np.concatenate([[0], np.cumsum(lengths)])}
+    for key in keys:
+        if any(key not in ep for ep in episodes):
+            raise ValueError(f"write_episodes: key {key!r} is missing from some episodes")
+        values = [np.asarray(ep[key]) for ep in episodes]
+        if key != "seed" and all(v.ndim >= 1 and len(v) == n for v, n in zip(values, lengths)):
+            data["step/" + key] = np.concatenate(values, axis=0)
+        elif all(v.shape == values[0].shape for v in values):
+            data["episode/" + key] = np.stack(values)
+        else:
+            raise ValueError(f"write_episodes: key {key!r} is neither per-step (first axis T) nor "
+                             f"of one shape in every episode")
+    np.savez_compressed(path, **data)
+
+
+def read_episodes(path):
+    """Inverse of write_episodes: a list of episode dicts (FileNotFoundError naming a missing path)."""
+    data = np.load(path)
+    offsets = data["offsets"]
+    episodes = [dict() for _ in range(len(offsets) - 1)]
+    for name in data.files:
+        kind, _, key = name.partition("/")
+        values = data[name]
+        for i, ep in enumerate(episodes):
+            if kind == "step":
+                ep[key] = values[offsets[i]:offsets[i + 1]]
+            elif kind == "episode":
+                v = values[i]
+                if key == "seed":
+                    v = int(v)
+                elif v.ndim == 0 and v.dtype == bool:
+                    v = bool(v)
+                ep[key] = v
+    return episodes
 
 
 def load_policy(path, device):

@@ -1,8 +1,9 @@
 """Worker processes: the arms of a round side by side, the BC row beside the rounds.
 
-Each job is a module-level function and plain arguments (the run folder's path, the config as a dict): a
-worker rebuilds what it needs from the run folder. Every stage has its own seed and file, so the numbers do
-not depend on how many workers ran them. Workers are spawned (not forked: torch's threads do not survive a
+Each job is a module-level function and plain arguments: the run folder's path and the config as a dict (a worker
+opens its own handle on the folder to write its stages and log) and the data the loop has in hand (D0, the rounds'
+interventions, the calibration), pickled to it. Every stage has its own seed and file, so the numbers do not depend
+on how many workers ran them. Workers are spawned (not forked: torch's threads do not survive a
 fork) and run one torch thread each, so two workers use two cores.
 """
 from __future__ import annotations

@@ -47,7 +47,7 @@ def test_every_output_file(full_run):
     at = lambda name: os.path.join(full_run, name)  # noqa: E731
     saved = json.load(open(at("config.json")))
     assert {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()} == dataclasses.asdict(TINY)
-    demos = envs.load_episodes(at("data/D0.npz"))
+    demos = run_folder.load_episodes(at("data/D0.npz"))
     assert len(demos) == TINY.n_demos and all(ep["expert"].all() and len(ep["obs"]) == len(ep["q"]) for ep in demos)
     pi0 = torch.load(at("checkpoints/bc.pt"), weights_only=True)
     assert pi0["train_state"]["step"] == TINY.bc_steps  # 'continue': the arms go on from pi_0's optimizer
@@ -62,7 +62,7 @@ def test_every_output_file(full_run):
     assert results["success"]["bc"]["all"] == [pytest.approx(success["bc"])]
     assert {m: rows["0"] for m, rows in results["success"].items() if m != "bc"} == \
         {m: [pytest.approx(v)] for m, v in success.items() if m != "bc"}
-    for ep in envs.load_episodes(at("lineage_0/round_1/D.npz")):  # every kept episode teaches: a run >= H
+    for ep in run_folder.load_episodes(at("lineage_0/round_1/D.npz")):  # every kept episode teaches: a run >= H
         assert any(end - start >= TINY.horizon for start, end in diffusion.expert_runs(ep["expert"], 1))
     cal = run_folder.calibration_from_json(json.load(open(at("lineage_0/round_1/calibration.json"))))
     assert cal.W > 0 and np.allclose(cal.pooled, cal.pooled.T) and np.all(np.linalg.eigvalsh(cal.pooled) >= 0)
@@ -154,7 +154,7 @@ def test_summarize_paired_statistics():
                "fixed_2": {"0": [73, 75], "1": [74, 76], "2": [72, 77]},
                "fixed_8": {"0": [71, 72], "1": [70, 73], "2": [70, 74]},
                "pooled": {"0": [73, 76], "1": [74, 75], "2": [73, 77]}}
-    table, stats = dagger.summarize(cfg, results)
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
     assert table["hg_dagger"][0][0] == pytest.approx(70.0) and table["hg_dagger"][0][2] == 3
     assert stats["best_fixed"] == "fixed_2"
     assert stats["paired_vs_hg_dagger"]["pooled"]["diff"] == pytest.approx(
@@ -175,14 +175,14 @@ def test_summarize_paired_statistics():
     assert "Per round (paired over the lineages that finished it)" in text and "- K=2: " in text
     # a lineage that finished round 1 only counts in round 1's pairs, not in the average over rounds
     partial = {m: {**rows, "3": rows["0"][:1]} for m, rows in results.items() if m != "bc"} | {"bc": results["bc"]}
-    _, partial_stats = dagger.summarize(cfg, partial)
+    _, partial_stats = report.summarize(cfg, partial, dagger.PAPER)
     assert partial_stats["per_round"]["1"]["paired_vs_hg_dagger"]["pooled"]["df"] == 3
     assert partial_stats["per_round"]["2"]["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     assert partial_stats["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     # the sigma = 0 control is paired with HG-DAgger but never the "best fixed noise"
     cfg = replace(cfg, methods=cfg.methods + ("zero_noise",))
     results["zero_noise"] = {"0": [90, 90], "1": [91, 91], "2": [92, 92]}
-    _, stats = dagger.summarize(cfg, results)
+    _, stats = report.summarize(cfg, results, dagger.PAPER)
     assert stats["best_fixed"] == "fixed_2" and "zero_noise" in stats["paired_vs_hg_dagger"]
     assert "zero_noise" not in stats["tost_vs_best_fixed"]
 
@@ -376,7 +376,7 @@ def test_degenerate_statistics_say_why_instead_of_a_p_value():
     cfg = dagger.Config(name="t", rounds=1, lineages=3, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
     results = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [60.0], "1": [61.0], "2": [62.0]},
                "fixed_4": {"0": [60.0], "1": [61.0], "2": [62.0]}, "pooled": {"0": [60.0], "1": [61.0], "2": [62.0]}}
-    table, stats = dagger.summarize(cfg, results)
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
     text = report.format_table(cfg, table, stats)
     assert "no spread" in text and "p = 0 " not in text and "p = 1 " not in text
     assert report.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and report.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
@@ -844,7 +844,7 @@ def test_the_report_refuses_an_evaluation_of_another_shape_or_scenarios(full_run
     json.dump(bad, open(path, "w"))
     before = files_and_times(root)
     with pytest.raises(SystemExit) as exit_info:
-        cli.run_command(dagger.run_experiment, TINY, root, None, False, True)
+        cli.run_command(report.run_experiment, dagger.PAPER, TINY, root, None, False, True)
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "Traceback" not in err
     assert f"{path} is not an evaluation of this run: {expected}" in err

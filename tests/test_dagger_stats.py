@@ -93,7 +93,7 @@ def test_equal_gains_in_episode_counts_have_no_spread_whatever_the_float_roundin
     a, b = [rate(144), rate(143)], [rate(141), rate(140)]
     assert np.subtract(a, b)[0] != np.subtract(a, b)[1]                # the float differences are not equal ...
     assert dagger.paired_ttest(a, b) == (math.inf, 1, 0.0)              # ... but the gains are: no spread
-    assert dagger.degenerate(a, b).startswith("every lineage differs by exactly +1.0 points")
+    assert report.degenerate(dagger.PAPER, a, b).startswith("every lineage differs by exactly +1.0 points")
     assert dagger.tost(a, b, 2.0)[0] == 0.0 and dagger.tost(a, b, 0.5)[0] == 1.0
 
 
@@ -117,7 +117,7 @@ def test_drop_short_interventions():
 
 
 def test_mean_se():
-    m, se, n = dagger.mean_se([80.0, 82.0, 84.0])
+    m, se, n = report.mean_se([80.0, 82.0, 84.0])
     assert (m, n) == (82.0, 3)
     assert se == pytest.approx(2.0 / math.sqrt(3))
 
@@ -129,7 +129,7 @@ def test_summarize_pairs_hg_dagger_with_bc_per_round_and_finds_the_best_fixed_si
                "fixed_2": {"0": [60.0, 70.0], "1": [61.0, 70.0], "2": [62.0, 70.0]},
                "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
                "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]}}
-    table, stats = dagger.summarize(cfg, results)
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
     r1, r2 = stats["hg_dagger_vs_bc"]["1"], stats["hg_dagger_vs_bc"]["2"]
     assert r1["diff"] == pytest.approx(3.0) and r1["n_above"] == 3 and r1["df"] == 2
     t, df, p = dagger.paired_ttest([62.0, 64.0, 63.0], [60.0] * 3)  # one pi_0: the pairs share BC's number
@@ -147,8 +147,8 @@ def test_format_table_adds_the_unseen_scenarios_with_their_own_paired_statistics
                "pooled": {"0": [74.0], "1": [75.0], "2": [73.0]}}
     unseen = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [55.0], "1": [57.0], "2": [54.0]},
               "pooled": {"0": [58.0], "1": [61.0], "2": [59.0]}}
-    table, stats = dagger.summarize(cfg, results)
-    table_u, stats_u = dagger.summarize(cfg, unseen)
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table_u, stats_u = report.summarize(cfg, unseen, dagger.PAPER)
     text = report.format_table(cfg, table, stats, (table_u, stats_u))
     main, second = text.split("**Unseen scenarios.**")
     assert "the 100 evaluation scenarios, on which HG-DAgger collected (the authors' protocol)" in main
@@ -216,7 +216,7 @@ def test_the_table_prints_and_draws_the_papers_cells_for_the_runs_rows_and_round
                "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
                "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]},
                "zero_noise": {"0": [60.0, 60.0], "1": [61.0, 61.0], "2": [62.0, 62.0]}}
-    table, stats = dagger.summarize(cfg, results)
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
     ours, theirs = report.format_table(cfg, table, stats).split("The paper's Table I")
     assert "| Pooled Sigma-bar^alpha (Ours) | 82.0 ± 0.6 (5) | 86.2 ± 0.8 (5) |" in theirs
     assert "| HG-DAgger | 63.0 ± 0.6 (3) | 64.0 ± 1.5 (3) |" in ours and "82.0" not in ours

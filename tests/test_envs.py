@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs import PlanarReacher, load_episodes, make_env, median_step, save_episodes
+from envs import PlanarReacher, make_env, median_step
 
 
 @pytest.fixture(scope="module")
@@ -359,32 +359,6 @@ def test_make_obs_layout(env):
 
 
 # ---- episode files -------------------------------------------------------------------------------
-def test_save_load_round_trip(tmp_path):
-    rng = np.random.default_rng(0)
-    episodes = []
-    for i, T in enumerate([5, 1, 12]):
-        episodes.append({"obs": rng.normal(size=(T, 48)).astype(np.float32),
-                         "q": rng.normal(size=(T, 3)), "action": rng.normal(size=(T, 3)),
-                         "expert": rng.random(T) < 0.5, "seed": 100 + i, "success": bool(i % 2),
-                         "goal": rng.normal(size=2)})
-    path = tmp_path / "eps.npz"
-    save_episodes(path, episodes)
-    back = load_episodes(path)
-    assert len(back) == 3
-    for a, b in zip(episodes, back):
-        assert set(a) == set(b)
-        for k in ("obs", "q", "action", "expert"):
-            np.testing.assert_array_equal(a[k], b[k])
-            assert a[k].dtype == b[k].dtype
-        assert b["seed"] == a["seed"] and isinstance(b["seed"], int)
-        assert b["success"] == a["success"] and isinstance(b["success"], bool)
-        np.testing.assert_array_equal(a["goal"], b["goal"])
-    with pytest.raises(ValueError, match="missing"):
-        save_episodes(path, [episodes[0], {"q": np.zeros((2, 3))}])
-    with pytest.raises(FileNotFoundError):
-        load_episodes(tmp_path / "missing.npz")
-
-
 # ---- the unit of noise levels: our median step and the paper's ----------------------------------------
 # "Median step" has four plausible readings: per joint or the L2 norm over the joints, per 10 Hz env step
 # or per 30 Hz frame of the authors. Ours (envs.median_step) is per joint per env step; the paper's

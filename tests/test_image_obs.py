@@ -292,7 +292,7 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path, monkeypatch):
     root = dagger.run_experiment(cfg, str(tmp_path / "images"))
     results = json.load(open(os.path.join(root, "results.json")))
     assert set(results["success"]) == {"bc", "hg_dagger", "pooled"}
-    D0 = envs.load_episodes(os.path.join(root, "data", "D0.npz"))
+    D0 = run_folder.load_episodes(os.path.join(root, "data", "D0.npz"))
     assert D0[0]["obs"].shape[1] == 15 + 3 * 16 * 16                 # the images are in the data
     for f in ("fig1_recovery.png", "fig2_method_overview.png", "fig3_partial_denoising.png", "fig4_blend_fit.png",
               "fig5_environment.png", "fig5_policy_view.png", "table_i.png", "lineage_0/round_1/checkpoints/pooled.pt"):

@@ -1,5 +1,5 @@
 """Tests of the run folder's files: policy checkpoints (experiment/checkpoints.py: older files, damage, resuming a
-run with Run.train) and the calibration's JSON form and log text."""
+run with Run.train), the calibration's JSON form and log text, and the episode files."""
 import io
 import json
 from dataclasses import dataclass
@@ -12,7 +12,8 @@ import test_calibrate
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
 from experiment import checkpoints
 from experiment.report import calibration_text
-from experiment.run_folder import Run, RunFolderError, calibration_from_json, calibration_to_json
+from experiment.run_folder import (Run, RunFolderError, calibration_from_json, calibration_to_json, read_episodes,
+                                   write_episodes)
 
 
 def tiny_policy(**overrides):
@@ -203,3 +204,31 @@ def test_calibration_json_round_trip(tmp_path):
         assert calibration_to_json(calibration_from_json(dict(old, **{key: c.pooled.tolist()}))) == \
             calibration_to_json(calibration_from_json(old))
         assert calibration_from_json(dict(old, **{key: None})).W == c.W
+
+
+# ---- episode files (data/D0.npz, D.npz)
+
+def test_episode_files_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    episodes = []
+    for i, T in enumerate([5, 1, 12]):
+        episodes.append({"obs": rng.normal(size=(T, 48)).astype(np.float32),
+                         "q": rng.normal(size=(T, 3)), "action": rng.normal(size=(T, 3)),
+                         "expert": rng.random(T) < 0.5, "seed": 100 + i, "success": bool(i % 2),
+                         "goal": rng.normal(size=2)})
+    path = tmp_path / "eps.npz"
+    write_episodes(path, episodes)
+    back = read_episodes(path)
+    assert len(back) == 3
+    for a, b in zip(episodes, back):
+        assert set(a) == set(b)
+        for k in ("obs", "q", "action", "expert"):
+            np.testing.assert_array_equal(a[k], b[k])
+            assert a[k].dtype == b[k].dtype
+        assert b["seed"] == a["seed"] and isinstance(b["seed"], int)
+        assert b["success"] == a["success"] and isinstance(b["success"], bool)
+        np.testing.assert_array_equal(a["goal"], b["goal"])
+    with pytest.raises(ValueError, match="missing"):
+        write_episodes(path, [episodes[0], {"q": np.zeros((2, 3))}])
+    with pytest.raises(FileNotFoundError):
+        read_episodes(tmp_path / "missing.npz")
