@@ -31,6 +31,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from fast_ops import Linear, Mish, mish   # nn.Linear, nn.Mish at this CPU's speed (issue 54)
+
 
 # ---- Config ------------------------------------------------------------------------------------------------------
 @dataclass
@@ -267,7 +269,7 @@ class Conv1dBlock(nn.Sequential):
     def __init__(self, in_channels, out_channels, kernel_size, n_groups):
         super().__init__(nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
                          nn.GroupNorm(n_groups, out_channels),
-                         nn.Mish())
+                         Mish())
 
 
 class ConditionalResidualBlock(nn.Module):
@@ -286,7 +288,7 @@ class ConditionalResidualBlock(nn.Module):
         """x (B, in_channels, T), film (B, 2 * out_channels) -> (B, out_channels, T)."""
         h = self.conv1(x)                                            # (B, out, T)
         scale, bias = film[:, :, None].chunk(2, dim=1)               # (B, out, 1) each
-        h = scale * h + bias
+        h = torch.addcmul(bias, scale, h)                            # scale * h + bias
         return self.conv2(h) + self.residual(x)                      # (B, out, T)
 
 
@@ -304,7 +306,7 @@ class FiLMNetwork(nn.Module):
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
         # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
-        self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
+        self.step_encoder = nn.Sequential(Linear(dsed, 4 * dsed), Mish(), Linear(4 * dsed, dsed))
         self.build(cfg, dsed + cfg.cond_input_dim)                    # FiLM input: [step features, obs features]
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.final[-1].weight)
@@ -320,20 +322,26 @@ class FiLMNetwork(nn.Module):
         bias = torch.cat([b.film.bias for b in self.residual_blocks()])       # (F,)
         return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
 
-    def obs_terms(self, obs_norm):
-        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS)."""
-        _, w_obs, _ = self.film_weights()
-        return nn.functional.mish(self.obs_encoder(obs_norm)) @ w_obs.T      # (B, F)
+    def obs_terms(self, obs_norm, weights=None):
+        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS).
+        weights: film_weights(), if the caller has them already."""
+        _, w_obs, _ = weights if weights is not None else self.film_weights()
+        return nn.functional.linear(mish(self.obs_encoder(obs_norm)), w_obs)   # (B, F)
 
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
         return self.step_encoder(step_embedding(k, self.step_embed_dim))
 
-    def step_table(self):
+    def step_table(self, weights=None):
         """(K, F): the step part W_s Mish(step features) + b of every block's FiLM, for all K steps at once."""
-        w_step, _, bias = self.film_weights()
+        w_step, _, bias = weights if weights is not None else self.film_weights()
         k = torch.arange(self.K, device=bias.device)
-        return nn.functional.linear(nn.functional.mish(self.step_features(k)), w_step, bias)   # (K, F)
+        return nn.functional.linear(mish(self.step_features(k)), w_step, bias)   # (K, F)
+
+    def film_terms(self, obs_norm):
+        """(obs_terms (B, F), step_table (K, F)), the FiLM weights stacked once for both."""
+        weights = self.film_weights()
+        return self.obs_terms(obs_norm, weights), self.step_table(weights)
 
 
 class ConditionalUnet1D(FiLMNetwork):
@@ -399,15 +407,15 @@ class MLPResidualBlock(nn.Module):
     def __init__(self, width, cond_dim):
         super().__init__()
         self.norm = nn.LayerNorm(width)
-        self.fc1 = nn.Linear(width, width)
-        self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each
-        self.fc2 = nn.Linear(width, width)
+        self.fc1 = Linear(width, width)
+        self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each (film_weights)
+        self.fc2 = Linear(width, width)
 
     def forward(self, x, film):
         """x (B, width), film (B, 2 * width) -> (B, width)."""
-        h = self.fc1(nn.functional.mish(self.norm(x)))
+        h = self.fc1(mish(self.norm(x)))                             # (B, width)
         scale, bias = film.chunk(2, dim=1)                           # (B, width) each
-        return x + self.fc2(nn.functional.mish(scale * h + bias))
+        return x + self.fc2(mish(torch.addcmul(bias, scale, h)))     # FiLM: scale * h + bias
 
 
 class ResidualMLP(FiLMNetwork):
@@ -417,10 +425,10 @@ class ResidualMLP(FiLMNetwork):
 
     def build(self, cfg, cond_dim):
         self.horizon, self.dof = cfg.horizon, cfg.dof
-        self.inp = nn.Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
+        self.inp = Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
         self.blocks = nn.ModuleList([MLPResidualBlock(cfg.mlp_width, cond_dim) for _ in range(cfg.mlp_blocks)])
-        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), nn.Mish(),
-                                   nn.Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
+        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), Mish(),
+                                   Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
 
     def residual_blocks(self):
         yield from self.blocks
@@ -521,8 +529,7 @@ class DiffusionPolicy(nn.Module):
         return a * self.act_half + self.act_center + obs[:, None, :self.cfg.dof]
 
     def condition(self, obs_norm, use_ema=True):  # FiLM pieces: (obs terms (B, F), step table (K, F))
-        net = self.ema_net if use_ema else self.net
-        return net.obs_terms(obs_norm), net.step_table()
+        return (self.ema_net if use_ema else self.net).film_terms(obs_norm)
 
     def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
         """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
@@ -530,7 +537,7 @@ class DiffusionPolicy(nn.Module):
         B = a_k_norm.shape[0]
         obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
         k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
-        film = obs_part + step_part[k]                                # (B, F)
+        film = obs_part + step_part.index_select(0, k)                # (B, F): row i is step_part[k[i]]
         return (self.ema_net if use_ema else self.net)(a_k_norm, film)   # (B, H, dof)
 
     def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
