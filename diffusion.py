@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from fast_ops import Linear, Mish, mish   # nn.Linear, nn.Mish at this CPU's speed (issue 54)
+from fast_ops import Linear, Mish, linear, mish   # nn.Linear, nn.Mish at this CPU's speed (issue 54)
 
 
 # ---- Config ------------------------------------------------------------------------------------------------------
@@ -317,16 +317,18 @@ class FiLMNetwork(nn.Module):
         self.obs_encoder = OBS_ENCODERS[cfg.obs_encoder](**cfg.obs_encoder_args)
 
     def film_weights(self):
-        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,))."""
-        weight = torch.cat([b.film.weight for b in self.residual_blocks()])   # (F, dsed + obs features)
-        bias = torch.cat([b.film.bias for b in self.residual_blocks()])       # (F,)
-        return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
+        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
+        each stacked whole (fast_ops.linear takes a contiguous weight through oneDNN, a slice through torch's own)."""
+        films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
+        w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
+        w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
+        return w_step, w_obs, torch.cat([film.bias for film in films])         # ..., (F,)
 
     def obs_terms(self, obs_norm, weights=None):
         """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS).
         weights: film_weights(), if the caller has them already."""
         _, w_obs, _ = weights if weights is not None else self.film_weights()
-        return nn.functional.linear(mish(self.obs_encoder(obs_norm)), w_obs)   # (B, F)
+        return linear(mish(self.obs_encoder(obs_norm)), w_obs)                # (B, F)
 
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
@@ -336,7 +338,7 @@ class FiLMNetwork(nn.Module):
         """(K, F): the step part W_s Mish(step features) + b of every block's FiLM, for all K steps at once."""
         w_step, _, bias = weights if weights is not None else self.film_weights()
         k = torch.arange(self.K, device=bias.device)
-        return nn.functional.linear(mish(self.step_features(k)), w_step, bias)   # (K, F)
+        return linear(mish(self.step_features(k)), w_step, bias)              # (K, F)
 
     def film_terms(self, obs_norm):
         """(obs_terms (B, F), step_table (K, F)), the FiLM weights stacked once for both."""
