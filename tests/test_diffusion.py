@@ -494,6 +494,20 @@ def test_the_same_seed_trains_bit_identical_losses_and_weights(network):
     assert not torch.equal(losses, other_losses)
 
 
+def test_update_ema_is_the_warmed_up_exponential_average():
+    """ema <- d ema + (1 - d) net with d = min(decay, (1 + step) / (10 + step)): 0.1 at step 0, decay later."""
+    from diffusion import update_ema
+    policy = tiny_policy(network="mlp", mlp_width=8, mlp_blocks=1)
+    with torch.no_grad():
+        for p in policy.net.parameters():
+            p.add_(1.0)                                                # the live weights move away from the EMA's
+    for step, decay, d in ((0, 0.999, 0.1), (10_000, 0.9, 0.9)):
+        ema_before = [e.clone() for e in policy.ema_net.parameters()]
+        update_ema(policy, step, decay)
+        for e, before, p in zip(policy.ema_net.parameters(), ema_before, policy.net.parameters()):
+            assert torch.allclose(e, d * before + (1 - d) * p, atol=1e-6)
+
+
 def test_training_lowers_loss_and_logs_progress():
     obs, chunks = toy_two_mode_data(500, H=4, seed=2)
     lines = []
