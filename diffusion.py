@@ -17,7 +17,8 @@ the network is told that k, and p_sample(..., a_k, k) returns the chunk at level
 chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
 The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
-on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py).
+on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py). Its Linear and Mish come from
+fast_ops.py: torch's, computed the faster way this CPU allows (benchmarks/bench_train_step.py).
 """
 
 import copy
