@@ -17,7 +17,8 @@ the network is told that k, and p_sample(..., a_k, k) returns the chunk at level
 chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
 The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
-on a CPU it is the expensive part of the project (benchmarks/bench_diffusion.py).
+on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py): its Linear and Mish are torch's,
+computed the faster way this CPU allows (the last section).
 """
 
 import copy
@@ -263,7 +264,7 @@ class Conv1dBlock(nn.Sequential):
     def __init__(self, in_channels, out_channels, kernel_size, n_groups):
         super().__init__(nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
                          nn.GroupNorm(n_groups, out_channels),
-                         nn.Mish())
+                         Mish())
 
 
 class ConditionalResidualBlock(nn.Module):
@@ -282,7 +283,7 @@ class ConditionalResidualBlock(nn.Module):
         """x (B, in_channels, T), film (B, 2 * out_channels) -> (B, out_channels, T)."""
         h = self.conv1(x)                                            # (B, out, T)
         scale, bias = film[:, :, None].chunk(2, dim=1)               # (B, out, 1) each
-        h = scale * h + bias
+        h = torch.addcmul(bias, scale, h)                            # scale * h + bias
         return self.conv2(h) + self.residual(x)                      # (B, out, T)
 
 
@@ -300,7 +301,7 @@ class FiLMNetwork(nn.Module):
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
         # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
-        self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
+        self.step_encoder = nn.Sequential(Linear(dsed, 4 * dsed), Mish(), Linear(4 * dsed, dsed))
         self.build(cfg, dsed + cfg.cond_input_dim)                    # FiLM input: [step features, obs features]
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.final[-1].weight)
@@ -311,25 +312,33 @@ class FiLMNetwork(nn.Module):
         self.obs_encoder = OBS_ENCODERS[cfg.obs_encoder](**cfg.obs_encoder_args)
 
     def film_weights(self):
-        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,))."""
-        weight = torch.cat([b.film.weight for b in self.residual_blocks()])   # (F, dsed + obs features)
-        bias = torch.cat([b.film.bias for b in self.residual_blocks()])       # (F,)
-        return weight[:, :self.step_embed_dim], weight[:, self.step_embed_dim:], bias
+        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
+        each stacked whole (linear takes a contiguous weight through oneDNN, a slice through torch's own)."""
+        films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
+        w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
+        w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
+        return w_step, w_obs, torch.cat([film.bias for film in films])         # ..., (F,)
 
-    def obs_terms(self, obs_norm):
-        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS)."""
-        _, w_obs, _ = self.film_weights()
-        return nn.functional.mish(self.obs_encoder(obs_norm)) @ w_obs.T      # (B, F)
+    def obs_terms(self, obs_norm, weights=None):
+        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS).
+        weights: film_weights(), if the caller has them already."""
+        _, w_obs, _ = weights if weights is not None else self.film_weights()
+        return linear(mish(self.obs_encoder(obs_norm)), w_obs)                # (B, F)
 
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
         return self.step_encoder(step_embedding(k, self.step_embed_dim))
 
-    def step_table(self):
+    def step_table(self, weights=None):
         """(K, F): the step part W_s Mish(step features) + b of every block's FiLM, for all K steps at once."""
-        w_step, _, bias = self.film_weights()
+        w_step, _, bias = weights if weights is not None else self.film_weights()
         k = torch.arange(self.K, device=bias.device)
-        return nn.functional.linear(nn.functional.mish(self.step_features(k)), w_step, bias)   # (K, F)
+        return linear(mish(self.step_features(k)), w_step, bias)              # (K, F)
+
+    def film_terms(self, obs_norm):
+        """(obs_terms (B, F), step_table (K, F)), the FiLM weights stacked once for both."""
+        weights = self.film_weights()
+        return self.obs_terms(obs_norm, weights), self.step_table(weights)
 
 
 class ConditionalUnet1D(FiLMNetwork):
@@ -395,15 +404,15 @@ class MLPResidualBlock(nn.Module):
     def __init__(self, width, cond_dim):
         super().__init__()
         self.norm = nn.LayerNorm(width)
-        self.fc1 = nn.Linear(width, width)
-        self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each
-        self.fc2 = nn.Linear(width, width)
+        self.fc1 = Linear(width, width)
+        self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each (film_weights)
+        self.fc2 = Linear(width, width)
 
     def forward(self, x, film):
         """x (B, width), film (B, 2 * width) -> (B, width)."""
-        h = self.fc1(nn.functional.mish(self.norm(x)))
+        h = self.fc1(mish(self.norm(x)))                             # (B, width)
         scale, bias = film.chunk(2, dim=1)                           # (B, width) each
-        return x + self.fc2(nn.functional.mish(scale * h + bias))
+        return x + self.fc2(mish(torch.addcmul(bias, scale, h)))     # FiLM: scale * h + bias
 
 
 class ResidualMLP(FiLMNetwork):
@@ -413,10 +422,10 @@ class ResidualMLP(FiLMNetwork):
 
     def build(self, cfg, cond_dim):
         self.horizon, self.dof = cfg.horizon, cfg.dof
-        self.inp = nn.Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
+        self.inp = Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
         self.blocks = nn.ModuleList([MLPResidualBlock(cfg.mlp_width, cond_dim) for _ in range(cfg.mlp_blocks)])
-        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), nn.Mish(),
-                                   nn.Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
+        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), Mish(),
+                                   Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
 
     def residual_blocks(self):
         yield from self.blocks
@@ -517,8 +526,7 @@ class DiffusionPolicy(nn.Module):
         return a * self.act_half + self.act_center + obs[:, None, :self.cfg.dof]
 
     def condition(self, obs_norm, use_ema=True):  # FiLM pieces: (obs terms (B, F), step table (K, F))
-        net = self.ema_net if use_ema else self.net
-        return net.obs_terms(obs_norm), net.step_table()
+        return (self.ema_net if use_ema else self.net).film_terms(obs_norm)
 
     def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
         """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
@@ -526,7 +534,7 @@ class DiffusionPolicy(nn.Module):
         B = a_k_norm.shape[0]
         obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
         k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
-        film = obs_part + step_part[k]                                # (B, F)
+        film = obs_part + step_part.index_select(0, k)                # (B, F): row i is step_part[k[i]]
         return (self.ema_net if use_ema else self.net)(a_k_norm, film)   # (B, H, dof)
 
     def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
@@ -666,7 +674,7 @@ def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None
                                 device=dev)                            # (obs_dim,)
     noisy = bool((noise_std > 0).any())
 
-    optimizer = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
+    optimizer = make_optimizer(policy.net, cfg)
     rng = np.random.default_rng(cfg.seed)                              # batch indices, sampler
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)            # diffusion steps, noise
     step = 0
@@ -732,6 +740,12 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
     return o, a, torch.cat([base, torch.as_tensor(m_aug, device=dev)])            # (B, H)
 
 
+def make_optimizer(net, cfg):
+    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter. The same update as the
+    per-tensor loop to float32 rounding, ~5x faster on the CPU (2.6 -> 0.5 ms a step for the quick profile's MLP)."""
+    return torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
+
+
 def lr_at(step, cfg):
     """The learning rate of optimizer step `step`: cfg.lr_schedule's (LR_SCHEDULES)."""
     return LR_SCHEDULES[cfg.lr_schedule](step, cfg)
@@ -755,6 +769,90 @@ def update_ema(policy, step, decay):
     The decay warms up as (1 + t) / (10 + t), so that a short run's EMA is not its random initial weights."""
     d = min(decay, (1.0 + step) / (10.0 + step))
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
+
+
+# ---- The CPU's fast path for the epsilon-network's Linear and Mish: torch's functions, computed faster ------------
+# The same values as torch's to float32 rounding (tests/test_diffusion_fast_path.py); measured on the 2-core AMD EPYC, one thread
+# (benchmarks/README.md, "The training step at the machine's speed (issue 54)"):
+#   - linear(x, W, b) = x W^T + b: torch's CPU product calls MKL, which on an AMD CPU takes its AVX2 path (~100
+#     GFLOP/s for 256 x 256 x 256); oneDNN, which torch also ships, runs it with AVX-512 (~220 GFLOP/s). A contiguous
+#     2-D float32 input and weight on the CPU go through oneDNN, forward and both gradients; anything else (a GPU,
+#     float64, a slice of a weight, which oneDNN reads ~500x slower, a torch without the op) through torch's own.
+#   - mish(x) = x tanh(softplus(x)) (Misra 2019, the activation of Chi et al.'s U-Net) in closed form with its
+#     derivative written out: forward and backward ~2.5x faster than torch's kernel on a (256, 256) input.
+# oneDNN's matrix product as torch's inductor calls it (an internal op: a torch without it falls back to torch's own)
+ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+def _onednn_matmul(x, weight_t):
+    """x (M, K) @ weight_t.T (K, N) -> (M, N) through oneDNN; a contiguous tensor or its transpose is read as it is."""
+    return torch.ops.mkldnn._linear_pointwise(x, weight_t, None, "none", [], "")
+
+
+class _OneDNNLinear(torch.autograd.Function):
+    """y = x W^T + b, dL/dx = g W, dL/dW = g^T x, dL/db = sum_rows g: each product one oneDNN call."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias):
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")     # (M, out)
+
+    @staticmethod
+    def backward(ctx, grad):                                           # grad (M, out)
+        x, weight = ctx.saved_tensors
+        grad = grad.contiguous()                                       # e.g. the expanded gradient of a sum
+        need_x, need_w, need_b = ctx.needs_input_grad
+        grad_x = _onednn_matmul(grad, weight.t()) if need_x else None  # (M, in)
+        grad_w = _onednn_matmul(grad.t(), x.t()) if need_w else None   # (out, in)
+        grad_b = grad.sum(0) if need_b and ctx.has_bias else None      # (out,)
+        return grad_x, grad_w, grad_b
+
+
+def linear(x, weight, bias=None):
+    """nn.functional.linear(x, weight, bias): x (M, in), weight (out, in), bias (out,) or None -> (M, out)."""
+    if (ONEDNN and x.dim() == 2 and x.device.type == "cpu" and x.dtype == weight.dtype == torch.float32
+            and x.is_contiguous() and weight.is_contiguous()):
+        return _OneDNNLinear.apply(x, weight, bias)
+    return nn.functional.linear(x, weight, bias)
+
+
+class Linear(nn.Linear):
+    """nn.Linear (the same parameters and state_dict keys) whose product is linear() above."""
+
+    def forward(self, x):
+        return linear(x, self.weight, self.bias)
+
+
+class _Mish(torch.autograd.Function):
+    """mish(x) = x tanh(softplus(x)). With e = exp(x): tanh(log(1 + e)) = ((1 + e)^2 - 1) / ((1 + e)^2 + 1)
+    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        e = torch.exp(x.clamp(max=20.0))    # past x = 20, n / (n + 2) is 1 in float32; e^x itself would overflow
+        n = e * (e + 2.0)
+        t = n / (n + 2.0)                                              # tanh(softplus(x))
+        ctx.save_for_backward(x, e, t)
+        return x * t
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, e, t = ctx.saved_tensors
+        sigmoid = e / (e + 1.0)
+        return grad * (t + x * (1.0 - t * t) * sigmoid)
+
+
+def mish(x):
+    """nn.functional.mish(x), elementwise over any shape."""
+    return _Mish.apply(x)
+
+
+class Mish(nn.Module):
+    """nn.Mish computed by mish() above."""
+
+    def forward(self, x):
+        return mish(x)
 
 
 # ---- Demo: a toy task with two modes (go up-right or down-left); the policy must keep both ------------------------

@@ -363,6 +363,51 @@ def test_lr_schedule_warmup_and_cosine():
     assert lr_at(1000, cfg) == pytest.approx(0.0, abs=1e-12)
 
 
+def random_rows(n, rng):
+    """A co-training sampler: n rows drawn from the training stream rng (obs (n, 4), chunks (n, 4, 2))."""
+    obs = rng.uniform(-1, 1, (n, 4)).astype(np.float32)
+    return obs, np.repeat(obs[:, None, :2], 4, axis=1)
+
+
+@pytest.mark.parametrize("network", ["mlp", "unet"])
+def test_the_same_seed_trains_bit_identical_losses_and_weights(network):
+    """Two train() runs of one config: every step's loss and every weight (EMA too) equal to the bit. The step's
+    fast paths (diffusion.linear's oneDNN products and Mish, the fused AdamW) are deterministic on one thread; torch.compile is
+    not used (its compile time would cost more than it saves in python dagger.py: benchmarks/README.md, issue 54)."""
+    obs, chunks = toy_two_mode_data(300, H=4, seed=5)
+    cfg = TrainConfig(steps=25, batch_size=48, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25,
+                      obs_noise=0.05)
+
+    def run(seed):
+        policy = tiny_policy(network=network, mlp_width=64, mlp_blocks=2)
+        losses, loss = [], policy.loss
+        policy.loss = lambda *args, **kwargs: losses.append(loss(*args, **kwargs)) or losses[-1]
+        train(policy, obs, chunks, TrainConfig(**{**cfg.__dict__, "seed": seed}), sampler=random_rows)
+        return torch.stack(losses).detach(), policy.state_dict()
+
+    losses, weights = run(3)
+    losses_again, weights_again = run(3)
+    assert len(losses) == cfg.steps and torch.equal(losses, losses_again)
+    assert weights.keys() == weights_again.keys()
+    assert all(torch.equal(weights[key], weights_again[key]) for key in weights)
+    other_losses, _ = run(4)                                        # the check can fail: another seed differs
+    assert not torch.equal(losses, other_losses)
+
+
+def test_update_ema_is_the_warmed_up_exponential_average():
+    """ema <- d ema + (1 - d) net with d = min(decay, (1 + step) / (10 + step)): 0.1 at step 0, decay later."""
+    from diffusion import update_ema
+    policy = tiny_policy(network="mlp", mlp_width=8, mlp_blocks=1)
+    with torch.no_grad():
+        for p in policy.net.parameters():
+            p.add_(1.0)                                                # the live weights move away from the EMA's
+    for step, decay, d in ((0, 0.999, 0.1), (10_000, 0.9, 0.9)):
+        ema_before = [e.clone() for e in policy.ema_net.parameters()]
+        update_ema(policy, step, decay)
+        for e, before, p in zip(policy.ema_net.parameters(), ema_before, policy.net.parameters()):
+            assert torch.allclose(e, d * before + (1 - d) * p, atol=1e-6)
+
+
 def test_training_lowers_loss_and_logs_progress():
     obs, chunks = toy_two_mode_data(500, H=4, seed=2)
     lines = []
