@@ -54,8 +54,9 @@ def parse_args(argv, profiles, methods, recipes):
                    help="torch CPU threads (default 1: the networks are small, and more threads than free "
                         "cores slow torch down many times on a shared machine)")
     p.add_argument("--workers", type=int, default=None,
-                   help="processes for the arms of a round (and the BC row beside the rounds); default: 2 where "
-                        "the machine has 2 cores or more, 1 with --lineage (lineages side by side use the cores)")
+                   help="processes for the arms of a round (and the BC row beside the rounds; never more than a "
+                        "round has arms); default: the cores this process may use (taskset, a cgroup's cpuset), "
+                        "1 with --lineage (lineages side by side use the cores)")
     p.add_argument("--report", action="store_true", help="merge finished lineages into the table and figures")
     p.add_argument("--join", nargs="+", default=(), metavar="FILE",
                    help="lineage results files (written by --export-lineages, e.g. benchmarks/results/<profile>/"
@@ -103,7 +104,7 @@ def parse_args(argv, profiles, methods, recipes):
     if args.threads < 1:
         p.error(f"--threads {args.threads}: must be >= 1")
     if args.workers is None:
-        args.workers = 1 if args.lineage is not None else min(2, os.cpu_count() or 1)
+        args.workers = 1 if args.lineage is not None else usable_cores()
     if args.workers < 1:
         p.error(f"--workers {args.workers}: must be >= 1")
     if args.lineage is not None and not 0 <= args.lineage < cfg.lineages:
@@ -151,3 +152,11 @@ def run_command(fn, *args):
     except (ConfigMismatch, RunFolderError) as err:
         print(f"dagger.py: {err}", file=sys.stderr)
         sys.exit(2)
+
+
+def usable_cores():
+    """The CPU cores this process may run on (taskset / a cgroup's cpuset narrow them), else the machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no sched_getaffinity (macOS, Windows)
+        return os.cpu_count() or 1

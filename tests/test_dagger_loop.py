@@ -209,6 +209,19 @@ def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows(load_benchmar
     assert cfg.name == "mid_engine3d"
 
 
+def test_the_default_worker_count_is_the_cores_this_process_may_use(monkeypatch):
+    """Issue 54: on a machine with more cores the default run uses them (a round's arms side by side), as many as
+    taskset or a cgroup lets this process use, not the machine's count; one with --lineage (lineages side by side
+    are the user's own processes); an explicit --workers wins."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3, 4, 5}, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    assert dagger.parse_args([])[0].workers == 6
+    assert dagger.parse_args(["--lineage", "0"])[0].workers == 1
+    assert dagger.parse_args(["--workers", "3"])[0].workers == 3
+    monkeypatch.delattr(os, "sched_getaffinity")                    # macOS, Windows: the machine's count
+    assert dagger.parse_args([])[0].workers == 64
+
+
 def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_path):
     old = json.load(open(os.path.join(full_run, "config.json")))
     del old["mlp_width"], old["mlp_blocks"]  # a run folder written before these fields existed
