@@ -1,11 +1,16 @@
 """The experiment harness of `python dagger.py`: everything a run needs that is not the paper's method.
 
     run_folder.py  runs/<name>/: stages loaded if finished, else computed and written atomically; resume,
-                   config mismatch, damaged files named, the seed of every stage, resumable training
+                   config mismatch, damaged files named, the seed of every stage, resumable training; the episode
+                   files and the calibration's JSON form
+    checkpoints.py policy files: the format, older files' retired fields, damage, the training state (AdamW, random
+                   streams, the sampler's pool) a stopped training resumes from
     workers.py     the arms of a round in worker processes, the BC row beside the rounds
     cli.py         the command line: profiles, overrides, the run folder's name, Ctrl-C and errors
     profiles.py    the run sizes (smoke, quick, mid, table2, paper) and the config's valid values
-    report.py      results.json, results.csv, table.md, report.md and the table figures
+    report.py      the command's mode (run_experiment), Table I's assembly (summarize: mean ± SE, the paper's
+                   tests that dagger.py hands over in report.Paper), results.json, results.csv, table.md, report.md,
+                   the table figures, the paper's figures when their inputs changed
 and the research variants, which plug into the core's tables when dagger.py imports them:
     image_obs.py      the UR5 policy on camera images: envs.ENVIRONMENTS['engine3d_image'] and
                       diffusion.OBS_ENCODERS['image_cnn'] (python dagger.py --env engine3d_image)
@@ -17,5 +22,5 @@ and the research variants, which plug into the core's tables when dagger.py impo
                       cotrain_pooled) (dagger.intervention_sampler); all listed in dagger.ALL_METHODS
 
 It imports the concept modules (envs, diffusion, relabel, calibrate) but never dagger.py; dagger.py passes in what it
-needs (its profiles, its statistics' results, its worker functions). A student may skip this folder.
+needs (its profiles, its loop, figures and statistical tests in dagger.PAPER, its worker functions). A student may skip this folder.
 """
