@@ -54,6 +54,17 @@ def test_fit_recovers_W_and_r_from_noisy_points(W, r):
     assert exact.W == pytest.approx(W, rel=1e-5) and exact.r == pytest.approx(r, rel=1e-4)
 
 
+def test_fit_at_the_edges_of_the_gain_ratio_grid():
+    """Points whose best r lies beyond the grid (r_bounds (1e-3, 1e3)) fit at its edge, finite and near the end:
+    fails if the golden section's bracket ran past the grid's last or first point (an index error or a bracket
+    off the grid)."""
+    for r_true, edge in ((5e4, 1e3), (1e-5, 1e-3)):
+        s, x = _blend_points(0.2, r_true, noise=0.0, seed=0)
+        fit = cal.fit_equilibrium(s, x)
+        assert math.isfinite(fit.W) and fit.W > 0
+        assert fit.r == pytest.approx(edge, rel=0.05)
+
+
 def test_fit_degenerate_inputs():
     with pytest.raises(ValueError, match=">= 3"):
         cal.fit_equilibrium([0.2, 0.9], [0.1, 0.2])

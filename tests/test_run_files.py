@@ -232,3 +232,28 @@ def test_episode_files_round_trip(tmp_path):
         write_episodes(path, [episodes[0], {"q": np.zeros((2, 3))}])
     with pytest.raises(FileNotFoundError):
         read_episodes(tmp_path / "missing.npz")
+
+
+# ---- the paper's figures drawn once per state of their inputs (report.write_report)
+
+def test_inputs_changed_until_recorded_and_again_when_an_input_or_a_drawn_file_changes(tmp_path):
+    """Run.inputs_changed / record_inputs, with which the report redraws the paper's figures only when D0 or lineage 0's
+    round 1 changed: fails if an unchanged folder redrew (CI's README commands redrew five figures each time), or a
+    new or rewritten input, or a deleted figure, did not."""
+    run = Run(str(tmp_path / "run"), RunCfg())
+    (tmp_path / "run" / "a.npz").write_bytes(b"12345")
+    stamp, inputs = "figures/drawn_from.json", ["a.npz", "b.json"]
+    assert run.inputs_changed(stamp, inputs)                           # never drawn
+    (tmp_path / "run" / "figures").mkdir(exist_ok=True)
+    (tmp_path / "run" / "figures" / "fig1.png").write_bytes(b"png")
+    run.record_inputs(stamp, inputs)
+    assert not run.inputs_changed(stamp, inputs)
+    (tmp_path / "run" / "b.json").write_text("{}")                     # an input that was missing appears
+    assert run.inputs_changed(stamp, inputs)
+    run.record_inputs(stamp, inputs)
+    (tmp_path / "run" / "a.npz").write_bytes(b"123456")                # an input rewritten
+    assert run.inputs_changed(stamp, inputs)
+    run.record_inputs(stamp, inputs)
+    assert not run.inputs_changed(stamp, inputs)
+    (tmp_path / "run" / "figures" / "fig1.png").unlink()               # a drawn figure deleted
+    assert run.inputs_changed(stamp, inputs)
