@@ -1,7 +1,7 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
 Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, the config and
-each step's function in the loop's order, Table I's statistics, the paper's figures, the report and the entry point.
+each step's function in the loop's order, Table I's tests, the paper's figures and the entry point.
 
 Paper map (paper.tex):
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
@@ -9,10 +9,11 @@ Paper map (paper.tex):
                              (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
   Sec. IV-D ................ calibrate_noise -> calibrate.calibrate, once per round with the HG-DAgger policy
   Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler
-  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost, summarize
+  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost (the table's
+                             assembly: experiment/report.py summarize)
 
-What a student may skip is in experiment/ (its __init__.py lists it): the plumbing (run folder, worker processes,
-command line, result files, report.md) and the research variants, which plug into the core's tables
+What a student may skip is in experiment/ (its __init__.py lists it): the plumbing (run folder, checkpoint files
+and resume, worker processes, command line, Table I's assembly, result files, report.md) and the research variants, which plug into the core's tables
 (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods). Every step wraps its work in one
 `run.stage(file, compute)`: loaded if runs/<name>/<file> exists, else computed and written, so a stopped run
 resumes from its last finished stage.
