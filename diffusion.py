@@ -290,8 +290,8 @@ class ConditionalResidualBlock(nn.Module):
 class FiLMNetwork(nn.Module):
     """What both epsilon networks share: every residual block's FiLM is film(Mish([step features, obs features])).
 
-    Splitting the weight W = [W_s | W_o] along its input, film = (W_s Mish(step) + b) + W_o Mish(obs): step_table()
-    computes the first term for all K steps at once, obs_terms() the second once per sampling call, and
+    Splitting the weight W = [W_s | W_o] along its input, film = (W_s Mish(step) + b) + W_o Mish(obs): film_terms()
+    computes the first term for all K steps at once (the step table), the second once per sampling call, and
     forward(a, film) takes their sum, all blocks' (scale, bias) in one row. A subclass builds its blocks and its
     output layer `final` in build() and lists the blocks in residual_blocks() in the order forward() uses them.
     """
@@ -319,26 +319,18 @@ class FiLMNetwork(nn.Module):
         w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
         return w_step, w_obs, torch.cat([film.bias for film in films])         # ..., (F,)
 
-    def obs_terms(self, obs_norm, weights=None):
-        """normalize_obs's output (B, ...) -> (B, F): W_o Mish(obs features), the encoder's features (OBS_ENCODERS).
-        weights: film_weights(), if the caller has them already."""
-        _, w_obs, _ = weights if weights is not None else self.film_weights()
-        return linear(mish(self.obs_encoder(obs_norm)), w_obs)                # (B, F)
-
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
         return self.step_encoder(step_embedding(k, self.step_embed_dim))
 
-    def step_table(self, weights=None):
-        """(K, F): the step part W_s Mish(step features) + b of every block's FiLM, for all K steps at once."""
-        w_step, _, bias = weights if weights is not None else self.film_weights()
-        k = torch.arange(self.K, device=bias.device)
-        return linear(mish(self.step_features(k)), w_step, bias)              # (K, F)
-
     def film_terms(self, obs_norm):
-        """(obs_terms (B, F), step_table (K, F)), the FiLM weights stacked once for both."""
-        weights = self.film_weights()
-        return self.obs_terms(obs_norm, weights), self.step_table(weights)
+        """The FiLM's two parts, the stacked weights built once for both: the obs terms W_o Mish(obs features)
+        (B, F) of normalize_obs's output (the encoder's features, OBS_ENCODERS), and the step table
+        W_s Mish(step features) + b (K, F) of every block's FiLM for all K steps at once."""
+        w_step, w_obs, bias = self.film_weights()
+        obs_part = linear(mish(self.obs_encoder(obs_norm)), w_obs)              # (B, F)
+        k = torch.arange(self.K, device=bias.device)
+        return obs_part, linear(mish(self.step_features(k)), w_step, bias)      # ..., (K, F)
 
 
 class ConditionalUnet1D(FiLMNetwork):
