@@ -63,3 +63,15 @@ def test_mish_equals_torch_values_and_gradients_over_a_wide_range():
         assert torch.allclose(ours, theirs, rtol=1e-5, atol=1e-6)
         assert torch.allclose(ours_in.grad, torch_in.grad, rtol=1e-5, atol=1e-6)
     assert torch.allclose(diffusion.Mish()(x), nn.Mish()(x), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.skipif(not diffusion.ONEDNN, reason="this torch has no oneDNN product: the fallback is the only path")
+def test_the_networks_products_take_the_fast_path_and_others_torchs():
+    """Which path a product takes (their values agree, so only the autograd node tells): a contiguous 2-D float32
+    input and weight on the CPU go through oneDNN -- the MLP's every layer -- and a 3-D input through torch's
+    own. Fails if the dispatch sent the networks' products to the slow path (a speed bug no value test sees)."""
+    w = torch.randn(8, 5, requires_grad=True)
+    fast = diffusion.linear(torch.randn(4, 5), w)
+    assert type(fast.grad_fn).__name__.startswith("_OneDNNLinear")
+    slow = diffusion.linear(torch.randn(3, 4, 5), w)
+    assert not type(slow.grad_fn).__name__.startswith("_OneDNNLinear")

@@ -943,3 +943,17 @@ def test_chunk_and_mixture_samplers_draw_rows_in_proportion(stats):
     again = MixtureSampler([recorded, make_sampler(stats)[0]], [3, 1])
     checkpoints.restore_sampler(again, state)
     np.testing.assert_array_equal(again.samplers[1]._pool_obs, noised._pool_obs)
+
+
+def test_generate_labels_in_one_pass_when_no_redraw_is_allowed(stats):
+    """max_redraws = 0: one labelling pass, the rows it rejects dropped, not redrawn. Fails if generate's loop made
+    no pass (range(max_redraws - 1)) or a second one (range(max_redraws + 2))."""
+    sampler, _ = make_sampler(stats, cfg=small_cfg(max_redraws=0, near_end_steps=30))  # many rows rejected
+    rng = np.random.default_rng(0)
+    rows = sampler._draw_rows(64, rng)
+    limits = sampler._env(int(sampler.seeds[rows[0]])).joint_limits
+    (kept, *_), rejected = sampler._label_rows(rows, rng, limits)     # the first pass, by hand
+    assert len(rejected) > 0 and len(kept) > 0                          # the case can tell one pass from two
+    obs, chunks, mask = sampler.generate(64, np.random.default_rng(0))  # the same draws
+    assert len(obs) == len(kept) and sampler.n_kept == len(kept)
+    assert chunks.shape == (len(obs), H, DOF) and mask.shape == (len(obs), H)
