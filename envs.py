@@ -435,12 +435,17 @@ class PlanarReacher(ArmEnv):
             shape = pymunk.Poly(self._link_bodies[int(link)], corners, radius=rounding)
             space.add(shape)
             self._part_shapes.append(shape)
+        # each part its own category; its mask leaves out the parts that may touch it (the same or an adjacent
+        # link: not in SELF_PAIRS), so that a shape query meets only obstacles and the pairs that count
+        counted = {frozenset(p) for p in self.SELF_PAIRS}
+        for i, shape in enumerate(self._part_shapes):
+            may_touch = sum(1 << j for j in range(len(self.parts)) if j != i and frozenset((i, j)) not in counted)
+            shape.filter = pymunk.ShapeFilter(categories=1 << i, mask=pymunk.ShapeFilter.ALL_MASKS() ^ may_touch)
         for cx, cy, hx, hy, angle in self.obstacles:
             xs, ys = box_corners(cx, cy, math.cos(angle), math.sin(angle), hx, hy)
             space.add(pymunk.Poly(space.static_body, list(zip(xs, ys)), radius=rounding))
         space.reindex_static()  # compute the static shapes' world geometry once
         self._space = space
-        self._pairs_that_count = {frozenset(p) for p in self.SELF_PAIRS}
 
     def pymunk_in_collision(self, q):
         """Same predicate as in_collision, from pymunk contacts (one config at a time, slow)."""
@@ -459,12 +464,8 @@ class PlanarReacher(ArmEnv):
 
     def _pymunk_contact(self):
         """True if a part penetrates an obstacle or a non-adjacent part in the posed space."""
-        parts = self._part_shapes
-        for i, shape in enumerate(parts):
-            for hit in self._space.shape_query(shape):
-                other = hit.shape
-                if other in parts and frozenset((i, parts.index(other))) not in self._pairs_that_count:
-                    continue  # the same link or adjacent links: not a collision
+        for shape in self._part_shapes:
+            for hit in self._space.shape_query(shape):  # an obstacle or a part of SELF_PAIRS (the shape's filter)
                 # distance <= 0, not < 0: for a box centred exactly across a link (a tie between
                 # two penetration directions) pymunk 7 reports a contact of distance 0.0
                 if any(pt.distance <= 0.0 for pt in hit.contact_point_set.points):
