@@ -50,7 +50,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
     PAPER_SETUP.md §2, §4). workers > 1: a round's noised arms and the BC row run in worker processes."""
     cfg, recipe = run.cfg, RECIPES[run.cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
-    demos = oracle_demonstrations(run)
+    demos = oracle_demonstrations(run, workers)
     stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
     # ... and pi_0 = BC on D0: every method of every round is fine-tuned from this checkpoint (step 6)
     pi0 = behavior_cloning(run, demos)
@@ -165,29 +165,46 @@ PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()
 
 
 # ---- Step 1: D0 and pi_0 -----------------------------------------------------------------------------------------
-def oracle_demonstrations(run):
-    """D0: cfg.n_demos oracle demonstrations on training scenarios (skipping scenes the planner cannot solve)."""
+def oracle_demonstrations(run, workers=1):
+    """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan (a scene the planner
+    cannot solve in its budget is skipped), planned in batches by `workers` processes: every plan has its
+    scenario's own seed, so D0 is the same for any number of them."""
     cfg = run.cfg
 
     def demonstrate():
-        env, expert = make_run_env(cfg), make_oracle(cfg)
-        demos, seed, failures = [], 0, 0
-        t0 = t_log = time.time()  # the start and the last progress line
+        demos, tried, failures, t0 = [], 0, 0, time.time()
         run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
-        while len(demos) < cfg.n_demos:
-            seed += 1
-            try:
-                demos.append(expert.demonstrate(env, env.train_seeds(1, start=seed - 1)[0]))
-            except oracle_mod.PlanningFailed:
-                failures += 1  # a scene the planner cannot solve in its budget is skipped
-                continue
-            if len(demos) % max(1, cfg.n_demos // 10) == 0 or time.time() - t_log >= 10.0:
-                t_log, rate = time.time(), len(demos) / (time.time() - t0)
-                run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
-                        f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
+
+        def progress(batch):  # a batch's plans, in scenario order
+            nonlocal failures
+            demos.extend(d for d in batch if d is not None)
+            failures += sum(d is None for d in batch)
+            rate = len(demos) / (time.time() - t0)
+            run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
+                    f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
+
+        while len(demos) < cfg.n_demos:  # the next scenarios, one per missing demonstration
+            scenarios = range(tried, tried + cfg.n_demos - len(demos))
+            size = max(1, cfg.n_demos // 10)  # a progress line per tenth
+            in_parallel(plan_demonstrations, [(asdict(cfg), scenarios[i:i + size])
+                                              for i in range(0, len(scenarios), size)], workers, each=progress)
+            tried += len(scenarios)
         return demos
 
     return run.stage("data/D0.npz", demonstrate)
+
+
+def plan_demonstrations(cfg_fields, scenarios):
+    """The oracle's demonstrations of training scenarios `scenarios` (indices into env.train_seeds), None where it
+    found no plan (a worker's job)."""
+    cfg = Config(**cfg_fields)
+    env, expert, demos = make_run_env(cfg), make_oracle(cfg), []
+    for i in scenarios:
+        try:
+            demos.append(expert.demonstrate(env, env.train_seeds(1, start=i)[0]))
+        except oracle_mod.PlanningFailed:
+            demos.append(None)
+    return demos
 
 
 def behavior_cloning(run, demos):

@@ -1,4 +1,4 @@
-"""Worker processes: the arms of a round side by side, the BC row beside the rounds.
+"""Worker processes: D0's plans, the arms of a round side by side, the BC row beside the rounds.
 
 Each job is a module-level function and plain arguments: the run folder's path and the config as a dict (a worker
 opens its own handle on the folder to write its stages and log) and the data the loop has in hand (D0, the rounds'
@@ -14,19 +14,26 @@ import multiprocessing
 import torch
 
 
-def in_parallel(fn, jobs, workers, log=None):
-    """fn(*job) for every job: here, one after the other, or (workers > 1 and more than one job) in that many
-    worker processes. A worker's error is raised here."""
+def in_parallel(fn, jobs, workers, log=None, each=None):
+    """[fn(*job) for job in jobs]: here, one after the other, or (workers > 1 and more than one job) in that many
+    worker processes. each(result), if given, is called here on every result in the jobs' order as soon as it and
+    those before it are done (progress lines). A worker's error is raised here."""
+    each = each or (lambda result: None)
     if workers <= 1 or len(jobs) <= 1:
+        results = []
         for job in jobs:
-            fn(*job)
-        return
+            results.append(fn(*job))
+            each(results[-1])
+        return results
     if log is not None:
         log(f"{len(jobs)} jobs ({fn.__name__}) in {min(workers, len(jobs))} worker processes")
     with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)),
                                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+        results = []
         for done in [pool.submit(_one_thread, fn, *job) for job in jobs]:
-            done.result()
+            results.append(done.result())
+            each(results[-1])
+        return results
 
 
 class InBackground:
