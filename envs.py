@@ -380,27 +380,20 @@ class PlanarReacher(ArmEnv):
         """in_collision: two boxes touch when closer than contact_margin (the authors' 5 mm) + margin. Pairs:
         every arm part with every obstacle, and SELF_PAIRS. The target block is not an obstacle."""
         margin = self.contact_margin + margin
-        arm = self.part_boxes(q)  # 6 arrays (n_parts, B)
         B = len(q)
-        i, j = np.array(self.SELF_PAIRS).T
-        pairs_a = [x[i] for x in arm]  # self pairs: (n_pairs, B) each
-        pairs_b = [x[j] for x in arm]
-        if len(self.obstacles):  # and every part with every obstacle: (n_parts * N, B) each
-            n_obs = len(self.obstacles)
-            pairs_a = [np.concatenate([pa, np.repeat(x, n_obs, axis=0)]) for pa, x in zip(pairs_a, arm)]
-            pairs_b = [np.concatenate([pb, np.broadcast_to(np.tile(g, len(self.parts))[:, None],
-                                                           (len(self.parts) * n_obs, B))])
-                       for pb, g in zip(pairs_b, self._obstacle_boxes)]
+        # the scene's boxes (n_parts + N, B) each: the arm's parts at q, then the obstacles; pairs index them
+        boxes = [np.concatenate([x, np.broadcast_to(g[:, None], (len(g), B))])
+                 for x, g in zip(self.part_boxes(q), self._obstacle_boxes)]
+        pairs_a, pairs_b = [x[self._pairs[0]] for x in boxes], [x[self._pairs[1]] for x in boxes]  # (n_pairs, B)
         # broad phase: bounding circles (centre, half diagonal) rule out most pairs cheaply
-        cxa, cya, _, _, hxa, hya = pairs_a
-        cxb, cyb, _, _, hxb, hyb = pairs_b
-        reach = np.hypot(hxa, hya) + np.hypot(hxb, hyb) + margin
+        cxa, cya, cxb, cyb = pairs_a[0], pairs_a[1], pairs_b[0], pairs_b[1]
+        reach = self._pair_reach[:, None] + margin  # (n_pairs, 1): the two half diagonals + margin
         near = (cxa - cxb) ** 2 + (cya - cyb) ** 2 < reach * reach  # (n_pairs, B)
         pair, b = np.nonzero(near)
-        # narrow phase: exact box distances of the remaining pairs
-        d = box_distance(tuple(x[pair, b] for x in pairs_a), tuple(x[pair, b] for x in pairs_b))
         hit = np.zeros(B, dtype=bool)
-        hit[b[d < margin]] = True
+        if len(pair):  # narrow phase: exact box distances of the remaining pairs
+            d = box_distance(tuple(x[pair, b] for x in pairs_a), tuple(x[pair, b] for x in pairs_b))
+            hit[b[d < margin]] = True
         return hit
 
     def set_scene(self, obstacles, goal=None):
@@ -416,6 +409,13 @@ class PlanarReacher(ArmEnv):
             self._goal = np.asarray(goal, dtype=np.float64).reshape(self.dim).copy()
         cx, cy, hx, hy, angle = obstacles.T
         self._obstacle_boxes = (cx, cy, np.cos(angle), np.sin(angle), hx, hy)
+        # the pairs the numpy check measures, as indices into [arm parts, obstacles]: SELF_PAIRS, then every part
+        # with every obstacle; and each pair's two half diagonals (its bounding circles' radii)
+        n_parts, (i, j) = len(self.parts), np.array(self.SELF_PAIRS).T
+        self._pairs = (np.concatenate([i, np.repeat(np.arange(n_parts), len(obstacles))]),
+                       np.concatenate([j, n_parts + np.tile(np.arange(len(obstacles)), n_parts)]))
+        half_diagonals = np.hypot(np.concatenate([self.parts[:, 3], hx]), np.concatenate([self.parts[:, 4], hy]))
+        self._pair_reach = half_diagonals[self._pairs[0]] + half_diagonals[self._pairs[1]]
         centres = np.zeros(2 * self.cfg.n_obstacles)  # absent obstacles (hand-built scenes): zeros
         centres[:obstacles[:, :2].size] = obstacles[:, :2].ravel()
         self._obstacle_obs = centres.astype(np.float32)
@@ -612,31 +612,30 @@ def point_box_distance(px, py, cx, cy, cos, sin, hx, hy):
     return np.sqrt(lx * lx + ly * ly)
 
 
+CORNER_SIGNS = np.array([(1, 1), (-1, 1), (-1, -1), (1, -1)], dtype=float).T  # (2, 4): each corner's (sx, sy)
+
+
 def box_corners(cx, cy, cos, sin, hx, hy):
-    """The four corners of each box: (xs, ys), each a list of 4 arrays shaped like cx."""
-    xs, ys = [], []
-    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
-        xs.append(cx + sx * hx * cos - sy * hy * sin)
-        ys.append(cy + sx * hx * sin + sy * hy * cos)
-    return xs, ys
+    """The four corners of each box: (xs, ys), each (4, *cx's shape)."""
+    sx, sy = (signs.reshape((4,) + (1,) * np.ndim(cx)) for signs in CORNER_SIGNS)
+    return cx + sx * hx * cos - sy * hy * sin, cy + sx * hx * sin + sy * hy * cos
 
 
 def box_distance(a, b):
     """Distance between boxes a and b (0 if they overlap). a, b: tuples (cx, cy, cos, sin, hx, hy). Exact:
     overlap <=> no separating axis among the four edge normals (the separating axis theorem), and two disjoint
     convex polygons are closest at a vertex of one of them: the smallest of the 8 corner-to-box distances."""
+    both = np.broadcast_arrays(*a, *b)  # every entry of the same shape S
+    a, b = both[:6], both[6:]
     acx, acy, ac, as_, ahx, ahy = a
     bcx, bcy, bc, bs, bhx, bhy = b
     dx, dy = bcx - acx, bcy - acy
-    overlap = np.ones(np.broadcast(acx, bcx).shape, dtype=bool)
-    for ex, ey in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):  # the 4 axes: u_a, n_a, u_b, n_b
-        ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow
-        rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
-        overlap &= np.abs(dx * ex + dy * ey) <= ra + rb
-    d = np.full(overlap.shape, np.inf)
-    for (xs, ys), box in ((box_corners(*a), b), (box_corners(*b), a)):
-        for x, y in zip(xs, ys):
-            d = np.minimum(d, point_box_distance(x, y, *box))
+    ex, ey = np.stack([ac, -as_, bc, -bs]), np.stack([as_, ac, bs, bc])  # (4, *S): the axes u_a, n_a, u_b, n_b
+    ra = ahx * np.abs(ac * ex + as_ * ey) + ahy * np.abs(-as_ * ex + ac * ey)  # a's half shadow on each
+    rb = bhx * np.abs(bc * ex + bs * ey) + bhy * np.abs(-bs * ex + bc * ey)
+    overlap = np.all(np.abs(dx * ex + dy * ey) <= ra + rb, axis=0)
+    d = np.minimum(point_box_distance(*box_corners(*a), *b).min(axis=0),  # a's 4 corners to box b
+                   point_box_distance(*box_corners(*b), *a).min(axis=0))  # b's 4 corners to box a
     return np.where(overlap, 0.0, d)
 
 
