@@ -187,7 +187,7 @@ def oracle_demonstrations(run, workers=1):
             scenarios = range(tried, tried + cfg.n_demos - len(demos))
             size = max(1, cfg.n_demos // 10)  # a progress line per tenth
             in_parallel(plan_demonstrations, [(asdict(cfg), scenarios[i:i + size])
-                                              for i in range(0, len(scenarios), size)], workers, each=progress)
+                                              for i in range(0, len(scenarios), size)], workers, run.log, progress)
             tried += len(scenarios)
         return demos
 

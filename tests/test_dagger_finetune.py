@@ -51,6 +51,32 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
         wb = checkpoints.load_policy(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         assert all(torch.equal(v, wb.state_dict()[k]) for k, v in wa.state_dict().items())
     assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
+    # D0 planned in batches by the two workers is the one process's, in scenario order (a batch's results in the
+    # order they finished, or a batch given the wrong scenarios, would fail)
+    assert f"{TINY.n_demos} jobs (plan_demonstrations) in 2 worker processes" in open(
+        os.path.join(two_workers, "log.txt")).read()
+    da = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
+    db = run_folder.load_episodes(os.path.join(root, "data/D0.npz"))
+    assert [d["seed"] for d in da] == [d["seed"] for d in db] == envs.train_seeds(TINY.n_demos)
+    assert all(np.array_equal(a[k], b[k]) for a, b in zip(da, db) for k in ("obs", "q", "action"))
+
+
+def test_d0_skips_a_scenario_the_oracle_cannot_plan_and_plans_the_next_one(tmp_path, monkeypatch):
+    """D0 is the first n_demos training scenarios the oracle can plan: an unplannable one (here the second) is
+    replaced by the scenario after the last one tried, not by a repeat of one already in D0."""
+    demonstrate = dagger.oracle_mod.Oracle.demonstrate
+
+    def fails_on_scenario_1(self, env, seed):
+        if seed == 1:
+            raise dagger.oracle_mod.PlanningFailed("no plan (test)")
+        return demonstrate(self, env, seed)
+
+    monkeypatch.setattr(dagger.oracle_mod.Oracle, "demonstrate", fails_on_scenario_1)
+    run = run_folder.Run(str(tmp_path / "d0"), replace(TINY, n_demos=3))
+    demos = dagger.oracle_demonstrations(run, workers=1)
+    assert [d["seed"] for d in demos] == [0, 2, 3]
+    assert "demos 3/3 | " in open(os.path.join(run.root, "log.txt")).read() and "1 unplannable" in open(
+        os.path.join(run.root, "log.txt")).read()
 
 
 def test_hg_dagger_draws_the_recorded_chunks_and_a_noised_arm_only_noised_states(two_workers):
