@@ -185,7 +185,7 @@ def oracle_demonstrations(run, workers=1):
 
         while len(demos) < cfg.n_demos:  # the next scenarios, one per missing demonstration
             scenarios = range(tried, tried + cfg.n_demos - len(demos))
-            size = max(1, cfg.n_demos // 10)  # a progress line per tenth
+            size = math.ceil(cfg.n_demos / 10)  # a batch (and a progress line) per tenth of D0
             in_parallel(plan_demonstrations, [(asdict(cfg), scenarios[i:i + size])
                                               for i in range(0, len(scenarios), size)], workers, run.log, progress)
             tried += len(scenarios)
