@@ -172,7 +172,7 @@ def oracle_demonstrations(run, workers=1):
     cfg = run.cfg
 
     def demonstrate():
-        demos, tried, failures, t0 = [], 0, 0, time.time()
+        demos, failures, t0 = [], 0, time.time()
         run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
 
         def progress(batch):  # a batch's plans, in scenario order
@@ -183,12 +183,11 @@ def oracle_demonstrations(run, workers=1):
             run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
                     f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
 
-        while len(demos) < cfg.n_demos:  # the next scenarios, one per missing demonstration
-            scenarios = range(tried, tried + cfg.n_demos - len(demos))
+        while len(demos) < cfg.n_demos:  # the scenarios after those tried, one per missing demonstration
+            scenarios = range(len(demos) + failures, cfg.n_demos + failures)
             size = math.ceil(cfg.n_demos / 10)  # a batch (and a progress line) per tenth of D0
             in_parallel(plan_demonstrations, [(asdict(cfg), scenarios[i:i + size])
                                               for i in range(0, len(scenarios), size)], workers, run.log, progress)
-            tried += len(scenarios)
         return demos
 
     return run.stage("data/D0.npz", demonstrate)
