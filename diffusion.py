@@ -776,9 +776,10 @@ def update_ema(policy, step, decay):
 ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
-def _onednn_matmul(x, weight_t):
-    """x (M, K) @ weight_t.T (K, N) -> (M, N) through oneDNN; a contiguous tensor or its transpose is read as it is."""
-    return torch.ops.mkldnn._linear_pointwise(x, weight_t, None, "none", [], "")
+def _onednn_matmul(x, weight_t, bias=None):
+    """x (M, K) @ weight_t.T (K, N) [+ bias (N,)] -> (M, N) through oneDNN; a contiguous tensor or its transpose is
+    read as it is."""
+    return torch.ops.mkldnn._linear_pointwise(x, weight_t, bias, "none", [], "")
 
 
 class _OneDNNLinear(torch.autograd.Function):
@@ -788,7 +789,7 @@ class _OneDNNLinear(torch.autograd.Function):
     def forward(ctx, x, weight, bias):
         ctx.save_for_backward(x, weight)
         ctx.has_bias = bias is not None
-        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")     # (M, out)
+        return _onednn_matmul(x, weight, bias)                                          # (M, out)
 
     @staticmethod
     def backward(ctx, grad):                                           # grad (M, out)
