@@ -373,7 +373,7 @@ class ConditionalUnet1D(FiLMNetwork):
             yield from (first, second)
 
     def forward(self, a, film):
-        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs_terms + step_table[k] -> eps (B, H, dof)."""
+        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs terms + step table[k] (film_terms) -> eps (B, H, dof)."""
         x = a.transpose(1, 2)                                        # (B, dof, H): channels first
         films = iter(film.split(self.film_sizes, dim=1))             # (B, 2 * out_channels) per block
         skips = []
@@ -423,7 +423,7 @@ class ResidualMLP(FiLMNetwork):
         yield from self.blocks
 
     def forward(self, a, film):
-        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs_terms + step_table[k] -> eps (B, H, dof)."""
+        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs terms + step table[k] (film_terms) -> eps (B, H, dof)."""
         x = self.inp(a.flatten(1))                                   # (B, width)
         for block, f in zip(self.blocks, film.split(self.film_sizes, dim=1)):
             x = block(x, f)                                          # (B, width)
