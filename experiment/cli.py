@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import _thread
 import sys
+import threading
 from dataclasses import replace
 
 import torch
@@ -144,6 +146,7 @@ def folder_name(cfg, over):
 def run_command(fn, *args):
     """fn(*args), with a stop (Ctrl-C) or a run-folder problem said in one line and an exit status instead
     of a traceback."""
+    default_hook, sys.unraisablehook = sys.unraisablehook, _interrupt_again(sys.unraisablehook)
     try:
         return fn(*args)
     except KeyboardInterrupt:
@@ -152,6 +155,23 @@ def run_command(fn, *args):
     except (ConfigMismatch, RunFolderError) as err:
         print(f"dagger.py: {err}", file=sys.stderr)
         sys.exit(2)
+    finally:
+        sys.unraisablehook = default_hook
+
+
+def _interrupt_again(default_hook):
+    """An unraisable-exception hook that does not lose a Ctrl-C: one landing in a finalizer (pymunk frees its
+    bodies in callbacks, which the garbage collector runs at any time) is ignored there by Python, so it asks for
+    the interrupt again 10 ms later, from a timer thread once this hook has returned (one landing in a finalizer
+    again asks again); any other goes to default_hook."""
+    def hook(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            timer = threading.Timer(0.01, _thread.interrupt_main)
+            timer.daemon = True
+            timer.start()
+        else:
+            default_hook(unraisable)
+    return hook
 
 
 def usable_cores():

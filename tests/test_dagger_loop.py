@@ -3,6 +3,7 @@ import csv
 import dataclasses
 import json
 import os
+import sys
 import time
 from dataclasses import replace
 
@@ -421,6 +422,29 @@ def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path)
     again = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "oracle demonstrations" not in again.stdout  # D0 was loaded, not made again
+
+
+def test_a_ctrl_c_that_lands_in_a_finalizer_still_stops_the_run(capsys):
+    """Python ignores an exception raised in a finalizer (pymunk frees its bodies in callbacks that the garbage
+    collector runs at any time: the smoke run above lost its Ctrl-C so about one time in two); run_command asks for
+    the interrupt again, so the command stops with status 130 all the same, and puts the default hook back."""
+    hook = sys.unraisablehook
+
+    class Freed:
+        def __del__(self):
+            raise KeyboardInterrupt  # what a Ctrl-C landing in a finalizer becomes: ignored by Python
+
+    def work():
+        Freed()
+        deadline = time.time() + 10
+        while time.time() < deadline:
+            time.sleep(0.01)
+        return "finished"  # only if the interrupt was lost
+
+    with pytest.raises(SystemExit) as stop:
+        cli.run_command(work)
+    assert stop.value.code == 130 and "run the same command again to resume" in capsys.readouterr().err
+    assert sys.unraisablehook is hook
 
 
 def test_every_readme_command_parses_and_none_is_refused_by_another_commands_folder():
