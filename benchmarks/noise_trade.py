@@ -55,10 +55,12 @@ def rows_of(lineages, k):
     return sorted(m for m in found if not m.endswith("_unseen"))
 
 
-def merge(lineages, other, rounds):
+def merge(lineages, other, rounds, names=("first", "other")):
     """lineages with other's rows added where other's hg_dagger equals lineages' at every round in `rounds`;
-    returns (merged, {lineage: True if joined bit for bit, False if only other's own rows are kept})."""
+    returns (merged, {lineage: True if joined bit for bit, False if only other's own rows are kept},
+    origin: {lineage: {file key: the name in `names` of the folder it came from}})."""
     merged, matched = {l: dict(f) for l, f in lineages.items()}, {}
+    origin = {l: {key: names[0] for key in f} for l, f in lineages.items()}
     for l, files in other.items():
         same = l in lineages and all(
             success(files, l, k, "hg_dagger") is not None
@@ -66,10 +68,23 @@ def merge(lineages, other, rounds):
             for k in rounds)
         matched[l] = same
         if same:
-            merged[l].update({key: v for key, v in files.items() if key not in merged[l]})
+            added = {key: v for key, v in files.items() if key not in merged[l]}
+            merged[l].update(added)
+            origin.setdefault(l, {}).update({key: names[1] for key in added})
         else:  # another round 1 here: its rows pair only with each other
             merged[l] = dict(files)
-    return merged, matched
+            origin[l] = {key: names[1] for key in files}
+    return merged, matched, origin
+
+
+def row_origin(origin, lineages, k, method):
+    """'folder: lineages; folder: lineages' — where a row's evaluations at round k came from (a --with join)."""
+    by_folder = {}
+    for l in sorted(lineages):
+        folder = origin.get(l, {}).get(f"lineage_{l}/round_{k}/eval/{method}.json")
+        if folder is not None:
+            by_folder.setdefault(folder, []).append(str(l))
+    return "; ".join(f"{f}: {','.join(ls)}" for f, ls in by_folder.items()) or "-"
 
 
 def class_differences(lineages, k, method, base="hg_dagger"):
@@ -94,18 +109,23 @@ def fmt(diffs):
     return f"{mean:+.1f} ± {se:.1f}, p {p:.2g}"
 
 
-def class_table(name, lineages, k, base="hg_dagger"):
-    """Markdown: every row - base by pi_0's class at round k; the class sizes in the header."""
+def class_table(name, lineages, k, base="hg_dagger", origin=None):
+    """Markdown: every row - base by pi_0's class at round k; the class sizes in the header. origin (from merge):
+    a last column naming the folder each row's lineages came from, and a line for the base row's."""
     cls = pi0_classes(next(iter(lineages.values())))
     sizes = {c: int((cls == c).sum()) for c in CLASSES}
     head = " | ".join(f"{c} ({sizes[c]})" for c in CLASSES)
     lines = [f"{name}, K = {k}: row − {base} in points, mean ± SE over lineages, paired t",
-             f"| row | n | {head} | all |", "|---|---|" + "---|" * (len(CLASSES) + 1)]
+             f"| row | n | {head} | all |" + (" rows from (folder: lineages) |" if origin else ""),
+             "|---|---|" + "---|" * (len(CLASSES) + 1 + bool(origin))]
     for m in rows_of(lineages, k):
         if m in (base, "bc"):
             continue
         d = class_differences(lineages, k, m, base)
-        lines.append(f"| {m} | {len(d['all'])} | " + " | ".join(fmt(d[c]) for c in CLASSES + ("all",)) + " |")
+        lines.append(f"| {m} | {len(d['all'])} | " + " | ".join(fmt(d[c]) for c in CLASSES + ("all",)) + " |"
+                     + (f" {row_origin(origin, lineages, k, m)} |" if origin else ""))
+    if origin:
+        lines.append(f"{base} from {row_origin(origin, lineages, k, base)}")
     return "\n".join(lines)
 
 
@@ -202,7 +222,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     panels = []
     for i, folder in enumerate(args.folders):
-        lineages = load_lineages(folder)
+        lineages, origin = load_lineages(folder), None
         name = os.path.basename(os.path.normpath(folder))
         rounds = sorted({int(m.group(1)) for f in lineages.values() for key in f
                          for m in [re.match(r"lineage_\d+/round_(\d+)/", key)] if m})
@@ -210,11 +230,13 @@ def main(argv=None):
             other = load_lineages(args.other)
             other_rounds = sorted({int(m.group(1)) for f in other.values() for key in f
                                    for m in [re.match(r"lineage_\d+/round_(\d+)/", key)] if m})
-            lineages, matched = merge(lineages, other, other_rounds)
+            other_name = os.path.basename(os.path.normpath(args.other))
+            lineages, matched, origin = merge(lineages, other, other_rounds, (name, other_name))
+            name = f"{name} with {other_name}"
             print(f"{args.other} joined: " + ", ".join(f"lineage {l} {'bit for bit' if ok else 'NOT the same round'}"
                                                       for l, ok in sorted(matched.items())))
         for k in [args.round] if args.round else rounds:
-            print(class_table(name, lineages, k, args.base) + "\n")
+            print(class_table(name, lineages, k, args.base, origin) + "\n")
             print(dose_table(name, lineages, k) + "\n")
         if i == 0:
             for pair in args.compare:

@@ -131,7 +131,8 @@ def files_of(pi0, rows):
 
 def test_the_class_split_takes_each_rows_difference_on_the_scenarios_of_pi0s_class(load_benchmark):
     """Fails if a scenario lands in another class than pi_0's count of solved repeats says (0: never, all: always),
-    if a class's difference is taken over other scenarios, or if a lineage whose HG-DAgger differs is joined."""
+    if a class's difference is taken over other scenarios, if a lineage whose HG-DAgger differs is joined, or if a
+    joined row is credited to the wrong folder."""
     nt = load_benchmark("noise_trade")
     pi0 = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]], bool)
     assert nt.pi0_classes(files_of(pi0, {})).tolist() == ["never", "sometimes", "sometimes", "always"]
@@ -143,10 +144,15 @@ def test_the_class_split_takes_each_rows_difference_on_the_scenarios_of_pi0s_cla
     main = {0: files_of(pi0, {"hg_dagger": hg, "fixed_8": row})}
     same = {0: files_of(pi0, {"hg_dagger": hg, "new": row})}
     other = {0: files_of(pi0, {"hg_dagger": row, "new": row})}
-    merged, ok = nt.merge(main, same, [1])
+    merged, ok, origin = nt.merge(main, same, [1], ("main", "same"))
     assert ok == {0: True} and {"fixed_8", "new"} <= set(nt.rows_of(merged, 1))
-    merged, ok = nt.merge(main, other, [1])
+    # each row names the folder it came from (the audit of issue 52's study: a joined folder's rows titled "table1")
+    assert nt.row_origin(origin, merged, 1, "fixed_8") == "main: 0"
+    assert nt.row_origin(origin, merged, 1, "new") == "same: 0"
+    assert "| new | 1 |" in nt.class_table("x", merged, 1, origin=origin).split("same: 0 |")[0]
+    merged, ok, origin = nt.merge(main, other, [1], ("main", "other"))
     assert ok == {0: False} and "fixed_8" not in nt.rows_of(merged, 1)  # another round 1: only its own rows
+    assert nt.row_origin(origin, merged, 1, "hg_dagger") == "other: 0"  # ... and its HG-DAgger is named as other's
 
 
 def test_the_dose_response_is_the_slope_of_each_lineages_difference_on_sigma(load_benchmark):
