@@ -1,0 +1,106 @@
+"""The README's reading guide names what the run executes.
+
+Every function the guide's table names (its "read (file: function)" column) must be called by one run of the whole
+loop, from the method itself and not only from a figure — or its row must mark it "(not run: ...)", the paper's
+alternative or read-out that the run does not use. A marked function the run does call fails too (a stale mark).
+"""
+from __future__ import annotations
+
+import os
+import re
+import sys
+
+import pytest
+
+import dagger
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger")
+# A run of every stage and every Table I row kind, at sizes that still reach the equilibrium fit (Eq. 12) with
+# enough blend rollouts, and two lineages for the paired tests (the smoke profile's sizes; one process, so that one
+# trace sees every call).
+GUIDE_RUN = dict(name="guide", n_demos=16, rounds=1, lineages=2, K=10, down_dims=(16, 32), bc_steps=60,
+                 finetune_steps=30, batch_size=32,
+                 methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
+                 eval_scenarios=4, eval_repeats=1)
+
+
+def guide_names(readme_text):
+    """{(module, name): (step, marked)} for every `name` the guide's 'read' column gives after 'module.py:';
+    marked: the name is followed by '(not run' in its row."""
+    guide = readme_text.split("## Reading guide", 1)[1].split("\n## ", 1)[0]
+    names = {}
+    for line in guide.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) < 3 or not line.startswith("| ") or cells[0] == "step" or set(cells[0]) <= set("-"):
+            continue
+        # the 'read' cell: 'module.py: `a`, `b` (...); other.py: `c`' -- a name belongs to the last module named
+        for part in re.split(r"(?=\b(?:%s)\.py:)" % "|".join(MODULES), cells[2]):
+            m = re.match(r"(\w+)\.py:(.*)", part.strip(), re.S)
+            if not m:
+                continue
+            for name in re.finditer(r"`([\w.]+)[^`]*`( \(not run)?", m.group(2)):
+                names[(m.group(1), name.group(1))] = (cells[0], bool(name.group(2)))
+    return names
+
+
+def is_figure(code):
+    return code.co_name.startswith(("fig", "plot_", "draw_")) or code.co_name == "figures"
+
+
+@pytest.fixture(scope="module")
+def traced_run(tmp_path_factory):
+    """{(module, qualified name)} of every function called by the method in one in-process run (a call made only
+    inside a figure's drawing does not count, except for the drawing functions themselves)."""
+    called, seen = set(), set()
+
+    def profile(frame, event, arg):
+        if event != "call":
+            return
+        code = frame.f_code
+        key = (code.co_filename, code.co_qualname)
+        if key in seen:
+            return
+        caller = frame.f_back
+        while caller is not None and not is_figure(caller.f_code):
+            caller = caller.f_back
+        if caller is None or is_figure(code):  # from the method, or a drawing function itself
+            seen.add(key)
+            called.add((os.path.splitext(os.path.basename(code.co_filename))[0], code.co_qualname))
+
+    sys.setprofile(profile)
+    try:
+        dagger.run_experiment(dagger.Config(**GUIDE_RUN), str(tmp_path_factory.mktemp("guide")))
+    finally:
+        sys.setprofile(None)
+    return called
+
+
+def runs(called, module, name):
+    """A function name, Class, or Class.method of `module` was called (a class: any of its methods)."""
+    return any(m == module and (q == name or q.startswith(name + ".") or q.endswith("." + name)) for m, q in called)
+
+
+def test_the_guide_parser_reads_marks_and_modules():
+    """Fails if a name is credited to the wrong module or a '(not run' mark is missed or invented."""
+    text = ("## Reading guide\n| step | paper | read (file: function) | checked by |\n|---|---|---|---|\n"
+            "| 3a. blend | Eq. 3 | partial_denoise.py: `lerp_blend` (not run: the paper's alternative), `switch_step`; "
+            "diffusion.py: `train(sampler=...)`, `DiffusionPolicy.sample` | t |\n## Next\n| x | y | dagger.py: `no` | z |\n")
+    assert guide_names(text) == {("partial_denoise", "lerp_blend"): ("3a. blend", True),
+                                 ("partial_denoise", "switch_step"): ("3a. blend", False),
+                                 ("diffusion", "train"): ("3a. blend", False),
+                                 ("diffusion", "DiffusionPolicy.sample"): ("3a. blend", False)}
+
+
+def test_every_function_the_reading_guide_names_runs_or_is_marked(traced_run):
+    """Fails if the guide names a function that one run of the loop never calls (outside the figures) without
+    marking it '(not run: ...)', or marks one the run does call."""
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as fh:
+        names = guide_names(fh.read())
+    assert len(names) > 40, "the guide's table was not found or not parsed"
+    unmarked_not_run = [f"{step}: {mod}.{name}" for (mod, name), (step, marked) in names.items()
+                        if not marked and not runs(traced_run, mod, name)]
+    marked_but_run = [f"{step}: {mod}.{name}" for (mod, name), (step, marked) in names.items()
+                      if marked and runs(traced_run, mod, name)]
+    assert not unmarked_not_run, f"named in the reading guide, not run and not marked '(not run': {unmarked_not_run}"
+    assert not marked_but_run, f"marked '(not run' in the reading guide but run: {marked_but_run}"
