@@ -420,7 +420,8 @@ class PlanarReacher(ArmEnv):
         self._space = space
 
     def pymunk_in_collision(self, q):
-        """Same predicate as in_collision, from pymunk contacts (one config at a time, slow)."""
+        """Same predicate as in_collision, from pymunk contacts (one config at a time, slow): True where a part
+        penetrates an obstacle or a part of SELF_PAIRS (the shapes' filters leave out the rest)."""
         q, single = _as_batch(q, self.dof)
         points = self.fk(q)
         angles = np.cumsum(q, axis=1)
@@ -429,20 +430,12 @@ class PlanarReacher(ArmEnv):
             for i, body in enumerate(self._link_bodies):
                 body.position = (float(points[b, i, 0]), float(points[b, i, 1]))
                 body.angle = float(angles[b, i])
-                # shape_query reads the other shapes' cached world geometry: refresh it
-                self._space.reindex_shapes_for_body(body)
-            out[b] = self._pymunk_contact()
+                self._space.reindex_shapes_for_body(body)  # shape_query reads the cached world geometry
+            # distance <= 0, not < 0: for a box centred exactly across a link (a tie between two penetration
+            # directions) pymunk 7 reports a contact of distance 0.0
+            out[b] = any(pt.distance <= 0.0 for shape in self._part_shapes for hit in self._space.shape_query(shape)
+                         for pt in hit.contact_point_set.points)
         return out[0] if single else out
-
-    def _pymunk_contact(self):
-        """True if a part penetrates an obstacle or a non-adjacent part in the posed space."""
-        for shape in self._part_shapes:
-            for hit in self._space.shape_query(shape):  # an obstacle or a part of SELF_PAIRS (the shape's filter)
-                # distance <= 0, not < 0: for a box centred exactly across a link (a tie between
-                # two penetration directions) pymunk 7 reports a contact of distance 0.0
-                if any(pt.distance <= 0.0 for pt in hit.contact_point_set.points):
-                    return True
-        return False
 
     # ---- scenarios ---------------------------------------------------------------------------
     def _draw_scene(self, rng):
