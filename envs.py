@@ -21,9 +21,8 @@ Both envs share ArmEnv and one interface (gymnasium conventions without the depe
     env.make_obs(q, q_prev), env.clip_action(q, action), env.render(ax), env.draw_noise_ellipses(...)
 
 The simulator (pymunk planar, pybullet 3-D) judges a step's contacts; the same geometry feeds the vectorized
-numpy check that planners, relabeling and evaluation call millions of times, and the two agree (tests). pybullet
-is imported with the first EngineReach3D. Research variants subclass EngineReach3D and register in ENVIRONMENTS
-on import (experiment/image_obs.py, experiment/oriented_goal.py).
+numpy check that the planner, the gate and relabeling call millions of times (tests: the two agree). Research
+variants subclass EngineReach3D and register in ENVIRONMENTS (experiment/image_obs.py, oriented_goal.py).
 """
 import math
 from dataclasses import dataclass
@@ -83,9 +82,7 @@ def eval_seeds():
 
 def train_seeds(n, start=0):
     """n training seeds start .. start + n - 1, from 0 .. 9_999 (disjoint from eval_seeds)."""
-    if n < 0 or start < 0 or start + n > TRAIN_SEED_END:
-        raise ValueError(f"train_seeds(n={n}, start={start}): need 0 <= start and "
-                         f"start + n <= {TRAIN_SEED_END} (the training seed range)")
+    assert 0 <= start and 0 <= n and start + n <= TRAIN_SEED_END, f"train_seeds({n}, {start}) leaves 0 .. 9_999"
     return list(range(start, start + n))
 
 
@@ -95,14 +92,13 @@ def unseen_seeds():
 
 
 # ---- What both arm envs share: state, the motion rule, the episode step, the end effector --------
-def _as_batch(q, dof, name="q"):
+def _as_batch(q, dof):
     """(dof,) or (B, dof) array -> ((B, dof) float64, was_single)."""
     q = np.asarray(q, dtype=np.float64)
     single = q.ndim == 1
     if single:
         q = q[None]
-    if q.ndim != 2 or q.shape[1] != dof:
-        raise ValueError(f"{name} must have shape ({dof},) or (B, {dof}), got {np.shape(q)}")
+    assert q.ndim == 2 and q.shape[1] == dof, f"q of shape {q.shape}, want ({dof},) or (B, {dof})"
     return q, single
 
 
@@ -128,7 +124,6 @@ class ArmEnv:
         self._q = np.zeros(self.dof)
         self._q_prev = np.zeros(self.dof)
         self.step_count = 0
-        self._has_state = False  # step() needs reset() or set_state() first
 
     @property
     def joint_limits(self):
@@ -156,8 +151,6 @@ class ArmEnv:
         its start. The scenario is a deterministic function of seed: the subclass's _draw_scenario(rng)."""
         if seed is None:
             seed = int(np.random.default_rng().integers(0, 2 ** 31))
-        if not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"reset: seed must be a non-negative int or None, got {seed!r}")
         start = self._draw_scenario(np.random.default_rng(int(seed)))
         self.seed = int(seed)
         self.set_state(start)
@@ -167,29 +160,17 @@ class ArmEnv:
         """True where the arm at q touches an obstacle or itself (the subclass's _in_collision_chunk). (B,) bool.
         margin > 0 (m): True also where closer than margin (planners keep clear between their checks)."""
         q, single = _as_batch(q, self.dof)
-        if not np.all(np.isfinite(q)) or not (np.isfinite(margin) and margin >= 0):
-            raise ValueError(f"in_collision: q must not contain NaN or inf, and margin must be a finite distance "
-                             f">= 0 m, got margin {margin}")
         n = self.collision_chunk
         hit = np.concatenate([self._in_collision_chunk(q[k:k + n], float(margin)) for k in range(0, len(q), n)])
         return hit[0] if single else hit
 
-    def _check_q(self, q, name, within_limits=True):
-        """A copy of one configuration (dof,) as float64: finite, and (within_limits) inside the joint limits."""
-        q = np.array(q, dtype=np.float64)
-        if q.shape != (self.dof,) or not np.all(np.isfinite(q)):
-            raise ValueError(f"{name} must be a finite array of shape ({self.dof},), got {q!r}")
-        if within_limits and (np.any(q < self._lo - 1e-9) or np.any(q > self._hi + 1e-9)):
-            raise ValueError(f"{name}={q} is outside the joint limits lo={self._lo}, hi={self._hi}")
-        return q
-
     def set_state(self, q, q_prev=None, step_count=0):
         """Put the arm at q (previous position q_prev, default q); the step counter to step_count."""
-        q = self._check_q(q, "q")
-        q_prev = q.copy() if q_prev is None else self._check_q(q_prev, "q_prev")
+        q = np.array(q, dtype=np.float64)
+        q_prev = q.copy() if q_prev is None else np.array(q_prev, dtype=np.float64)
+        assert q.shape == q_prev.shape == (self.dof,), f"set_state: q {q.shape}, q_prev {q_prev.shape}"
         self._q, self._q_prev = q, q_prev
         self.step_count = int(step_count)
-        self._has_state = True
 
     # ---- the motion rule and the episode step ------------------------------------------------
     def clip_action(self, q, action):
@@ -202,9 +183,9 @@ class ArmEnv:
         The simulator's contacts (simulator_in_collision) judge the end state and n_substeps - 1 evenly spaced
         states before it (nothing tunnels: PlanarConfig.n_substeps). reward = 1 on success else 0 (unused).
         """
-        if not self._has_state:
-            raise ValueError("step called before reset (or set_state)")
-        q_next = self.clip_action(self._q, self._check_q(action, "action", within_limits=False))
+        action = np.asarray(action, dtype=np.float64)
+        assert action.shape == (self.dof,), f"step: action of shape {action.shape}, want ({self.dof},)"
+        q_next = self.clip_action(self._q, action)
         fractions = np.arange(1, self.cfg.n_substeps + 1)[:, None] / self.cfg.n_substeps
         sweep = self._q + fractions * (q_next - self._q)  # (n_substeps, dof), last = q_next
         collision = bool(any(self.simulator_in_collision(sweep)))
@@ -219,8 +200,8 @@ class ArmEnv:
     def _joint_goal_obs(self, q, q_prev):
         """make_obs's first part: (obs (B, obs_dim) float32 with q, q_prev and the goal in [0:2 dof + dim], the
         rest for the caller to fill; q (B, dof) float64; single: q was (dof,))."""
-        q, single = _as_batch(q, self.dof, "q")
-        q_prev, _ = _as_batch(q_prev, self.dof, "q_prev")
+        q, single = _as_batch(q, self.dof)
+        q_prev, _ = _as_batch(q_prev, self.dof)
         obs = np.empty((len(q), self.obs_dim), dtype=np.float32)
         d = self.dof
         obs[:, :d] = q
@@ -310,11 +291,6 @@ class PlanarReacher(ArmEnv):
 
     def __init__(self, config: PlanarConfig | None = None):
         self.cfg = cfg = config or PlanarConfig()
-        if (len(cfg.link_lengths) != 3 or len(cfg.link_widths) != 3
-                or not (cfg.dt > 0 and cfg.speed_limit > 0 and cfg.episode_seconds > 0)):
-            raise ValueError(f"PlanarConfig needs 3 link_lengths and link_widths and dt, speed_limit, episode_seconds"
-                             f" > 0, got {cfg.link_lengths}, {cfg.link_widths}, {cfg.dt}, {cfg.speed_limit}, "
-                             f"{cfg.episode_seconds}")
         self.dof = 3
         self.link_lengths = np.asarray(cfg.link_lengths, dtype=np.float64)
         self.base = np.asarray(cfg.base, dtype=np.float64)
@@ -400,10 +376,6 @@ class PlanarReacher(ArmEnv):
         """Install a scene, for both collision checks: obstacles (N, 5) rows (centre x, y, half x, half y, angle),
         goal (2,)."""
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 5)
-        if (not np.all(np.isfinite(obstacles)) or np.any(obstacles[:, 2:4] <= 0)
-                or len(obstacles) > self.cfg.n_obstacles):
-            raise ValueError(f"set_scene: obstacles must be finite with half extents > 0, at most n_obstacles="
-                             f"{self.cfg.n_obstacles} (the observation's slots), got {obstacles.tolist()}")
         self.obstacles = obstacles
         if goal is not None:
             self._goal = np.asarray(goal, dtype=np.float64).reshape(self.dim).copy()
@@ -448,7 +420,8 @@ class PlanarReacher(ArmEnv):
         self._space = space
 
     def pymunk_in_collision(self, q):
-        """Same predicate as in_collision, from pymunk contacts (one config at a time, slow)."""
+        """Same predicate as in_collision, from pymunk contacts (one config at a time, slow): True where a part
+        penetrates an obstacle or a part of SELF_PAIRS (the shapes' filters leave out the rest)."""
         q, single = _as_batch(q, self.dof)
         points = self.fk(q)
         angles = np.cumsum(q, axis=1)
@@ -457,20 +430,12 @@ class PlanarReacher(ArmEnv):
             for i, body in enumerate(self._link_bodies):
                 body.position = (float(points[b, i, 0]), float(points[b, i, 1]))
                 body.angle = float(angles[b, i])
-                # shape_query reads the other shapes' cached world geometry: refresh it
-                self._space.reindex_shapes_for_body(body)
-            out[b] = self._pymunk_contact()
+                self._space.reindex_shapes_for_body(body)  # shape_query reads the cached world geometry
+            # distance <= 0, not < 0: for a box centred exactly across a link (a tie between two penetration
+            # directions) pymunk 7 reports a contact of distance 0.0
+            out[b] = any(pt.distance <= 0.0 for shape in self._part_shapes for hit in self._space.shape_query(shape)
+                         for pt in hit.contact_point_set.points)
         return out[0] if single else out
-
-    def _pymunk_contact(self):
-        """True if a part penetrates an obstacle or a non-adjacent part in the posed space."""
-        for shape in self._part_shapes:
-            for hit in self._space.shape_query(shape):  # an obstacle or a part of SELF_PAIRS (the shape's filter)
-                # distance <= 0, not < 0: for a box centred exactly across a link (a tie between
-                # two penetration directions) pymunk 7 reports a contact of distance 0.0
-                if any(pt.distance <= 0.0 for pt in hit.contact_point_set.points):
-                    return True
-        return False
 
     # ---- scenarios ---------------------------------------------------------------------------
     def _draw_scene(self, rng):
@@ -653,9 +618,7 @@ class EngineConfig:
     # --- the task: "the robot moves at similar velocities as the 2D planar reacher" (Sec. V) ---
     max_step: float = 0.05  # rad/step, per-joint speed limit (0.5 rad/s at dt = 0.1 s), as planar
     dt: float = 0.1  # s per step (the authors run at 30 Hz; dt = 1/30 gives theirs)
-    # m, success: the TCP within this distance of the goal (the authors' 10 deg orientation rule is the variant
-    # experiment/oriented_goal.py; benchmarks/README.md, "The 10° rule")
-    goal_tolerance: float = 0.03
+    goal_tolerance: float = 0.03  # m, success: the TCP this close to the goal (+ 10 deg: experiment/oriented_goal.py)
     max_steps: int = 333  # steps: the authors evaluate 1000 frames at 30 Hz (33 s), the same seconds here
     start_clearance: float = 0.02  # m, a start keeps this from everything (the authors' planning clearance)
     start_goal_min_dist: float = 0.5  # m, start TCP at least this far from the goal
@@ -716,10 +679,9 @@ ENGINE_SELF_PAIRS = np.array([(0, j) for j in range(2, 8)]  # base column vs for
 class EngineReach3D(ArmEnv):
     """UR5 reaching an engine lever through a cluttered, narrow passage (Sec. V, Table II, Fig. 5).
 
-    The paper's mockup is Gaussian splats; here the authors' small-engine cell is capsules (benchmarks/README.md,
-    "The UR5 engine-lever task"): the engine and its lever fixed, the goal the TCP of their goal posture (the
-    witness), a wall behind the robot (the half-space y >= wall_y), the table (the ground z = 0) and two boxes
-    drawn per seed. One geometry (capsules: segment + radius, `self.obstacles` and `link_segments`) feeds
+    The paper's mockup is Gaussian splats; here the authors' small-engine cell is capsules: the engine and its
+    lever fixed, the goal the TCP of their goal posture (the witness), a wall behind the robot (the half-space
+    y >= wall_y), the table (the ground z = 0) and two boxes drawn per seed. One geometry (capsules: segment + radius, `self.obstacles` and `link_segments`) feeds
     pybullet in DIRECT mode (the simulator of step) and the numpy check in_collision (segment distances).
 
     Observation layout (float32, obs_dim = 2 dof + 3 + 7 n_max_obstacles = 127):
@@ -742,10 +704,7 @@ class EngineReach3D(ArmEnv):
         self.cfg = cfg = config or EngineConfig()
         self.dof = 6
         self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
-        self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)
-        if self.link_radii.shape != (len(ENGINE_LINK_NAMES),) or np.any(self.link_radii <= 0):
-            raise ValueError(f"link_radii must be {len(ENGINE_LINK_NAMES)} positive radii "
-                             f"({', '.join(ENGINE_LINK_NAMES)}), got {cfg.link_radii}")
+        self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)  # (8,) per ENGINE_LINK_NAMES
         self.link_radius = float(self.link_radii.min())  # oracle.py's check spacing derives from it
         self.max_step = float(cfg.max_step)
         self.max_steps = int(cfg.max_steps)
@@ -765,8 +724,7 @@ class EngineReach3D(ArmEnv):
     def _capsule_points(self, q):
         """(B, 10, 3): base, shoulder, elbow, wrist 1-3 centres, flange, TCP, the two finger ends.
 
-        The DH chain of ur5_frames written out point by point, 4x faster than the 4x4 products (tests check
-        they agree). Joints 2-4 are parallel, so shoulder, elbow and wrist 1 move in the vertical plane at
+        The DH chain of ur5_frames written out point by point (tests check they agree). Joints 2-4 are parallel, so shoulder, elbow and wrist 1 move in the vertical plane at
         angle q1, with in-plane angles q2, q2 + q3, q2 + q3 + q4; the lateral axis z1 = (sin q1, -cos q1, 0).
         """
         B = len(q)
@@ -830,7 +788,7 @@ class EngineReach3D(ArmEnv):
         """in_collision: the arm penetrates (or comes within margin of) an obstacle, the wall, the ground or itself.
 
         Pairs: every arm capsule with every obstacle, ENGINE_SELF_PAIRS, the ground, the wall. Axis-aligned bounding
-        boxes rule out ~98 % of the pairs, exact segment distances decide the rest. The base column never moves
+        boxes rule out most pairs, exact segment distances decide the rest. The base column never moves
         (joint 1 turns it about its own axis): its clearance is set_scene's constant.
         """
         a0, a1 = self._arm_components(q)  # (3, B, 8) each
@@ -870,10 +828,7 @@ class EngineReach3D(ArmEnv):
         checks; kinds: 'engine', 'lever', 'pipe' (the default) or 'box' per obstacle (colours only)."""
         self._set_obstacles(obstacles, kinds)
         if goal is not None:
-            goal = np.asarray(goal, dtype=np.float64)
-            if goal.shape != (self.dim,) or not np.all(np.isfinite(goal)):
-                raise ValueError(f"set_scene: goal must be a finite ({self.dim},) array, got {goal}")
-            self._goal = goal.copy()
+            self._goal = np.array(goal, dtype=np.float64).reshape(self.dim)
         self._obstacle_obs = np.zeros(7 * self.cfg.n_max_obstacles, dtype=np.float32)
         self._obstacle_obs[: self.obstacles.size] = self.obstacles.ravel()
         self._build_bullet()
@@ -882,12 +837,6 @@ class EngineReach3D(ArmEnv):
         """Obstacle array and the broad-phase geometry of in_collision (no pybullet rebuild)."""
         obstacles = np.asarray(obstacles, dtype=np.float64).reshape(-1, 7)
         kinds = ["pipe"] * len(obstacles) if kinds is None else list(kinds)
-        valid = ("engine", "lever", "pipe", "box")
-        if (len(obstacles) > self.cfg.n_max_obstacles or not np.all(np.isfinite(obstacles))
-                or np.any(obstacles[:, 6] <= 0) or len(kinds) != len(obstacles) or any(k not in valid for k in kinds)):
-            raise ValueError(f"set_scene: obstacles must be finite rows with radius > 0, at most n_max_obstacles="
-                             f"{self.cfg.n_max_obstacles} (the observation's slots), and kinds one of {valid} per "
-                             f"obstacle; got {len(obstacles)} obstacles, kinds {kinds}")
         self.obstacles, self.obstacle_kinds = obstacles, kinds
         start, end, radius = obstacles[:, 0:3].T, obstacles[:, 3:6].T, obstacles[:, 6]  # (3, N)
         self._geom = dict(start=start.copy(), end=end.copy(),
@@ -1052,8 +1001,7 @@ class EngineReach3D(ArmEnv):
     def camera_image(self, q=None, width=640, height=480):
         """RGB image (height, width, 3) uint8 of the scene with the arm at q (default: current), from the fixed
         camera ENGINE_CAMERA with pybullet's software renderer (ER_TINY_RENDERER: no display or GPU needed)."""
-        q = self._check_q(self._q if q is None else q, "q")
-        self._pose_arm(q)
+        self._pose_arm(self._q if q is None else q)
         cam = ENGINE_CAMERA
         view = pb.computeViewMatrix(list(cam["eye"]), list(cam["target"]), [0, 0, 1])
         projection = pb.computeProjectionMatrixFOV(cam["fov"], width / height, 0.05, 5.0)
@@ -1073,7 +1021,6 @@ class EngineReach3D(ArmEnv):
         if self._client is not None:
             pb.disconnect(physicsClientId=self._client)
             self._client = None
-            self._has_state = False
 
     def __del__(self):  # free the pybullet client when the env is garbage-collected
         try:
@@ -1085,7 +1032,7 @@ class EngineReach3D(ArmEnv):
 # ---- Capsule geometry and UR5 kinematics (EngineReach3D) -----------------------------------------
 def segment_distance_3d(a0, a1, b0, b1):
     """Distance between segments [a0, a1] and [b0, b1], broadcasting; COMPONENTS FIRST: (3, ...) (contiguous
-    memory: 4-5x faster). Ericson, Real-Time Collision Detection, Sec. 5.1.9: the closest points of the infinite
+    memory). Ericson, Real-Time Collision Detection, Sec. 5.1.9: the closest points of the infinite
     lines, clamped to the segments, re-projected once (a zero-length segment: squared length floored at 1e-18)."""
     (ax, ay, az), (bx, by, bz) = a0, b0
     ux, uy, uz = a1[0] - ax, a1[1] - ay, a1[2] - az
@@ -1205,8 +1152,6 @@ PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by en
 
 def make_env(name="planar", **config):
     """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
-    if name not in ENVIRONMENTS:
-        raise ValueError(f"make_env: unknown environment {name!r}; valid: {sorted(ENVIRONMENTS)}")
     env_class, config_class = ENVIRONMENTS[name]
     return env_class(config_class(**config))
 
@@ -1226,8 +1171,7 @@ def median_step(episodes):
     steps = [np.abs(np.diff(np.asarray(ep["q"], dtype=np.float64), axis=0)).ravel() for ep in episodes]
     steps = np.concatenate(steps) if steps else np.zeros(0)
     steps = steps[steps > 0]
-    if len(steps) == 0:
-        raise ValueError("median_step: the episodes contain no joint motion")
+    assert len(steps), "median_step: the episodes contain no joint motion"
     return float(np.median(steps))
 
 

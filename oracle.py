@@ -22,18 +22,17 @@ import numpy as np
 
 
 class PlanningFailed(RuntimeError):
-    """The planner found no plan within its budget (or the problem has none)."""
+    """The planner found no plan within its budget (or the problem has none); `reason` says why."""
 
-    def __init__(self, reason, iters=0):
+    def __init__(self, reason):
         super().__init__(reason)
-        self.reason = reason  # human-readable cause
-        self.iters = iters  # RRT iterations spent (0 if it failed before the search)
+        self.reason = reason
 
 
 @dataclass
 class OracleConfig:
-    """The authors' planner and gate (PAPER_SETUP.md §3; ours vs theirs: benchmarks/README.md, "What the loop
-    takes from the authors' code"). Counts are our 10 Hz steps (theirs: 30 Hz frames). A sweep: Oracle.sweep."""
+    """The authors' planner and gate (PAPER_SETUP.md §3), counts in our 10 Hz steps (theirs: 30 Hz frames). A
+    sweep: Oracle.sweep."""
     max_goals: int = 32  # IK goal configurations handed to the planner, nearest first (theirs: 32)
     speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (theirs: 0.5 rad/s)
     a_max: float = 1.0  # rad/s^2 per joint (theirs)
@@ -55,7 +54,7 @@ class OracleConfig:
     margin: float = 1.5  # sweeps of planning clearance; planning checks lie 2 (margin - verify_margin) sweeps apart
     verify_margin: float = 0.5  # sweeps the executed trajectory keeps (>= 0.5: no graze between its checks)
     relax_sweeps: float = 4.0  # sweeps of arm motion around the start and the goals with the plain check only
-    min_sweep_fraction: float = 0.125  # no path: halve the sweep down to this (planar seed 10097 needs 1/8)
+    min_sweep_fraction: float = 0.125  # no path: halve the sweep down to this fraction
 
 
 # ---- Inverse kinematics (goal configurations) -------------------------------------------------
@@ -97,7 +96,7 @@ def solve_ik(env, goal, rng, max_goals, q_start, n_seeds=512, iters=40, damping=
 # Checks spaced so that no arm point moves more than s m between two (`edge_resolution`) leave every state of an
 # edge within s/2 of a checked one, so obstacles inflated by a margin >= s/2 (`with_margin`) clear the whole edge.
 # Planning: margin m, checks 2 (m - v) apart, so the plan keeps clearance v; the executed trajectory is verified
-# with margin v. Edges stop at their first collision (benchmarks/README.md, "RRT-Connect: checks per plan").
+# with margin v. Edges stop at their first collision.
 def lever_arms(env, n_probe=8):
     """R_j (dof,): a bound on the distance from joint j to any point of the arm beyond it: env.lever_arms if
     given, else sums of env.fk's segment lengths after joint j (largest over the zero pose and n_probe others)."""
@@ -112,8 +111,6 @@ def lever_arms(env, n_probe=8):
 
 def edge_resolution(env, sweep):
     """eps_j (dof,) rad: checks with sum_j |dq_j| / eps_j <= 1 apart move no arm point more than sweep m."""
-    if not sweep > 0:
-        raise ValueError(f"sweep must be > 0 (m), got {sweep}")
     return sweep / lever_arms(env)
 
 
@@ -135,8 +132,8 @@ def substeps(n):
 
 def edge_free_fraction(q_from, q_to, in_collision, resolution, first_round=4):
     """(E,) fraction of each edge q_from -> q_to that is free from its start (1 = all). States in order, in rounds
-    of doubling length (first_round, 2x, 4x, ... states of each edge still free; first_round 4 beat 8 and 16,
-    planar): long CONNECT edges nearly all collide early, and an edge stops at its first collision."""
+    of doubling length (first_round, 2x, 4x, ... states of each edge still free): long CONNECT edges nearly all
+    collide early, and an edge stops at its first collision."""
     q_from, q_to = np.atleast_2d(q_from), np.atleast_2d(q_to)
     states, edge, k, n = interpolate_edges(q_from, q_to, resolution)
     # (P,) round of sub-step k (first_round 4): k = 1..4 -> 0, 5..12 -> 1, 13..28 -> 2, ...
@@ -237,8 +234,7 @@ def _grow(tree, near, targets, free, step_size):
 def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3, resolution=0.05,
                 max_iters=500, max_time=10.0, batch=32):
     """A free path (N, dof) from q_start to one of q_goals (M, dof), or PlanningFailed. Per iteration tree A
-    EXTENDs toward `batch` uniform samples (batch 32 halved the planar time against 8), tree B CONNECTs toward
-    every new node; the trees swap. Edges checked at `resolution` (rad); max_time (s) is a hang guard."""
+    EXTENDs toward `batch` uniform samples, tree B CONNECTs toward every new node; the trees swap. Edges checked at `resolution` (rad); max_time (s) is a hang guard."""
     q_start = np.asarray(q_start, dtype=np.float64)
     q_goals = np.atleast_2d(np.asarray(q_goals, dtype=np.float64))
     lo, hi = (np.asarray(x, dtype=np.float64) for x in joint_limits)
@@ -260,7 +256,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
     t0 = time.perf_counter()
     for it in range(max_iters):
         if time.perf_counter() - t0 > max_time:
-            raise PlanningFailed(f"time budget of {max_time} s exhausted", iters=it)
+            raise PlanningFailed(f"time budget of {max_time} s exhausted after {it} iterations")
         # >>> exercise 10: RRT-Connect's EXTEND and CONNECT (Sec. V, the RRT oracle)
         a, b = trees[it % 2], trees[1 - it % 2]
         # EXTEND tree A toward `batch` uniform samples (one batched check)
@@ -286,7 +282,7 @@ def rrt_connect(q_start, q_goals, in_collision, joint_limits, rng, step_size=0.3
             start_side, goal_side = (branch_a, branch_b) if it % 2 == 0 else (branch_b, branch_a)
             return _drop_duplicates(np.concatenate([start_side[::-1], goal_side]))
         # <<< exercise 10
-    raise PlanningFailed(f"no path within max_iters={max_iters}", iters=max_iters)
+    raise PlanningFailed(f"no path within max_iters={max_iters}")
 
 
 def _drop_duplicates(path, tol=1e-12):
@@ -525,7 +521,6 @@ class Plan:
     samples: np.ndarray  # (T, dof) trajectory at env.dt; samples[0] = start, samples[-1] = goal
     ee_length: float  # end-effector arc length of the smoothed path it follows (the selection criterion)
     velocity_matched: bool  # False if the handoff velocity had to be dropped (abrupt stop)
-    planning_time: float  # s, wall clock (informative only; never used in a decision)
 
 
 class Oracle:
@@ -533,10 +528,8 @@ class Oracle:
 
     def __init__(self, config: OracleConfig | None = None):
         self.cfg = config or OracleConfig()
-        if not self.cfg.margin > self.cfg.verify_margin >= 0.5:
-            raise ValueError(f"OracleConfig needs margin > verify_margin >= 0.5 (sweeps; see the edge checks), "
-                             f"got margin={self.cfg.margin}, verify_margin={self.cfg.verify_margin}")
-        self.last_plan = None  # the most recent Plan (for benchmarks and figures)
+        # the edge checks' argument: planning checks 2 (margin - verify_margin) sweeps apart, no graze below 0.5
+        assert self.cfg.margin > self.cfg.verify_margin >= 0.5, "OracleConfig: need margin > verify_margin >= 0.5"
 
     def sweep(self, env):
         """Max arm-point motion (m) between two checks of the executed trajectory: half the link radius."""
@@ -559,7 +552,7 @@ class Oracle:
         arc length, time parameterization; raises PlanningFailed. The geometric plan starts at handoff_point(q0, v0)
         so that the samples leave q0 at exactly v0 (Sec. V); if that coast leaves the limits or collides, or the
         handoff cannot be time-parameterized free, v0 is dropped (an abrupt stop) and velocity_matched is False."""
-        c, t0 = self.cfg, time.perf_counter()
+        c = self.cfg
         q0 = np.asarray(q0, dtype=np.float64)
         v0 = np.zeros(env.dof) if v0 is None else np.asarray(v0, dtype=np.float64)
         sweep = self.sweep(env)
@@ -596,8 +589,7 @@ class Oracle:
                 raise
             matched = False  # the S-curve stop of the handoff collides: stop abruptly instead
             samples = time_parameterize(path, v_max, a_max, j_max, env.dt, v0=None, in_collision=verify, resolution=res)
-        self.last_plan = Plan(samples, best[1], matched, time.perf_counter() - t0)
-        return self.last_plan
+        return Plan(samples, best[1], matched)
 
     def _search(self, env, q0, coast, start, goals, sweep, rng):
         """RRT-Connect attempts + shortcut + corners at one sweep; the plan of least ee arc length.
@@ -695,9 +687,7 @@ def plot_demonstration(env, episode, path, n_arms=8):
 
     env.reset(seed=int(episode["seed"]))
     q = np.asarray(episode["q"])
-    pts = env.fk(q)  # (T, n_points, dim)
-    if pts.shape[-1] != 2:
-        raise ValueError(f"plot_demonstration draws planar envs (dim 2), got dim {pts.shape[-1]}")
+    pts = env.fk(q)  # (T, n_points, 2): a planar env
     fig, ax = plt.subplots(figsize=(5, 5))
     env.render(ax)  # scene and the arm at the start
     for i, t in enumerate(np.linspace(0, len(q) - 1, n_arms).astype(int)[1:], start=1):
@@ -718,14 +708,12 @@ if __name__ == "__main__":
     env = envs.make_env("planar")
     oracle = Oracle()
     episode = oracle.demonstrate(env, env.eval_seeds()[0])
-    print(f"seed {episode['seed']}: success {episode['success']}, {len(episode['q'])} steps, planning "
-          f"{oracle.last_plan.planning_time:.2f} s, ee arc length {oracle.last_plan.ee_length:.2f} m")
+    print(f"seed {episode['seed']}: success {episode['success']}, {len(episode['q'])} steps")
     # an intervention: the arm 30 % into the demo, drifted 0.1 rad per joint off it and moving
     t = int(0.3 * len(episode["q"]))
     env.set_state(episode["q"][t] + 0.1, episode["q"][t - 1] + 0.1)
     print(f"gate on the next 20 expert actions: {oracle.gate(env).should_intervene(env, episode['action'][t:t + 20])}")
-    actions = oracle.intervention(env)
-    print(f"intervention: drives {len(actions)} steps, handoff velocity matched: {oracle.last_plan.velocity_matched}")
+    print(f"intervention: the expert drives {len(oracle.intervention(env))} steps")
     os.makedirs("runs", exist_ok=True)
     plot_demonstration(env, episode, os.path.join("runs", "oracle_demo.png"))
     print("wrote runs/oracle_demo.png")

@@ -5,11 +5,11 @@ For every scenario: Oracle.demonstrate (plan + execute with env.step). Reports
   demos per minute on this machine (wall clock of plan + execution, single process),
   time_parameterize duration / lower bound, where the lower bounds are
     path bound:  the slowest joint's bang-bang (trapezoid) time over its total travel along the
-                 smoothed path that was executed (min_time_lower_bound(plan.path));
+                 executed samples (min_time_lower_bound(plan.samples); Plan keeps no path since 6caf654);
     line bound:  the same over the straight joint-space line start -> chosen goal configuration
                  (no path from start to that configuration can be faster),
-    traversal:   the full-speed time of the executed path (each piece at its dominant joint's v_max)
-                 plus v_max / a_max: the cost of the time parameterization itself,
+    traversal:   the full-speed time of the executed samples' polyline (each piece at its dominant
+                 joint's v_max) plus v_max / a_max: the cost of the time parameterization itself,
   and checks the velocity / acceleration / jerk limits at every sample of every plan.
 Failures are listed with their seed and reason.
 Interventions (--n-interventions scenarios): the state 30 % into the demo is perturbed by a random
@@ -43,6 +43,20 @@ import oracle  # noqa: E402
 from envs import make_env  # noqa: E402
 from oracle import Oracle, PlanningFailed  # noqa: E402
 
+
+
+def record_plans(expert):
+    """Wrap expert.plan: returns a list that gets (Plan, planning seconds) of every plan it makes."""
+    plans, plan = [], expert.plan
+
+    def timed_plan(*args, **kwargs):
+        t0 = time.perf_counter()
+        result = plan(*args, **kwargs)
+        plans.append((result, time.perf_counter() - t0))
+        return result
+
+    expert.plan = timed_plan
+    return plans
 
 
 def min_time_lower_bound(path, v_max, a_max):
@@ -84,6 +98,7 @@ def main():
         return
     env = make_env("planar")
     oracle = Oracle()
+    plans = record_plans(oracle)
     v_max, a_max, j_max = oracle.limits(env)
     seeds = env.eval_seeds()[: args.n] if args.seeds == "eval" else env.train_seeds(args.n)
     rows, failures = [], []
@@ -97,21 +112,21 @@ def main():
             print(f"[{i + 1}/{len(seeds)}] seed {seed}: PLANNING FAILED ({e.reason})", flush=True)
             continue
         wall = time.perf_counter() - t0
-        plan = oracle.last_plan
+        plan, plan_time = plans[-1]
         duration = (len(plan.samples) - 1) * env.dt
         rows.append(dict(
             seed=seed, success=episode["success"], steps=len(episode["q"]), wall=wall,
-            plan_time=plan.planning_time, duration=duration,
-            path_ratio=duration / min_time_lower_bound(plan.path, v_max, a_max),
+            plan_time=plan_time, duration=duration,
+            path_ratio=duration / min_time_lower_bound(plan.samples, v_max, a_max),
             line_ratio=duration / min_time_lower_bound(plan.samples[[0, -1]], v_max, a_max),
-            traversal_ratio=duration / traversal_time(plan.path, v_max, a_max),
+            traversal_ratio=duration / traversal_time(plan.samples, v_max, a_max),
             limits=max(limit_ratios(plan.samples, v_max, a_max, j_max, env.dt))))
         if not episode["success"]:
             failures.append((seed, f"execution failed after {len(episode['q'])} steps "
                                    f"(collision or truncation at max_steps={env.max_steps})"))
         elapsed = time.perf_counter() - t_start
         print(f"[{i + 1}/{len(seeds)}] seed {seed}: success {episode['success']}, "
-              f"{len(episode['q'])} steps, plan {plan.planning_time:.2f} s, "
+              f"{len(episode['q'])} steps, plan {plan_time:.2f} s, "
               f"T/bound {rows[-1]['path_ratio']:.2f}, {elapsed:.0f} s elapsed, "
               f"~{elapsed / (i + 1) * (len(seeds) - i - 1):.0f} s left", flush=True)
     total = time.perf_counter() - t_start
@@ -137,10 +152,10 @@ def main():
     for seed, reason in failures:
         print(f"failure: seed {seed}: {reason}")
     if args.n_interventions:
-        bench_interventions(env, oracle, [r["seed"] for r in rows][: args.n_interventions])
+        bench_interventions(env, oracle, plans, [r["seed"] for r in rows][: args.n_interventions])
 
 
-def bench_interventions(env, oracle, seeds):
+def bench_interventions(env, oracle, plans, seeds):
     rng = np.random.default_rng(0)
     times, matched, lengths, collided, failed = [], [], [], 0, []
     for seed in seeds:
@@ -159,7 +174,7 @@ def bench_interventions(env, oracle, seeds):
             failed.append((seed, e.reason))
             continue
         times.append(time.perf_counter() - t0)
-        matched.append(oracle.last_plan.velocity_matched)
+        matched.append(plans[-1][0].velocity_matched)
         lengths.append(len(actions))
         for a in actions:
             _, _, terminated, _, info = env.step(a)
@@ -253,6 +268,7 @@ def compare(rev, n_planar, n_3d):
             for label, module in oracles.items():
                 # the compared commit's own oracle, at its defaults
                 expert = module.Oracle(module.OracleConfig())
+                plans = record_plans(expert)
                 counts = count_planning_checks(env, expert)
                 del step_collisions[:]
                 try:
@@ -264,7 +280,7 @@ def compare(rev, n_planar, n_3d):
                 visited = np.concatenate([episode["q"], episode["action"][-1:]])
                 rows[label].append(dict(
                     success=episode["success"], planned=True,
-                    time=expert.last_plan.planning_time, steps=len(episode["q"]),
+                    time=plans[-1][1], steps=len(episode["q"]),
                     configs=counts["configs"], calls=counts["calls"],
                     dense=dense_collides(env, visited), simulator=any(step_collisions)))
                 r = rows[label][-1]

@@ -390,32 +390,3 @@ def test_render_draws_the_camera_image(scene_env):
     scene_env.render(ax, q=np.stack([scene_env.witness, scene_env.q]))  # a batch: the first configuration
     assert len(ax.images) == 1 and ax.images[0].get_array().shape == (360, 480, 3)
     plt.close(fig)
-
-
-# ---- bad input -----------------------------------------------------------------------------------
-def test_bad_input_raises_value_error(scene_env):
-    with pytest.raises(ValueError, match="shape"):
-        scene_env.step(np.zeros(3))
-    with pytest.raises(ValueError, match="finite"):
-        scene_env.step(np.full(6, np.nan))
-    with pytest.raises(ValueError, match="NaN"):
-        scene_env.in_collision(np.full((2, 6), np.inf))
-    with pytest.raises(ValueError, match="margin"):
-        scene_env.in_collision(np.zeros(6), margin=-0.1)
-    with pytest.raises(ValueError, match="seed"):
-        scene_env.reset(seed=-1)
-    with pytest.raises(ValueError, match="shape"):
-        scene_env.fk(np.zeros((2, 5)))
-    with pytest.raises(ValueError, match="n_max_obstacles"):
-        EngineReach3D().set_scene(np.ones((21, 7)))
-    with pytest.raises(ValueError, match="kinds"):
-        EngineReach3D().set_scene(np.ones((1, 7)), kinds=["wall"])
-    with pytest.raises(ValueError, match="link_radii"):
-        EngineReach3D(EngineConfig(link_radii=(0.1,) * 7))
-    with pytest.raises(ValueError, match="before reset"):
-        EngineReach3D().step(np.zeros(6))
-    closed = EngineReach3D()
-    closed.reset(seed=10_000)
-    closed.close()
-    with pytest.raises(ValueError, match="before reset"):
-        closed.step(closed.q)

@@ -56,8 +56,6 @@ def test_seed_ranges_are_disjoint():
     tr = e.train_seeds(10_000)
     assert not set(tr) & set(ev)
     assert e.train_seeds(3, start=5) == [5, 6, 7]
-    with pytest.raises(ValueError, match="train_seeds"):
-        e.train_seeds(10, start=9_995)
     assert envs.eval_seeds() == ev and envs.train_seeds(2) == [0, 1]
 
 
@@ -325,24 +323,6 @@ def test_step_checks_states_inside_the_step():
     assert info["collision"] and terminated
 
 
-def test_bad_input_raises(env):
-    env.reset(seed=10_000)
-    for bad, word in [(np.array([np.nan, 0, 0]), "finite"), (np.array([0, np.inf, 0]), "finite"),
-                      (np.zeros(2), "shape"), (np.zeros((1, 3)), "shape")]:
-        with pytest.raises(ValueError, match=word):
-            env.step(bad)
-    with pytest.raises(ValueError, match="shape"):
-        env.in_collision(np.zeros((5, 2)))
-    with pytest.raises(ValueError, match="finite"):
-        env.set_state(np.array([0, np.nan, 0]))
-    with pytest.raises(ValueError, match="joint limits"):
-        env.set_state(np.array([0, 3.5, 0]))
-    with pytest.raises(ValueError, match="unknown environment"):
-        make_env("nope")
-    with pytest.raises(ValueError, match="seed"):
-        env.reset(seed=-1)
-
-
 def test_make_obs_layout(env):
     env.reset(seed=10_001)
     q, q_prev = np.array([0.1, 0.2, 0.3]), np.array([0.4, 0.5, 0.6])
@@ -457,8 +437,6 @@ def test_median_step_ignores_zero_motion():
     q = np.array([[0, 0, 0], [0.1, 0, 0.2], [0.1, 0, 0.5], [0.1, 0, 0.5]], dtype=float)
     # nonzero |diffs|: 0.1, 0.2, 0.3 -> median 0.2
     assert median_step([{"q": q}]) == pytest.approx(0.2)
-    with pytest.raises(ValueError):
-        median_step([{"q": np.zeros((4, 3))}])
 
 
 # ---- scene construction and drawing --------------------------------------------------------------
@@ -495,17 +473,11 @@ def test_shoulder_check_rejects_a_walled_in_start():
     assert e._shoulder_can_reach(np.array([math.pi - 0.3, 0.0, 0.0]), goal_qs)
 
 
-def test_set_scene_validates_and_feeds_both_checks():
+def test_set_scene_feeds_both_checks():
     e = PlanarReacher()
-    with pytest.raises(ValueError, match="n_obstacles"):
-        e.set_scene(np.ones((e.cfg.n_obstacles + 1, 5)))
-    with pytest.raises(ValueError, match="half extents"):
-        e.set_scene([[0, 0, -0.1, 0.1, 0.0]])
     e.set_scene([[0.15, 0.0, 0.035, 0.035, 0.0]], goal=[0.0, 0.5])
     np.testing.assert_array_equal(e.goal, [0.0, 0.5])
     assert e.in_collision(np.zeros(3)) and e.pymunk_in_collision(np.zeros(3))
-    with pytest.raises(ValueError, match="before reset"):
-        e.step(np.zeros(3))
 
 
 def test_render_draws_scene_and_arms():

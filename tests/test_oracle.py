@@ -158,7 +158,7 @@ def test_rrt_connect_fails_cleanly_on_a_closed_ring():
     with pytest.raises(PlanningFailed) as info:
         rrt_connect(np.array([-1.0, -1.0]), np.array([[1.0, 1.0]]), ring, LIMITS_2D,
                     np.random.default_rng(0), resolution=0.02, max_iters=50)
-    assert info.value.iters == 50
+    assert "max_iters=50" in info.value.reason
     # and the time budget ends it even with an enormous iteration budget
     t0 = time.perf_counter()
     with pytest.raises(PlanningFailed, match="time budget"):
@@ -384,6 +384,8 @@ def test_gate_triggers_on_collision_and_stall_not_on_safe_progress(env, demo):
 
 def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
     oracle_ = make_oracle()
+    plans = []  # the Plans the interventions make
+    oracle_.plan = lambda *args, plan=oracle_.plan: plans.append(plan(*args)) or plans[-1]
     t = 20  # mid-motion: the expert moves at speed here
     env.reset(seed=demo["seed"])
     env.set_state(demo["q"][t], demo["q"][t - 1])
@@ -408,7 +410,7 @@ def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
         if terminated:
             break
     lo, hi = oracle_.cfg.handback_steps  # the authors' random hand-back (PAPER_SETUP.md §3) ...
-    assert lo <= len(actions) <= hi or len(actions) == len(oracle_.last_plan.samples) - 1  # ... or the whole plan
+    assert lo <= len(actions) <= hi or len(actions) == len(plans[-1].samples) - 1  # ... or the whole plan
 
 
 def test_gate_looks_gate_lookahead_steps_ahead_at_gate_clearance(env):
@@ -506,13 +508,6 @@ def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_ind
     assert not path_in_collision(path, clear, dense)
     path = smooth_corners(path, collides, resolution)
     assert not path_in_collision(path, clear, dense)
-
-
-def test_oracle_rejects_margins_that_break_the_edge_validation_argument():
-    with pytest.raises(ValueError, match="margin > verify_margin"):
-        make_oracle(margin=0.5)  # checks 0 apart
-    with pytest.raises(ValueError, match="verify_margin"):
-        make_oracle(verify_margin=0.25)  # grazes between verification checks
 
 
 def test_plot_demonstration_writes_png(env, demo, tmp_path):
