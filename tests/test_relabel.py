@@ -316,6 +316,29 @@ def perturb(episode, sigma, rng, n, env, t_index=None, median_step=None, max_tri
     return q_tilde[kept], t[kept]
 
 
+def test_perturb_states_draws_q_plus_L_z_and_redraws_only_the_rejected_rows():
+    """Fails if perturb_states' draw is not q_t + L_t z with z the generator's next standard normals, row by
+    row (e.g. q_t - L z, Lᵀ z, or z drawn for every row again in a redraw round): the run's states, bit for bit."""
+    q_t = smooth_trajectory()[[10, 20, 30]]
+    factors = covariance_factor(np.stack([np.diag([1e-4, 4e-4, 1e-6]), np.full((DOF, DOF), 1e-4),
+                                          np.diag([9e-4, 1e-6, 1e-4]) + 5e-5]))
+    first = np.random.default_rng(0).standard_normal((3, DOF))
+    free = FakeEnv()
+    free.reset(seed=0)
+    q, kept = perturb_states(q_t, factors, np.random.default_rng(0), free)
+    np.testing.assert_array_equal(q, q_t + np.einsum("mij,mj->mi", factors, first))
+    assert kept.all()
+    # the middle state's first draw collides; the next round draws for that row alone
+    env = FakeEnv(radius=1e-3, center_fn=lambda seed: q[1])
+    env.reset(seed=0)
+    q2, kept = perturb_states(q_t, factors, np.random.default_rng(0), env)
+    gen = np.random.default_rng(0)
+    gen.standard_normal((3, DOF))
+    np.testing.assert_array_equal(q2[[0, 2]], q[[0, 2]])
+    np.testing.assert_array_equal(q2[1], q_t[1] + np.einsum("mij,mj->mi", factors[1:2], gen.standard_normal((1, DOF)))[0])
+    assert kept.all()
+
+
 def test_isotropic_sigma_has_the_right_std_in_median_steps():
     ep = make_episode()
     rng = np.random.default_rng(2)
