@@ -38,19 +38,18 @@ from partial_denoise import noise_fraction, partial_denoise
 
 @dataclass
 class CalibrationConfig:
-    """Sec. IV-D as the authors ran it (PAPER_SETUP.md §5), their 30 Hz frames converted to our 10 Hz steps
-    (a third as many)."""
-    n_act: int                           # steps executed per decision, and compared in Eq. (1) (authors: 32 frames)
-    n_samples: int = 4                   # policy chunks sampled per step for Eq. (1) (authors: 4 per anchor)
+    """Sec. IV-D as the authors ran it (PAPER_SETUP.md §5), in our 10 Hz steps."""
+    n_act: int                           # steps executed per decision, and compared in Eq. (1)
+    n_samples: int = 4                   # policy chunks sampled per step for Eq. (1)
     stride: int = 2                      # steps: Sigma_hat_t at every other valid step (Fig. 2a)
     betas: tuple = tuple(float(b) for b in np.linspace(0.05, 0.90, 13))  # 13 ratios in [0.05, 0.90], once each
-    settle_window: int = 16              # steps searched for the nearest expert state (authors: 48 frames)
+    settle_window: int = 16              # steps searched for the nearest expert state
     settle_start: int = 13               # steps: settling error = RMS over steps [settle_start, settle_end] of
-    settle_end: int = 40                 # a rollout, after the transient (authors: frames 40-120)
-    diverge_threshold: float = 15.0      # the paper's median steps (authors: 15): a rollout that gets this far
-                                         # from the expert's states has diverged and is discarded
-    min_rollout_steps: int = 20          # steps: shorter rollouts are discarded (authors: 60 frames)
-    min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit (authors: 3)
+    settle_end: int = 40                 # a rollout, after the transient
+    diverge_threshold: float = 15.0      # the paper's median steps: a rollout that gets this far from the
+                                         # expert's states has diverged and is discarded
+    min_rollout_steps: int = 20          # steps: shorter rollouts are discarded
+    min_survivors: int = 3               # a ratio with fewer kept rollouts is left out of the fit
     W_bounds: tuple = (1.0, 60.0)        # the paper's median steps: the fitted W's range (authors' bounds)
     r_bounds: tuple = (1e-3, 1e2)        # the gain ratio r = K*/K_theta's range (authors' bounds on R)
     bootstrap: int = 200                 # resamples of the kept rollouts for W's 95 % interval (authors' code)
@@ -59,8 +58,7 @@ class CalibrationConfig:
 
 
 def diverge_radius(threshold: float, median_step: float, paper_median_step: float | None) -> float:
-    """Radians: `threshold` of the paper's median steps (15 * 0.0176 = 0.264 rad planar; PAPER_SETUP.md §5);
-    for an env without a paper unit, of ours."""
+    """Radians: `threshold` of the paper's median steps (PAPER_SETUP.md §5); for an env without one, of ours."""
     return threshold * (median_step if paper_median_step is None else paper_median_step)
 
 
@@ -74,13 +72,7 @@ def other_units(rad, paper_median_step: float | None, digits: int = 2) -> str:
     return text
 
 
-# ---- The expert data: segments, label steps, the expert's chunk (the label rule of diffusion.py) -----------
-
-def expert_segments(episode: dict, horizon: int) -> list[tuple[int, int]]:
-    """The expert runs [start, end) of >= `horizon` steps (diffusion.expert_runs): a demonstration gives
-    one, an intervention episode one per long enough intervention."""
-    return expert_runs(episode["expert"], horizon)
-
+# ---- The expert's chunk (segments and label steps: the label rule diffusion.expert_runs / label_mask) -------
 
 def expert_chunk(actions: np.ndarray, t: int, horizon: int, end: int | None = None) -> np.ndarray:
     """actions[t:t+H], actions at or past `end` (default: the episode end) replaced by the last one before
@@ -117,7 +109,7 @@ def open_loop_sigma(policy, episodes: list[dict], stride: int, n_samples: int,
     for e, ep in enumerate(episodes):
         starts = np.flatnonzero(label_mask(ep["expert"], H))                  # steps with a valid expert label
         actions = np.asarray(ep["action"], dtype=np.float64)
-        for start, end in expert_segments(ep, H):
+        for start, end in expert_runs(ep["expert"], H):
             for t in starts[(starts >= start) & (starts < end)][::stride]:   # every other step
                 obs_rows.append(ep["obs"][t])
                 chunks.append(expert_chunk(actions, int(t), H, end))
@@ -151,10 +143,9 @@ def blend_schedule(episodes: list[dict], horizon: int, cfg: CalibrationConfig) -
     """The blend rollouts: ratios (B,) and their (episode index, segment). Every ratio of cfg.betas starts
     one rollout from each expert segment long enough to be kept (>= min_rollout_steps; the authors: one per
     source intervention); if none is, from the longest (too short: the fit falls back, and says so)."""
-    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_segments(ep, horizon)]
+    segs = [(e, seg) for e, ep in enumerate(episodes) for seg in expert_runs(ep["expert"], horizon)]
     segs = sorted(segs, key=lambda item: (-(item[1][1] - item[1][0]), item[0], item[1][0]))   # longest first
-    if not segs:
-        raise ValueError(f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend")
+    assert segs, f"no expert segment of >= {horizon} steps in {len(episodes)} episodes: nothing to blend"
     segs = [item for item in segs if item[1][1] - item[1][0] >= cfg.min_rollout_steps] or segs[:1]
     jobs = [(beta, seg) for beta in cfg.betas for seg in segs]
     return np.array([b for b, _ in jobs], dtype=np.float64), [seg for _, seg in jobs]
@@ -198,15 +189,11 @@ def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas,
     not checked: benchmarks/README.md, the estimator now.
     """
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    if len(betas) == 0 or np.any(~np.isfinite(betas)) or np.any((betas < 0) | (betas > 1)):
-        raise ValueError(f"betas must be a non-empty list of ratios in [0, 1], got {betas}")
     H, n_act, B = int(policy.cfg.horizon), cfg.n_act, len(jobs)
     refs = []                                         # (n + 1, dof) each: the expert states a cursor moves on
     for episode, (start, end) in jobs:
         q_exp = np.asarray(episode["q"], dtype=np.float64)
         n = min(end, len(q_exp) - 1) - start          # the last recorded state is q[T - 1]
-        if n < 1:
-            raise ValueError(f"segment {(start, end)} of an episode of {len(q_exp)} steps is too short to roll out")
         refs.append(q_exp[start:start + n + 1])
     n_steps = np.array([len(r) - 1 for r in refs], dtype=np.int64)
     L = int(n_steps.max())
@@ -229,10 +216,8 @@ def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas,
     recorded = np.stack([np.asarray(ep["obs"][start], dtype=np.float32) for ep, (start, _) in jobs])
     wrong = np.flatnonzero(~np.isclose(obs, recorded, atol=1e-4).all(axis=1))
     if len(wrong):
-        b = wrong[0]
-        raise ValueError(f"the env's scenario for seed {seeds[b]} does not reproduce the recorded observation "
-                         f"at step {jobs[b][1][0]}: the episode was recorded with another env version or config; "
-                         "re-record it")
+        raise ValueError(f"the env's scenario for seed {seeds[wrong[0]]} does not reproduce the recorded observation "
+                         f"at step {jobs[wrong[0]][1][0]}: the episode was recorded with another env; re-record it")
     for t in range(0, L, n_act):
         rows = np.flatnonzero(n_steps > t)                                   # the live rollouts
         # the expert chunk from where the cursor is on the segment (not from step start + t)
@@ -352,12 +337,8 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), n_grid: int = 241) -> E
     ||x|| = ||W|| g(s), Eq. 12 again; Eq. 14 needs only ||W||^2)."""
     s = np.asarray(s, dtype=np.float64).reshape(-1)
     x = np.asarray(x, dtype=np.float64).reshape(-1)
-    if s.shape != x.shape:
-        raise ValueError(f"s and x must have the same length, got {s.shape} and {x.shape}")
     ok = np.isfinite(s) & np.isfinite(x)
     s, x = s[ok], x[ok]
-    if np.any((s < 0) | (s > 1)):
-        raise ValueError(f"s = sigma^2_k_sw must lie in [0, 1], got {s}")
     if len(s) < 3 or len(np.unique(s[s > 0])) < 2:
         raise ValueError(f"fit_equilibrium needs >= 3 finite points with >= 2 distinct s > 0, "
                          f"got {len(s)} points with s = {np.round(s, 4).tolist()}")
@@ -438,19 +419,14 @@ def dart_sigma(sigma_hat: np.ndarray, alpha: float, T: int) -> np.ndarray:
 
 def calibrated_sigma(sigma_hat: np.ndarray, W) -> np.ndarray:
     """Eq. (14): Sigma^alpha_t = ||W||^2 / tr(Sigma_hat_t) Sigma_hat_t, for a (..., d, d) stack: Eq. (2) with
-    alpha from Eq. (13) (T cancels); W the scalar norm or a vector. A step with tr(Sigma_hat_t) = 0 has no
+    alpha from Eq. (13), T cancels; W the scalar norm or a vector. A step with tr(Sigma_hat_t) = 0 has no
     direction to keep: it gets ||W||^2 / d I (the same trace)."""
     sigma_hat = np.asarray(sigma_hat, dtype=np.float64)
-    if sigma_hat.ndim < 2 or sigma_hat.shape[-1] != sigma_hat.shape[-2]:
-        raise ValueError(f"sigma_hat must be a (..., d, d) stack of covariances, got shape {sigma_hat.shape}")
     # >>> exercise 7: Sigma^alpha_t and the pooled Sigma_bar^alpha (Eqs. 2, 13-16)
-    w2 = float(np.sum(np.square(W)))
     d = sigma_hat.shape[-1]
-    tr = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None]             # (..., 1, 1)
-    zero = tr <= 1e-300
-    # Eq. (14): ||W||^2 / tr(Sigma_hat) * Sigma_hat
-    scaled = w2 / np.where(zero, 1.0, tr) * sigma_hat
-    return np.where(zero, w2 / d * np.eye(d), scaled)
+    zero = np.trace(sigma_hat, axis1=-2, axis2=-1)[..., None, None] <= 1e-300   # (..., 1, 1)
+    # Eq. (14): Eq. (2) with alpha = T ||W||^2 (Eq. 13); T cancels, so T = 1
+    return dart_sigma(np.where(zero, np.eye(d), sigma_hat), dart_alpha(W, 1), 1)
     # <<< exercise 7
 
 
@@ -472,8 +448,6 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
     """Sec. IV-D for one round on its intervention episodes (median_step in rad; log: an optional callable(str)).
     Without a fit (fewer than 3 ratios with min_survivors kept rollouts) W falls back to the open-loop error,
     ||W||^2 = tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says "FALLBACK"."""
-    if not median_step > 0:
-        raise ValueError(f"median_step must be > 0 (radians), got {median_step}")
     paper_unit = envs.paper_median_step(env)                                 # rad, or None
     say = log or (lambda msg: None)
 
@@ -491,7 +465,8 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
     say(f"{int(kept.sum())} of {len(kept)} blended rollouts kept; {int(cells.fitted.sum())} of {len(cells.s)} "
         f"ratios with >= {cfg.min_survivors} of them; fitting W")
 
-    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages (least squares, as the authors' curve_fit); W held within the authors' bounds, in radians (W is x extrapolated to s = 1)
+    # Step 3 (Fig. 4): fit Eq. (12) on the ratios' averages (least squares, as the authors' curve_fit); W (x
+    # extrapolated to s = 1) held within the authors' bounds, in radians
     unit = median_step if paper_unit is None else paper_unit
     W_range = (cfg.W_bounds[0] * unit, cfg.W_bounds[1] * unit)
     try:
@@ -548,8 +523,6 @@ class Calibration:
 
 def sigma_in_median_steps(sigma: np.ndarray, median_step: float) -> np.ndarray:
     """Per-joint standard deviation sqrt(diag Sigma) in units of the median per-step displacement."""
-    if not median_step > 0:
-        raise ValueError(f"median_step must be > 0, got {median_step}")
     return np.sqrt(np.diagonal(np.asarray(sigma, dtype=np.float64), axis1=-2, axis2=-1)) / median_step
 
 
@@ -570,13 +543,11 @@ def plot_method_overview(env, episode: dict, calibration: Calibration, policy, p
     blended rollouts at `betas`, both with the policy's n_act. Covariances are 2-sigma ellipses of
     J Sigma J^T at the end effector (env.draw_noise_ellipses); a 3-D env in top view (x, y), with its goal.
     """
-    if env.dim not in (2, 3):
-        raise ValueError(f"plot_method_overview draws a 2-D or 3-D workspace, got dim = {env.dim}")
     plt, c, planar = _pyplot(), calibration, env.dim == 2
     env.reset(seed=int(episode["seed"]))
     cfg = CalibrationConfig(n_samples=n_samples, n_act=int(policy.cfg.n_act), stride=stride)
     q_exp = np.asarray(episode["q"], dtype=np.float64)
-    start, end = max(expert_segments(episode, int(policy.cfg.horizon)), key=lambda se: se[1] - se[0])
+    start, end = max(expert_runs(episode["expert"], int(policy.cfg.horizon)), key=lambda se: se[1] - se[0])
     # Eq. (1) on that segment alone, then the blended rollouts from its first state
     t = np.arange(len(episode["expert"]))
     segment = dict(episode, expert=(t >= start) & (t < end))

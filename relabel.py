@@ -32,35 +32,28 @@ class RelabelConfig:
     label: str = "servo"  # 'servo': `servo_return_chunk` (the authors', every profile's); 'pd': `pd_return_chunk`
     settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (label='pd')
     velocity_noise: float = 0.3  # the authors' median steps per 30 Hz frame: std of the velocity noise
-    # the servo's knobs: the authors' per-frame values taken per 10 Hz step with their median step m' = m/3
-    #   (benchmarks/README.md, "The relabel servo's floors in the authors' unit")
+    # the servo's knobs: the authors' values (PAPER_SETUP.md §6) per 10 Hz step, in our median steps m
     a_clamp_scale: float = 0.9  # a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
-    accel_floor: float = 0.6  # median steps/step²: theirs 0.2 m'/frame²
-    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m); theirs 4 m'
-    jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= 1.5 a_clamp per step (theirs 0.5 per frame, 3 frames)
-    speed_cap: float = 1.68  # median steps/step: ‖v‖ <= max(1.68 m, speed_cap_v0 ‖v0‖) (theirs 1.4 · 1.2 m')
+    accel_floor: float = 0.6  # median steps/step²
+    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m)
+    jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= 1.5 a_clamp per step
+    speed_cap: float = 1.68  # median steps/step: ‖v‖ <= max(1.68 m, speed_cap_v0 ‖v0‖)
     speed_cap_v0: float = 1.05  # unit-free: the 1.05 · ‖v0‖ part
-    cursor_advance: int = 3  # trajectory indices per step the servo's cursor may advance (theirs 3 m' per frame)
+    cursor_advance: int = 3  # trajectory indices per step the servo's cursor may advance
     hold_tol: float = 0.02  # median steps/step: slower steps at the segment end are held (out of the loss)
-    min_moving_steps: int = 3  # steps: a label with fewer in the loss is redrawn (theirs 8 frames)
-    near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn (theirs 8 frames)
-    max_redraws: int = 6  # redraws (theirs 6), then the state is dropped
+    min_moving_steps: int = 3  # steps: a label with fewer in the loss is redrawn
+    near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn
+    max_redraws: int = 6  # redraws, then the state is dropped
     # ours
     projection_window: int = 32  # steps the projection looks past t (2H of path >> Table I's 16 median steps)
     max_tries: int = 10  # rejection rounds for a noised state in collision / off limits, then it is dropped
     pool_size: int = 4096  # pairs: AugmentationSampler's pool
     refresh_size: int = 512  # pairs made per refresh, replacing the oldest
-    reuse: float = 4.0  # times a pair is served on average, for ~1 ms a call (bench_relabel.py)
+    reuse: float = 4.0  # times a pair is served on average (bench_relabel.py)
     episodes_per_refresh: int = 16  # episodes a refresh draws from, so env calls are batched per scenario
 
     def __post_init__(self):
-        if not isinstance(self.horizon, (int, np.integer)) or self.horizon < 1:
-            raise ValueError(f"RelabelConfig.horizon must be a positive integer, got {self.horizon!r}")
-        if self.label not in ("servo", "pd"):
-            raise ValueError(f"RelabelConfig.label must be 'servo' or 'pd', got {self.label!r}")
-        if self.refresh_size < 1 or self.pool_size < self.refresh_size or not self.reuse > 0:
-            raise ValueError("need 1 <= refresh_size <= pool_size and reuse > 0, got refresh_size="
-                             f"{self.refresh_size}, pool_size={self.pool_size}, reuse={self.reuse}")
+        assert self.label in ("servo", "pd"), f"RelabelConfig.label: 'servo' or 'pd', not {self.label!r}"
 
 
 # ---- 1. Demonstration statistics (Sec. IV-E: "the demonstration dataset's velocity and acceleration statistics")
@@ -81,39 +74,17 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step,
     """Statistics of the base demonstrations D0 that shape the labels. `median_step` is `envs.median_step`;
     `max_step` the env's per-step joint speed limit (scalar or (dof,)). The acceleration clamp is the 99th
     percentile of |q[t+1] - 2 q[t] + q[t-1]| per joint (not the max: one odd step does not set every clamp)."""
-    if not np.isfinite(median_step) or median_step <= 0:
-        raise ValueError(f"median_step must be a finite positive number (rad), got {median_step!r}")
     qs = [np.asarray(ep["q"], dtype=np.float64) for ep in episodes]  # (T, dof) each
-    accels = [np.abs(q[2:] - 2 * q[1:-1] + q[:-2]) for q in qs if len(q) >= 3]  # second differences, rad/step²
-    if not accels:
-        raise ValueError("demo_stats needs at least one episode with >= 3 steps to measure accelerations")
-    accels = np.concatenate(accels)  # (sum T-2, dof)
-    accel_max = np.percentile(accels, 99.0, axis=0)  # (dof,)
+    accels = np.concatenate([np.abs(q[2:] - 2 * q[1:-1] + q[:-2]) for q in qs if len(q) >= 3])  # (sum T-2, dof)
+    accel_max = np.percentile(accels, 99.0, axis=0)  # (dof,) rad/step²
     acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # the authors': norm over joints
-    if np.any(accel_max <= 0):
-        raise ValueError("the demonstrations show no acceleration on joints "
-                         f"{np.flatnonzero(accel_max <= 0).tolist()}; "
-                         "the PD return could never move them (accel clamp would be 0)")
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), accel_max.shape).copy()
-    if np.any(~np.isfinite(max_step)) or np.any(max_step <= 0):
-        raise ValueError(f"max_step must be positive and finite (rad/step), got {max_step}")
     return DemoStats(float(median_step), accel_max, max_step, acc_p95,
                      None if paper_median_step is None else float(paper_median_step),
                      None if frames_per_step is None else float(frames_per_step))
 
 
 # ---- 2. Noised states around the intervention data (Sec. IV-A step 3; Σ^α from calibrate.py)
-
-def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-    """Steps t whose chunk is a valid label (diffusion.label_mask, the paper's label rule), and seg_end (N,):
-    the end (exclusive) of the expert run containing t -- the part of the trajectory labels may follow."""
-    expert = np.asarray(expert, dtype=bool)
-    seg_end = np.zeros(len(expert), dtype=np.int64)
-    for start, end in expert_runs(expert, horizon):
-        seg_end[start:end] = end
-    t = np.flatnonzero(label_mask(expert, horizon))
-    return t, seg_end[t]
-
 
 def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None = None) -> np.ndarray:
     """Noise factors L_t (len(steps), dof, dof), L Lᵀ = Σ_t, at the timesteps `steps` of one episode. The
@@ -125,12 +96,7 @@ def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None 
     """
     steps = np.asarray(steps, dtype=np.int64)
     if isinstance(sigma, tuple):  # per_step
-        if len(sigma) != 2:
-            raise ValueError("per-step sigma must be a pair (timesteps (M,), covs (M, dof, dof))")
         measured_t, covs = np.asarray(sigma[0], dtype=np.int64), np.asarray(sigma[1], dtype=np.float64)
-        if covs.ndim != 3 or covs.shape[1:] != (dof, dof) or measured_t.shape != (len(covs),) or len(covs) == 0:
-            raise ValueError(f"per-step sigma must be timesteps (M,) with covs (M, {dof}, {dof}), M >= 1; "
-                             f"got timesteps {measured_t.shape} and covs {covs.shape}")
         order = np.argsort(measured_t, kind="stable")
         measured_t, covs = measured_t[order], covs[order]
         right = np.clip(np.searchsorted(measured_t, steps), 0, len(measured_t) - 1)
@@ -139,82 +105,35 @@ def noise_factors(sigma, steps: np.ndarray, dof: int, median_step: float | None 
         return covariance_factor(covs)[nearest]
     s = np.asarray(sigma, dtype=np.float64)
     if s.ndim == 0:  # isotropic baseline: L = σ m I
-        if not np.isfinite(s) or s < 0:
-            raise ValueError(f"isotropic sigma must be a finite number >= 0 (in median steps), got {sigma!r}")
-        if median_step is None or not np.isfinite(median_step) or median_step <= 0:
-            raise ValueError(f"isotropic sigma needs a finite positive median_step (rad), got {median_step!r}")
         return np.broadcast_to(float(s) * median_step * np.eye(dof), (len(steps), dof, dof))
-    if s.shape == (dof, dof):  # pooled
-        return np.broadcast_to(covariance_factor(s), (len(steps), dof, dof))
-    raise ValueError(f"sigma must be a scalar (isotropic), ({dof}, {dof}) (pooled) or (timesteps, covs) "
-                     f"(per-step); got shape {s.shape}")
+    assert s.shape == (dof, dof), f"pooled sigma: ({dof}, {dof}), not {s.shape}"
+    return np.broadcast_to(covariance_factor(s), (len(steps), dof, dof))
 
 
 def covariance_factor(cov: np.ndarray) -> np.ndarray:
     """L with L Lᵀ = Σ for covariances (..., dof, dof): an eigendecomposition, not a Cholesky, since Σ̂ from a
     handful of policy samples is often (near-)singular. Eigenvalues negative only by round-off are set to 0."""
     cov = np.asarray(cov, dtype=np.float64)
-    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2] or not np.all(np.isfinite(cov)):
-        raise ValueError(f"a covariance must be finite (no NaN or inf) and (..., dof, dof), got shape {cov.shape}")
-    scale = float(np.abs(cov).max(initial=0.0))  # relative tolerances: covariances are ~1e-4 rad²
-    if np.abs(cov - np.swapaxes(cov, -1, -2)).max(initial=0.0) > 1e-8 * scale:
-        raise ValueError("covariance is not symmetric; valid covariances satisfy Σ = Σᵀ")
     w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    tol = 1e-9 * np.maximum(np.abs(w).max(axis=-1, keepdims=True), 1e-300)
-    if np.any(w < -tol):
-        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue {w.min():.3g}); "
-                         "valid covariances have eigenvalues >= 0")
     return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]  # (..., dof, dof): columns scaled
 
 
-def perturb_states(episode: dict, sigma, rng: np.random.Generator, n: int, env, horizon: int, t_index=None,
-                   median_step: float | None = None, max_tries: int = RelabelConfig.max_tries):
-    """Draw n noised joint states q̃ ~ N(q_t, Σ_t) around the intervention states of `episode` (Sec. IV-A step 3).
-    sigma: see `noise_factors`. t_index: None -> t uniform over the steps with a valid label of H = `horizon`
-    (`label_steps`); an int -> all n around that step; an array (n,) -> one state around each given step.
-    Returns (q̃ (m, dof), t (m,)), m <= n: states still in collision or off limits after `max_tries` are dropped."""
-    q, expert = _episode_arrays(episode)
-    if not isinstance(n, (int, np.integer)) or n < 0:
-        raise ValueError(f"n must be an integer >= 0, got {n!r}")
-    if t_index is None:
-        valid_t, _ = label_steps(expert, horizon)
-        if valid_t.size == 0:
-            raise ValueError(f"episode has no intervention step with a valid label (expert runs >= H={horizon})")
-        t = rng.choice(valid_t, size=n)
-    else:
-        t = np.broadcast_to(np.asarray(t_index, dtype=np.int64), (n,)).copy()
-        if t.size and (t.min() < 0 or t.max() >= len(q)):
-            raise ValueError(f"t_index must be in [0, {len(q)}), got range [{t.min()}, {t.max()}]")
-    factors = noise_factors(sigma, t, q.shape[1], median_step=median_step)
-    env.reset(seed=int(episode["seed"]))
-    q_tilde, kept = _draw_valid(q[t], np.asarray(factors), rng, env, max_tries)
-    return q_tilde[kept], t[kept]
-
-
-def _episode_arrays(episode: dict) -> tuple[np.ndarray, np.ndarray]:
-    """(q (T, dof) float64, expert (T,) bool) of an episode, checked."""
-    missing = [key for key in ("q", "expert", "seed") if key not in episode]
-    if missing:
-        raise ValueError(f"episode is missing '{missing[0]}'; an episode has 'obs', 'q', 'action', 'expert', 'seed'")
-    q, expert = np.asarray(episode["q"], dtype=np.float64), np.asarray(episode["expert"], dtype=bool)
-    if q.ndim != 2 or len(q) == 0 or expert.shape != (len(q),):
-        raise ValueError(f"an episode needs q (T, dof) with T >= 1 and expert (T,); got {q.shape} and {expert.shape}")
-    return q, expert
-
-
-def _draw_valid(center: np.ndarray, factors: np.ndarray, rng: np.random.Generator, env, max_tries: int):
-    """q̃ = q_t + L z, z ~ N(0, I), so q̃ ~ N(q_t, L Lᵀ), per row; rows in collision or off the joint limits
-    are redrawn up to `max_tries` rounds (rejecting, not clipping, keeps the states Gaussian-shaped instead
-    of piling mass onto the limit). Returns (q̃ (m, dof), kept (m,) bool)."""
+def perturb_states(q_t: np.ndarray, factors: np.ndarray, rng: np.random.Generator, env,
+                   max_tries: int = RelabelConfig.max_tries) -> tuple[np.ndarray, np.ndarray]:
+    """Sec. IV-A step 3: noised states q̃ ~ N(q_t, Σ_t) around intervention states q_t (m, dof), drawn as
+    q̃ = q_t + L_t z, z ~ N(0, I), with the factors L_t (m, dof, dof) of `noise_factors`. Rows in collision
+    or off the joint limits of `env` (reset to the states' scenario) are redrawn up to `max_tries` rounds:
+    rejecting, not clipping, keeps the states Gaussian-shaped instead of piling mass onto the limit.
+    Returns (q̃ (m, dof), kept (m,) bool); a row not kept after `max_tries` rounds is to be dropped."""
     lo, hi = (np.asarray(b, dtype=np.float64) for b in env.joint_limits)
-    q = center.copy()
-    kept = np.zeros(len(center), dtype=bool)
-    todo = np.arange(len(center))
+    q = q_t.copy()
+    kept = np.zeros(len(q_t), dtype=bool)
+    todo = np.arange(len(q_t))
     for _ in range(max_tries):
         if todo.size == 0:
             break
-        z = rng.standard_normal((todo.size, center.shape[1]))
-        cand = center[todo] + np.einsum("mij,mj->mi", factors[todo], z)  # (m, dof)
+        z = rng.standard_normal((todo.size, q_t.shape[1]))
+        cand = q_t[todo] + np.einsum("mij,mj->mi", factors[todo], z)  # (m, dof)
         ok = np.all((cand >= lo) & (cand <= hi), axis=-1)  # inside the joint limits
         if ok.any():
             ok[ok] = ~np.asarray(env.in_collision(cand[ok]), dtype=bool)
@@ -236,16 +155,12 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
     q = np.asarray(q, dtype=np.float64)
     single = q.ndim == 1
     q = np.atleast_2d(q)  # (B, dof)
-    if trajectory.ndim != 2 or len(trajectory) == 0 or q.shape[1] != trajectory.shape[1]:
-        raise ValueError(f"trajectory must be (T>=1, dof) matching q (B, dof); got {trajectory.shape} and {q.shape}")
     B, T = len(q), len(trajectory)
     t_start = np.broadcast_to(np.asarray(t_start, dtype=np.int64), (B,))
     t_end = np.broadcast_to(np.asarray(T if t_end is None else t_end, dtype=np.int64), (B,))
     if B and (np.any(t_end > T) or np.any(t_start < 0) or np.any(t_start >= t_end)):
         raise ValueError(f"need 0 <= t_start < t_end <= T={T}; got t_start in [{t_start.min()}, {t_start.max()}], "
                          f"t_end in [{t_end.min()}, {t_end.max()}]")
-    if window is not None and window < 1:
-        raise ValueError(f"window must be >= 1 or None, got {window}")
     # >>> exercise 8: the monotone closest-point projection (Sec. IV-E)
     width = int((t_end - t_start).max(initial=1))
     if window is not None:
@@ -285,8 +200,8 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
         a_k = -Kp e_k - Kd (v_k - u_k) + (u_{k+1} - u_k),
     makes e obey the map of `critically_damped_gains` (settling in ~settle_steps, default H/2) while
     |a| <= accel_max and |v| <= max_step are inactive. In cascade form the closing speed w* = -(Kp/Kd) e is capped at
-    √(2 accel_max |e|), so the clamped deceleration can still stop at the path (overshoot 25 % of e0 -> 8 %).
-    Sec. IV-E's "a few timesteps further" is lookahead 0: the feed-forward removes the lag (benchmarks/README.md).
+    √(2 accel_max |e|), so the clamped deceleration can still stop at the path without overshooting.
+    Sec. IV-E's "a few timesteps further" is lookahead 0 here: the feed-forward removes the lag.
 
     q0, v0: (B, dof) or (dof,) rad, rad/step; trajectory (T, dof); t_proj, lookahead, t_end: int or (B,) steps;
     limits: optional (lo, hi). Returns the joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
@@ -297,10 +212,6 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     q = np.atleast_2d(q).copy()
     B, dof = q.shape
     v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
-    if trajectory.ndim != 2 or trajectory.shape[1] != dof or len(trajectory) == 0:
-        raise ValueError(f"trajectory must be (T>=1, {dof}), got {trajectory.shape}")
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive integer, got {H!r}")
     accel_max = np.broadcast_to(np.asarray(accel_max, dtype=np.float64), (dof,))
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), (dof,))
     if np.any(~(accel_max > 0)) or np.any(~(max_step > 0)):
@@ -363,8 +274,7 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
     a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * stats.acc_p95, cfg.accel_floor * m)  # rad/step²
     d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
     omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
-    # the discrete double pole e^{-ω} of `critically_damped_gains`: Kd = 2 √Kp chatters at 10 Hz
-    # (benchmarks/README.md, "What the loop takes from the authors' code")
+    # the discrete double pole e^{-ω} of `critically_damped_gains` (Kd = 2 √Kp would chatter at 10 Hz)
     p = np.exp(-omega)
     kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
     v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
@@ -412,13 +322,10 @@ def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray
 
 # ---- 5. On-the-fly augmentation for co-training (Sec. IV-A steps 3-4)
 
-NOISE_KINDS = ("isotropic", "pooled", "per_step")
-
-
 def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
     """rad per env step: the std of the per-joint velocity noise, the authors' N(0, (0.3 m_p)²) per 30 Hz frame
-    (m_p their median step) over frames_per_step frames (0.3 · 0.0176 · 3 = 0.0158 rad planar; PAPER_SETUP.md
-    §6). Without the env's units: velocity_noise · m."""
+    (m_p their median step; PAPER_SETUP.md §6) over frames_per_step frames. Without the env's units:
+    velocity_noise · m."""
     if stats.paper_median_step is None or stats.frames_per_step is None:
         return cfg.velocity_noise * stats.median_step
     return cfg.velocity_noise * stats.paper_median_step * stats.frames_per_step
@@ -431,27 +338,28 @@ class AugmentationSampler:
     A pair (PAPER_SETUP.md §6): (episode, t) uniform over the labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
     v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
     mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
-    sigma: as in `noise_factors`, for 'per_step' a list or dict {episode index: pair}. make_env: an env factory."""
-    label_steps = staticmethod(label_steps)  # the paper's label rule (a variant's subclass brings its own)
+    noise: 'isotropic', 'pooled' or 'per_step'; sigma: as in `noise_factors`, for 'per_step' a list or dict
+    {episode index: pair}. make_env: an env factory."""
     # the pool and its counters: what a resumed training run restores (experiment/checkpoints.py)
     resume_state = ("_pool_obs", "_pool_chunks", "_pool_mask", "_filled", "_write", "_served", "n_drawn", "n_kept")
 
+    @staticmethod
+    def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+        """The paper's label rule (diffusion.label_mask, expert_runs): the steps t (n,) whose chunk is a label,
+        and seg_end (n,), the end (exclusive) of t's expert run. A variant's subclass brings its own rule."""
+        seg_end = np.zeros(len(expert), dtype=np.int64)
+        for start, end in expert_runs(expert, horizon):
+            seg_end[start:end] = end
+        t = np.flatnonzero(label_mask(expert, horizon))
+        return t, seg_end[t]
+
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
                  noise: str, sigma, cfg: RelabelConfig):
-        if noise not in NOISE_KINDS:
-            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
-        if noise == "isotropic" and np.ndim(sigma) != 0:
-            raise ValueError(f"noise='isotropic' needs a scalar sigma (median steps), got shape {np.shape(sigma)}")
-        if noise == "pooled" and np.ndim(sigma) != 2:
-            raise ValueError(f"noise='pooled' needs sigma of shape (dof, dof), got {np.shape(sigma)}")
         self.cfg, self.noise, self.stats, self._make_env, self._envs = cfg, noise, stats, make_env, {}
         # one flat table of every labelable step, the episodes concatenated: projection and labels run once a batch
-        arrays = [_episode_arrays(ep) for ep in episodes]  # (q (T, dof), expert (T,)) each
+        arrays = [(np.asarray(ep["q"], dtype=np.float64), np.asarray(ep["expert"], dtype=bool)) for ep in episodes]
         steps = [self.label_steps(expert, cfg.horizon) for _, expert in arrays]  # (t, seg_end) each
         labelled = [e for e, (t, _) in enumerate(steps) if t.size]
-        if not labelled:
-            raise ValueError(f"no intervention step with a valid label (expert run >= H={cfg.horizon}) in "
-                             f"{len(episodes)} episodes")
         self._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
         first = np.cumsum([0] + [len(q) for q, _ in arrays])  # each episode's first row in self.trajectory
         self.trajectory = np.concatenate([q for q, _ in arrays])  # (sum T, dof) the episodes' joints in turn
@@ -475,16 +383,7 @@ class AugmentationSampler:
 
     def _episode_sigma(self, sigma, e: int):
         """Episode e's sigma: per_step's pair sigma[e]; the same sigma for every episode otherwise."""
-        if self.noise != "per_step":
-            return sigma
-        try:
-            per_ep = sigma[e]
-        except (KeyError, IndexError, TypeError):
-            per_ep = None
-        if not isinstance(per_ep, tuple):
-            raise ValueError(f"noise='per_step': no covariances for episode {e} (a pair (timesteps, covs)); pass a "
-                             "list aligned with episodes or a dict {episode index: (timesteps, covs)}")
-        return per_ep
+        return sigma[e] if self.noise == "per_step" else sigma
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """n pairs from the pool (diffusion.train's sampler hook). The first call fills the pool; afterwards
@@ -559,8 +458,8 @@ class AugmentationSampler:
         q_tilde, kept = np.empty((len(rows), dof)), np.zeros(len(rows), dtype=bool)
         for seed in np.unique(self.seeds[rows]):  # q̃ ~ N(q_t, Σ_t): one batched collision check per scenario
             sel = self.seeds[rows] == seed
-            q_tilde[sel], kept[sel] = _draw_valid(self.center[rows[sel]], self.factors[rows[sel]], rng,
-                                                  self._env(int(seed)), cfg.max_tries)
+            q_tilde[sel], kept[sel] = perturb_states(self.center[rows[sel]], self.factors[rows[sel]], rng,
+                                                     self._env(int(seed)), cfg.max_tries)
         r, q_tilde = rows[kept], q_tilde[kept]  # states still invalid after max_tries are dropped
         # velocity = demo tangent + N(0, (0.3 of the paper's median step per frame)²) per joint
         v = self.velocity[r] + velocity_noise_std(cfg, self.stats) * rng.standard_normal(q_tilde.shape)
@@ -641,12 +540,9 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
-    q, expert = _episode_arrays(episode)
-    valid_t, seg_end = label_steps(expert, cfg.horizon)
-    if valid_t.size == 0:
-        raise ValueError(f"episode has no intervention of at least H={cfg.horizon} expert steps to draw")
-    seg = valid_t[seg_end == seg_end[0]]  # labelable steps of the first intervention segment
-    end = int(seg_end[0])
+    q, expert = np.asarray(episode["q"], dtype=np.float64), np.asarray(episode["expert"], dtype=bool)
+    _, end = expert_runs(expert, cfg.horizon)[0]  # the first intervention segment [start, end) ...
+    seg = np.flatnonzero(label_mask(expert, cfg.horizon)[:end])  # ... and its labelable steps
     env.reset(seed=int(episode["seed"]))
     xy = lambda qs: env.ee(qs)[:, :2]  # (B, 2) end effector in the drawn plane (x, y)
 
@@ -660,8 +556,9 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     mid = int(seg[len(seg) // 2])
     steps = np.concatenate([seg[np.linspace(0, len(seg) - 1, n_recoveries).round().astype(int)],
                             np.full(n_recoveries, mid)])  # (2 n,)
-    q_tilde, t = perturb_states(episode, sigma, rng, len(steps), env, cfg.horizon, t_index=steps,
-                                median_step=stats.median_step, max_tries=cfg.max_tries)
+    factors = noise_factors(sigma, steps, q.shape[1], median_step=stats.median_step)
+    q_tilde, kept = perturb_states(q[steps], factors, rng, env, cfg.max_tries)
+    q_tilde, t = q_tilde[kept], steps[kept]
     v = q[t] - q[np.maximum(t - 1, 0)]
     chunks, _ = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
     recoveries = [xy(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each

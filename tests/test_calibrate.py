@@ -72,8 +72,6 @@ def test_fit_degenerate_inputs():
         cal.fit_equilibrium([0.2, 0.5, 0.9], [0.1, np.nan, 0.2])
     with pytest.raises(ValueError, match="distinct"):
         cal.fit_equilibrium([0.5, 0.5, 0.5], [0.1, 0.2, 0.3])
-    with pytest.raises(ValueError, match="same length"):
-        cal.fit_equilibrium([0.1, 0.5, 0.9], [0.1, 0.2])
     zero = cal.fit_equilibrium([0.1, 0.5, 0.9], [0.0, 0.0, 0.0])
     assert zero.W == 0.0 and zero.r == 1.0 and math.isfinite(zero.rms_residual)
 
@@ -130,8 +128,6 @@ def test_pooled_sigma_is_the_scaled_mean_of_the_per_step_ones():
 def test_sigma_in_median_steps():
     sigma = np.diag([4.0, 9.0, 16.0]) * 0.01 ** 2
     np.testing.assert_allclose(cal.sigma_in_median_steps(sigma, 0.01), [2.0, 3.0, 4.0])
-    with pytest.raises(ValueError, match="median_step"):
-        cal.sigma_in_median_steps(sigma, 0.0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -150,7 +146,7 @@ def test_segments_and_label_starts_follow_the_contract():
     H = 4
     expert = [True] * 6 + [False] * 3 + [True] * 3 + [False] * 2 + [True] * 5
     ep = _episode(expert)
-    assert cal.expert_segments(ep, H) == [(0, 6), (14, 19)]      # the 3-step run is too short
+    assert diffusion.expert_runs(ep["expert"], H) == [(0, 6), (14, 19)]      # the 3-step run is too short
     # first segment ends inside the episode: t + H <= 6; the last reaches the end: every step
     np.testing.assert_array_equal(np.flatnonzero(diffusion.label_mask(ep["expert"], H)), [0, 1, 2, 14, 15, 16, 17, 18])
     chunk = cal.expert_chunk(ep["action"], 4, H, end=6)          # padded with the segment's last action
@@ -387,7 +383,7 @@ CFG = cal.CalibrationConfig(n_samples=2, n_act=10)                          # th
 
 
 def _longest(episode, H=16):
-    return max(cal.expert_segments(episode, H), key=lambda se: se[1] - se[0])
+    return max(diffusion.expert_runs(episode["expert"], H), key=lambda se: se[1] - se[0])
 
 
 def test_blend_at_beta_zero_retraces_the_expert(planar):
@@ -401,7 +397,7 @@ def test_blend_at_beta_zero_retraces_the_expert(planar):
     np.testing.assert_array_equal(out.x, 0.0)
     np.testing.assert_array_equal(out.s, 0.0)
     # several scenarios in one batched run: each rollout follows its own segment's expert
-    jobs = [(e, cal.expert_segments(e, 16)[0]) for e in episodes[:3]]
+    jobs = [(e, diffusion.expert_runs(e["expert"], 16)[0]) for e in episodes[:3]]
     multi = cal.blend_rollouts(env, policy, jobs, np.zeros(3), cal.CalibrationConfig(n_samples=2, n_act=8), None, 0.5)
     for b, e in enumerate(episodes[:3]):
         n = len(e["q"]) - 1
@@ -413,8 +409,6 @@ def test_rollouts_refuse_episodes_from_another_scenario(planar):
     wrong = dict(episodes[0], seed=episodes[1]["seed"])
     with pytest.raises(ValueError, match="does not reproduce"):
         cal.blend_rollouts(env, policy, [(wrong, _longest(wrong))], [0.5], CFG, None, 0.4)
-    with pytest.raises(ValueError, match=r"ratios in \[0, 1\]"):
-        cal.blend_rollouts(env, policy, [(episodes[0], _longest(episodes[0]))], [1.5], CFG, None, 0.4)
 
 
 def test_blend_rollouts_mark_divergence(planar):
@@ -468,7 +462,7 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     M = len(c.timestep)
     assert c.sigma_hat.shape == c.sigma_alpha.shape == (M, 3, 3) and M > 10
     segments = cal.blend_schedule(episodes, policy.cfg.horizon, cfg)[1]
-    long_enough = {e for e, ep in enumerate(episodes) for a, b in cal.expert_segments(ep, policy.cfg.horizon)
+    long_enough = {e for e, ep in enumerate(episodes) for a, b in diffusion.expert_runs(ep["expert"], policy.cfg.horizon)
                    if b - a >= cfg.min_rollout_steps}
     assert len(c.blend_beta) == 13 * len({(e, seg) for e, seg in segments})
     assert set(c.blend_episode) == long_enough                                # one rollout per ratio from each
