@@ -145,8 +145,7 @@ class PaperRecipe:
     def round_shares(frames):  # a batch's intervention rows: rounds 1..k in equal shares
         return [1.0] * len(frames)
 
-    def kept_interventions(expert, H):  # Sec. IV-C: interventions shorter than H teach nothing, dropped
-        return drop_short_interventions(expert, H)
+    expert_runs = diffusion.expert_runs  # the label rule (Sec. IV-C): interventions shorter than H are dropped
 
     ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
     AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
@@ -286,8 +285,11 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
-        for ep in episodes:
-            ep["expert"] = RECIPES[cfg.recipe].kept_interventions(ep["expert"], cfg.horizon)
+        for ep in episodes:  # D_k keeps the interventions the label rule keeps (the paper's: >= H steps)
+            kept = np.zeros(len(ep["expert"]), bool)
+            for start, end in RECIPES[cfg.recipe].expert_runs(ep["expert"], cfg.horizon):
+                kept[start:end] = True
+            ep["expert"] = kept
         kept = [ep for ep in episodes if ep["expert"].any()]
         alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
         rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
@@ -405,15 +407,6 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
             f"(predicted collision {triggers['collision']}, stall {triggers['stall']}, time {triggers['time']}; "
             f"{triggers['unplanned']} triggers found no plan)")
     return episodes
-
-
-def drop_short_interventions(expert, H):
-    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; marked False
-    (diffusion.expert_runs, the paper's label rule)."""
-    kept = np.zeros(len(expert), bool)
-    for start, end in diffusion.expert_runs(expert, H):
-        kept[start:end] = True
-    return kept
 
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
