@@ -17,7 +17,7 @@ from dataclasses import replace
 import torch
 
 import envs
-from experiment.run_folder import ConfigMismatch, RunFolderError, committed_start
+from experiment.run_folder import ConfigMismatch, RunFolderError, committed_start, export_start
 
 
 def parse_args(argv, profiles, methods, recipes):
@@ -141,6 +141,17 @@ def folder_name(cfg, over):
     if "methods" in over and set(over["methods"]) | {"bc", "hg_dagger"} != set(cfg.methods):
         name += "_" + "-".join(over["methods"])  # another set of methods gets its own folder
     return name
+
+
+def main(args, cfg, run_experiment, paper):
+    """dagger.main: the command's mode on its run folder with `paper`'s loop and tests (run_experiment), then
+    --export-start's files. Returns the run folder."""
+    torch.set_num_threads(args.threads)
+    root = run_command(run_experiment, paper, cfg, args.out, args.lineage, args.prepare, args.report, args.workers,
+                       args.join, args.export_lineages, args.copy_from)
+    for path in run_command(export_start, root, args.export_start) if args.export_start else []:
+        print(f"wrote {path}")
+    return root
 
 
 def run_command(fn, *args):

@@ -625,7 +625,6 @@ def test_more_lineages_can_join_an_existing_run_folder(tmp_path):
 def test_eval_unseen_switch():
     _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
     assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
-    assert dagger.unseen_name("eval/bc.json") == "eval/bc_unseen.json"
 
 
 def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
