@@ -115,7 +115,7 @@ def test_run_folder_refuses_a_different_config(full_run):
 @pytest.mark.parametrize("argv,message", [
     (["--profile", "huge"], "invalid choice"),
     (["--env", "mars"], "invalid choice"),
-    (["--methods", "bc,magic"], "valid choices"),
+    (["--methods", "bc,magic"], "unknown method(s) ['magic']; valid: bc, hg_dagger"),
     (["--profile", "quick", "--lineage", "3"], "valid lineages are 0..0"),
     (["--rounds", "0"], "rounds must be >= 1"),
     (["--device", "tpu"], "use cpu or cuda"),
