@@ -1,7 +1,7 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
-Read `policy_calibrated_dagger` first: it is Sec. IV-A, steps 1-6, one call per step. Below it, the config and
-each step's function in the loop's order, Table I's tests, the paper's figures and the entry point.
+Read `policy_calibrated_dagger` first: Sec. IV-A, steps 1-6, one call per step; below it the config, each step's
+function in the loop's order, Table I's tests, the paper's figures and the entry point.
 
 Paper map (paper.tex):
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
@@ -9,22 +9,18 @@ Paper map (paper.tex):
                              (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
   Sec. IV-D ................ calibrate_noise -> calibrate.calibrate, once per round with the HG-DAgger policy
   Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler
-  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost (the table's
-                             assembly: experiment/report.py summarize)
+  Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost
 
-What a student may skip is in experiment/ (its __init__.py lists it): the plumbing (run folder, checkpoint files
-and resume, worker processes, command line, Table I's assembly, result files, report.md) and the research variants, which plug into the core's tables
-(envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods). Every step wraps its work in one
-`run.stage(file, compute)`: loaded if runs/<name>/<file> exists, else computed and written, so a stopped run
-resumes from its last finished stage.
+What a student may skip is in experiment/ (its __init__.py lists it): run folder, checkpoints, workers, command
+line, Table I's assembly (report.summarize), result files, and the research variants, which plug into the core's
+tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods). Every step wraps its work in
+`run.stage(file, compute)`: loaded if runs/<name>/<file> exists, else computed and written (a stopped run resumes).
 
-Usage: `python dagger.py` (the quick profile), `--profile smoke` (what CI runs), `--profile mid` (Table I's
-analogue on 2 cores), `--help`; README.md, "Profiles and options".
+Usage: `python dagger.py` (the quick profile), `--profile smoke` (CI), `--help`; README.md, "Profiles and options".
 """
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -36,11 +32,10 @@ import calibrate
 import diffusion
 import envs
 import oracle as oracle_mod
-import partial_denoise
 import relabel
 from experiment import cli, controls, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
-from experiment.run_folder import Run, export_start, stage_seed
+from experiment.run_folder import Run, stage_seed
 from experiment.workers import InBackground, in_parallel
 
 
@@ -130,8 +125,8 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train around the paper's steps: the authors' planar runs, Table I's (PAPER_SETUP.md
-    §2). A recipe is this set of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
+    """How pi_0 and every arm train: the authors' planar runs, Table I's (PAPER_SETUP.md §2). A recipe is this set
+    of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
         return cfg.bc_steps + cfg.finetune_steps
@@ -145,8 +140,7 @@ class PaperRecipe:
     def round_shares(frames):  # a batch's intervention rows: rounds 1..k in equal shares
         return [1.0] * len(frames)
 
-    def kept_interventions(expert, H):  # Sec. IV-C: interventions shorter than H teach nothing, dropped
-        return drop_short_interventions(expert, H)
+    expert_runs = diffusion.expert_runs  # the label rule (Sec. IV-C): interventions shorter than H are dropped
 
     ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
     AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
@@ -160,15 +154,13 @@ class PaperRecipe:
 
 RECIPES = {"paper": PaperRecipe, **lever.RECIPES}
 
-# The run sizes (smoke, quick, mid, table2, paper): overrides of the defaults above, in experiment/profiles.py
-PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}
+PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}  # run sizes: experiment/profiles.py
 
 
 # ---- Step 1: D0 and pi_0 -----------------------------------------------------------------------------------------
 def oracle_demonstrations(run, workers=1):
-    """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan (a scene the planner
-    cannot solve in its budget is skipped), planned in batches by `workers` processes: every plan has its
-    scenario's own seed, so D0 is the same for any number of them."""
+    """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan, in batches by
+    `workers` processes (every plan has its scenario's own seed: D0 is the same for any number of them)."""
     cfg = run.cfg
 
     def demonstrate():
@@ -194,8 +186,7 @@ def oracle_demonstrations(run, workers=1):
 
 
 def plan_demonstrations(cfg_fields, scenarios):
-    """The oracle's demonstrations of training scenarios `scenarios` (indices into env.train_seeds), None where it
-    found no plan (a worker's job)."""
+    """A worker's job: the oracle's demonstrations of training scenarios `scenarios`, None where it found no plan."""
     cfg = Config(**cfg_fields)
     env, expert, demos = make_run_env(cfg), make_oracle(cfg), []
     for i in scenarios:
@@ -222,10 +213,10 @@ def behavior_cloning(run, demos):
 
 
 def bc_row_arm(root, cfg_fields, demos):
-    """Table I's BC row (a worker's job), evaluated: the recipe's BC policy (the paper's: pi_0 continued on D0 alone
-    to bc_steps + finetune_steps, the steps every row has trained)."""
+    """Table I's BC row (a worker's job), evaluated: the paper's recipe continues pi_0 on D0 alone to bc_steps +
+    finetune_steps, the steps every row has trained."""
     cfg = Config(**cfg_fields)
-    run = Run(root, cfg)  # a worker's own handle on the run folder: its stages' files and the log
+    run = Run(root, cfg)  # a worker's own handle on the run folder
 
     def continue_on_d0():
         obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
@@ -237,8 +228,7 @@ def bc_row_arm(root, cfg_fields, demos):
 
 
 def demo_statistics(cfg, demos):
-    """relabel.demo_stats of D0: its median step (the unit of noise), speed/acceleration limits, and the authors'
-    units (the paper's median step; their 30 Hz frames per env step)."""
+    """relabel.demo_stats of D0: its median step (the unit of noise), limits, and the paper's median step."""
     env = make_run_env(cfg)
     return relabel.demo_stats(demos, envs.median_step(demos), env.max_step,
                               paper_median_step=envs.paper_median_step(cfg.env),
@@ -267,11 +257,9 @@ def make_policy(cfg, env):
 
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
 def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
-    """D_k: HG-DAgger rollouts of the lineage's current policy, the authors' protocol (PAPER_SETUP.md §4): on the
-    evaluation scenarios, skipping those its own evaluation (policy_success, (scenarios, repeats) bool) solved
-    every time; the unseen scenarios stay the held-out check. Kept: the episodes with an intervention the recipe
-    keeps (the paper's: at least H steps, Sec. IV-C). chain: None, or 'closed_loop' (that row's folder and seeds).
-    """
+    """D_k: HG-DAgger rollouts of the lineage's policy on the evaluation scenarios its own evaluation
+    (policy_success, (scenarios, repeats) bool) did not always solve (PAPER_SETUP.md §4), the episodes with an
+    intervention the label rule keeps. chain: None, or 'closed_loop' (that row's folder and seeds)."""
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
     keys = (lineage, k) + ((chain,) if chain else ())
@@ -286,8 +274,11 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
         gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
         episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                            log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
-        for ep in episodes:
-            ep["expert"] = RECIPES[cfg.recipe].kept_interventions(ep["expert"], cfg.horizon)
+        for ep in episodes:  # D_k: the interventions the label rule keeps (the paper's: >= H steps, Sec. IV-C)
+            runs = RECIPES[cfg.recipe].expert_runs(ep["expert"], cfg.horizon)
+            ep["expert"] = np.zeros(len(ep["expert"]), bool)
+            for start, end in runs:
+                ep["expert"][start:end] = True
         kept = [ep for ep in episodes if ep["expert"].any()]
         alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
         rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
@@ -295,8 +286,7 @@ def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
                 f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions, "
                 f"{sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
         if not kept:
-            raise RuntimeError(f"{label}: no intervention the recipe keeps (the paper's: >= H={cfg.horizon} steps) was "
-                               f"recorded in {len(episodes)} episodes; nothing to aggregate")
+            raise RuntimeError(f"{label}: no intervention the label rule keeps in {len(episodes)} episodes")
         return kept
 
     return run.stage(f"{where}/D.npz", collect)
@@ -314,12 +304,10 @@ def reset_envs(env_name, seeds):
 def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     """One episode in each (already reset) env, in lockstep, until all end; returns the episode dicts.
 
-    Without an oracle the policy drives (evaluation). With one: HG-DAgger (Sec. IV-A step 2) with the authors'
-    gate (PAPER_SETUP.md §3, oracle.Gate; `seed` seeds its draws). Before every policy step the gate reads the
-    pending actions; on a predicted collision the oracle plans from the current state, on a stall or a time
-    trigger the episode first rewinds a few policy steps (dropped from the record); the expert then drives
-    (expert=True) a random 20-67 steps and hands back. Each episode also counts its 'interventions'.
-    """
+    Without an oracle the policy drives (evaluation). With one, HG-DAgger (Sec. IV-A step 2) with the authors'
+    gate (PAPER_SETUP.md §3, oracle.Gate, seeded by `seed`): before every policy step the gate reads the pending
+    actions; on a predicted collision the oracle plans from here, on a stall or a time trigger the episode first
+    rewinds a few policy steps; the expert then drives (expert=True) a random 20-67 steps and hands back."""
     E = len(envs_list)
     rec = [{"obs": [], "q": [], "action": [], "expert": []} for _ in range(E)]
     q_prev_start = [e.q_prev.copy() for e in envs_list]  # for a rewind to step 0
@@ -327,9 +315,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     queue = [[] for _ in range(E)]  # pending (action, by_expert) per episode, executed in order
     pending = [np.zeros((0,)) for _ in range(E)]  # the policy's whole remaining chunk (the gate's lookahead)
     done, success = np.zeros(E, bool), np.zeros(E, bool)
-    gates = None
-    if oracle is not None:
-        gates = [oracle.gate(e, np.random.default_rng([seed, int(e.seed)])) for e in envs_list]
+    gates = None if oracle is None else [oracle.gate(e, np.random.default_rng([seed, int(e.seed)])) for e in envs_list]
     triggers = {"collision": 0, "stall": 0, "time": 0, "unplanned": 0}
 
     def follow_policy(i, chunk):  # (H, dof): execute the first n_act, the gate looks at all of them
@@ -392,28 +378,18 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
                 gates[i].record(envs_list[i], by_expert)
             if terminated or truncated:
                 done[i], success[i], queue[i] = True, info["success"], []
-    episodes = []
-    for e, r, ok in zip(envs_list, rec, success):
-        episodes.append({"obs": np.asarray(r["obs"], np.float32).reshape(len(r["obs"]), -1),
-                         "q": np.asarray(r["q"]).reshape(len(r["q"]), -1),
-                         "action": np.asarray(r["action"]).reshape(len(r["action"]), -1),
-                         "expert": np.asarray(r["expert"], bool), "seed": int(e.seed), "success": bool(ok),
-                         # expert takeovers that drove (a trigger without a plan is not one)
-                         "interventions": int(np.sum(np.diff(np.r_[0, np.asarray(r["expert"], int)]) == 1))})
+    episodes = [{"obs": np.asarray(r["obs"], np.float32).reshape(len(r["obs"]), -1),
+                 "q": np.asarray(r["q"]).reshape(len(r["q"]), -1),
+                 "action": np.asarray(r["action"]).reshape(len(r["action"]), -1),
+                 "expert": np.asarray(r["expert"], bool), "seed": int(e.seed), "success": bool(ok),
+                 # expert takeovers that drove (a trigger without a plan is not one)
+                 "interventions": int(np.sum(np.diff(np.r_[0, np.asarray(r["expert"], int)]) == 1))}
+                for e, r, ok in zip(envs_list, rec, success)]
     if log is not None and oracle is not None:
         log(f"  {sum(triggers[k] for k in ('collision', 'stall', 'time'))} interventions in {E} episodes "
             f"(predicted collision {triggers['collision']}, stall {triggers['stall']}, time {triggers['time']}; "
             f"{triggers['unplanned']} triggers found no plan)")
     return episodes
-
-
-def drop_short_interventions(expert, H):
-    """Sec. IV-C: interventions shorter than H steps teach nothing with chunks of H; marked False
-    (diffusion.expert_runs, the paper's label rule)."""
-    kept = np.zeros(len(expert), bool)
-    for start, end in diffusion.expert_runs(expert, H):
-        kept[start:end] = True
-    return kept
 
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
@@ -451,7 +427,7 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
         sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
             return "isotropic", sigma  # without both units: s of our median steps
-        return "isotropic", sigma * paper_median_step / median_step  # fixed_4 planar: 4 * 0.0176 / 0.0245 = 2.87
+        return "isotropic", sigma * paper_median_step / median_step
     if method in ("pooled", "closed_loop"):  # Eq. (16); closed_loop's measured on its own chain (closed_loop_round)
         return "pooled", cal.pooled
     if method == "per_step":  # Eq. (14): each episode's own measured steps
@@ -461,15 +437,12 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
             if rows.any():
                 per_episode[j] = (cal.timestep[rows], cal.sigma_alpha[rows])
         return "per_step", per_episode
-    if method in controls.NOISE_MODELS:  # a research control's row (experiment/controls.py)
-        return controls.NOISE_MODELS[method]
-    raise ValueError(f"method {method!r} adds no noise")
+    return controls.NOISE_MODELS[method]  # a research control's row (experiment/controls.py)
 
 
 def intervention_sampler(cfg, method, rounds_data, calibration, stats):
-    """The intervention rows of a fine-tuning batch: rounds 1..k in the recipe's shares (the paper's: equal);
-    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled, as in the authors' code
-    (benchmarks/README.md, "The co-training mix"); a research control's row its own (experiment/controls.py)."""
+    """The intervention rows of a fine-tuning batch, rounds 1..k in the recipe's shares (the paper's: equal):
+    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled (the authors' code)."""
     recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
     for D in rounds_data:
         def recorded(D=D):  # HG-DAgger's rows: the round's chunks as recorded
@@ -511,8 +484,7 @@ def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
 
 
 def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
-    """Fine-tune pi_0 (checkpoints/bc.pt) into policy `name`, continuing its AdamW state and step count to
-    bc_steps + finetune_steps along the recipe's schedule (the paper's: pi_0's own cosine, to its end)."""
+    """pi_0 fine-tuned into `name` to bc_steps + finetune_steps, continuing its AdamW state and cosine (recipe's)."""
     cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
     tc = train_config(cfg, policy, cfg.bc_steps + cfg.finetune_steps, seed, aug_fraction=aug_fraction,
                       **RECIPES[cfg.recipe].arm_training(cfg))
@@ -538,8 +510,7 @@ def observation_noise(policy_cfg):
 
 
 def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats):
-    """One row of round k (steps 4 and 6): pi_0 fine-tuned with the method's noise (fine_tune), evaluated.
-    Returns (policy, success (scenarios, repeats) bool)."""
+    """One row of round k (steps 4 and 6), fine-tuned and evaluated: (policy, success (scenarios, repeats) bool)."""
     policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats)
     return policy, evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
                                    f"{method} (lineage {lineage}, K={k})")
@@ -547,16 +518,15 @@ def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration,
 
 def noised_arm(root, cfg_fields, lineage, k, method, demos, rounds_data, calibration, stats):
     """One noised method of round k, fine-tuned and evaluated (a worker's job, on the data the loop hands it)."""
-    run = Run(root, Config(**cfg_fields))  # a worker's own handle on the run folder: its stages' files and the log
+    run = Run(root, Config(**cfg_fields))  # a worker's own handle on the run folder
     train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats)
 
 
 def closed_loop_round(run, lineage, k, demos, stats, chain, first_round, first_calibration):
-    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5; the
-    authors ran one lineage, PCD paper/tables_repro/planar_closed_loop.sh): the chain's round k-1 policy,
-    co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise is measured on it over
-    the chain's interventions of rounds 1..k (lineage_<l>/round_<k>/closed_loop/). Round 1 is the main chain's
-    (the authors copy it too). chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""
+    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5): the
+    chain's round k-1 policy, co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise
+    is measured on it over the chain's rounds 1..k. Round 1 is the main chain's (the authors copy it too).
+    chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""
     if k == 1:
         rounds_data, calibration = [first_round], first_calibration
     else:  # the previous round's calibrated policy drives, the oracle intervenes (step 2) ...
@@ -572,14 +542,14 @@ def evaluate_policy(run, name, policy, label, unseen=None):
     """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name`. With unseen (default
     cfg.eval_unseen) also on the unseen scenarios, never trained on (not in the paper), into <name>_unseen.json."""
     ok = run.stage(name, lambda: evaluation(run, policy, label, "eval"))
-    if run.cfg.eval_unseen if unseen is None else unseen:
-        run.stage(unseen_name(name), lambda: evaluation(run, policy, label + ", unseen scenarios", "unseen"))
+    if run.cfg.eval_unseen if unseen is None else unseen:  # eval/bc.json -> eval/bc_unseen.json
+        run.stage(name[:-len(".json")] + "_unseen.json",
+                  lambda: evaluation(run, policy, label + ", unseen scenarios", "unseen"))
     return np.asarray(ok["success"], bool)
 
 
 def evaluation(run, policy, label, scenarios):
-    """evaluate on one scenario set, 'eval' or 'unseen': its first eval_scenarios x eval_repeats, with one sampling
-    seed per set shared by every method (paired)."""
+    """evaluate on the first eval_scenarios of 'eval' or 'unseen', one sampling seed per set for every method."""
     cfg, t0 = run.cfg, time.time()
     env = make_run_env(cfg)
     seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
@@ -589,20 +559,13 @@ def evaluation(run, policy, label, scenarios):
     return {"success": ok.tolist(), "seeds": list(map(int, seeds))}
 
 
-def unseen_name(name):
-    """The unseen scenarios' file beside an evaluation file: eval/bc.json -> eval/bc_unseen.json."""
-    return name[:-len(".json")] + "_unseen.json"
-
-
-# Episodes run in lockstep at most this many at a time, per env. Each EngineReach3D holds its own pybullet
-# client, ~30 MB (measured): 300 evaluation episodes at once would take 9 GB; 100 take 3 GB.
+# Episodes run in lockstep at most this many at a time, per env (each EngineReach3D holds a pybullet client)
 MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}  # by the paper's env (envs.paper_env)
 
 
 def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env default", log=None):
-    """Success (len(seeds), repeats) bool: goal reached without collision within the step limit. The episodes run
-    in lockstep (rollouts_in_groups); `seed` seeds the sampling identically for every method, so methods face the
-    same draws where their policies agree (a paired comparison)."""
+    """Success (len(seeds), repeats) bool: goal reached without collision within the step limit. `seed` seeds the
+    sampling identically for every method: methods face the same draws where their policies agree (paired)."""
     jobs = [int(s) for _ in range(repeats) for s in seeds]
     gen = torch.Generator(device=policy.device).manual_seed(seed)
     ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, max_parallel,
@@ -612,8 +575,7 @@ def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env de
 
 def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="env default", log=None):
     """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
-    max_parallel (default MAX_PARALLEL_ENVS[env_name]; None = all at once). A group's envs stay open while the
-    caller reads its pairs and are closed before the next group starts."""
+    max_parallel (default MAX_PARALLEL_ENVS[env_name]; None: all at once), a group's envs closed after it."""
     if max_parallel == "env default":
         max_parallel = MAX_PARALLEL_ENVS.get(envs.paper_env(env_name))
     group = max_parallel or max(1, len(jobs))
@@ -628,7 +590,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="e
 # ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma; no scipy -----------
 def paired_differences(a, b):
     """a - b per pair, to 1e-9 points: success rates are counts of episodes, so equal gains (47.0 - 46.0 and
-    47.33 - 46.33) are equal, not 1e-14 apart (which made t ~ 1e14 and p ~ 1e-15 out of float rounding)."""
+    47.33 - 46.33) are equal, not 1e-14 apart (a spread of float rounding would give t ~ 1e14)."""
     return np.round(np.asarray(a, float) - np.asarray(b, float), 9)
 
 
@@ -669,8 +631,7 @@ def tost(a, b, margin):
 
 def student_t_cdf(t, df):
     """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
-    if df <= 0:
-        raise ValueError(f"degrees of freedom must be > 0, got {df}")
+    assert df > 0, df
     if math.isinf(t):
         return 1.0 if t > 0 else 0.0
     tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
@@ -679,8 +640,7 @@ def student_t_cdf(t, df):
 
 def incomplete_beta(a, b, x):
     """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
-    if not 0.0 <= x <= 1.0:
-        raise ValueError(f"incomplete_beta needs 0 <= x <= 1, got {x}")
+    assert 0.0 <= x <= 1.0, x
     if x in (0.0, 1.0):
         return x
     log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
@@ -713,61 +673,15 @@ def _betacf(a, b, x):
     return h
 
 
-# ---- The paper's figures (fig1-fig5) from lineage 0, round 1 -----------------------------------------------------
-FIGURE_INPUTS = ("data/D0.npz", "lineage_0/round_1/D.npz", "lineage_0/round_1/calibration.json",
-                 "lineage_0/round_1/checkpoints/hg_dagger.pt")  # what make_figures draws from
-
-
-def make_figures(run):
-    """fig1-fig5 (the paper's analogues) from D0 and lineage 0, round 1 (skipped figures are logged)."""
-    cfg = run.cfg
-    if not os.path.exists(os.path.join(run.root, "data", "D0.npz")):  # a folder of joined lineage results only
-        run.log("no data/D0.npz here (lineages joined from results files): the paper's figures need --prepare")
-        return
-    demos = run.load("data/D0.npz")
-    stats = demo_statistics(cfg, demos)
-    fig = lambda name: run.path("figures", name)  # noqa: E731
-    env = make_run_env(cfg)
-    if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
-        oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
-    else:
-        env.reset(seed=int(demos[0]["seed"]))
-        envs.render_scene_image(env, fig("fig5_environment.png"))
-    env.plot_policy_view(demos[0], fig("fig5_policy_view.png"))  # a variant's camera input; the paper's envs: none
-    if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
-        run.log("figures 1-4 need lineage 0 round 1: not finished yet")
-        return
-    D1 = run.load("lineage_0/round_1/D.npz")
-    cal = run.load("lineage_0/round_1/calibration.json")
-    # the policy that was calibrated: the round's HG-DAgger policy (PAPER_SETUP.md §5)
-    calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
-    policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
-    gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731
-    episode = max(D1, key=lambda ep: ep["expert"].sum())  # the longest intervention shows the method best
-    calibrate.plot_blend_fit(cal, stats.median_step, fig("fig4_blend_fit.png"))
-    # figs 1-3 draw end-effector paths: in the plane of the planar env, in the top view (x, y) of the UR5's
-    calibrate.plot_method_overview(env, episode, cal, policy, fig("fig2_method_overview.png"), generator=gen())
-    relabel.plot_recovery(env, episode, cal.pooled, fig("fig1_recovery.png"),
-                          np.random.default_rng(stage_seed(cfg, "fig1")), stats,
-                          relabel.RelabelConfig(horizon=cfg.horizon))
-    t = int(np.flatnonzero(diffusion.label_mask(episode["expert"], cfg.horizon))[0])  # fig3: the first labelled state
-    chunk = episode["action"][t:t + cfg.horizon]
-    chunk = np.pad(chunk, ((0, cfg.horizon - len(chunk)), (0, 0)), mode="edge")  # past the end: the last action
-    env.reset(seed=int(episode["seed"]))
-    partial_denoise.plot_partial_denoising(env, policy, episode["obs"][t], chunk, (0.1, 0.3, 0.5, 0.7),
-                                           fig("fig3_partial_denoising.png"), gen(), q=episode["q"][t])
-
-
 # ---- The entry point (the run folder, workers, command line, tables and report are in experiment/) --------------
-# What the harness runs, tests and draws of the paper (experiment/report.py: run_experiment, write_report)
-PAPER = report.Paper(loop=policy_calibrated_dagger, figures=make_figures, figure_inputs=FIGURE_INPUTS,
-                     paired_ttest=paired_ttest, tost=tost, tost_margin=TOST_MARGIN,
-                     paired_differences=paired_differences)
+# What the harness runs and tests of the paper (experiment/report.py: run_experiment, write_report; the
+# figures: experiment/figures.py)
+PAPER = report.Paper(loop=policy_calibrated_dagger, demo_statistics=demo_statistics, paired_ttest=paired_ttest,
+                     tost=tost, tost_margin=TOST_MARGIN, paired_differences=paired_differences)
 
 
 def run_experiment(cfg, root, **mode):
-    """The command's mode (lineage, prepare, report_only, workers, join, export_to, copy_src) on run folder root,
-    resuming whatever is there: report.run_experiment with this file's loop, figures and tests."""
+    """report.run_experiment (a mode of the command on run folder root) with this file's loop and tests."""
     return report.run_experiment(PAPER, cfg, root, **mode)
 
 
@@ -777,13 +691,9 @@ def parse_args(argv):
 
 
 def main(argv=None):
+    """`python dagger.py`: the command line's mode (experiment/cli.py) run with this file's loop and tests."""
     args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
-    torch.set_num_threads(args.threads)
-    root = cli.run_command(report.run_experiment, PAPER, cfg, args.out, args.lineage, args.prepare, args.report,
-                           args.workers, args.join, args.export_lineages, args.copy_from)
-    for path in cli.run_command(export_start, root, args.export_start) if args.export_start else []:
-        print(f"wrote {path}")
-    return root
+    return cli.main(args, cfg, report.run_experiment, PAPER)
 
 
 if __name__ == "__main__":

@@ -15,10 +15,9 @@ back to a clean chunk. beta = 0 keeps the expert chunk, beta = 1 forgets it (ung
 
 Index convention (where public code for this method is off by one): beta picks the paper's step
 k_sw = ToInteger(beta K) in 0..K; forward, a_{k_sw} = sqrt(alphabar_{k_sw}) a* + sqrt(1 - alphabar_{k_sw}) eps
-(Eq. 5 in closed form, noise fraction sigma^2_{k_sw} = 1 - alphabar_{k_sw}); reverse, Eq. (6) at paper steps
-k_sw, ..., 1. In diffusion.py's 0-based code (code k = paper step k + 1) that is q_sample at k_sw - 1, then
-reverse_process from code level k_sw - 1 down to 0: the first reverse step gets the noise level the chunk holds.
-k_sw = 0 returns the expert chunk unchanged.
+(Eq. 5 in closed form); reverse, Eq. (6) at paper steps k_sw, ..., 1. diffusion.py's code level c is paper step
+c + 1: q_sample at k_sw - 1, then reverse_process from code level k_sw - 1 down to 0, so the first reverse step
+gets the noise level the chunk holds. k_sw = 0 returns the expert chunk unchanged.
 """
 
 import math
@@ -32,13 +31,12 @@ from diffusion import check_array, q_sample
 def _check_beta(beta):
     """beta as a float64 array; ValueError unless every entry is a finite ratio in [0, 1]."""
     b = np.asarray(beta, dtype=np.float64)
-    if not np.all(np.isfinite(b)) or np.any((b < 0) | (b > 1)):
+    if not np.all((b >= 0) & (b <= 1)):  # NaN fails too
         raise ValueError(f"blend ratio beta must be in [0, 1] (and not NaN), got {beta!r}")
     return b
 
 
 # ---- Blending: Eq. (3), then the learned interpolator of Eq. (4) by partial diffusion ----------------------
-
 def lerp_blend(a_policy, a_expert, beta):
     """Eq. (3): a_lerp = beta a_policy + (1 - beta) a_expert (beta = 0: the expert, 1: the policy)."""
     b = _check_beta(beta)
@@ -54,14 +52,11 @@ def lerp_blend(a_policy, a_expert, beta):
 
 
 def switch_step(beta, K):
-    """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas.
-
-    ToInteger = round to the nearest, halves up (floor(beta K + 1/2)): not floor, since 0.29 * 100 =
-    28.999999999999996; not Python's round-half-to-even, so that k_sw is monotone in beta.
-    """
+    """k_sw = ToInteger(beta K) in 0..K (paper step number), for a scalar or an array of betas. ToInteger rounds
+    halves up, floor(beta K + 1/2): not floor, as 0.29 * 100 = 28.999999999999996; not Python's round-half-to-even,
+    so that k_sw is monotone in beta."""
     b = _check_beta(beta)
-    if not isinstance(K, (int, np.integer)) or K < 1:
-        raise ValueError(f"K must be a positive int, got {K!r}")
+    assert isinstance(K, (int, np.integer)) and K >= 1, K
     # >>> exercise 3: partial denoising and its index convention (Eq. 4, Sec. IV-B/C)
     k_sw = np.floor(b * K + 0.5).astype(np.int64)
     return int(k_sw) if k_sw.ndim == 0 else k_sw
@@ -101,16 +96,14 @@ def partial_denoise(policy, obs, expert_chunk, beta, generator=None, use_ema=Tru
 
 
 # ---- How far the blend may move: Eq. (7) and the noise fraction sigma^2_{k_sw} (Sec. IV-D) -----------------
-
 def sdedit_bound(sigma2, bound, d, delta):
     """Eq. (7): with probability >= 1 - delta, ||a* - a_hat||^2 <= this, for normalized actions in [-1, 1]^d
     and ||eps_theta|| <= bound (SDEdit, Meng et al., Theorem 1). The scale of the blend, sigma^2_{k_sw}, not a
     guarantee for this sampler: it counts only the forward noise (test_eq7_counts_only_the_forward_noise)."""
     sigma2 = np.asarray(sigma2, dtype=np.float64)
-    if not (np.all(np.isfinite(sigma2)) and np.all((sigma2 >= 0) & (sigma2 <= 1)) and bound >= 0 and d >= 1
-            and 0 < delta < 1):
-        raise ValueError(f"need a noise fraction sigma2 in [0, 1], bound >= 0, d >= 1, 0 < delta < 1; "
-                         f"got sigma2={sigma2!r}, bound={bound}, d={d}, delta={delta}")
+    if not (np.all((sigma2 >= 0) & (sigma2 <= 1)) and bound >= 0 and d >= 1 and 0 < delta < 1):
+        raise ValueError(f"need sigma2 in [0, 1], bound >= 0, d >= 1, 0 < delta < 1; "
+                         f"got {sigma2!r}, {bound}, {d}, {delta}")
     # >>> exercise 4: linear blend (Eq. 3), noise fraction sigma^2_k_sw and the SDEdit bound (Eq. 7)
     log_delta = np.log(delta)
     # Eq. (7)
@@ -131,22 +124,16 @@ def noise_fraction(schedule, beta):
 
 
 # ---- Fig. 3 ------------------------------------------------------------------------------------------------
-
-def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None,
-                           n_samples=16):
+def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generator=None, q=None, n_samples=16):
     """The paper's Fig. 3: at one state (obs (obs_dim,), joints q, default env.q), the expert chunk (H, dof) and
-    n_samples partial-denoising samples per beta and unguided (beta = 1) as end-effector paths (no mean path:
-    at large beta the samples split between modes); the scene with every path, then one panel per beta. A
-    planar env in its plane over its scene, a 3-D env in the top view (x, y in m) with the goal."""
+    n_samples partial-denoising samples per beta and unguided (beta = 1) as end-effector paths (no mean path: at
+    large beta the samples split between modes), in the planar env's plane or a 3-D env's top view (x, y in m)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    obs = np.asarray(obs, dtype=np.float32)
-    expert_chunk = np.asarray(expert_chunk, dtype=np.float64)
-    if obs.ndim != 1 or expert_chunk.ndim != 2 or env.dim not in (2, 3):
-        raise ValueError(f"plot_partial_denoising draws one state, obs (obs_dim,) and expert_chunk (H, dof), in a "
-                         f"2-D or 3-D workspace; got {obs.shape}, {expert_chunk.shape}, dim = {env.dim}")
+    obs, expert_chunk = np.asarray(obs, dtype=np.float32), np.asarray(expert_chunk, dtype=np.float64)
+    assert obs.ndim == 1 and expert_chunk.ndim == 2 and env.dim in (2, 3), (obs.shape, expert_chunk.shape, env.dim)
     planar = env.dim == 2
     levels = [float(b) for b in _check_beta(np.atleast_1d(betas))] + [1.0]      # and unguided
     names = [rf"$\beta$ = {b:.2f}" for b in levels[:-1]] + [r"unguided policy, $\beta$ = 1"]
@@ -155,8 +142,8 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
     rows = n_samples * len(levels)
     samples = partial_denoise(policy, np.repeat(obs[None], rows, axis=0), np.repeat(expert_chunk[None], rows, axis=0),
                               np.repeat(levels, n_samples), generator=generator)   # (n * L, H, dof)
-    paths = np.stack([np.concatenate([start, env.ee(chunk)[:, :2]]) for chunk in samples])   # (n * L, H + 1, 2)
-    paths = paths.reshape(len(levels), n_samples, -1, 2)
+    paths = np.stack([np.concatenate([start, env.ee(chunk)[:, :2]]) for chunk in samples])
+    paths = paths.reshape(len(levels), n_samples, -1, 2)                           # (L, n, H + 1, 2)
     expert_xy = np.concatenate([start, env.ee(expert_chunk)[:, :2]])                # (H + 1, 2)
 
     # panel 0: the whole scene with every path; panels 1..L: one beta each, zoomed to all paths
@@ -188,12 +175,11 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
         env.square_view(axes[0], np.concatenate([all_xy, env.goal[None, :2]]), 0.02)
 
     # one legend for all panels, below them (outside the data)
-    handles = [plt.Line2D([], [], color="tab:blue", marker="o", ms=3, lw=2.5, label="expert chunk"),
-               plt.Line2D([], [], color="k", marker="o", lw=0, label="end effector now")]
-    handles += [plt.Line2D([], [], color=c, lw=1.5, label=name) for c, name in zip(colors, names)]
-    handles.append(plt.Line2D([], [], lw=0, label=f"{n_samples} samples per beta"))
-    if not planar:
-        handles.append(plt.Line2D([], [], color="tab:green", marker="*", ms=12, lw=0, label="goal"))
+    handles = ([plt.Line2D([], [], color="tab:blue", marker="o", ms=3, lw=2.5, label="expert chunk"),
+                plt.Line2D([], [], color="k", marker="o", lw=0, label="end effector now")]
+               + [plt.Line2D([], [], color=c, lw=1.5, label=name) for c, name in zip(colors, names)]
+               + [plt.Line2D([], [], lw=0, label=f"{n_samples} samples per beta")]
+               + ([] if planar else [plt.Line2D([], [], color="tab:green", marker="*", ms=12, lw=0, label="goal")]))
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=8, frameon=False)
     fig.suptitle("Partial denoising at one state (Fig. 3): end-effector paths of the chunks"
                  + ("" if planar else ", top view"))
@@ -209,7 +195,6 @@ def plot_partial_denoising(env, policy, obs, expert_chunk, betas, path, generato
 
 if __name__ == "__main__":
     from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
-
     obs, chunks = toy_two_mode_data(4000, H=4)
     policy = DiffusionPolicy(PolicyConfig(obs_dim=4, dof=2, horizon=4, n_act=2, K=100, down_dims=(32, 64)))
     train(policy, obs, chunks, TrainConfig(steps=3000, warmup_steps=200, log_every=1000))

@@ -11,6 +11,7 @@
     report.py      the command's mode (run_experiment), Table I's assembly (summarize: mean ± SE, the paper's
                    tests that dagger.py hands over in report.Paper), results.json, results.csv, table.md, report.md,
                    the table figures, the paper's figures when their inputs changed
+    figures.py     the paper's figures (fig1-fig5) from D0 and lineage 0, round 1
 and the research variants, which plug into the core's tables when dagger.py imports them:
     image_obs.py      the UR5 policy on camera images: envs.ENVIRONMENTS['engine3d_image'] and
                       diffusion.OBS_ENCODERS['image_cnn'] (python dagger.py --env engine3d_image)
@@ -22,5 +23,5 @@ and the research variants, which plug into the core's tables when dagger.py impo
                       cotrain_pooled) (dagger.intervention_sampler); all listed in dagger.ALL_METHODS
 
 It imports the concept modules (envs, diffusion, relabel, calibrate) but never dagger.py; dagger.py passes in what it
-needs (its profiles, its loop, figures and statistical tests in dagger.PAPER, its worker functions). A student may skip this folder.
+needs (its profiles, its loop and statistical tests in dagger.PAPER, its worker functions). A student may skip this folder.
 """

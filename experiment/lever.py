@@ -93,8 +93,8 @@ class AuthorsLever:
     def round_shares(frames):
         return [f / sum(frames) for f in frames]  # by intervention frames
 
-    def kept_interventions(expert, H):
-        return np.asarray(expert, bool)  # every intervention, however short
+    def expert_runs(expert, H):
+        return diffusion.expert_runs(expert, 1)  # every intervention, however short
 
     ChunkSampler = PaddedChunkSampler
     AugmentationSampler = PaddedAugmentationSampler

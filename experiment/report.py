@@ -19,6 +19,7 @@ import numpy as np
 
 import calibrate
 import envs
+from experiment import figures
 from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, read_json, write_json
 
 # Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
@@ -57,10 +58,9 @@ PAPER_TABLES = {
 # ---- What the harness runs of the paper, and Table I's assembly (the paper's tests are dagger.py's) --------------
 @dataclass(frozen=True)
 class Paper:
-    """What the report runs, tests and draws of the paper: dagger.PAPER (this folder never imports dagger.py)."""
+    """What the report runs and tests of the paper: dagger.PAPER (this folder never imports dagger.py)."""
     loop: Callable                # policy_calibrated_dagger(run, lineages, workers): Sec. IV-A on the run folder
-    figures: Callable             # make_figures(run): the paper's figures from the run folder ...
-    figure_inputs: tuple          # ... drawn from these files (redrawn only when one of them changed)
+    demo_statistics: Callable     # (cfg, D0) -> relabel.demo_stats: the figures' unit of noise
     paired_ttest: Callable        # (a, b) -> (t, df, p)
     tost: Callable                # (a, b, margin) -> (p, t_lower, t_upper)
     tost_margin: float            # Table I's equivalence margin, success points
@@ -101,9 +101,9 @@ def write_report(run, paper):
         stats["scenario_paired"] = scenario_paired(run, scenarios)
         tables[scenarios] = (success, table, stats)
     text = write_tables(run, tables)
-    if run.inputs_changed("figures/drawn_from.json", paper.figure_inputs):
-        paper.figures(run)
-        run.record_inputs("figures/drawn_from.json", paper.figure_inputs)
+    if run.inputs_changed("figures/drawn_from.json", figures.FIGURE_INPUTS):
+        figures.make_figures(run, paper.demo_statistics)
+        run.record_inputs("figures/drawn_from.json", figures.FIGURE_INPUTS)
     else:
         run.log("figures 1-5: their inputs have not changed since they were drawn (figures/drawn_from.json)")
     write_markdown_report(run, text, tables["eval"][2], tables["unseen"][2])
@@ -712,10 +712,10 @@ def write_markdown_report(run, text, stats, stats_unseen):
     words = paired_words(stats_unseen or {})
     if words:
         lines += [f"On {scenario_words(cfg, 'unseen')}:", ""] + words + [""]
-    figures = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
-    if figures:
+    drawn = [f for f in FIGURE_CAPTIONS if os.path.exists(os.path.join(run.root, "figures", f))]
+    if drawn:
         lines += ["## Figures", ""]
-        for f in figures:
+        for f in drawn:
             lines += [f"**{f}** — {figure_caption(f, cfg)}", "", f"![{f}](figures/{f})", ""]
     with open(os.path.join(run.root, "report.md"), "w") as fh:
         fh.write("\n".join(lines))

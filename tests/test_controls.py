@@ -20,14 +20,13 @@ TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network=
 
 
 def episode():
-    """60 steps, joints 3; action[t] = t on every joint; the expert drives [5, 35) (30 >= H steps) and [45, 50)
-    (5 < H steps: dropped from D_k, as the authors' collection drops interventions under 2 s)."""
+    """An episode of D_k, 60 steps, joints 3; action[t] = t on every joint; the expert drives [5, 35) (30 >= H steps;
+    a shorter intervention is not in D_k: the collection keeps diffusion.expert_runs)."""
     expert = np.zeros(60, bool)
-    expert[5:35] = expert[45:50] = True
+    expert[5:35] = True
     t = np.arange(60, dtype=float)
     return {"obs": np.repeat(t[:, None], 4, axis=1).astype(np.float32), "q": np.zeros((60, 3)),
-            "action": np.repeat(t[:, None], 3, axis=1), "expert": dagger.drop_short_interventions(expert, H),
-            "seed": 7}
+            "action": np.repeat(t[:, None], 3, axis=1), "expert": expert, "seed": 7}
 
 
 def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_last_steps_of_each_intervention():
@@ -39,7 +38,7 @@ def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_last_steps_of_ea
     authors = controls.AuthorsChunkSampler([ep], H)
     paper_obs, paper_chunks = diffusion.chunk_dataset([ep], H)
     starts = authors.obs[:, 0].astype(int)
-    assert starts.tolist() == list(range(5, 35))  # every step of the kept intervention, none of the dropped one
+    assert starts.tolist() == list(range(5, 35))  # every step of the intervention
     assert paper_obs[:, 0].astype(int).tolist() == list(range(5, 16))  # the paper's: t + H <= the run's end
     for t, chunk in zip(starts, authors.chunks):
         want = np.minimum(np.arange(t, t + H), 34)  # past the run's end: its last action, held

@@ -51,8 +51,9 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
         wb = checkpoints.load_policy(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         assert all(torch.equal(v, wb.state_dict()[k]) for k, v in wa.state_dict().items())
     assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
-    # D0 planned in batches by the two workers is the one process's, in scenario order (a batch's results in the
-    # order they finished, or a batch given the wrong scenarios, would fail)
+    # D0 planned in batches by the two workers is the one process's, in scenario order (a batch given the wrong
+    # scenarios would fail; its jobs are of equal length and finish in order: results taken in the order they
+    # finished would pass here, tests/test_workers.py catches them)
     assert f"{TINY.n_demos} jobs (plan_demonstrations) in 2 worker processes" in open(
         os.path.join(two_workers, "log.txt")).read()
     da = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))

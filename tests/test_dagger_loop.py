@@ -115,7 +115,7 @@ def test_run_folder_refuses_a_different_config(full_run):
 @pytest.mark.parametrize("argv,message", [
     (["--profile", "huge"], "invalid choice"),
     (["--env", "mars"], "invalid choice"),
-    (["--methods", "bc,magic"], "valid choices"),
+    (["--methods", "bc,magic"], "unknown method(s) ['magic']; valid: bc, hg_dagger"),
     (["--profile", "quick", "--lineage", "3"], "valid lineages are 0..0"),
     (["--rounds", "0"], "rounds must be >= 1"),
     (["--device", "tpu"], "use cpu or cuda"),
@@ -625,7 +625,6 @@ def test_more_lineages_can_join_an_existing_run_folder(tmp_path):
 def test_eval_unseen_switch():
     _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
     assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
-    assert dagger.unseen_name("eval/bc.json") == "eval/bc_unseen.json"
 
 
 def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):

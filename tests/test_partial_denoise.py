@@ -265,8 +265,6 @@ def test_plot_partial_denoising_writes_figure(tmp_path):
     plot_partial_denoising(env, policy, obs, expert, (0.1, 0.5), path, generator(), q=q, n_samples=3)
     with open(path, "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(ValueError):
-        plot_partial_denoising(env, policy, obs[None], expert, (0.1,), path, generator())
 
 
 def test_plot_partial_denoising_draws_the_3d_env_in_the_top_view(tmp_path):

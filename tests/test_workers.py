@@ -1,0 +1,26 @@
+"""experiment/workers.py: the jobs' results in the jobs' order, however the worker processes finish them."""
+import os
+import time
+
+from experiment import workers
+
+
+def finish(value, wait_for=None, then_write=None):
+    """A worker's job (module level: a spawned worker imports it): waits up to 60 s for the file wait_for, writes
+    the file then_write, returns value."""
+    deadline = time.time() + 60
+    while wait_for and not os.path.exists(wait_for) and time.time() < deadline:
+        time.sleep(0.01)
+    if then_write:
+        open(then_write, "w").close()
+    return value
+
+
+def test_results_and_progress_come_in_the_jobs_order_when_the_first_job_finishes_last(tmp_path):
+    """Job a waits for the file job c writes, so two workers finish b first and a after c. Fails if in_parallel
+    hands its results, or each() its calls, in the order the jobs finished (concurrent.futures.as_completed)."""
+    marker = str(tmp_path / "c_done")
+    seen = []
+    jobs = [("a", marker, None), ("b", None, None), ("c", None, marker)]
+    assert workers.in_parallel(finish, jobs, 2, each=seen.append) == ["a", "b", "c"]
+    assert seen == ["a", "b", "c"]
