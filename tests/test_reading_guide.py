@@ -15,7 +15,7 @@ import pytest
 import dagger
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger")
+MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report")
 # A run of every stage and every Table I row kind, at sizes that still reach the equilibrium fit (Eq. 12) with
 # enough blend rollouts, and two lineages for the paired tests (the smoke profile's sizes; one process, so that one
 # trace sees every call).
@@ -36,7 +36,7 @@ def guide_names(readme_text):
             continue
         # the 'read' cell: 'module.py: `a`, `b` (...); other.py: `c`' -- a name belongs to the last module named
         for part in re.split(r"(?=\b(?:%s)\.py:)" % "|".join(MODULES), cells[2]):
-            m = re.match(r"(\w+)\.py:(.*)", part.strip(), re.S)
+            m = re.match(r"(?:experiment/)?(\w+)\.py:(.*)", part.strip(), re.S)
             if not m:
                 continue
             for name in re.finditer(r"`([\w.]+)[^`]*`( \(not run)?", m.group(2)):
@@ -85,11 +85,14 @@ def test_the_guide_parser_reads_marks_and_modules():
     """Fails if a name is credited to the wrong module or a '(not run' mark is missed or invented."""
     text = ("## Reading guide\n| step | paper | read (file: function) | checked by |\n|---|---|---|---|\n"
             "| 3a. blend | Eq. 3 | partial_denoise.py: `lerp_blend` (not run: the paper's alternative), `switch_step`; "
-            "diffusion.py: `train(sampler=...)`, `DiffusionPolicy.sample` | t |\n## Next\n| x | y | dagger.py: `no` | z |\n")
+            "diffusion.py: `train(sampler=...)`, `DiffusionPolicy.sample` | t |\n"
+            "| 7b. stats | Tables | dagger.py: `tost`; experiment/report.py: `summarize` (Table I) | t |\n"
+            "## Next\n| x | y | dagger.py: `no` | z |\n")
     assert guide_names(text) == {("partial_denoise", "lerp_blend"): ("3a. blend", True),
                                  ("partial_denoise", "switch_step"): ("3a. blend", False),
                                  ("diffusion", "train"): ("3a. blend", False),
-                                 ("diffusion", "DiffusionPolicy.sample"): ("3a. blend", False)}
+                                 ("diffusion", "DiffusionPolicy.sample"): ("3a. blend", False),
+                                 ("dagger", "tost"): ("7b. stats", False), ("report", "summarize"): ("7b. stats", False)}
 
 
 def test_every_function_the_reading_guide_names_runs_or_is_marked(traced_run):
