@@ -16,9 +16,8 @@
                        the label rule (diffusion.label_mask) keeps those chunks, padded with the last action, so
                        hg_dagger already trains on the padded chunks of an intervention that ends its episode (35 %
                        of its intervention chunks in table1's lineage 0, round 1, re-collected for issue 59's probe).
-                       The two rows differ only at the
-                       hand-backs before the episode's end: the last H - 1 steps of such an intervention are chunk
-                       starts (padded, "hold still") here and not in hg_dagger.
+                       The two rows differ only at the hand-backs before the episode's end: the last H - 1 steps of
+                       such an intervention are chunk starts (padded, "hold still") here and not in hg_dagger.
     cotrain_fixed_8,   the paper's text's co-training (Sec. IV-A step 4, "co-train on the aggregate dataset and the
     cotrain_pooled     augmented intervention data"): a noised row's intervention rows half as recorded (hg_dagger's
                        chunks), half noised and relabelled (fixed sigma 8, pooled Sigma-bar^alpha). Table I's noised
