@@ -17,8 +17,8 @@ the network is told that k, and p_sample(..., a_k, k) returns the chunk at level
 chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
 The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
-on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py): its Linear and Mish are torch's,
-computed the faster way this CPU allows (the last section).
+on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py). It is written with torch's own
+layers; experiment/cpu_kernels.py computes its Linear and Mish faster where that was measured to pay.
 """
 
 import copy
@@ -264,7 +264,7 @@ class Conv1dBlock(nn.Sequential):
     def __init__(self, in_channels, out_channels, kernel_size, n_groups):
         super().__init__(nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
                          nn.GroupNorm(n_groups, out_channels),
-                         Mish())
+                         nn.Mish())
 
 
 class ConditionalResidualBlock(nn.Module):
@@ -295,13 +295,15 @@ class FiLMNetwork(nn.Module):
     forward(a, film) takes their sum, all blocks' (scale, bias) in one row. A subclass builds its blocks and its
     output layer `final` in build() and lists the blocks in residual_blocks() in the order forward() uses them.
     """
+    film_linear = staticmethod(nn.functional.linear)   # film_terms' products (experiment/cpu_kernels.py: its own)
 
     def __init__(self, cfg):
         super().__init__()
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
         # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
-        self.step_encoder = nn.Sequential(Linear(dsed, 4 * dsed), Mish(), Linear(4 * dsed, dsed))
+        self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
+        self.cond_mish = nn.Mish()                                     # every FiLM map reads Mish(condition)
         self.build(cfg, dsed + cfg.cond_input_dim)                    # FiLM input: [step features, obs features]
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.final[-1].weight)
@@ -313,7 +315,7 @@ class FiLMNetwork(nn.Module):
 
     def film_weights(self):
         """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
-        each stacked whole (linear takes a contiguous weight through oneDNN, a slice through torch's own)."""
+        each stacked whole (a CPU kernel reads a contiguous weight faster than a slice: experiment/cpu_kernels.py)."""
         films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
         w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
         w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
@@ -328,9 +330,9 @@ class FiLMNetwork(nn.Module):
         (B, F) of normalize_obs's output (the encoder's features, OBS_ENCODERS), and the step table
         W_s Mish(step features) + b (K, F) of every block's FiLM for all K steps at once."""
         w_step, w_obs, bias = self.film_weights()
-        obs_part = linear(mish(self.obs_encoder(obs_norm)), w_obs)              # (B, F)
+        obs_part = self.film_linear(self.cond_mish(self.obs_encoder(obs_norm)), w_obs)           # (B, F)
         k = torch.arange(self.K, device=bias.device)
-        return obs_part, linear(mish(self.step_features(k)), w_step, bias)      # ..., (K, F)
+        return obs_part, self.film_linear(self.cond_mish(self.step_features(k)), w_step, bias)  # ..., (K, F)
 
 
 class ConditionalUnet1D(FiLMNetwork):
@@ -396,15 +398,16 @@ class MLPResidualBlock(nn.Module):
     def __init__(self, width, cond_dim):
         super().__init__()
         self.norm = nn.LayerNorm(width)
-        self.fc1 = Linear(width, width)
+        self.fc1 = nn.Linear(width, width)
         self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each (film_weights)
-        self.fc2 = Linear(width, width)
+        self.fc2 = nn.Linear(width, width)
+        self.mish = nn.Mish()
 
     def forward(self, x, film):
         """x (B, width), film (B, 2 * width) -> (B, width)."""
-        h = self.fc1(mish(self.norm(x)))                             # (B, width)
+        h = self.fc1(self.mish(self.norm(x)))                        # (B, width)
         scale, bias = film.chunk(2, dim=1)                           # (B, width) each
-        return x + self.fc2(mish(torch.addcmul(bias, scale, h)))     # FiLM: scale * h + bias
+        return x + self.fc2(self.mish(torch.addcmul(bias, scale, h)))  # FiLM: scale * h + bias
 
 
 class ResidualMLP(FiLMNetwork):
@@ -414,10 +417,10 @@ class ResidualMLP(FiLMNetwork):
 
     def build(self, cfg, cond_dim):
         self.horizon, self.dof = cfg.horizon, cfg.dof
-        self.inp = Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
+        self.inp = nn.Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
         self.blocks = nn.ModuleList([MLPResidualBlock(cfg.mlp_width, cond_dim) for _ in range(cfg.mlp_blocks)])
-        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), Mish(),
-                                   Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
+        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), nn.Mish(),
+                                   nn.Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
 
     def residual_blocks(self):
         yield from self.blocks
@@ -761,91 +764,6 @@ def update_ema(policy, step, decay):
     The decay warms up as (1 + t) / (10 + t), so that a short run's EMA is not its random initial weights."""
     d = min(decay, (1.0 + step) / (10.0 + step))
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
-
-
-# ---- The CPU's fast path for the epsilon-network's Linear and Mish: torch's functions, computed faster ------------
-# The same values as torch's to float32 rounding (tests/test_diffusion_fast_path.py); measured on the 2-core AMD EPYC, one thread
-# (benchmarks/README.md, "The training step at the machine's speed (issue 54)"):
-#   - linear(x, W, b) = x W^T + b: torch's CPU product calls MKL, which on an AMD CPU takes its AVX2 path (~100
-#     GFLOP/s for 256 x 256 x 256); oneDNN, which torch also ships, runs it with AVX-512 (~220 GFLOP/s). A contiguous
-#     2-D float32 input and weight on the CPU go through oneDNN, forward and both gradients; anything else (a GPU,
-#     float64, a slice of a weight, which oneDNN reads ~500x slower, a torch without the op) through torch's own.
-#   - mish(x) = x tanh(softplus(x)) (Misra 2019, the activation of Chi et al.'s U-Net) in closed form with its
-#     derivative written out: forward and backward ~2.5x faster than torch's kernel on a (256, 256) input.
-# oneDNN's matrix product as torch's inductor calls it (an internal op: a torch without it falls back to torch's own)
-ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-
-
-def _onednn_matmul(x, weight_t, bias=None):
-    """x (M, K) @ weight_t.T (K, N) [+ bias (N,)] -> (M, N) through oneDNN; a contiguous tensor or its transpose is
-    read as it is."""
-    return torch.ops.mkldnn._linear_pointwise(x, weight_t, bias, "none", [], "")
-
-
-class _OneDNNLinear(torch.autograd.Function):
-    """y = x W^T + b, dL/dx = g W, dL/dW = g^T x, dL/db = sum_rows g: each product one oneDNN call."""
-
-    @staticmethod
-    def forward(ctx, x, weight, bias):
-        ctx.save_for_backward(x, weight)
-        ctx.has_bias = bias is not None
-        return _onednn_matmul(x, weight, bias)                                          # (M, out)
-
-    @staticmethod
-    def backward(ctx, grad):                                           # grad (M, out)
-        x, weight = ctx.saved_tensors
-        grad = grad.contiguous()                                       # e.g. the expanded gradient of a sum
-        need_x, need_w, need_b = ctx.needs_input_grad
-        grad_x = _onednn_matmul(grad, weight.t()) if need_x else None  # (M, in)
-        grad_w = _onednn_matmul(grad.t(), x.t()) if need_w else None   # (out, in)
-        grad_b = grad.sum(0) if need_b and ctx.has_bias else None      # (out,)
-        return grad_x, grad_w, grad_b
-
-
-def linear(x, weight, bias=None):
-    """nn.functional.linear(x, weight, bias): x (M, in), weight (out, in), bias (out,) or None -> (M, out)."""
-    if (ONEDNN and x.dim() == 2 and x.device.type == "cpu" and x.dtype == weight.dtype == torch.float32
-            and x.is_contiguous() and weight.is_contiguous()):
-        return _OneDNNLinear.apply(x, weight, bias)
-    return nn.functional.linear(x, weight, bias)
-
-
-class Linear(nn.Linear):
-    """nn.Linear (the same parameters and state_dict keys) whose product is linear() above."""
-
-    def forward(self, x):
-        return linear(x, self.weight, self.bias)
-
-
-class _Mish(torch.autograd.Function):
-    """mish(x) = x tanh(softplus(x)). With e = exp(x): tanh(log(1 + e)) = ((1 + e)^2 - 1) / ((1 + e)^2 + 1)
-    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x)."""
-
-    @staticmethod
-    def forward(ctx, x):
-        e = torch.exp(x.clamp(max=20.0))    # past x = 20, n / (n + 2) is 1 in float32; e^x itself would overflow
-        n = e * (e + 2.0)
-        t = n / (n + 2.0)                                              # tanh(softplus(x))
-        ctx.save_for_backward(x, e, t)
-        return x * t
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, e, t = ctx.saved_tensors
-        sigmoid = e / (e + 1.0)
-        return grad * (t + x * (1.0 - t * t) * sigmoid)
-
-
-def mish(x):
-    """nn.functional.mish(x), elementwise over any shape."""
-    return _Mish.apply(x)
-
-
-class Mish(nn.Module):
-    """nn.Mish computed by mish() above."""
-
-    def forward(self, x):
-        return mish(x)
 
 
 # ---- Demo: a toy task with two modes (go up-right or down-left); the policy must keep both ------------------------
