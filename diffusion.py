@@ -52,30 +52,25 @@ class PolicyConfig:
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
-        """ValueError on a bad field, naming it and what would be valid; down_dims becomes an int tuple."""
-        for name, table in (("network", NETWORKS), ("obs_encoder", OBS_ENCODERS)):   # a variant registers its own
-            if getattr(self, name) not in table:
-                raise ValueError(f"PolicyConfig.{name} must be one of {', '.join(table)}, got {getattr(self, name)!r}")
-        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim",
-                     "mlp_width", "mlp_blocks"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
-        dims = self.down_dims
-        if (not isinstance(dims, (tuple, list)) or not dims
-                or any(not isinstance(d, (int, np.integer)) or d < 1 or d % self.n_groups for d in dims)):
-            raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
-                             f"n_groups={self.n_groups} (GroupNorm), got {dims!r}")
-        self.down_dims = tuple(int(d) for d in dims)                   # a list from a JSON config, numpy ints
+        """ValueError naming every rule a field breaks and what would be valid; down_dims becomes an int tuple."""
+        self.down_dims = tuple(int(d) for d in self.down_dims)         # a list from a JSON config, numpy ints
+        sizes = ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim", "mlp_width",
+                 "mlp_blocks")
         halvings = len(self.down_dims) - 1
-        rules = {f"horizon divisible by 2**(len(down_dims) - 1) = {2 ** halvings} (the U-Net halves the chunk "
-                 f"{halvings} times)": self.network != "unet" or self.horizon % 2 ** halvings == 0,
-                 "kernel_size odd (padding k // 2 keeps the length)": self.kernel_size % 2 == 1,
-                 "step_embed_dim even": self.step_embed_dim % 2 == 0,
-                 "n_act <= horizon": self.n_act <= self.horizon}
+        rules = {f"network must be one of {', '.join(NETWORKS)}": self.network in NETWORKS,   # a variant adds its own
+                 f"obs_encoder must be one of {', '.join(OBS_ENCODERS)}": self.obs_encoder in OBS_ENCODERS,
+                 f"{', '.join(sizes)} must be positive ints":
+                     all(isinstance(getattr(self, n), (int, np.integer)) and getattr(self, n) >= 1 for n in sizes),
+                 f"down_dims must be non-empty, multiples of n_groups={self.n_groups} (GroupNorm)": bool(self.down_dims)
+                     and self.n_groups >= 1 and all(d >= 1 and d % self.n_groups == 0 for d in self.down_dims),
+                 f"horizon must be divisible by 2**(len(down_dims) - 1) = {2 ** halvings} (the U-Net halves the "
+                 f"chunk {halvings} times)": self.network != "unet" or self.horizon % 2 ** halvings == 0,
+                 "kernel_size must be odd (padding k // 2 keeps the length)": self.kernel_size % 2 == 1,
+                 "step_embed_dim must be even": self.step_embed_dim % 2 == 0,
+                 "n_act must be <= horizon": self.n_act <= self.horizon}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
-            raise ValueError(f"PolicyConfig needs {'; '.join(broken)}; got {self}")
+            raise ValueError(f"PolicyConfig: {'; '.join(broken)}; got {self}")
         try:
             self.encoder_sizes                                         # the encoder checks its own arguments
         except TypeError as err:                                       # an argument it does not take
@@ -140,11 +135,10 @@ class TrainConfig:
 def check_array(name, x, shape):
     """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
     x = np.asarray(x) if not torch.is_tensor(x) else x
-    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
+    fits = x.ndim == len(shape) and all(s is None or s == n for s, n in zip(shape, x.shape))
+    if not (fits and (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all())):
         want = tuple("N" if s is None else s for s in shape)
-        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
-    if not (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()):
-        raise ValueError(f"{name} contains NaN or inf")
+        raise ValueError(f"{name} must have shape {want} and finite entries, got shape {tuple(x.shape)}")
     return x
 
 
@@ -457,7 +451,7 @@ class DiffusionPolicy(nn.Module):
     """pi_theta(a_{t:t+H} | o_t): DDPM over action chunks, with an EMA copy of eps_theta for sampling.
 
     The observation starts with (q_t, q_{t-1}). Chunks are learned relative to q_t and the network also sees the
-    velocity q_t - q_{t-1}: ~8x more precise first actions than absolute chunks (measured at commit 745d117).
+    velocity q_t - q_{t-1} (more precise first actions than absolute chunks: benchmarks/README.md).
     Observations, velocities and relative chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved
     with the weights); the interface stays in joint units: sample() returns chunks of joint positions.
     """
@@ -490,11 +484,8 @@ class DiffusionPolicy(nn.Module):
         """Min-max (center, half range) of the observations (N, obs_dim) (the encoder's entries excepted), the
         velocities and the chunks (N, H, dof) relative to q_t, in joint units."""
         cfg = self.cfg
-        obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]
-        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
+        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)[:, :cfg.low_dim]
         actions = check_array("actions", np.asarray(actions, dtype=np.float64), (len(obs), cfg.horizon, cfg.dof))
-        if len(obs) == 0:
-            raise ValueError("fit_normalizer needs at least one observation and one action")
         q, q_prev = obs[:, :cfg.dof], obs[:, cfg.dof:2 * cfg.dof]
         parts = {"obs": obs, "vel": q - q_prev, "act": (actions - q[:, None, :]).reshape(-1, cfg.dof)}
         for prefix, x in parts.items():
@@ -556,7 +547,7 @@ class DiffusionPolicy(nn.Module):
         top = int(k_start.max()) if len(k_start) else -1
         for k in range(top, -1, -1):
             active = k_start >= k                                      # the rows that have reached level k
-            if bool(active.all()):  # every row (sampling from pure noise): no gather, ~20 % faster (MLP, B = 300)
+            if bool(active.all()):                                     # every row (from pure noise): no gather
                 eps = self.predict_eps(a, k, None, use_ema, cond=cond)
                 a = p_sample(self.schedule, eps, a, k, noise=z[:, k])  # Eq. (6)
                 continue
@@ -567,8 +558,7 @@ class DiffusionPolicy(nn.Module):
 
     def draw_noise(self, B, generator=None):
         """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] the starting noise, [:, 1 + k]
-        the z of the step at level k. One randn call per row (torch's CPU sampler fills blocks of 16 numbers),
-        so sampling a batch equals sampling its rows one by one from the same generator."""
+        the z of the step at level k. One randn call per row: a batch samples as its rows one by one would."""
         shape = (B, self.cfg.K + 1, self.cfg.horizon, self.cfg.dof)
         gdev = generator.device if generator is not None else torch.device("cpu")
         rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
@@ -614,51 +604,36 @@ def label_mask(expert, H):
 def chunk_dataset(episodes, H):
     """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
     A chunk is action[t : t + H]; past the episode end it repeats the last action."""
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive int, got {H!r}")
     obs_list, chunk_list = [], []
-    for i, ep in enumerate(episodes):
-        if not {"obs", "action", "expert"} <= set(ep):
-            raise ValueError(f"episode {i} needs 'obs', 'action' and 'expert' arrays, has {sorted(ep)}")
+    for ep in episodes:
         obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"])
         T = len(action)
-        if len(obs) != T or len(expert) != T or action.ndim != 2:
-            raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
-                             "must share the length T, with action of shape (T, dof)")
+        assert len(obs) == len(expert) == T and action.ndim == 2, "an episode's arrays share the length T"
         starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
         steps = starts[:, None] + np.arange(H)[None, :]                # (n, H)
         obs_list.append(obs[starts].astype(np.float32))
         chunk_list.append(action[np.minimum(steps, T - 1)].astype(np.float32))  # (n, H, dof), padded at the end
-    if not obs_list:
-        raise ValueError("chunk_dataset needs at least one episode")
     return np.concatenate(obs_list), np.concatenate(chunk_list)
 
 
 # ---- Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6) -----------------------------
 def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None, log=print):
-    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
-
-    - The normalizer is fitted on (obs, chunks) only if the policy has none (a loaded checkpoint keeps its own).
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): augmented pairs made on the
-      fly for round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps
-      stay out of the loss.
-    - start: None (step 0, a fresh AdamW), or a state that on_checkpoint handed over: from its 'step' with its
-      'optimizer' state along cfg's lr schedule (the authors' fine-tuning continues pi_0 so, PAPER_SETUP.md §2,
-      with this run's own random streams); with its 'numpy_rng' and 'torch_rng' too, as the uninterrupted run
-      would go on (a resumed run: the weights and the sampler's pool are the caller's to restore).
-    - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng',
-      'torch_rng'} (experiment/checkpoints.py keeps it in the run folder).
+    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units; the
+    normalizer is fitted on them unless the policy has one (a loaded checkpoint keeps its own).
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): co-training pairs for
+      round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps are not in
+      the loss.
+    - start: None (step 0, a fresh AdamW) or a state on_checkpoint handed over: from its 'step' and 'optimizer'
+      along cfg's lr schedule (fine-tuning continues pi_0 so, PAPER_SETUP.md §2), and with its 'numpy_rng' and
+      'torch_rng' where it has them (a resumed run: its weights and the sampler's pool are the caller's to restore).
+    - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng', 'torch_rng'}.
     """
     pc = policy.cfg
     obs = check_array("obs", obs, (None, pc.obs_dim))
     chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
     n_aug = int(round(cfg.aug_fraction * cfg.batch_size))            # augmented rows per batch
     n_base = cfg.batch_size - n_aug                                    # rows from (obs, chunks)
-    if len(obs) != len(chunks) or len(obs) == 0 or (n_aug and sampler is None) or (
-            np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim):
-        raise ValueError(f"train needs obs and chunks of the same non-zero length (got {len(obs)}, {len(chunks)}), "
-                         f"a sampler if aug_fraction > 0 (aug_fraction={cfg.aug_fraction}, sampler={sampler!r}), "
-                         f"and obs_noise one std or one per entry (obs_dim={pc.obs_dim}, got {cfg.obs_noise!r})")
+    assert len(obs) == len(chunks) > 0 and (sampler is not None or not n_aug), "obs and chunks pair; a sampler"
     if not bool(policy.normalizer_fitted):
         policy.fit_normalizer(obs, chunks)
     dev = policy.device
@@ -719,15 +694,10 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
     and a (normalized, (n_base, H, dof)) -> (o, a, mask (B, H) bool with the base rows True, or None: no mask)."""
     pc, dev = policy.cfg, policy.device
     drawn = sampler(n_aug, rng)
-    m_aug = np.asarray(drawn[2]) if len(drawn) == 3 else None
-    if len(drawn) not in (2, 3) or (m_aug is not None and (m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool)):
-        raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask (n, H) bool), got "
-                         f"{[getattr(x, 'shape', x) for x in drawn]}")
+    m_aug = np.asarray(drawn[2]) if len(drawn) == 3 else None         # (n_aug, H) bool or None
     with torch.no_grad():
-        o_aug = torch.as_tensor(check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim)), dtype=torch.float32,
-                                device=dev)
-        a_aug = torch.as_tensor(check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof)),
-                                dtype=torch.float32, device=dev)
+        o_aug = torch.as_tensor(np.asarray(drawn[0]), dtype=torch.float32, device=dev)   # (n_aug, obs_dim)
+        a_aug = torch.as_tensor(np.asarray(drawn[1]), dtype=torch.float32, device=dev)   # (n_aug, H, dof)
         o, a = torch.cat([o, o_aug]), torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
     if m_aug is None:
         return o, a, None
@@ -736,8 +706,7 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
 
 
 def make_optimizer(net, cfg):
-    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter. The same update as the
-    per-tensor loop to float32 rounding, ~5x faster on the CPU (2.6 -> 0.5 ms a step for the quick profile's MLP)."""
+    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter (faster on a CPU)."""
     return torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
 
 
