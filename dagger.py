@@ -33,7 +33,7 @@ import diffusion
 import envs
 import oracle as oracle_mod
 import relabel
-from experiment import cli, controls, lever, profiles, report
+from experiment import cli, controls, cpu_kernels, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
 from experiment.run_folder import Run, stage_seed
 from experiment.workers import InBackground, in_parallel
@@ -252,7 +252,7 @@ def make_policy(cfg, env):
                                 down_dims=cfg.down_dims, network=cfg.network, mlp_width=cfg.mlp_width,
                                 mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
                                 obs_encoder_args=dict(env.obs_encoder_args), seed=stage_seed(cfg, "init"))
-    return diffusion.DiffusionPolicy(pc, device=cfg.device)
+    return cpu_kernels.use_kernels(diffusion.DiffusionPolicy(pc, device=cfg.device))  # a CPU's faster Linear, Mish
 
 
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------

@@ -17,8 +17,8 @@ the network is told that k, and p_sample(..., a_k, k) returns the chunk at level
 chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
 The network is the authors' (PAPER_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
-on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py): its Linear and Mish are torch's,
-computed the faster way this CPU allows (the last section).
+on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py). It is written with torch's own
+layers; experiment/cpu_kernels.py computes its Linear and Mish faster where that was measured to pay.
 """
 
 import copy
@@ -52,30 +52,25 @@ class PolicyConfig:
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
-        """ValueError on a bad field, naming it and what would be valid; down_dims becomes an int tuple."""
-        for name, table in (("network", NETWORKS), ("obs_encoder", OBS_ENCODERS)):   # a variant registers its own
-            if getattr(self, name) not in table:
-                raise ValueError(f"PolicyConfig.{name} must be one of {', '.join(table)}, got {getattr(self, name)!r}")
-        for name in ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim",
-                     "mlp_width", "mlp_blocks"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"PolicyConfig.{name} must be a positive int, got {value!r}")
-        dims = self.down_dims
-        if (not isinstance(dims, (tuple, list)) or not dims
-                or any(not isinstance(d, (int, np.integer)) or d < 1 or d % self.n_groups for d in dims)):
-            raise ValueError(f"PolicyConfig.down_dims must be a non-empty tuple of positive multiples of "
-                             f"n_groups={self.n_groups} (GroupNorm), got {dims!r}")
-        self.down_dims = tuple(int(d) for d in dims)                   # a list from a JSON config, numpy ints
+        """ValueError naming every rule a field breaks and what would be valid; down_dims becomes an int tuple."""
+        self.down_dims = tuple(int(d) for d in self.down_dims)         # a list from a JSON config, numpy ints
+        sizes = ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim", "mlp_width",
+                 "mlp_blocks")
         halvings = len(self.down_dims) - 1
-        rules = {f"horizon divisible by 2**(len(down_dims) - 1) = {2 ** halvings} (the U-Net halves the chunk "
-                 f"{halvings} times)": self.network != "unet" or self.horizon % 2 ** halvings == 0,
-                 "kernel_size odd (padding k // 2 keeps the length)": self.kernel_size % 2 == 1,
-                 "step_embed_dim even": self.step_embed_dim % 2 == 0,
-                 "n_act <= horizon": self.n_act <= self.horizon}
+        rules = {f"network must be one of {', '.join(NETWORKS)}": self.network in NETWORKS,   # a variant adds its own
+                 f"obs_encoder must be one of {', '.join(OBS_ENCODERS)}": self.obs_encoder in OBS_ENCODERS,
+                 f"{', '.join(sizes)} must be positive ints":
+                     all(isinstance(getattr(self, n), (int, np.integer)) and getattr(self, n) >= 1 for n in sizes),
+                 f"down_dims must be non-empty, multiples of n_groups={self.n_groups} (GroupNorm)": bool(self.down_dims)
+                     and self.n_groups >= 1 and all(d >= 1 and d % self.n_groups == 0 for d in self.down_dims),
+                 f"horizon must be divisible by 2**(len(down_dims) - 1) = {2 ** halvings} (the U-Net halves the "
+                 f"chunk {halvings} times)": self.network != "unet" or self.horizon % 2 ** halvings == 0,
+                 "kernel_size must be odd (padding k // 2 keeps the length)": self.kernel_size % 2 == 1,
+                 "step_embed_dim must be even": self.step_embed_dim % 2 == 0,
+                 "n_act must be <= horizon": self.n_act <= self.horizon}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
-            raise ValueError(f"PolicyConfig needs {'; '.join(broken)}; got {self}")
+            raise ValueError(f"PolicyConfig: {'; '.join(broken)}; got {self}")
         try:
             self.encoder_sizes                                         # the encoder checks its own arguments
         except TypeError as err:                                       # an argument it does not take
@@ -140,11 +135,10 @@ class TrainConfig:
 def check_array(name, x, shape):
     """x (numpy or torch) must be finite and of the given shape (None = any size on that axis); else ValueError."""
     x = np.asarray(x) if not torch.is_tensor(x) else x
-    if x.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, x.shape)):
+    fits = x.ndim == len(shape) and all(s is None or s == n for s, n in zip(shape, x.shape))
+    if not (fits and (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all())):
         want = tuple("N" if s is None else s for s in shape)
-        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
-    if not (torch.isfinite(x).all() if torch.is_tensor(x) else np.isfinite(x).all()):
-        raise ValueError(f"{name} contains NaN or inf")
+        raise ValueError(f"{name} must have shape {want} and finite entries, got shape {tuple(x.shape)}")
     return x
 
 
@@ -264,7 +258,7 @@ class Conv1dBlock(nn.Sequential):
     def __init__(self, in_channels, out_channels, kernel_size, n_groups):
         super().__init__(nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
                          nn.GroupNorm(n_groups, out_channels),
-                         Mish())
+                         nn.Mish())
 
 
 class ConditionalResidualBlock(nn.Module):
@@ -295,13 +289,15 @@ class FiLMNetwork(nn.Module):
     forward(a, film) takes their sum, all blocks' (scale, bias) in one row. A subclass builds its blocks and its
     output layer `final` in build() and lists the blocks in residual_blocks() in the order forward() uses them.
     """
+    film_linear = staticmethod(nn.functional.linear)   # film_terms' products (experiment/cpu_kernels.py: its own)
 
     def __init__(self, cfg):
         super().__init__()
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
         # Step features: sinusoidal embedding -> Linear(dsed, 4 dsed) -> Mish -> Linear(4 dsed, dsed) (Chi et al.).
-        self.step_encoder = nn.Sequential(Linear(dsed, 4 * dsed), Mish(), Linear(4 * dsed, dsed))
+        self.step_encoder = nn.Sequential(nn.Linear(dsed, 4 * dsed), nn.Mish(), nn.Linear(4 * dsed, dsed))
+        self.cond_mish = nn.Mish()                                     # every FiLM map reads Mish(condition)
         self.build(cfg, dsed + cfg.cond_input_dim)                    # FiLM input: [step features, obs features]
         # Zero-init output: the untrained net predicts eps = 0, so training starts at loss ~1 (stable).
         nn.init.zeros_(self.final[-1].weight)
@@ -313,7 +309,7 @@ class FiLMNetwork(nn.Module):
 
     def film_weights(self):
         """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
-        each stacked whole (linear takes a contiguous weight through oneDNN, a slice through torch's own)."""
+        each stacked whole (a CPU kernel reads a contiguous weight faster than a slice: experiment/cpu_kernels.py)."""
         films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
         w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
         w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
@@ -328,9 +324,9 @@ class FiLMNetwork(nn.Module):
         (B, F) of normalize_obs's output (the encoder's features, OBS_ENCODERS), and the step table
         W_s Mish(step features) + b (K, F) of every block's FiLM for all K steps at once."""
         w_step, w_obs, bias = self.film_weights()
-        obs_part = linear(mish(self.obs_encoder(obs_norm)), w_obs)              # (B, F)
+        obs_part = self.film_linear(self.cond_mish(self.obs_encoder(obs_norm)), w_obs)           # (B, F)
         k = torch.arange(self.K, device=bias.device)
-        return obs_part, linear(mish(self.step_features(k)), w_step, bias)      # ..., (K, F)
+        return obs_part, self.film_linear(self.cond_mish(self.step_features(k)), w_step, bias)  # ..., (K, F)
 
 
 class ConditionalUnet1D(FiLMNetwork):
@@ -396,15 +392,16 @@ class MLPResidualBlock(nn.Module):
     def __init__(self, width, cond_dim):
         super().__init__()
         self.norm = nn.LayerNorm(width)
-        self.fc1 = Linear(width, width)
+        self.fc1 = nn.Linear(width, width)
         self.film = nn.Linear(cond_dim, 2 * width)                   # -> (scale, bias), width each (film_weights)
-        self.fc2 = Linear(width, width)
+        self.fc2 = nn.Linear(width, width)
+        self.mish = nn.Mish()
 
     def forward(self, x, film):
         """x (B, width), film (B, 2 * width) -> (B, width)."""
-        h = self.fc1(mish(self.norm(x)))                             # (B, width)
+        h = self.fc1(self.mish(self.norm(x)))                        # (B, width)
         scale, bias = film.chunk(2, dim=1)                           # (B, width) each
-        return x + self.fc2(mish(torch.addcmul(bias, scale, h)))     # FiLM: scale * h + bias
+        return x + self.fc2(self.mish(torch.addcmul(bias, scale, h)))  # FiLM: scale * h + bias
 
 
 class ResidualMLP(FiLMNetwork):
@@ -414,10 +411,10 @@ class ResidualMLP(FiLMNetwork):
 
     def build(self, cfg, cond_dim):
         self.horizon, self.dof = cfg.horizon, cfg.dof
-        self.inp = Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
+        self.inp = nn.Linear(cfg.horizon * cfg.dof, cfg.mlp_width)
         self.blocks = nn.ModuleList([MLPResidualBlock(cfg.mlp_width, cond_dim) for _ in range(cfg.mlp_blocks)])
-        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), Mish(),
-                                   Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
+        self.final = nn.Sequential(nn.LayerNorm(cfg.mlp_width), nn.Mish(),
+                                   nn.Linear(cfg.mlp_width, cfg.horizon * cfg.dof))
 
     def residual_blocks(self):
         yield from self.blocks
@@ -454,7 +451,7 @@ class DiffusionPolicy(nn.Module):
     """pi_theta(a_{t:t+H} | o_t): DDPM over action chunks, with an EMA copy of eps_theta for sampling.
 
     The observation starts with (q_t, q_{t-1}). Chunks are learned relative to q_t and the network also sees the
-    velocity q_t - q_{t-1}: ~8x more precise first actions than absolute chunks (measured at commit 745d117).
+    velocity q_t - q_{t-1} (more precise first actions than absolute chunks: benchmarks/README.md).
     Observations, velocities and relative chunks are min-max normalized to [-1, 1] (fitted on the dataset, saved
     with the weights); the interface stays in joint units: sample() returns chunks of joint positions.
     """
@@ -487,11 +484,8 @@ class DiffusionPolicy(nn.Module):
         """Min-max (center, half range) of the observations (N, obs_dim) (the encoder's entries excepted), the
         velocities and the chunks (N, H, dof) relative to q_t, in joint units."""
         cfg = self.cfg
-        obs = check_array("obs", obs, (None, cfg.obs_dim))[:, :cfg.low_dim]
-        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)
+        obs = np.asarray(obs.cpu() if torch.is_tensor(obs) else obs, dtype=np.float64)[:, :cfg.low_dim]
         actions = check_array("actions", np.asarray(actions, dtype=np.float64), (len(obs), cfg.horizon, cfg.dof))
-        if len(obs) == 0:
-            raise ValueError("fit_normalizer needs at least one observation and one action")
         q, q_prev = obs[:, :cfg.dof], obs[:, cfg.dof:2 * cfg.dof]
         parts = {"obs": obs, "vel": q - q_prev, "act": (actions - q[:, None, :]).reshape(-1, cfg.dof)}
         for prefix, x in parts.items():
@@ -553,7 +547,7 @@ class DiffusionPolicy(nn.Module):
         top = int(k_start.max()) if len(k_start) else -1
         for k in range(top, -1, -1):
             active = k_start >= k                                      # the rows that have reached level k
-            if bool(active.all()):  # every row (sampling from pure noise): no gather, ~20 % faster (MLP, B = 300)
+            if bool(active.all()):                                     # every row (from pure noise): no gather
                 eps = self.predict_eps(a, k, None, use_ema, cond=cond)
                 a = p_sample(self.schedule, eps, a, k, noise=z[:, k])  # Eq. (6)
                 continue
@@ -564,8 +558,7 @@ class DiffusionPolicy(nn.Module):
 
     def draw_noise(self, B, generator=None):
         """All Gaussian draws of one reverse process, (B, K + 1, H, dof): [:, 0] the starting noise, [:, 1 + k]
-        the z of the step at level k. One randn call per row (torch's CPU sampler fills blocks of 16 numbers),
-        so sampling a batch equals sampling its rows one by one from the same generator."""
+        the z of the step at level k. One randn call per row: a batch samples as its rows one by one would."""
         shape = (B, self.cfg.K + 1, self.cfg.horizon, self.cfg.dof)
         gdev = generator.device if generator is not None else torch.device("cpu")
         rows = [torch.randn(shape[1:], generator=generator, device=gdev) for _ in range(B)]
@@ -611,51 +604,36 @@ def label_mask(expert, H):
 def chunk_dataset(episodes, H):
     """(obs (N, obs_dim) float32, chunks (N, H, dof) float32) over all valid label starts of all episodes.
     A chunk is action[t : t + H]; past the episode end it repeats the last action."""
-    if not isinstance(H, (int, np.integer)) or H < 1:
-        raise ValueError(f"H must be a positive int, got {H!r}")
     obs_list, chunk_list = [], []
-    for i, ep in enumerate(episodes):
-        if not {"obs", "action", "expert"} <= set(ep):
-            raise ValueError(f"episode {i} needs 'obs', 'action' and 'expert' arrays, has {sorted(ep)}")
+    for ep in episodes:
         obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"])
         T = len(action)
-        if len(obs) != T or len(expert) != T or action.ndim != 2:
-            raise ValueError(f"episode {i}: obs {obs.shape}, action {action.shape}, expert {expert.shape} "
-                             "must share the length T, with action of shape (T, dof)")
+        assert len(obs) == len(expert) == T and action.ndim == 2, "an episode's arrays share the length T"
         starts = np.nonzero(label_mask(expert, H))[0]                  # (n,)
         steps = starts[:, None] + np.arange(H)[None, :]                # (n, H)
         obs_list.append(obs[starts].astype(np.float32))
         chunk_list.append(action[np.minimum(steps, T - 1)].astype(np.float32))  # (n, H, dof), padded at the end
-    if not obs_list:
-        raise ValueError("chunk_dataset needs at least one episode")
     return np.concatenate(obs_list), np.concatenate(chunk_list)
 
 
 # ---- Training: AdamW on the DDPM loss, the co-training hook (Sec. IV-A steps 1, 4, 6) -----------------------------
 def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None, log=print):
-    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units.
-
-    - The normalizer is fitted on (obs, chunks) only if the policy has none (a loaded checkpoint keeps its own).
-    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): augmented pairs made on the
-      fly for round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps
-      stay out of the loss.
-    - start: None (step 0, a fresh AdamW), or a state that on_checkpoint handed over: from its 'step' with its
-      'optimizer' state along cfg's lr schedule (the authors' fine-tuning continues pi_0 so, PAPER_SETUP.md §2,
-      with this run's own random streams); with its 'numpy_rng' and 'torch_rng' too, as the uninterrupted run
-      would go on (a resumed run: the weights and the sampler's pool are the caller's to restore).
-    - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng',
-      'torch_rng'} (experiment/checkpoints.py keeps it in the run folder).
+    """Train (or fine-tune) `policy` in place on (obs (N, obs_dim), chunks (N, H, dof)) in joint units; the
+    normalizer is fitted on them unless the policy has one (a loaded checkpoint keeps its own).
+    - sampler(n, rng) -> (obs (n, obs_dim), chunks (n, H, dof)[, mask (n, H) bool]): co-training pairs for
+      round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps are not in
+      the loss.
+    - start: None (step 0, a fresh AdamW) or a state on_checkpoint handed over: from its 'step' and 'optimizer'
+      along cfg's lr schedule (fine-tuning continues pi_0 so, PAPER_SETUP.md §2), and with its 'numpy_rng' and
+      'torch_rng' where it has them (a resumed run: its weights and the sampler's pool are the caller's to restore).
+    - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng', 'torch_rng'}.
     """
     pc = policy.cfg
     obs = check_array("obs", obs, (None, pc.obs_dim))
     chunks = check_array("chunks", chunks, (None, pc.horizon, pc.dof))
     n_aug = int(round(cfg.aug_fraction * cfg.batch_size))            # augmented rows per batch
     n_base = cfg.batch_size - n_aug                                    # rows from (obs, chunks)
-    if len(obs) != len(chunks) or len(obs) == 0 or (n_aug and sampler is None) or (
-            np.ndim(cfg.obs_noise) and len(cfg.obs_noise) != pc.obs_dim):
-        raise ValueError(f"train needs obs and chunks of the same non-zero length (got {len(obs)}, {len(chunks)}), "
-                         f"a sampler if aug_fraction > 0 (aug_fraction={cfg.aug_fraction}, sampler={sampler!r}), "
-                         f"and obs_noise one std or one per entry (obs_dim={pc.obs_dim}, got {cfg.obs_noise!r})")
+    assert len(obs) == len(chunks) > 0 and (sampler is not None or not n_aug), "obs and chunks pair; a sampler"
     if not bool(policy.normalizer_fitted):
         policy.fit_normalizer(obs, chunks)
     dev = policy.device
@@ -716,15 +694,10 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
     and a (normalized, (n_base, H, dof)) -> (o, a, mask (B, H) bool with the base rows True, or None: no mask)."""
     pc, dev = policy.cfg, policy.device
     drawn = sampler(n_aug, rng)
-    m_aug = np.asarray(drawn[2]) if len(drawn) == 3 else None
-    if len(drawn) not in (2, 3) or (m_aug is not None and (m_aug.shape != (n_aug, pc.horizon) or m_aug.dtype != bool)):
-        raise ValueError(f"sampler must return (obs, chunks) or (obs, chunks, mask (n, H) bool), got "
-                         f"{[getattr(x, 'shape', x) for x in drawn]}")
+    m_aug = np.asarray(drawn[2]) if len(drawn) == 3 else None         # (n_aug, H) bool or None
     with torch.no_grad():
-        o_aug = torch.as_tensor(check_array("sampler obs", drawn[0], (n_aug, pc.obs_dim)), dtype=torch.float32,
-                                device=dev)
-        a_aug = torch.as_tensor(check_array("sampler chunks", drawn[1], (n_aug, pc.horizon, pc.dof)),
-                                dtype=torch.float32, device=dev)
+        o_aug = torch.as_tensor(np.asarray(drawn[0]), dtype=torch.float32, device=dev)   # (n_aug, obs_dim)
+        a_aug = torch.as_tensor(np.asarray(drawn[1]), dtype=torch.float32, device=dev)   # (n_aug, H, dof)
         o, a = torch.cat([o, o_aug]), torch.cat([a, policy.normalize_actions(a_aug, o_aug)])
     if m_aug is None:
         return o, a, None
@@ -733,8 +706,7 @@ def _append_augmented(policy, sampler, n_aug, rng, o, a):
 
 
 def make_optimizer(net, cfg):
-    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter. The same update as the
-    per-tensor loop to float32 rounding, ~5x faster on the CPU (2.6 -> 0.5 ms a step for the quick profile's MLP)."""
+    """train()'s AdamW (the authors' optimizer), fused: one kernel updates every parameter (faster on a CPU)."""
     return torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
 
 
@@ -761,91 +733,6 @@ def update_ema(policy, step, decay):
     The decay warms up as (1 + t) / (10 + t), so that a short run's EMA is not its random initial weights."""
     d = min(decay, (1.0 + step) / (10.0 + step))
     torch._foreach_lerp_(list(policy.ema_net.parameters()), list(policy.net.parameters()), 1.0 - d)
-
-
-# ---- The CPU's fast path for the epsilon-network's Linear and Mish: torch's functions, computed faster ------------
-# The same values as torch's to float32 rounding (tests/test_diffusion_fast_path.py); measured on the 2-core AMD EPYC, one thread
-# (benchmarks/README.md, "The training step at the machine's speed (issue 54)"):
-#   - linear(x, W, b) = x W^T + b: torch's CPU product calls MKL, which on an AMD CPU takes its AVX2 path (~100
-#     GFLOP/s for 256 x 256 x 256); oneDNN, which torch also ships, runs it with AVX-512 (~220 GFLOP/s). A contiguous
-#     2-D float32 input and weight on the CPU go through oneDNN, forward and both gradients; anything else (a GPU,
-#     float64, a slice of a weight, which oneDNN reads ~500x slower, a torch without the op) through torch's own.
-#   - mish(x) = x tanh(softplus(x)) (Misra 2019, the activation of Chi et al.'s U-Net) in closed form with its
-#     derivative written out: forward and backward ~2.5x faster than torch's kernel on a (256, 256) input.
-# oneDNN's matrix product as torch's inductor calls it (an internal op: a torch without it falls back to torch's own)
-ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-
-
-def _onednn_matmul(x, weight_t, bias=None):
-    """x (M, K) @ weight_t.T (K, N) [+ bias (N,)] -> (M, N) through oneDNN; a contiguous tensor or its transpose is
-    read as it is."""
-    return torch.ops.mkldnn._linear_pointwise(x, weight_t, bias, "none", [], "")
-
-
-class _OneDNNLinear(torch.autograd.Function):
-    """y = x W^T + b, dL/dx = g W, dL/dW = g^T x, dL/db = sum_rows g: each product one oneDNN call."""
-
-    @staticmethod
-    def forward(ctx, x, weight, bias):
-        ctx.save_for_backward(x, weight)
-        ctx.has_bias = bias is not None
-        return _onednn_matmul(x, weight, bias)                                          # (M, out)
-
-    @staticmethod
-    def backward(ctx, grad):                                           # grad (M, out)
-        x, weight = ctx.saved_tensors
-        grad = grad.contiguous()                                       # e.g. the expanded gradient of a sum
-        need_x, need_w, need_b = ctx.needs_input_grad
-        grad_x = _onednn_matmul(grad, weight.t()) if need_x else None  # (M, in)
-        grad_w = _onednn_matmul(grad.t(), x.t()) if need_w else None   # (out, in)
-        grad_b = grad.sum(0) if need_b and ctx.has_bias else None      # (out,)
-        return grad_x, grad_w, grad_b
-
-
-def linear(x, weight, bias=None):
-    """nn.functional.linear(x, weight, bias): x (M, in), weight (out, in), bias (out,) or None -> (M, out)."""
-    if (ONEDNN and x.dim() == 2 and x.device.type == "cpu" and x.dtype == weight.dtype == torch.float32
-            and x.is_contiguous() and weight.is_contiguous()):
-        return _OneDNNLinear.apply(x, weight, bias)
-    return nn.functional.linear(x, weight, bias)
-
-
-class Linear(nn.Linear):
-    """nn.Linear (the same parameters and state_dict keys) whose product is linear() above."""
-
-    def forward(self, x):
-        return linear(x, self.weight, self.bias)
-
-
-class _Mish(torch.autograd.Function):
-    """mish(x) = x tanh(softplus(x)). With e = exp(x): tanh(log(1 + e)) = ((1 + e)^2 - 1) / ((1 + e)^2 + 1)
-    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x)."""
-
-    @staticmethod
-    def forward(ctx, x):
-        e = torch.exp(x.clamp(max=20.0))    # past x = 20, n / (n + 2) is 1 in float32; e^x itself would overflow
-        n = e * (e + 2.0)
-        t = n / (n + 2.0)                                              # tanh(softplus(x))
-        ctx.save_for_backward(x, e, t)
-        return x * t
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, e, t = ctx.saved_tensors
-        sigmoid = e / (e + 1.0)
-        return grad * (t + x * (1.0 - t * t) * sigmoid)
-
-
-def mish(x):
-    """nn.functional.mish(x), elementwise over any shape."""
-    return _Mish.apply(x)
-
-
-class Mish(nn.Module):
-    """nn.Mish computed by mish() above."""
-
-    def forward(self, x):
-        return mish(x)
 
 
 # ---- Demo: a toy task with two modes (go up-right or down-left); the policy must keep both ------------------------

@@ -33,6 +33,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import experiment.image_obs  # noqa: E402,F401 (registers the image variant's encoder, 'image_cnn')
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train  # noqa: E402
+from experiment import cpu_kernels  # noqa: E402
 
 
 def cost(fn):
@@ -60,7 +61,7 @@ def measure(cfg, args):
     obs = rng.uniform(-1, 1, (n_labels, cfg.obs_dim)).astype(np.float32)
     obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.obs_dim - cfg.low_dim))   # an encoder's pixels: [0, 1]
     chunks = rng.uniform(-1, 1, (n_labels, cfg.horizon, cfg.dof)).astype(np.float32)
-    policy = DiffusionPolicy(cfg)
+    policy = cpu_kernels.use_kernels(DiffusionPolicy(cfg))              # as the run has it on this CPU
     policy.fit_normalizer(obs, chunks)
     row = {"parameters": sum(p.numel() for p in policy.net.parameters())}
     for batch in (64, 256):

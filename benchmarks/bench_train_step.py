@@ -11,9 +11,11 @@ For `--profile NAME` (default `quick`: the residual MLP, K = 20, batch 256) this
   - DiffusionPolicy.sample at the evaluation's batch (eval_scenarios x eval_repeats chunks from pure noise, the
     largest call dagger.evaluate makes: all episodes in lockstep);
   - with --ops, torch.profiler's per-op table of diffusion.train.
-With --baseline REV, diffusion.py of git revision REV is loaded beside the working tree's and every measurement
-alternates between the two (--repeats rounds, medians): on a shared machine only ratios within one run are
-trustworthy. Data are random (N = 20,000 rows of the env's shapes): only the cost is measured.
+On a CPU the working tree's policy is timed twice: with torch's own Linear and Mish, and with the CPU kernels of
+experiment/cpu_kernels.py swapped in (forced, whatever its MEASURED table says: this script is how a row of that
+table is measured). With --baseline REV, diffusion.py of git revision REV is loaded beside them. Every
+measurement alternates between the variants (--repeats rounds, medians): on a shared machine only ratios within
+one run are trustworthy. Data are random (N = 20,000 rows of the env's shapes): only the cost is measured.
 
 Usage:  python benchmarks/bench_train_step.py [--profile quick] [--threads 1] [--baseline 7e18ba9] [--ops]
         python benchmarks/bench_train_step.py --profile paper --device cuda --steps 1000
@@ -34,6 +36,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger      # noqa: E402
 import diffusion   # noqa: E402
+from experiment import cpu_kernels  # noqa: E402
 
 PARTS = ("index", "forward", "backward", "adamw", "ema", "item")
 N_ROWS = 20_000    # random training rows: the quick profile's D0 is ~20k chunks
@@ -55,10 +58,22 @@ def diffusion_at(rev):
     return module
 
 
-def make_policy(module, cfg, env):
-    """dagger.make_policy's policy, built by `module` (the same config and seed for every variant)."""
+class Variant:
+    """What is timed: diffusion.py as `module` holds it, with the CPU kernels swapped in or not."""
+
+    def __init__(self, module, kernels=False):
+        self.module, self.kernels = module, kernels
+
+
+def make_policy(variant, cfg, env):
+    """dagger.make_policy's policy, built by the variant's module (the same config and seed for every variant)."""
     pc = dagger.make_policy(cfg, env).cfg
-    return module.DiffusionPolicy(module.PolicyConfig(**asdict(pc)), device=cfg.device)
+    module = variant.module
+    policy = module.DiffusionPolicy(module.PolicyConfig(**asdict(pc)), device=cfg.device)
+    if variant.kernels:
+        cpu_kernels.swap_in(policy.net)
+        cpu_kernels.swap_in(policy.ema_net)
+    return policy
 
 
 def train_config(module, cfg, policy, steps, batch):
@@ -66,9 +81,9 @@ def train_config(module, cfg, policy, steps, batch):
                               obs_noise=dagger.observation_noise(policy.cfg))
 
 
-def train_ms(module, cfg, env, data, batch, steps, warm):
-    """ms per step of module.train over `steps` steps (a fresh optimizer from step 0), after a warm-up run."""
-    policy = make_policy(module, cfg, env)
+def train_ms(variant, cfg, env, data, batch, steps, warm):
+    """ms per step of the module's train over `steps` steps (a fresh optimizer from step 0), after a warm-up run."""
+    module, policy = variant.module, make_policy(variant, cfg, env)
     module.train(policy, *data, train_config(module, cfg, policy, warm, batch))
     sync(cfg.device)
     t = time.perf_counter()
@@ -84,11 +99,11 @@ def make_optimizer(module, policy, lr):
     return torch.optim.AdamW(policy.net.parameters(), lr=lr, weight_decay=1e-6, foreach=True)
 
 
-def parts_ms(module, cfg, env, data, steps, warm):
+def parts_ms(variant, cfg, env, data, steps, warm):
     """train()'s step at the profile's batch, rewritten here so that it can be taken apart (without the observation
     noise's one randn and add, and without co-training rows): the ms per step of each part, synchronized."""
     obs, chunks = data
-    policy = make_policy(module, cfg, env)
+    module, policy = variant.module, make_policy(variant, cfg, env)
     policy.fit_normalizer(obs, chunks)
     dev, rng = policy.device, np.random.default_rng(0)
     obs_t = torch.as_tensor(obs, device=dev)
@@ -126,9 +141,9 @@ def parts_ms(module, cfg, env, data, steps, warm):
     return {k: 1000 * v / steps for k, v in seconds.items()}
 
 
-def sample_ms(module, cfg, env, obs, batch, repeats):
+def sample_ms(variant, cfg, env, obs, batch, repeats):
     """ms per DiffusionPolicy.sample call at `batch` rows (the evaluation's lockstep batch), best of `repeats`."""
-    policy = make_policy(module, cfg, env)
+    policy = make_policy(variant, cfg, env)
     policy.fit_normalizer(obs, np.zeros((len(obs), cfg.horizon, env.dof), np.float32))
     gen = torch.Generator(device=policy.device).manual_seed(0)
     policy.sample(obs[:batch], generator=gen)                        # warm-up
@@ -142,19 +157,15 @@ def sample_ms(module, cfg, env, obs, batch, repeats):
 
 def step_flops(cfg, env, data):
     """(forward, backward) FLOPs of one step at the profile's batch: matrix products and convolutions only."""
-    policy = make_policy(diffusion, cfg, env)
+    policy = make_policy(Variant(diffusion), cfg, env)                 # torch's own products: FlopCounterMode counts them
     policy.fit_normalizer(*data)
     o = policy.normalize_obs(torch.as_tensor(data[0][:cfg.batch_size], device=policy.device))
     a = policy.normalize_actions(torch.as_tensor(data[1][:cfg.batch_size], device=policy.device),
                                  torch.as_tensor(data[0][:cfg.batch_size], device=policy.device))
-    onednn, diffusion.ONEDNN = diffusion.ONEDNN, False                # FlopCounterMode counts torch's own products
-    try:
-        with FlopCounterMode(display=False) as forward:
-            loss = policy.loss(o, a, generator=torch.Generator(device=policy.device).manual_seed(0))
-        with FlopCounterMode(display=False) as backward:
-            loss.backward()
-    finally:
-        diffusion.ONEDNN = onednn
+    with FlopCounterMode(display=False) as forward:
+        loss = policy.loss(o, a, generator=torch.Generator(device=policy.device).manual_seed(0))
+    with FlopCounterMode(display=False) as backward:
+        loss.backward()
     return forward.get_total_flops(), backward.get_total_flops()
 
 
@@ -179,10 +190,10 @@ def matmul_rates(n=256, repeats=200):
     return rates
 
 
-def op_table(module, cfg, env, data, steps, rows=25):
-    """torch.profiler's table of module.train over `steps` steps: the ops by their own CPU time."""
+def op_table(variant, cfg, env, data, steps, rows=25):
+    """torch.profiler's table of the module's train over `steps` steps: the ops by their own CPU time."""
     from torch.profiler import ProfilerActivity, profile
-    policy = make_policy(module, cfg, env)
+    module, policy = variant.module, make_policy(variant, cfg, env)
     tc = train_config(module, cfg, policy, 50, cfg.batch_size)
     module.train(policy, *data, tc)
     tc.steps = steps
@@ -231,18 +242,20 @@ def main():
           f"network {cfg.network} ({f'width {cfg.mlp_width}, {cfg.mlp_blocks} blocks' if cfg.network == 'mlp' else f'U-Net {cfg.down_dims}'}),"
           f" K {cfg.K}, batch {cfg.batch_size}, H {cfg.horizon}, obs_dim {env.obs_dim}, dof {env.dof}")
 
-    variants = {"working tree": diffusion}
+    variants = {"torch's own": Variant(diffusion)}
+    if args.device == "cpu":
+        variants["CPU kernels"] = Variant(diffusion, kernels=True)
     if args.baseline:
-        variants = {args.baseline: diffusion_at(args.baseline), "working tree": diffusion}
+        variants = {args.baseline: Variant(diffusion_at(args.baseline)), **variants}
     batches = sorted({cfg.batch_size, 256})
     results = {v: {"parts": [], "sample": [], **{f"train {b}": [] for b in batches}} for v in variants}
     for r in range(args.repeats):                                    # interleaved: each round times every variant
-        for name, module in variants.items():
+        for name, variant in variants.items():
             res = results[name]
-            res["parts"].append(list(parts_ms(module, cfg, env, data, args.steps, args.warm).values()))
+            res["parts"].append(list(parts_ms(variant, cfg, env, data, args.steps, args.warm).values()))
             for b in batches:
-                res[f"train {b}"].append(train_ms(module, cfg, env, data, b, args.steps, args.warm))
-            res["sample"].append(sample_ms(module, cfg, env, data[0], eval_batch, 3))
+                res[f"train {b}"].append(train_ms(variant, cfg, env, data, b, args.steps, args.warm))
+            res["sample"].append(sample_ms(variant, cfg, env, data[0], eval_batch, 3))
         print(f"  round {r + 1}/{args.repeats} done", flush=True)
 
     forward_flops, backward_flops = step_flops(cfg, env, data)
@@ -252,7 +265,7 @@ def main():
         rates = matmul_rates()
         print("this core's 256^3 fp32 matrix product: " + ", ".join(f"{k} {v:.0f} GFLOP/s" for k, v in rates.items()))
     print(f"\nmedians of {args.repeats} interleaved rounds, {args.steps} steps each (ms per step):")
-    header = f"{'':>14}" + "".join(f"{p:>9}" for p in PARTS + ("sum",)) + "".join(
+    header = f"{'':>16}" + "".join(f"{p:>9}" for p in PARTS + ("sum",)) + "".join(
         f"{'train ' + str(b):>11}" for b in batches) + f"{'sample ' + str(eval_batch):>12}" + "  fwd GF/s  bwd GF/s"
     print(header)
     medians = {}
@@ -262,17 +275,20 @@ def main():
         row = dict(zip(PARTS, parts), sum=parts.sum(), **{f"train {b}": np.median(res[f"train {b}"]) for b in batches},
                    sample=np.median(res["sample"]))
         medians[name] = row
-        print(f"{name[:14]:>14}" + "".join(f"{row[p]:9.2f}" for p in PARTS + ("sum",))
+        print(f"{name[:16]:>16}" + "".join(f"{row[p]:9.2f}" for p in PARTS + ("sum",))
               + "".join(f"{row[f'train {b}']:11.2f}" for b in batches) + f"{row['sample']:12.1f}"
               + f"{forward_flops / row['forward'] / 1e6:10.0f}{backward_flops / row['backward'] / 1e6:10.0f}")
-    if args.baseline:
-        old, new = medians[args.baseline], medians["working tree"]
-        print(f"{'ratio old/new':>14}" + "".join(f"{old[p] / new[p]:9.2f}" for p in PARTS + ("sum",))
-              + "".join(f"{old[f'train {b}'] / new[f'train {b}']:11.2f}" for b in batches)
-              + f"{old['sample'] / new['sample']:12.2f}")
+    pairs = [(old, "CPU kernels") for old in (args.baseline, "torch's own") if old and "CPU kernels" in variants]
+    for old, new in pairs + ([(args.baseline, "torch's own")] if args.baseline else []):
+        short = {"torch's own": "own", "CPU kernels": "kernels"}
+        print(f"{short.get(old, old) + '/' + short[new]:>16}"
+              + "".join(f"{medians[old][p] / medians[new][p]:9.2f}" for p in PARTS + ("sum",))
+              + "".join(f"{medians[old][f'train {b}'] / medians[new][f'train {b}']:11.2f}" for b in batches)
+              + f"{medians[old]['sample'] / medians[new]['sample']:12.2f}")
     if args.ops:
-        print(f"\ntorch.profiler, diffusion.train of the working tree, 100 steps at batch {cfg.batch_size}:")
-        print(op_table(diffusion, cfg, env, data, 100))
+        print(f"\ntorch.profiler, diffusion.train of the working tree as the run has it, 100 steps at batch {cfg.batch_size}:")
+        print(op_table(Variant(diffusion, kernels=args.device == "cpu" and cpu_kernels.kernels_wanted("training")),
+                       cfg, env, data, 100))
 
 
 if __name__ == "__main__":

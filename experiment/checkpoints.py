@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 import diffusion
+from experiment import cpu_kernels
 
 CHECKPOINT_FORMAT = "diffusion-policy-v2"
 # PolicyConfig fields a checkpoint of an earlier version holds: (the one value this code reads, else why not)
@@ -54,7 +55,7 @@ def load_policy(path, device="cpu"):
         stored = config.pop(name, kept)
         if (tuple(stored) if isinstance(stored, list) else stored) != kept:
             raise ValueError(f"{path!r} holds a policy with {name}={stored!r}: {deleted}; retrain the policy")
-    policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device)
+    policy = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device))
     policy.load_state_dict(payload["state_dict"])
     return policy
 

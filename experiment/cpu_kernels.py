@@ -1,0 +1,180 @@
+"""Faster CPU kernels for the epsilon-networks' Linear and Mish, swapped in where they pay (none of the paper).
+
+diffusion.py's networks are written with torch's nn.Linear, nn.Mish and nn.functional.linear. On some CPUs two
+kernels compute the same functions faster (benchmarks/README.md, "The training step at the machine's speed"):
+  - linear(x, W, b) = x W^T + b through oneDNN, which torch ships for its compiler (the internal op
+    torch.ops.mkldnn._linear_pointwise): torch's own CPU product calls MKL, which on an AMD CPU takes its AVX2 code,
+    where oneDNN uses AVX-512 if the CPU has it. Forward and both gradients one oneDNN call each;
+  - mish(x) = x tanh(softplus(x)) (Misra 2019) in closed form, its derivative written out.
+Both equal torch's to float32 rounding, not to the bit (tests/test_cpu_kernels.py): a run with the kernels and
+one without differ in their last bits, and a run with them is deterministic, as one without.
+
+use_kernels(policy) swaps them into a policy in place: policy.net (it trains) where they pay for training on this
+CPU, policy.ema_net (it samples) where they pay for sampling (MEASURED). The parameters stay the same objects and
+the state_dict keys stay nn.Linear's, so a checkpoint written with the kernels loads without them and back.
+The environment variable PCD_CPU_KERNELS=on|off|auto (default auto: MEASURED) overrides the table for a run.
+"""
+
+import os
+import sys
+
+import torch
+import torch.nn as nn
+
+# oneDNN's matrix product as torch's inductor calls it: a torch without it keeps its own product
+ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+# Does the swap pay on a CPU kind, for training (diffusion.train) and for sampling (DiffusionPolicy.sample)?
+# (vendor, family, model) as /proc/cpuinfo names them, model None: every model of the family. Measured with
+# benchmarks/bench_train_step.py, its kernels-against-torch's-own rows (benchmarks/moved/diffusion.md). A CPU
+# kind not in the table was not measured: torch's own.
+MEASURED = {
+    ("AuthenticAMD", 26, None): {"training": True, "sampling": True},    # Zen 5 EPYC: train() 1.54x, sample 1.85x
+    ("AuthenticAMD", 25, 17): {"training": False, "sampling": False},    # Zen 4 EPYC: no gain, sampling 0.91x
+    ("AuthenticAMD", 25, 1): {"training": False, "sampling": False},     # Zen 3 EPYC (AVX2): no gain measured
+}
+
+
+def cpu_kind(cpuinfo):
+    """(vendor, family, model) of the first processor in a /proc/cpuinfo text; None if it names none of them."""
+    fields = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    try:
+        return fields["vendor_id"], int(fields["cpu family"]), int(fields["model"])
+    except (KeyError, ValueError):
+        return None
+
+
+def measured_to_pay(kind, use):
+    """MEASURED's answer for a cpu_kind() and a use ('training' or 'sampling'); False for a kind not measured."""
+    if kind is None:
+        return False
+    vendor, family, model = kind
+    row = MEASURED.get((vendor, family, model), MEASURED.get((vendor, family, None), {}))
+    return row.get(use, False)
+
+
+def this_cpu_kind():
+    """cpu_kind() of this machine (Linux); None elsewhere: no CPU kind is measured on other systems."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        with open("/proc/cpuinfo") as f:
+            return cpu_kind(f.read())
+    except OSError:
+        return None
+
+
+def kernels_wanted(use):
+    """Whether `use` ('training' or 'sampling') gets the kernels: PCD_CPU_KERNELS (read here only) forces them
+    on or off; auto asks MEASURED about this CPU kind, where torch has the oneDNN op. Never timed at run time."""
+    setting = os.environ.get("PCD_CPU_KERNELS", "auto")
+    if setting not in ("on", "off", "auto"):
+        raise ValueError(f"PCD_CPU_KERNELS must be on, off or auto, got {setting!r}")
+    if setting != "auto":
+        return setting == "on"
+    return ONEDNN and measured_to_pay(this_cpu_kind(), use)
+
+
+# ---- The kernels --------------------------------------------------------------------------------------------------
+def _onednn_matmul(x, weight_t, bias=None):
+    """x (M, K) @ weight_t.T (K, N) [+ bias (N,)] -> (M, N) through oneDNN; a contiguous tensor or its transpose is
+    read as it is."""
+    return torch.ops.mkldnn._linear_pointwise(x, weight_t, bias, "none", [], "")
+
+
+class _OneDNNLinear(torch.autograd.Function):
+    """y = x W^T + b, dL/dx = g W, dL/dW = g^T x, dL/db = sum_rows g: each product one oneDNN call."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias):
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return _onednn_matmul(x, weight, bias)                         # (M, out)
+
+    @staticmethod
+    def backward(ctx, grad):                                           # grad (M, out)
+        x, weight = ctx.saved_tensors
+        grad = grad.contiguous()                                       # e.g. the expanded gradient of a sum
+        need_x, need_w, need_b = ctx.needs_input_grad
+        grad_x = _onednn_matmul(grad, weight.t()) if need_x else None  # (M, in)
+        grad_w = _onednn_matmul(grad.t(), x.t()) if need_w else None   # (out, in)
+        grad_b = grad.sum(0) if need_b and ctx.has_bias else None      # (out,)
+        return grad_x, grad_w, grad_b
+
+
+def linear(x, weight, bias=None):
+    """nn.functional.linear(x, weight, bias): x (M, in), weight (out, in), bias (out,) or None -> (M, out).
+    A contiguous 2-D float32 input and weight on the CPU go through oneDNN; anything else (a GPU, float64, a
+    column slice of a weight, which oneDNN reads ~500x slower, a torch without the op) through torch's own."""
+    if (ONEDNN and x.dim() == 2 and x.device.type == "cpu" and x.dtype == weight.dtype == torch.float32
+            and x.is_contiguous() and weight.is_contiguous()):
+        return _OneDNNLinear.apply(x, weight, bias)
+    return nn.functional.linear(x, weight, bias)
+
+
+class _Mish(torch.autograd.Function):
+    """mish(x) = x tanh(softplus(x)). With e = exp(x): tanh(log(1 + e)) = ((1 + e)^2 - 1) / ((1 + e)^2 + 1)
+    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        e = torch.exp(x.clamp(max=20.0))    # past x = 20, n / (n + 2) is 1 in float32; e^x itself would overflow
+        n = e * (e + 2.0)
+        t = n / (n + 2.0)                                              # tanh(softplus(x))
+        ctx.save_for_backward(x, e, t)
+        return x * t
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, e, t = ctx.saved_tensors
+        sigmoid = e / (e + 1.0)
+        return grad * (t + x * (1.0 - t * t) * sigmoid)
+
+
+def mish(x):
+    """nn.functional.mish(x), elementwise over any shape."""
+    return _Mish.apply(x)
+
+
+class FastLinear(nn.Linear):
+    """nn.Linear (the same parameters and state_dict keys) whose product is linear() above."""
+
+    def forward(self, x):
+        return linear(x, self.weight, self.bias)
+
+
+class FastMish(nn.Mish):
+    """nn.Mish computed by mish() above."""
+
+    def forward(self, x):
+        return mish(x)
+
+
+# ---- The swap -----------------------------------------------------------------------------------------------------
+def swap_in(net):
+    """An epsilon-network (diffusion.FiLMNetwork) computed by the kernels, in place: its nn.Linear and nn.Mish
+    modules become FastLinear and FastMish (the same Parameters), and its FiLM products (film_terms) use linear().
+    Left as they are: the observation encoder's layers and the blocks' `film` maps (film_terms reads their weights,
+    stacked; their own forward is not called by the network). Returns net."""
+    for name, module in net.named_modules():
+        if name.startswith("obs_encoder") or name.endswith("film"):
+            continue
+        if type(module) is nn.Linear:
+            module.__class__ = FastLinear
+        elif type(module) is nn.Mish:
+            module.__class__ = FastMish
+    net.film_linear = linear
+    return net
+
+
+def use_kernels(policy):
+    """policy (a diffusion.DiffusionPolicy on the CPU) with the kernels where kernels_wanted() says: policy.net
+    for training, policy.ema_net for sampling. A policy on a GPU keeps torch's own. Returns policy."""
+    if policy.device.type == "cpu":
+        for net, use in ((policy.net, "training"), (policy.ema_net, "sampling")):
+            if kernels_wanted(use):
+                swap_in(net)
+    return policy
