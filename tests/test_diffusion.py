@@ -329,11 +329,12 @@ def test_every_consumer_of_the_label_rule_agrees_on_random_masks():
         for t in range(T):
             inside = [(s, e) for s, e in runs if s <= t < e]
             assert mask[t] == bool(inside and (t + H <= inside[0][1] or inside[0][1] == T)), (expert, H, t)
-        assert calibrate.expert_segments({"expert": expert}, H) == runs
-        t, seg_end = relabel.label_steps(expert, H)
+        t, seg_end = relabel.AugmentationSampler.label_steps(expert, H)
         assert np.array_equal(t, np.flatnonzero(mask))
         assert all(any(s <= ti < e == se for s, e in runs) for ti, se in zip(t, seg_end))
-        kept = dagger.drop_short_interventions(expert, H)
+        kept = np.zeros(T, dtype=bool)                         # what the collection keeps: the runs themselves
+        for s, e in dagger.PaperRecipe.expert_runs(expert, H):
+            kept[s:e] = True
         assert np.array_equal(np.flatnonzero(kept), [i for s, e in runs for i in range(s, e)])
         assert np.array_equal(label_mask(kept, H), mask)       # dropping first changes no label
     # a short run that ends the episode is discarded (it is not the whole episode) ...
