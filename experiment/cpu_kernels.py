@@ -26,8 +26,8 @@ ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_li
 
 # Does the swap pay on a CPU kind, for training (diffusion.train) and for sampling (DiffusionPolicy.sample)?
 # (vendor, family, model) as /proc/cpuinfo names them, model None: every model of the family. Measured with
-# benchmarks/bench_train_step.py, its kernels-against-torch's-own rows (benchmarks/moved/diffusion.md). A CPU
-# kind not in the table was not measured: torch's own.
+# benchmarks/bench_train_step.py, its kernels-against-torch's-own rows (benchmarks/README.md, "Notes moved from the
+# modules' docstrings (issue 60)"). A CPU kind not in the table was not measured: torch's own.
 MEASURED = {
     ("AuthenticAMD", 26, None): {"training": True, "sampling": True},    # Zen 5 EPYC: train() 1.54x, sample 1.85x
     ("AuthenticAMD", 25, 17): {"training": False, "sampling": False},    # Zen 4 EPYC: no gain, sampling 0.91x
