@@ -352,7 +352,7 @@ def fit_equilibrium(s, x, r_bounds: tuple = (1e-3, 1e3), n_grid: int = 241) -> E
     a, b = log_r_grid[max(i - 1, 0)], log_r_grid[min(i + 1, n_grid - 1)]
     log_r = _golden_min(lambda v: float(_best_W(s, x, w, np.exp([v]))[1][0]), a, b)   # ... refined between its
     W, r = float(_best_W(s, x, w, np.exp([log_r]))[0][0]), math.exp(log_r)          # neighbours
-    res = x - W * s / (s + r * (1 - s))                                # residuals of Eq. (12)
+    res = x - equilibrium(s, W, r)                                     # residuals of Eq. (12)
     return EquilibriumFit(W, r, len(s), math.sqrt(float(np.mean(res ** 2))))
     # <<< exercise 6
 

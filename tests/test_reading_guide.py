@@ -16,13 +16,9 @@ import dagger
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report")
-# A run of every stage and every Table I row kind, at sizes that still reach the equilibrium fit (Eq. 12) with
-# enough blend rollouts, and two lineages for the paired tests (the smoke profile's sizes; one process, so that one
-# trace sees every call).
-GUIDE_RUN = dict(name="guide", n_demos=16, rounds=1, lineages=2, K=10, down_dims=(16, 32), bc_steps=60,
-                 finetune_steps=30, batch_size=32,
-                 methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step", "closed_loop"),
-                 eval_scenarios=4, eval_repeats=1)
+# The smoke profile (CI's run: every stage and every Table I row kind, two lineages for the paired tests, enough blend
+# rollouts for the equilibrium fit), in one process so that one trace sees every call.
+GUIDE_RUN = dagger.PROFILES["smoke"]
 
 
 def guide_names(readme_text):
@@ -70,7 +66,7 @@ def traced_run(tmp_path_factory):
 
     sys.setprofile(profile)
     try:
-        dagger.run_experiment(dagger.Config(**GUIDE_RUN), str(tmp_path_factory.mktemp("guide")))
+        dagger.run_experiment(GUIDE_RUN, str(tmp_path_factory.mktemp("guide")))
     finally:
         sys.setprofile(None)
     return called
