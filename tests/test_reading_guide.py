@@ -6,6 +6,7 @@ alternative or read-out that the run does not use. A marked function the run doe
 """
 from __future__ import annotations
 
+import gc
 import os
 import re
 import sys
@@ -55,7 +56,7 @@ def traced_run(tmp_path_factory):
             return
         code = frame.f_code
         key = (code.co_filename, code.co_qualname)
-        if key in seen:
+        if key in seen or code.co_name == "__del__":  # a finalizer of an object an earlier test made is not the run
             return
         caller = frame.f_back
         while caller is not None and not is_figure(caller.f_code):
@@ -64,6 +65,7 @@ def traced_run(tmp_path_factory):
             seen.add(key)
             called.add((os.path.splitext(os.path.basename(code.co_filename))[0], code.co_qualname))
 
+    gc.collect()  # finalize what earlier tests left behind before the trace starts
     sys.setprofile(profile)
     try:
         dagger.run_experiment(GUIDE_RUN, str(tmp_path_factory.mktemp("guide")))
