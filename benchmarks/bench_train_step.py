@@ -11,9 +11,9 @@ For `--profile NAME` (default `quick`: the residual MLP, K = 20, batch 256) this
   - DiffusionPolicy.sample at the evaluation's batch (eval_scenarios x eval_repeats chunks from pure noise, the
     largest call dagger.evaluate makes: all episodes in lockstep);
   - with --ops, torch.profiler's per-op table of diffusion.train.
-On a CPU the working tree's policy is timed twice: with torch's own Linear and Mish, and with the CPU kernels of
-experiment/cpu_kernels.py swapped in (forced, whatever its MEASURED table says: this script is how a row of that
-table is measured). With --baseline REV, diffusion.py of git revision REV is loaded beside them. Every
+On a CPU the working tree's policy is timed four times: with torch's own Linear and Mish, and with each CPU kernel
+of experiment/cpu_kernels.py swapped in alone and both together (forced, whatever its MEASURED table says: this
+script is how a row of that table is measured). With --baseline REV, diffusion.py of git revision REV is loaded beside them. Every
 measurement alternates between the variants (--repeats rounds, medians): on a shared machine only ratios within
 one run are trustworthy. Data are random (N = 20,000 rows of the env's shapes): only the cost is measured.
 
@@ -59,9 +59,10 @@ def diffusion_at(rev):
 
 
 class Variant:
-    """What is timed: diffusion.py as `module` holds it, with the CPU kernels swapped in or not."""
+    """What is timed: diffusion.py as `module` holds it, with these CPU kernels swapped in (names of
+    cpu_kernels.KERNELS; none: torch's own)."""
 
-    def __init__(self, module, kernels=False):
+    def __init__(self, module, kernels=()):
         self.module, self.kernels = module, kernels
 
 
@@ -70,9 +71,8 @@ def make_policy(variant, cfg, env):
     pc = dagger.make_policy(cfg, env).cfg
     module = variant.module
     policy = module.DiffusionPolicy(module.PolicyConfig(**asdict(pc)), device=cfg.device)
-    if variant.kernels:
-        cpu_kernels.swap_in(policy.net)
-        cpu_kernels.swap_in(policy.ema_net)
+    cpu_kernels.swap_in(policy.net, variant.kernels)
+    cpu_kernels.swap_in(policy.ema_net, variant.kernels)
     return policy
 
 
@@ -244,7 +244,8 @@ def main():
 
     variants = {"torch's own": Variant(diffusion)}
     if args.device == "cpu":
-        variants["CPU kernels"] = Variant(diffusion, kernels=True)
+        variants.update({f"{k} kernel": Variant(diffusion, kernels=(k,)) for k in cpu_kernels.KERNELS})
+        variants["both kernels"] = Variant(diffusion, kernels=cpu_kernels.KERNELS)
     if args.baseline:
         variants = {args.baseline: Variant(diffusion_at(args.baseline)), **variants}
     batches = sorted({cfg.batch_size, 256})
@@ -278,16 +279,18 @@ def main():
         print(f"{name[:16]:>16}" + "".join(f"{row[p]:9.2f}" for p in PARTS + ("sum",))
               + "".join(f"{row[f'train {b}']:11.2f}" for b in batches) + f"{row['sample']:12.1f}"
               + f"{forward_flops / row['forward'] / 1e6:10.0f}{backward_flops / row['backward'] / 1e6:10.0f}")
-    pairs = [(old, "CPU kernels") for old in (args.baseline, "torch's own") if old and "CPU kernels" in variants]
+    kernel_rows = [name for name in variants if name.endswith("kernel") or name.endswith("kernels")]
+    pairs = [(old, new) for old in (args.baseline, "torch's own") if old for new in kernel_rows]
     for old, new in pairs + ([(args.baseline, "torch's own")] if args.baseline else []):
-        short = {"torch's own": "own", "CPU kernels": "kernels"}
+        short = {"torch's own": "own", "linear kernel": "linear", "mish kernel": "mish", "both kernels": "both"}
         print(f"{short.get(old, old) + '/' + short[new]:>16}"
               + "".join(f"{medians[old][p] / medians[new][p]:9.2f}" for p in PARTS + ("sum",))
               + "".join(f"{medians[old][f'train {b}'] / medians[new][f'train {b}']:11.2f}" for b in batches)
               + f"{medians[old]['sample'] / medians[new]['sample']:12.2f}")
     if args.ops:
         print(f"\ntorch.profiler, diffusion.train of the working tree as the run has it, 100 steps at batch {cfg.batch_size}:")
-        print(op_table(Variant(diffusion, kernels=args.device == "cpu" and cpu_kernels.kernels_wanted("training")),
+        run_kernels = cpu_kernels.kernels_wanted("training") if args.device == "cpu" else ()
+        print(op_table(Variant(diffusion, kernels=run_kernels),
                        cfg, env, data, 100))
 
 

@@ -9,10 +9,10 @@ kernels compute the same functions faster (benchmarks/README.md, "The training s
 Both equal torch's to float32 rounding, not to the bit (tests/test_cpu_kernels.py): a run with the kernels and
 one without differ in their last bits, and a run with them is deterministic, as one without.
 
-use_kernels(policy) swaps them into a policy in place: policy.net (it trains) where they pay for training on this
-CPU, policy.ema_net (it samples) where they pay for sampling (MEASURED). The parameters stay the same objects and
-the state_dict keys stay nn.Linear's, so a checkpoint written with the kernels loads without them and back.
-The environment variable PCD_CPU_KERNELS=on|off|auto (default auto: MEASURED) overrides the table for a run.
+use_kernels(policy) swaps them into a policy in place, each kernel on its own: policy.net (it trains) where it pays
+for training on this CPU, policy.ema_net (it samples) where it pays for sampling (MEASURED). The parameters stay the
+same objects and the state_dict keys nn.Linear's, so a checkpoint written with the kernels loads without them.
+The environment variable PCD_CPU_KERNELS=on|off|linear|mish|auto (default auto: MEASURED) overrides the table.
 """
 
 import os
@@ -24,14 +24,19 @@ import torch.nn as nn
 # oneDNN's matrix product as torch's inductor calls it: a torch without it keeps its own product
 ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
-# Does the swap pay on a CPU kind, for training (diffusion.train) and for sampling (DiffusionPolicy.sample)?
+KERNELS = ("linear", "mish")
+
+# Which kernels pay on a CPU kind, for training (diffusion.train) and for sampling (DiffusionPolicy.sample)?
 # (vendor, family, model) as /proc/cpuinfo names them, model None: every model of the family. Measured with
-# benchmarks/bench_train_step.py, its kernels-against-torch's-own rows (benchmarks/README.md, "Notes moved from the
-# modules' docstrings (issue 60)"). A CPU kind not in the table was not measured: torch's own.
+# benchmarks/bench_train_step.py, its rows of each kernel alone and both against torch's own (benchmarks/README.md,
+# "The CPU kernels one at a time (issue 61)"). A CPU kind not in the table was not measured: torch's own.
 MEASURED = {
-    ("AuthenticAMD", 26, None): {"training": True, "sampling": True},    # Zen 5 EPYC: train() 1.54x, sample 1.85x
-    ("AuthenticAMD", 25, 17): {"training": False, "sampling": False},    # Zen 4 EPYC: no gain, sampling 0.91x
-    ("AuthenticAMD", 25, 1): {"training": False, "sampling": False},     # Zen 3 EPYC (AVX2): no gain measured
+    # Zen 5 EPYC, both together: train() 1.54x, sample 1.85x (each alone not measured there)
+    ("AuthenticAMD", 26, None): {"training": KERNELS, "sampling": KERNELS},
+    # Zen 4 EPYC, both together: train() 1.08x, sample 0.91x (each alone not measured there)
+    ("AuthenticAMD", 25, 17): {"training": (), "sampling": ()},
+    # Zen 3 EPYC (AVX2): the closed-form Mish alone pays, oneDNN's product does not
+    ("AuthenticAMD", 25, 1): {"training": ("mish",), "sampling": ("mish",)},
 }
 
 
@@ -48,12 +53,13 @@ def cpu_kind(cpuinfo):
 
 
 def measured_to_pay(kind, use):
-    """MEASURED's answer for a cpu_kind() and a use ('training' or 'sampling'); False for a kind not measured."""
+    """MEASURED's kernels (a tuple of KERNELS' names) for a cpu_kind() and a use ('training' or 'sampling'); none
+    for a kind not measured."""
     if kind is None:
-        return False
+        return ()
     vendor, family, model = kind
     row = MEASURED.get((vendor, family, model), MEASURED.get((vendor, family, None), {}))
-    return row.get(use, False)
+    return tuple(row.get(use, ()))
 
 
 def this_cpu_kind():
@@ -68,14 +74,15 @@ def this_cpu_kind():
 
 
 def kernels_wanted(use):
-    """Whether `use` ('training' or 'sampling') gets the kernels: PCD_CPU_KERNELS (read here only) forces them
-    on or off; auto asks MEASURED about this CPU kind, where torch has the oneDNN op. Never timed at run time."""
+    """The kernels (a tuple of KERNELS' names) `use` ('training' or 'sampling') gets: PCD_CPU_KERNELS (read here
+    only) forces both (on), none (off) or one (linear, mish); auto asks MEASURED about this CPU kind. Never timed
+    at run time. The product needs torch's oneDNN op: without it, linear is left out."""
     setting = os.environ.get("PCD_CPU_KERNELS", "auto")
-    if setting not in ("on", "off", "auto"):
-        raise ValueError(f"PCD_CPU_KERNELS must be on, off or auto, got {setting!r}")
-    if setting != "auto":
-        return setting == "on"
-    return ONEDNN and measured_to_pay(this_cpu_kind(), use)
+    choices = {"on": KERNELS, "off": (), **{k: (k,) for k in KERNELS}}
+    if setting != "auto" and setting not in choices:
+        raise ValueError(f"PCD_CPU_KERNELS must be auto, {', '.join(choices)}, got {setting!r}")
+    wanted = choices[setting] if setting != "auto" else measured_to_pay(this_cpu_kind(), use)
+    return tuple(k for k in wanted if ONEDNN or k != "linear")
 
 
 # ---- The kernels --------------------------------------------------------------------------------------------------
@@ -117,7 +124,8 @@ def linear(x, weight, bias=None):
 
 class _Mish(torch.autograd.Function):
     """mish(x) = x tanh(softplus(x)). With e = exp(x): tanh(log(1 + e)) = ((1 + e)^2 - 1) / ((1 + e)^2 + 1)
-    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x)."""
+    = n / (n + 2), n = e (e + 2). Derivative: tanh(softplus(x)) + x (1 - tanh^2(softplus(x))) sigmoid(x).
+    One transcendental function (exp) where torch's own Mish takes three (exp, log1p, tanh)."""
 
     @staticmethod
     def forward(ctx, x):
@@ -154,27 +162,26 @@ class FastMish(nn.Mish):
 
 
 # ---- The swap -----------------------------------------------------------------------------------------------------
-def swap_in(net):
-    """An epsilon-network (diffusion.FiLMNetwork) computed by the kernels, in place: its nn.Linear and nn.Mish
-    modules become FastLinear and FastMish (the same Parameters), and its FiLM products (film_terms) use linear().
-    Left as they are: the observation encoder's layers and the blocks' `film` maps (film_terms reads their weights,
-    stacked; their own forward is not called by the network). Returns net."""
+def swap_in(net, kernels=KERNELS):
+    """An epsilon-network (diffusion.FiLMNetwork) computed by the named kernels, in place: with 'linear' its nn.Linear
+    modules become FastLinear and its FiLM products (film_terms) use linear(); with 'mish' its nn.Mish modules become
+    FastMish (the same Parameters). Left as they are: the observation encoder's layers and the blocks' `film` maps
+    (film_terms reads their weights, stacked; their own forward is not called by the network). Returns net."""
+    swaps = {nn.Linear: FastLinear if "linear" in kernels else None, nn.Mish: FastMish if "mish" in kernels else None}
     for name, module in net.named_modules():
         if name.startswith("obs_encoder") or name.endswith("film"):
             continue
-        if type(module) is nn.Linear:
-            module.__class__ = FastLinear
-        elif type(module) is nn.Mish:
-            module.__class__ = FastMish
-    net.film_linear = linear
+        if swaps.get(type(module)) is not None:
+            module.__class__ = swaps[type(module)]
+    if "linear" in kernels:
+        net.film_linear = linear
     return net
 
 
 def use_kernels(policy):
-    """policy (a diffusion.DiffusionPolicy on the CPU) with the kernels where kernels_wanted() says: policy.net
-    for training, policy.ema_net for sampling. A policy on a GPU keeps torch's own. Returns policy."""
+    """policy (a diffusion.DiffusionPolicy on the CPU) with the kernels kernels_wanted() names: policy.net's for
+    training, policy.ema_net's for sampling. A policy on a GPU keeps torch's own. Returns policy."""
     if policy.device.type == "cpu":
         for net, use in ((policy.net, "training"), (policy.ema_net, "sampling")):
-            if kernels_wanted(use):
-                swap_in(net)
+            swap_in(net, kernels_wanted(use))
     return policy

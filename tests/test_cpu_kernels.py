@@ -84,13 +84,20 @@ def test_the_networks_products_take_the_fast_path_and_others_torchs():
 # ---- the swap: the numbers of the fast path that diffusion.py had built in ------------------------------------
 class EveryProductAndMishThroughTheKernels(TorchFunctionMode):
     """The fast path as diffusion.py had it built in (76f5251): every nn.functional.linear and mish call of the
-    epsilon-network through cpu_kernels.linear and mish. (Its FlatObservation has no layers, and a block's `film`
-    map is never called as a module: film_terms reads its weights.)"""
+    epsilon-network through cpu_kernels.linear and mish (or only those of the named kernels). (Its
+    FlatObservation has no layers, and a block's `film` map is never called as a module: film_terms reads its
+    weights.)"""
+
+    def __init__(self, kernels=cpu_kernels.KERNELS):
+        super().__init__()
+        self.kernels = kernels
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
-        if func is nn.functional.mish:                                 # nn.Mish passes inplace=False
+        if func is nn.functional.mish and "mish" in self.kernels:      # nn.Mish passes inplace=False
             return cpu_kernels.mish(args[0])
-        return (cpu_kernels.linear if func is nn.functional.linear else func)(*args, **(kwargs or {}))
+        if func is nn.functional.linear and "linear" in self.kernels:
+            return cpu_kernels.linear(*args, **(kwargs or {}))
+        return func(*args, **(kwargs or {}))
 
 
 def random_policy(network, seed=0):
@@ -119,16 +126,18 @@ def loss_grads_and_samples(policy):
     return [loss.detach()] + grads + [torch.as_tensor(policy.sample(obs[:5].numpy(), generator=gen))]
 
 
+@pytest.mark.parametrize("kernels", [cpu_kernels.KERNELS, ("mish",), ("linear",)])
 @pytest.mark.parametrize("network", ["unet", "mlp"])
-def test_swapped_network_gives_the_built_in_fast_paths_numbers_bit_for_bit(network):
+def test_swapped_network_gives_the_built_in_fast_paths_numbers_bit_for_bit(network, kernels):
     """Loss, every parameter's gradient and a sample equal to the bit those of the network with every product and
-    Mish through the kernels (the fast path diffusion.py had built in). Fails if the swap leaves a Linear, a Mish
-    module or film_terms' products (film_linear) to torch's own, for training (net) or sampling (ema_net)."""
+    Mish through the kernels (the fast path diffusion.py had built in), or with only one kind through its kernel.
+    Fails if the swap leaves a Linear, a Mish module or film_terms' products (film_linear) to torch's own, for
+    training (net) or sampling (ema_net), or swaps in a kernel it was not asked for."""
     swapped = random_policy(network)
-    cpu_kernels.swap_in(swapped.net)
-    cpu_kernels.swap_in(swapped.ema_net)
+    cpu_kernels.swap_in(swapped.net, kernels)
+    cpu_kernels.swap_in(swapped.ema_net, kernels)
     reference = random_policy(network)
-    with EveryProductAndMishThroughTheKernels():
+    with EveryProductAndMishThroughTheKernels(kernels):
         expected = loss_grads_and_samples(reference)
     got = loss_grads_and_samples(swapped)
     assert len(got) == len(expected)
@@ -165,22 +174,27 @@ def cpuinfo(vendor, family, model):
             f"model name\t: a CPU\n\nprocessor\t: 1\nvendor_id\t: {vendor}\n")
 
 
+BOTH = cpu_kernels.KERNELS
+
+
 @pytest.mark.parametrize("text,training,sampling", [
-    (cpuinfo("AuthenticAMD", 26, 2), True, True),                      # Zen 5: every model of the family
-    (cpuinfo("AuthenticAMD", 25, 17), False, False),                   # Zen 4: sampling (and training) slower
-    (cpuinfo("GenuineIntel", 6, 143), False, False),                   # not measured
-    ("processor\t: 0\nCPU implementer\t: 0x41\n", False, False),       # an ARM's cpuinfo: no kind
+    (cpuinfo("AuthenticAMD", 26, 2), BOTH, BOTH),                      # Zen 5: every model of the family
+    (cpuinfo("AuthenticAMD", 25, 17), (), ()),                         # Zen 4: sampling (and training) slower
+    (cpuinfo("AuthenticAMD", 25, 1), ("mish",), ("mish",)),            # Zen 3: the Mish alone pays
+    (cpuinfo("GenuineIntel", 6, 143), (), ()),                         # not measured
+    ("processor\t: 0\nCPU implementer\t: 0x41\n", (), ()),             # an ARM's cpuinfo: no kind
 ])
 def test_measured_table_decides_per_cpu_kind_and_use(text, training, sampling):
-    """Fails if a CPU kind that was not measured (or measured slower) gets the kernels, or Zen 5 loses them."""
+    """Fails if a CPU kind that was not measured (or measured slower) gets a kernel, Zen 5 loses one, or Zen 3
+    gets the product it was measured not to pay with."""
     kind = cpu_kernels.cpu_kind(text)
     assert (cpu_kernels.measured_to_pay(kind, "training"), cpu_kernels.measured_to_pay(kind, "sampling")) == (
         training, sampling)
 
 
 def test_switch_forces_the_kernels_on_or_off_and_names_a_bad_value(monkeypatch):
-    """PCD_CPU_KERNELS=on swaps both nets, off neither, auto follows MEASURED; another value is a ValueError.
-    Fails if the switch is ignored, or a policy on torch's own is touched."""
+    """PCD_CPU_KERNELS=on swaps both nets, off neither, mish only the Mish, auto follows MEASURED; another value
+    is a ValueError. Fails if the switch is ignored, or a policy on torch's own is touched."""
     monkeypatch.setenv("PCD_CPU_KERNELS", "on")
     on = cpu_kernels.use_kernels(random_policy("mlp"))
     assert type(on.net.inp) is type(on.ema_net.inp) is cpu_kernels.FastLinear
@@ -188,12 +202,16 @@ def test_switch_forces_the_kernels_on_or_off_and_names_a_bad_value(monkeypatch):
     monkeypatch.setenv("PCD_CPU_KERNELS", "off")
     off = cpu_kernels.use_kernels(random_policy("mlp"))
     assert type(off.net.inp) is type(off.ema_net.inp) is nn.Linear
-    assert off.net.film_linear is nn.functional.linear
+    assert off.net.film_linear is nn.functional.linear and type(off.net.cond_mish) is nn.Mish
+    monkeypatch.setenv("PCD_CPU_KERNELS", "mish")
+    mish = cpu_kernels.use_kernels(random_policy("mlp"))
+    assert type(mish.net.inp) is type(mish.ema_net.inp) is nn.Linear and mish.net.film_linear is nn.functional.linear
+    assert type(mish.net.cond_mish) is type(mish.ema_net.cond_mish) is cpu_kernels.FastMish
     monkeypatch.setenv("PCD_CPU_KERNELS", "auto")
     monkeypatch.setattr(cpu_kernels, "this_cpu_kind", lambda: ("AuthenticAMD", 25, 17))
-    assert not cpu_kernels.kernels_wanted("sampling")
+    assert cpu_kernels.kernels_wanted("sampling") == ()
     monkeypatch.setattr(cpu_kernels, "this_cpu_kind", lambda: ("AuthenticAMD", 26, 2))
-    assert cpu_kernels.kernels_wanted("sampling") == cpu_kernels.ONEDNN
+    assert cpu_kernels.kernels_wanted("sampling") == (BOTH if cpu_kernels.ONEDNN else ("mish",))
     monkeypatch.setenv("PCD_CPU_KERNELS", "fast")
     with pytest.raises(ValueError, match="PCD_CPU_KERNELS.*'fast'"):
         cpu_kernels.use_kernels(random_policy("mlp"))
