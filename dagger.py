@@ -36,7 +36,7 @@ import relabel
 from experiment import cli, controls, cpu_kernels, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
 from experiment.run_folder import Run, stage_seed
-from experiment.workers import InBackground, in_parallel
+from experiment.workers import InBackground, in_parallel, torch_threads
 
 
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
@@ -88,6 +88,7 @@ TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS], "po
 ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS) + tuple(controls.ROWS)  # and research controls' rows
 OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
 TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
+PI0_THREADS = 2  # torch threads of pi_0's training, whatever --workers (a thread count changes the last bits)
 
 
 @dataclass
@@ -207,7 +208,8 @@ def behavior_cloning(run, demos):
         policy = make_policy(cfg, make_run_env(cfg))
         tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
                           schedule_steps=RECIPES[cfg.recipe].pi0_schedule_steps(cfg))
-        return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
+        with torch_threads(PI0_THREADS):  # nothing runs beside pi_0: a second core is free
+            return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
 
     return run.stage("checkpoints/bc.pt", train_pi0)
 

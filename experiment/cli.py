@@ -53,8 +53,9 @@ def parse_args(argv, profiles, methods, recipes):
     p.add_argument("--device", default=None, help="torch device: cpu (default) or cuda")
     p.add_argument("--out", default=None, help="run folder (default runs/<profile>[_<env>])")
     p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: the networks are small, and more threads than free "
-                        "cores slow torch down many times on a shared machine)")
+                   help="torch CPU threads of this process's stages (default 1: the networks are small, and more "
+                        "threads than free cores slow torch down many times on a shared machine; pi_0's training, "
+                        "which runs alone, always takes dagger.PI0_THREADS = 2)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes for the arms of a round (and the BC row beside the rounds; never more than a "
                         "round has arms); default: the cores this process may use (taskset, a cgroup's cpuset), "

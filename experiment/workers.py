@@ -4,11 +4,13 @@ Each job is a module-level function and plain arguments: the run folder's path a
 opens its own handle on the folder to write its stages and log) and the data the loop has in hand (D0, the rounds'
 interventions, the calibration), pickled to it. Every stage has its own seed and file, so the numbers do not depend
 on how many workers ran them. Workers are spawned (not forked: torch's threads do not survive a
-fork) and run one torch thread each, so two workers use two cores.
+fork) and run one torch thread each, so two workers use two cores. A stage that runs alone may take more threads
+(torch_threads), a number fixed by the stage: a thread count changes a training's last bits.
 """
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import multiprocessing
 
 import torch
@@ -57,3 +59,14 @@ class InBackground:
 def _one_thread(fn, *args):
     torch.set_num_threads(1)
     return fn(*args)
+
+
+@contextlib.contextmanager
+def torch_threads(n):
+    """torch's CPU threads set to n inside the block, and back to what they were after it."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

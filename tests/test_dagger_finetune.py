@@ -317,3 +317,21 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
                                                                      for D in (main[1], chain_2)]
     for built in cl_2:
         assert_pooled(built["sampler"], eq16_pooled(calibrations[(2, "closed_loop")]))   # K=2: its own chain's
+
+
+def test_pi0_trains_on_its_fixed_thread_count_and_the_next_stage_on_the_process_own(tmp_path, monkeypatch):
+    """pi_0's training takes dagger.PI0_THREADS torch threads (it runs alone: the second core is free), a number
+    fixed by the stage, so that pi_0 is the same for any --workers; the process's own count is back after it.
+    Fails if pi_0 trains on the process's count (or one set from the workers), or the count leaks into the
+    stages after it (the arms and the collection run one thread each, as in the worker processes)."""
+    import diffusion
+    seen, train = [], diffusion.train
+    monkeypatch.setattr(diffusion, "train", lambda *a, **k: (seen.append(torch.get_num_threads()), train(*a, **k))[1])
+    run = run_folder.Run(str(tmp_path / "pi0"), replace(TINY, n_demos=2, bc_steps=4))
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        dagger.behavior_cloning(run, dagger.oracle_demonstrations(run, workers=1))
+        assert seen == [dagger.PI0_THREADS] and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
