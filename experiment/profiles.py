@@ -53,6 +53,15 @@ PROFILES = {
                       methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
                               "per_step", "closed_loop"),
                      eval_scenarios=100, eval_repeats=3),
+    # Issue 59's study (benchmarks/README.md, "The study on the stronger recipe"): table1 with the strength probe's
+    # kept knob, 3x the gradient steps (pi_0 at 30k of one 60k cosine, every row +30k), K = 1, the study's seven
+    # rows. Projected from the probe's cost: ~1.3 CPU-h a lineage, ~7 CPU-h in all (Zen 3). --prepare and
+    # --export-start, then --lineage i side by side, --export-lineages benchmarks/results/table1_strong.
+    "table1_strong": dict(name="table1_strong", n_demos=500, rounds=1, lineages=5,
+                            network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=30_000, finetune_steps=30_000,
+                            methods=("bc", "hg_dagger", "authors_hg_dagger", "fixed_4", "fixed_8", "fixed_16",
+                                     "pooled"),
+                            eval_scenarios=100, eval_repeats=3),
     # The Table II analogue for this machine: the UR5 engine-lever env with Table II's rows (BC, HG-DAgger, pooled
     # Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 and 8 (8: the authors' calibrated
     # size in radians). The epsilon network chosen by measurement (python benchmarks/lever_networks.py;
