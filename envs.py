@@ -103,12 +103,9 @@ def _as_batch(q, dof):
 
 
 class ArmEnv:
-    """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
-
-    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__ with its
-    joint limits, and supplies fk, _in_collision_chunk, simulator_in_collision (judges a step), make_obs,
-    _draw_scenario, render.
-    """
+    """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share. A subclass sets
+    dof, dim, max_step, max_steps, obs_dim and supplies fk, _in_collision_chunk, simulator_in_collision (judges a
+    step), make_obs, _draw_scenario, render; its config gives dt, goal_tolerance, joint_lo/hi and n_substeps."""
 
     # How a policy reads the observation (diffusion.OBS_ENCODERS); an image variant names its own encoder and
     # its arguments (experiment/image_obs.py). dagger.make_policy copies both into the policy's config.
@@ -116,9 +113,11 @@ class ArmEnv:
     obs_encoder_args = {}
     goal_is_pose = False  # the goal is a position; True: goal_configurations is the whole goal set (oracle.py)
 
-    def __init__(self, joint_lo, joint_hi):
-        self._lo = np.asarray(joint_lo, dtype=np.float64)
-        self._hi = np.asarray(joint_hi, dtype=np.float64)
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self.dt, self.goal_tolerance = float(cfg.dt), float(cfg.goal_tolerance)
+        self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
+        self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
         self.seed = None  # the scenario (set by reset)
         self._goal = np.zeros(self.dim)
         self._q = np.zeros(self.dof)
@@ -280,24 +279,19 @@ class PlanarReacher(ArmEnv):
     The arm moves in the vertical (x, z) plane of the URDF; arrays call the second axis y.
     """
 
-    dim = 2  # workspace dimension
+    dim, dof = 2, 3  # workspace dimension, joints
     collision_chunk = 4096  # configurations per pass of in_collision: the temporaries stay in cache
-    # Arm parts (rows of self.parts: link, centre along it, centre across it, half length, half width);
-    # parts 3-5 (palm, fingers) ride on link 2.
-    PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")
     # Self-collision pairs: parts of links not joined by a joint (link 1 vs link 3 and the gripper; link 2 vs
     # the gripper, a child of link 3 in the URDF). Adjacent links share a joint and never count.
     SELF_PAIRS = ((0, 2), (0, 3), (0, 4), (0, 5), (1, 3), (1, 4), (1, 5))
 
     def __init__(self, config: PlanarConfig | None = None):
-        self.cfg = cfg = config or PlanarConfig()
-        self.dof = 3
+        cfg = config or PlanarConfig()
+        super().__init__(cfg)
         self.link_lengths = np.asarray(cfg.link_lengths, dtype=np.float64)
         self.base = np.asarray(cfg.base, dtype=np.float64)
-        self.dt = float(cfg.dt)
         self.max_step = float(cfg.speed_limit * cfg.dt)  # rad per step (0.05 at 10 Hz)
         self.max_steps = int(round(cfg.episode_seconds / cfg.dt))  # 333 at 10 Hz, 1000 at 30 Hz
-        self.goal_tolerance = float(cfg.goal_tolerance)
         self.contact_margin = float(cfg.contact_margin)
         self.link_radius = 0.5 * float(min(cfg.link_widths))  # oracle.py's check spacing derives from it
         # The end effector lies gripper_reach past the wrist link: a 3-link chain of reach 0.80 m.
@@ -320,7 +314,6 @@ class PlanarReacher(ArmEnv):
         self.lever_arms = np.array([max(self.link_lengths[j:k].sum() + corner[p]
                                         for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
-        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.set_scene(np.zeros((0, 5)))
 
     # ---- kinematics and the collision check ---------------------------------------------------
@@ -693,7 +686,7 @@ class EngineReach3D(ArmEnv):
     (experiment/image_obs.py) replaces [15:] by it.
     """
 
-    dim = 3  # workspace dimension
+    dim, dof = 3, 6  # workspace dimension, joints
     collision_chunk = 1024  # configurations per pass of in_collision: the temporaries stay in cache
 
     def __init__(self, config: EngineConfig | None = None):
@@ -701,17 +694,14 @@ class EngineReach3D(ArmEnv):
         if pb is None:  # the simulator, imported with the first UR5 env
             import pybullet
             pb = pybullet
-        self.cfg = cfg = config or EngineConfig()
-        self.dof = 6
+        cfg = config or EngineConfig()
+        super().__init__(cfg)
         self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)  # (8,) per ENGINE_LINK_NAMES
         self.link_radius = float(self.link_radii.min())  # oracle.py's check spacing derives from it
         self.max_step = float(cfg.max_step)
         self.max_steps = int(cfg.max_steps)
-        self.dt = float(cfg.dt)
-        self.goal_tolerance = float(cfg.goal_tolerance)
         self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
-        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
@@ -1185,25 +1175,6 @@ PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame the
 def paper_median_step(env):
     """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where it has none."""
     return PAPER_MEDIAN_STEP.get(paper_env(env))
-
-
-# ---- A stand-in expert for tests and demos --------------------------------------------------------
-def straight_line_episode(env, seed, peak=0.04, expert_from=5):
-    """Stand-in expert data for demos, tests and benchmarks (no oracle needed): in scenario `seed` a straight
-    joint-space line from the start toward the nearest goal configuration, stopped at 90 % of the way to the
-    first contact, timed with a smoothstep (peak speed `peak` rad/step); steps from `expert_from` on expert."""
-    env.reset(seed=int(seed))
-    q0 = env.q
-    goals = env.goal_configurations()
-    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
-    f = np.linspace(0, 1, 401)
-    hit = env.in_collision(q0 + f[:, None] * (target - q0))
-    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
-    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
-    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d  # (T, dof), smoothstep
-    prev = np.concatenate([q[:1], q[:-1]])
-    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
-            "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
 
 
 # ---- Fig. 5: the UR5's scene (the planar one: PlanarReacher.render, oracle.py) -------------------
