@@ -186,8 +186,7 @@ def blend_rollouts(env, policy, jobs: list[tuple[dict, tuple[int, int]]], betas,
     decision executes the first cfg.n_act actions of partial_denoise (Eq. 4) toward the expert chunk at the
     rollout's cursor (`advance_cursor`), at betas[b]. A rollout that gets diverge_rad (rad) from the expert's
     states or records < cfg.min_rollout_steps steps is discarded but runs on (Fig. 4 shows it). Contacts are
-    not checked: benchmarks/README.md, the estimator now.
-    """
+    not checked (benchmarks/README.md)."""
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     H, n_act, B = int(policy.cfg.horizon), cfg.n_act, len(jobs)
     refs = []                                         # (n + 1, dof) each: the expert states a cursor moves on

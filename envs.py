@@ -21,8 +21,7 @@ Both envs share ArmEnv and one interface (gymnasium conventions without the depe
     env.make_obs(q, q_prev), env.clip_action(q, action), env.render(ax), env.draw_noise_ellipses(...)
 
 The simulator (pymunk planar, pybullet 3-D) judges a step's contacts; the same geometry feeds the vectorized
-numpy check that the planner, the gate and relabeling call millions of times (tests: the two agree). Research
-variants subclass EngineReach3D and register in ENVIRONMENTS (experiment/image_obs.py, oriented_goal.py).
+numpy check that the planner, the gate and relabeling call millions of times (tests: the two agree).
 """
 import math
 from dataclasses import dataclass
@@ -103,22 +102,20 @@ def _as_batch(q, dof):
 
 
 class ArmEnv:
-    """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share.
+    """The part of the env interface (module docstring) that PlanarReacher and EngineReach3D share. A subclass sets
+    dof, dim, max_step, max_steps, obs_dim and supplies fk, _in_collision_chunk, simulator_in_collision (judges a
+    step), make_obs, _draw_scenario, render; its config gives dt, goal_tolerance, joint_lo/hi and n_substeps."""
 
-    A subclass sets dof, dim, max_step, max_steps, goal_tolerance, cfg.n_substeps, calls ArmEnv.__init__ with its
-    joint limits, and supplies fk, _in_collision_chunk, simulator_in_collision (judges a step), make_obs,
-    _draw_scenario, render.
-    """
-
-    # How a policy reads the observation (diffusion.OBS_ENCODERS); an image variant names its own encoder and
-    # its arguments (experiment/image_obs.py). dagger.make_policy copies both into the policy's config.
+    # How a policy reads the observation (diffusion.OBS_ENCODERS; dagger.make_policy copies both into its config)
     obs_encoder = "flat"
     obs_encoder_args = {}
     goal_is_pose = False  # the goal is a position; True: goal_configurations is the whole goal set (oracle.py)
 
-    def __init__(self, joint_lo, joint_hi):
-        self._lo = np.asarray(joint_lo, dtype=np.float64)
-        self._hi = np.asarray(joint_hi, dtype=np.float64)
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self.dt, self.goal_tolerance = float(cfg.dt), float(cfg.goal_tolerance)
+        self._lo = np.asarray(cfg.joint_lo, dtype=np.float64)
+        self._hi = np.asarray(cfg.joint_hi, dtype=np.float64)
         self.seed = None  # the scenario (set by reset)
         self._goal = np.zeros(self.dim)
         self._q = np.zeros(self.dof)
@@ -178,11 +175,8 @@ class ArmEnv:
         return np.clip(q + np.clip(action - q, -self.max_step, self.max_step), self._lo, self._hi)
 
     def step(self, action):
-        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint.
-
-        The simulator's contacts (simulator_in_collision) judge the end state and n_substeps - 1 evenly spaced
-        states before it (nothing tunnels: PlanarConfig.n_substeps). reward = 1 on success else 0 (unused).
-        """
+        """Move toward the absolute joint target `action` (dof,) by at most max_step per joint; the simulator's
+        contacts judge the end state and n_substeps - 1 evenly spaced states before it (nothing tunnels)."""
         action = np.asarray(action, dtype=np.float64)
         assert action.shape == (self.dof,), f"step: action of shape {action.shape}, want ({self.dof},)"
         q_next = self.clip_action(self._q, action)
@@ -210,8 +204,7 @@ class ArmEnv:
         return obs, q, single
 
     def make_obs_near(self, q, q_prev, recorded):
-        """Observations of states drawn near recorded ones (relabel.py's noised states): make_obs at the new
-        state. (An image variant keeps the recorded image instead.)"""
+        """Observations of noised states near recorded ones (relabel.py): make_obs (an image variant's differs)."""
         return self.make_obs(q, q_prev)
 
     def plot_policy_view(self, episode, path):
@@ -266,8 +259,7 @@ class PlanarReacher(ArmEnv):
 
     From its start (often folded) the arm must reach the target within 6 cm without touching an obstacle or
     itself (contact within 5 mm ends the episode). Every body is an oriented box: the arm's six (three links, a
-    palm, two fingers) in their links' frames (`parts`), the obstacles rows (centre x, y, half x, half y, angle).
-    That one geometry feeds the pymunk space (the simulator of step) and the numpy check in_collision.
+    palm, two fingers; `parts`) in their links' frames, the obstacles rows (centre x, y, half x, half y, angle).
 
     Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
     observation.environment_state, PAPER_SETUP.md §1):
@@ -280,24 +272,19 @@ class PlanarReacher(ArmEnv):
     The arm moves in the vertical (x, z) plane of the URDF; arrays call the second axis y.
     """
 
-    dim = 2  # workspace dimension
+    dim, dof = 2, 3  # workspace dimension, joints
     collision_chunk = 4096  # configurations per pass of in_collision: the temporaries stay in cache
-    # Arm parts (rows of self.parts: link, centre along it, centre across it, half length, half width);
-    # parts 3-5 (palm, fingers) ride on link 2.
-    PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")
     # Self-collision pairs: parts of links not joined by a joint (link 1 vs link 3 and the gripper; link 2 vs
     # the gripper, a child of link 3 in the URDF). Adjacent links share a joint and never count.
     SELF_PAIRS = ((0, 2), (0, 3), (0, 4), (0, 5), (1, 3), (1, 4), (1, 5))
 
     def __init__(self, config: PlanarConfig | None = None):
-        self.cfg = cfg = config or PlanarConfig()
-        self.dof = 3
+        cfg = config or PlanarConfig()
+        super().__init__(cfg)
         self.link_lengths = np.asarray(cfg.link_lengths, dtype=np.float64)
         self.base = np.asarray(cfg.base, dtype=np.float64)
-        self.dt = float(cfg.dt)
         self.max_step = float(cfg.speed_limit * cfg.dt)  # rad per step (0.05 at 10 Hz)
         self.max_steps = int(round(cfg.episode_seconds / cfg.dt))  # 333 at 10 Hz, 1000 at 30 Hz
-        self.goal_tolerance = float(cfg.goal_tolerance)
         self.contact_margin = float(cfg.contact_margin)
         self.link_radius = 0.5 * float(min(cfg.link_widths))  # oracle.py's check spacing derives from it
         # The end effector lies gripper_reach past the wrist link: a 3-link chain of reach 0.80 m.
@@ -320,7 +307,6 @@ class PlanarReacher(ArmEnv):
         self.lever_arms = np.array([max(self.link_lengths[j:k].sum() + corner[p]
                                         for p, k in enumerate(link) if k >= j) for j in range(3)])
         self.obs_dim = 2 * self.dof + 2 * (2 + cfg.n_obstacles)
-        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.set_scene(np.zeros((0, 5)))
 
     # ---- kinematics and the collision check ---------------------------------------------------
@@ -485,12 +471,8 @@ class PlanarReacher(ArmEnv):
         return q[~self.in_collision(q)] if len(q) else q
 
     def _shoulder_can_reach(self, start, goal_qs, n=720):
-        """A necessary condition for a path from start to one of goal_qs: the shoulder can turn there.
-
-        Joint 0 stops at +-pi (no wrap-around), and an obstacle within link 1's reach blocks some of its
-        angles whatever the other joints do: the start's and a goal configuration's joint 0 must lie in one
-        free interval (this removes scenes where the arm is walled in by its own joint limit).
-        """
+        """A necessary condition for a path from start to one of goal_qs: joint 0 stops at +-pi and an obstacle
+        within link 1's reach blocks some of its angles, so the start's and a goal's joint 0 share a free interval."""
         q0 = np.linspace(self._lo[0], self._hi[0], n)
         cx, cy, c, s, hx, hy = (x[:1] for x in self.part_boxes(np.c_[q0, np.zeros((n, 2))]))
         free = np.ones(n, dtype=bool)
@@ -504,13 +486,9 @@ class PlanarReacher(ArmEnv):
         return bool(np.any((goal_qs[:, 0] > lo) & (goal_qs[:, 0] < hi)))
 
     def _draw_scenario(self, rng):
-        """reset's scenario: install the scene (target, obstacles) and return the start (3,).
-
-        Rejection sampling from one rng stream: a scene is re-drawn when blocks overlap, when its target has
-        fewer than min_goal_configurations free IK solutions, or when no start is found: the first of 64 uniform
-        draws within the limits that is free, not at the target, and whose shoulder can turn to a goal
-        configuration (the authors' reset).
-        """
+        """reset's scenario: install the scene and return the start (3,). Rejection sampling from one rng stream:
+        a scene is re-drawn when blocks overlap, when it has fewer than min_goal_configurations free IK solutions,
+        or when none of 64 uniform starts is free, off the target and able to turn its shoulder to a goal."""
         while True:
             scene = self._draw_scene(rng)
             if scene is None:
@@ -638,8 +616,7 @@ class EngineConfig:
     box_radius: tuple = (0.09, 0.09)  # m
     box_scale: tuple = (0.9, 1.1)  # uniform factor on length and radius
     lever_offset: float = 0.08  # m, goal (TCP) to the lever handle's axis along the tool axis
-    # A scene needs this many free goal_configurations: a goal reachable from a sliver of joint space is a
-    # needle's eye no planner finds reliably
+    # A scene needs this many free goal_configurations (a goal reached from a sliver of joint space is a needle's eye)
     min_goal_configurations: int = 40
     n_goal_directions: int = 48  # tool axes tried by goal_configurations (Fibonacci sphere) ...
     n_goal_rolls: int = 4  # ... times rotations of the fingers about it (0, 45, 90, 135 deg)
@@ -681,8 +658,8 @@ class EngineReach3D(ArmEnv):
 
     The paper's mockup is Gaussian splats; here the authors' small-engine cell is capsules: the engine and its
     lever fixed, the goal the TCP of their goal posture (the witness), a wall behind the robot (the half-space
-    y >= wall_y), the table (the ground z = 0) and two boxes drawn per seed. One geometry (capsules: segment + radius, `self.obstacles` and `link_segments`) feeds
-    pybullet in DIRECT mode (the simulator of step) and the numpy check in_collision (segment distances).
+    y >= wall_y), the table (the ground z = 0) and two boxes drawn per seed. One geometry (capsules: segment +
+    radius, `self.obstacles` and `link_segments`) feeds pybullet (step's simulator) and the numpy in_collision.
 
     Observation layout (float32, obs_dim = 2 dof + 3 + 7 n_max_obstacles = 127):
         [0:6]     q       current joint positions (rad)
@@ -693,7 +670,7 @@ class EngineReach3D(ArmEnv):
     (experiment/image_obs.py) replaces [15:] by it.
     """
 
-    dim = 3  # workspace dimension
+    dim, dof = 3, 6  # workspace dimension, joints
     collision_chunk = 1024  # configurations per pass of in_collision: the temporaries stay in cache
 
     def __init__(self, config: EngineConfig | None = None):
@@ -701,17 +678,14 @@ class EngineReach3D(ArmEnv):
         if pb is None:  # the simulator, imported with the first UR5 env
             import pybullet
             pb = pybullet
-        self.cfg = cfg = config or EngineConfig()
-        self.dof = 6
+        cfg = config or EngineConfig()
+        super().__init__(cfg)
         self._wall_y = float(cfg.wall_y)  # the wall of the authors' cell: a half-space y >= wall_y
         self.link_radii = np.asarray(cfg.link_radii, dtype=np.float64)  # (8,) per ENGINE_LINK_NAMES
         self.link_radius = float(self.link_radii.min())  # oracle.py's check spacing derives from it
         self.max_step = float(cfg.max_step)
         self.max_steps = int(cfg.max_steps)
-        self.dt = float(cfg.dt)
-        self.goal_tolerance = float(cfg.goal_tolerance)
         self.obs_dim = 2 * self.dof + self.dim + 7 * cfg.n_max_obstacles
-        super().__init__(cfg.joint_lo, cfg.joint_hi)
         self.witness = None  # (6,) the collision-free goal posture the scene was built around
         self._client = None  # pybullet DIRECT client, created by the first set_scene
         seg = self.link_segments(np.zeros(self.dof))[0]
@@ -722,11 +696,9 @@ class EngineReach3D(ArmEnv):
 
     # ---- kinematics and geometry -------------------------------------------------------------
     def _capsule_points(self, q):
-        """(B, 10, 3): base, shoulder, elbow, wrist 1-3 centres, flange, TCP, the two finger ends.
-
-        The DH chain of ur5_frames written out point by point (tests check they agree). Joints 2-4 are parallel, so shoulder, elbow and wrist 1 move in the vertical plane at
-        angle q1, with in-plane angles q2, q2 + q3, q2 + q3 + q4; the lateral axis z1 = (sin q1, -cos q1, 0).
-        """
+        """(B, 10, 3): base, shoulder, elbow, wrist 1-3 centres, flange, TCP, the two finger ends: the DH chain of
+        ur5_frames point by point. Joints 2-4 are parallel: shoulder, elbow and wrist 1 move in the vertical plane
+        at angle q1, in-plane angles q2, q2 + q3, q2 + q3 + q4; the lateral axis z1 = (sin q1, -cos q1, 0)."""
         B = len(q)
         c1, s1 = np.cos(q[:, 0:1]), np.sin(q[:, 0:1])  # (B, 1)
         radial = np.concatenate([c1, s1, np.zeros_like(c1)], axis=1)  # (B, 3) in the arm's plane
@@ -776,8 +748,7 @@ class EngineReach3D(ArmEnv):
         return np.ascontiguousarray(p[:, :, _CAPSULE_START]), np.ascontiguousarray(p[:, :, _CAPSULE_END])
 
     def _ground_clearance(self, a0, a1):
-        """(B,) lowest point of the forearm .. fingers above the ground z = 0 (the base column stands on it; the
-        upper arm, shoulder in [-pi, 0], points upward: its lowest point is always 0.089 - 0.06 m up)."""
+        """(B,) lowest point of the forearm .. fingers above the ground z = 0 (the upper arm points upward)."""
         return (np.minimum(a0[2, :, 2:], a1[2, :, 2:]) - self.link_radii[2:]).min(axis=1)
 
     def _wall_clearance(self, a0, a1):
@@ -785,12 +756,8 @@ class EngineReach3D(ArmEnv):
         return (self._wall_y - np.maximum(a0[1], a1[1]) - self.link_radii).min(axis=1)
 
     def _in_collision_chunk(self, q, margin):
-        """in_collision: the arm penetrates (or comes within margin of) an obstacle, the wall, the ground or itself.
-
-        Pairs: every arm capsule with every obstacle, ENGINE_SELF_PAIRS, the ground, the wall. Axis-aligned bounding
-        boxes rule out most pairs, exact segment distances decide the rest. The base column never moves
-        (joint 1 turns it about its own axis): its clearance is set_scene's constant.
-        """
+        """in_collision: the arm within margin of an obstacle, the wall, the ground or itself (ENGINE_SELF_PAIRS).
+        Axis-aligned boxes rule out most pairs, segment distances decide the rest; the base column never moves."""
         a0, a1 = self._arm_components(q)  # (3, B, 8) each
         hit = (self._ground_clearance(a0, a1) < margin) | (self._base_clearance < margin)  # (B,)
         hit |= self._wall_clearance(a0, a1) < margin
@@ -810,8 +777,7 @@ class EngineReach3D(ArmEnv):
         for k in range(3):
             near &= (lo[k][:, i] <= hi[k][:, j] + margin) & (hi[k][:, i] >= lo[k][:, j] - margin)
         b_self, pair = np.divmod(np.flatnonzero(near), len(i))
-        # narrow phase on all candidates: an arm capsule (flat index config * 8 + capsule into (3, B * 8))
-        # against an obstacle or another arm capsule
+        # narrow phase: an arm capsule (flat index config * 8 + capsule) against an obstacle or an arm capsule
         a0, a1 = a0.reshape(3, -1), a1.reshape(3, -1)
         arm = np.concatenate([b_obs * 8 + link, b_self * 8 + i[pair]])
         other = b_self * 8 + j[pair]
@@ -916,12 +882,8 @@ class EngineReach3D(ArmEnv):
 
     # ---- scenarios ---------------------------------------------------------------------------
     def goal_configurations(self):
-        """Collision-free joint configurations with the TCP exactly at the goal. (M, 6).
-
-        Closed-form IK (ur5_ik) for a fixed set of tool orientations: n_goal_directions tool axes z6
-        spread over the sphere, each with n_goal_rolls rotations of the fingers about it, and up to 8
-        arm branches per orientation. Solutions outside the joint limits or in collision are dropped.
-        """
+        """Collision-free joint configurations (M, 6), within the limits, with the TCP exactly at the goal: ur5_ik
+        for n_goal_directions tool axes z6 over the sphere times n_goal_rolls finger rotations, 8 branches each."""
         goal, n_dir, n_roll = self._goal, self.cfg.n_goal_directions, self.cfg.n_goal_rolls
         axes = fibonacci_sphere(n_dir)  # (D, 3) tool axes z6
         helper = np.where(np.abs(axes[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
@@ -964,14 +926,10 @@ class EngineReach3D(ArmEnv):
         return np.asarray(obstacles, dtype=np.float64), kinds, goal, q_goal
 
     def _draw_scenario(self, rng):
-        """reset's scenario: install the scene and return the start (6,).
-
-        Rejection sampling from one rng stream: a scene is re-drawn when its witness (the goal posture) collides
-        or its goal has fewer than min_goal_configurations free IK solutions (EngineReach3D's own goal set, also
-        in a variant that narrows it: the same scenes), or when none of 256 starts fits. The start (the authors'):
-        the first draw uniform within the joint limits that is clear of everything by start_clearance, its TCP at
-        least start_goal_min_dist from the goal.
-        """
+        """reset's scenario: install the scene and return the start (6,). Rejection sampling from one rng stream:
+        a scene is re-drawn when its witness collides, when it has fewer than min_goal_configurations free IK
+        solutions (EngineReach3D's own goal set, also in a variant: the same scenes), or when none of 256 uniform
+        starts is clear by start_clearance with its TCP start_goal_min_dist from the goal (the authors' start)."""
         cfg = self.cfg
         while True:
             obstacles, kinds, goal, self.witness = self._draw_authors_scene(rng)
@@ -1144,8 +1102,8 @@ def _quaternion_z_to(direction):
 
 
 # ---- Environments by name ------------------------------------------------------------------------
-# name -> (env class, its config); a research variant adds its own on import of its module (a subclass of
-# EngineReach3D: experiment/image_obs.py 'engine3d_image', experiment/oriented_goal.py 'engine3d_oriented')
+# name -> (env class, its config); a research variant (an EngineReach3D subclass) adds its own on import of its
+# module: experiment/image_obs.py 'engine3d_image', experiment/oriented_goal.py 'engine3d_oriented'
 ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig), "engine3d": (EngineReach3D, EngineConfig)}
 PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by env (its unit, its table) names these
 
@@ -1175,9 +1133,8 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit (PAPER_SETUP.md §1): the median over the authors' demo steps of the L2 norm over the joints
-# of one 30 Hz frame; ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step =
-# sigma_paper * this.
+# The paper's own unit (PAPER_SETUP.md §1): the median L2 norm over the joints of the authors' 30 Hz demo steps;
+# ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step = sigma_paper * this.
 PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
 
@@ -1185,25 +1142,6 @@ PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame the
 def paper_median_step(env):
     """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where it has none."""
     return PAPER_MEDIAN_STEP.get(paper_env(env))
-
-
-# ---- A stand-in expert for tests and demos --------------------------------------------------------
-def straight_line_episode(env, seed, peak=0.04, expert_from=5):
-    """Stand-in expert data for demos, tests and benchmarks (no oracle needed): in scenario `seed` a straight
-    joint-space line from the start toward the nearest goal configuration, stopped at 90 % of the way to the
-    first contact, timed with a smoothstep (peak speed `peak` rad/step); steps from `expert_from` on expert."""
-    env.reset(seed=int(seed))
-    q0 = env.q
-    goals = env.goal_configurations()
-    target = goals[np.argmin(np.abs(goals - q0).sum(1))]
-    f = np.linspace(0, 1, 401)
-    hit = env.in_collision(q0 + f[:, None] * (target - q0))
-    d = (0.9 * f[np.argmax(hit)] if hit.any() else 1.0) * (target - q0)
-    tau = np.linspace(0, 1, int(np.ceil(1.5 * np.abs(d).max() / peak)) + 1)
-    q = q0 + (3 * tau ** 2 - 2 * tau ** 3)[:, None] * d  # (T, dof), smoothstep
-    prev = np.concatenate([q[:1], q[:-1]])
-    return {"obs": env.make_obs(q, prev), "q": q, "action": np.concatenate([q[1:], q[-1:]]),
-            "expert": np.arange(len(q)) >= expert_from, "seed": int(seed)}
 
 
 # ---- Fig. 5: the UR5's scene (the planar one: PlanarReacher.render, oracle.py) -------------------

@@ -609,15 +609,15 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
 
 
 if __name__ == "__main__":
-    # Demo on the planar env: stand-in interventions (straight joint-space paths toward the goal, stopped before
-    # the first collision; dagger.py uses the RRT oracle's), noised with a pooled Σ of 3-5 median steps per joint
-    # (the paper's calibrated range), labelled and drawn. Timings: benchmarks/bench_relabel.py.
-    import envs  # the demo only; the module itself never imports the env
+    # Demo on the planar env: the RRT oracle's demonstrations as stand-in interventions, noised with a pooled Σ
+    # of 3-5 median steps per joint (the paper's calibrated range), labelled and drawn. Timings: bench_relabel.py.
+    import envs  # the demo only; the module itself never imports the env or the oracle
+    import oracle
 
     env = envs.make_env("planar")
     rng = np.random.default_rng(0)
     cfg = RelabelConfig(horizon=16)
-    episodes = [ep for ep in (envs.straight_line_episode(env, s) for s in range(40)) if len(ep["q"]) >= 40]
+    episodes = [oracle.Oracle().demonstrate(env, s) for s in env.train_seeds(12)]
     stats = demo_stats(episodes, envs.median_step(episodes), env.max_step,
                        paper_median_step=envs.paper_median_step(env), frames_per_step=env.dt / envs.PAPER_FRAME_DT)
     sigma = np.diag([5.0, 3.0, 4.0]) ** 2 * stats.median_step ** 2  # a pooled Σ̄^α stand-in

@@ -28,6 +28,7 @@ import dagger  # noqa: E402
 import envs  # noqa: E402
 from experiment import checkpoints, oriented_goal  # noqa: E402
 
+PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")  # rows of PlanarReacher.parts
 
 def ending(env, episode):
     """(outcome or None, step, final distance, the state reached (dof,), the last step's sub-states (S, dof),
@@ -53,14 +54,14 @@ def classify(env, episode):
     q = sweep[np.argmax(hit)]
     boxes = [x[:, 0] for x in env.part_boxes(q[None])]  # (n_parts,) each
     margin = env.contact_margin
-    for p, name in enumerate(env.PART_NAMES):
+    for p, name in enumerate(PART_NAMES):
         part = tuple(x[p] for x in boxes)
         for obstacle in zip(*env._obstacle_boxes):
             if envs.box_distance(part, obstacle) < margin:
                 return "collision: obstacle", name, T, dist
     for i, j in env.SELF_PAIRS:
         if envs.box_distance(tuple(x[i] for x in boxes), tuple(x[j] for x in boxes)) < margin:
-            return "collision: self", f"{env.PART_NAMES[i]}-{env.PART_NAMES[j]}", T, dist
+            return "collision: self", f"{PART_NAMES[i]}-{PART_NAMES[j]}", T, dist
     return "collision: other", "", T, dist
 
 

@@ -25,14 +25,16 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 import relabel  # noqa: E402
-from envs import make_env, median_step, straight_line_episode  # noqa: E402
+from envs import make_env, median_step  # noqa: E402
+from helpers import straight_line_episode  # noqa: E402 (tests/helpers.py)
 
 H = 16  # steps: the label chunk's length measured here
 
 
 def straight_episode(env, seed, min_len=40):
-    """envs.straight_line_episode, or None when shorter than min_len steps."""
+    """tests/helpers.py straight_line_episode, or None when shorter than min_len steps."""
     ep = straight_line_episode(env, seed)
     return ep if len(ep["q"]) >= min_len else None
 

@@ -12,6 +12,7 @@ import calibrate as cal
 import dagger
 import diffusion
 import envs
+from helpers import straight_line_episode  # tests/helpers.py
 from experiment.run_folder import calibration_to_json
 
 
@@ -373,7 +374,7 @@ def planar():
     """The planar env, stand-in expert episodes (all expert, at least 32 steps), and a tiny untrained
     policy (normalizer fitted)."""
     env = envs.make_env("planar")
-    episodes = [envs.straight_line_episode(env, seed, expert_from=0) for seed in env.train_seeds(40)]
+    episodes = [straight_line_episode(env, seed, expert_from=0) for seed in env.train_seeds(40)]
     episodes = [ep for ep in episodes if len(ep["q"]) >= 32][:4]
     assert len(episodes) == 4
     return env, episodes, _tiny_policy(env, episodes)
@@ -558,7 +559,7 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
 def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
     """Fig. 2 for EngineReach3D: the same panels on the top view (x, y), no arm drawing."""
     env = envs.make_env("engine3d")
-    episodes = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(6)]
+    episodes = [straight_line_episode(env, seed) for seed in env.train_seeds(6)]
     episode = max(episodes, key=lambda ep: len(ep["q"]))
     assert env.dim == 3 and len(episode["q"]) >= 30
     policy = _tiny_policy(env, [episode])

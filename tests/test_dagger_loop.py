@@ -15,6 +15,7 @@ import torch
 import dagger
 import diffusion
 import envs
+from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from experiment import cli, report, run_folder
 
@@ -569,7 +570,7 @@ def test_fixed_sigma_is_in_the_papers_median_steps():
 
 def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
     env = envs.make_env("planar")
-    demos = [envs.straight_line_episode(env, seed) for seed in env.train_seeds(3)]
+    demos = [straight_line_episode(env, seed) for seed in env.train_seeds(3)]
     stats = dagger.demo_statistics(TINY, demos)
     assert stats.paper_median_step == 0.0176 and stats.frames_per_step == pytest.approx(3.0)  # 10 Hz env
     assert relabel.velocity_noise_std(relabel.RelabelConfig(horizon=16), stats) == pytest.approx(0.3 * 0.0176 * 3)

@@ -14,6 +14,7 @@ import torch
 import dagger
 import diffusion
 import envs
+from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train
 from experiment import checkpoints, run_folder, workers
@@ -229,7 +230,7 @@ def test_sampler_reuses_the_recorded_image_for_noised_states():
     positions (and the labels) change. The image part of every pair is a recorded one, not a new render."""
     make = lambda: envs.make_env("engine3d_image", image_size=8)  # noqa: E731
     env = make()
-    episodes = [envs.straight_line_episode(env, seed, expert_from=2) for seed in (3, 4)]
+    episodes = [straight_line_episode(env, seed, expert_from=2) for seed in (3, 4)]
     episodes = [ep for ep in episodes if len(ep["q"]) > 20]
     assert episodes, "stand-in episodes too short for this test"
     demo = relabel.demo_stats(episodes, envs.median_step(episodes), env.max_step)

@@ -13,6 +13,7 @@ import torch
 
 import diffusion
 import envs
+from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from experiment import checkpoints
 from dataclasses import replace
@@ -560,7 +561,7 @@ PLANAR_SEEDS = (4, 13, 30)  # scenarios where that straight path is >= 60 steps 
 @pytest.fixture(scope="module")
 def planar():
     env = envs.make_env("planar")
-    eps = [envs.straight_line_episode(env, s) for s in PLANAR_SEEDS]
+    eps = [straight_line_episode(env, s) for s in PLANAR_SEEDS]
     st = demo_stats(eps, envs.median_step(eps), env.max_step)
     return envs, eps, st
 
@@ -621,7 +622,7 @@ def test_fig1_on_the_3d_env_writes_a_png(tmp_path):
     """Fig. 1 on EngineReach3D: drawn in the top view (x, y) with env.draw_noise_ellipses in the plane
     (0, 1); EngineReach3D.render would show a camera image, so no arm is drawn."""
     env = envs.make_env("engine3d")
-    eps = [envs.straight_line_episode(env, s) for s in (3, 5)]  # 55 and 32 expert steps
+    eps = [straight_line_episode(env, s) for s in (3, 5)]  # 55 and 32 expert steps
     st = demo_stats(eps, envs.median_step(eps), env.max_step)
     path = tmp_path / "fig1_3d.png"
     out = relabel.plot_recovery(env, eps[0], np.diag([3.0, 2.0, 2.0, 1.5, 1.5, 1.5]) ** 2 * st.median_step ** 2,
