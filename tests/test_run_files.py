@@ -10,7 +10,7 @@ import torch
 
 import test_calibrate
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, toy_two_mode_data, train
-from experiment import checkpoints
+from experiment import checkpoints, cpu_kernels
 from experiment.report import calibration_text
 from experiment.run_folder import (Run, RunFolderError, calibration_from_json, calibration_to_json, read_episodes,
                                    write_episodes)
@@ -23,8 +23,11 @@ def tiny_policy(**overrides):
 
 @pytest.fixture(scope="module")
 def trained():
+    """A policy made as the run makes one (dagger.make_policy): with the CPU kernels this machine takes, as
+    checkpoints.load_policy gives them to the policy it loads (else the round trip compares two Mish functions)."""
     obs, chunks = toy_two_mode_data(300, H=4, seed=0)
-    return train(tiny_policy(), obs, chunks, TrainConfig(steps=30, batch_size=32, warmup_steps=5, log_every=0))
+    return train(cpu_kernels.use_kernels(tiny_policy()), obs, chunks,
+                 TrainConfig(steps=30, batch_size=32, warmup_steps=5, log_every=0))
 
 
 def test_save_load_round_trip(trained, tmp_path):
