@@ -279,7 +279,7 @@ def main():
         print(f"{name[:16]:>16}" + "".join(f"{row[p]:9.2f}" for p in PARTS + ("sum",))
               + "".join(f"{row[f'train {b}']:11.2f}" for b in batches) + f"{row['sample']:12.1f}"
               + f"{forward_flops / row['forward'] / 1e6:10.0f}{backward_flops / row['backward'] / 1e6:10.0f}")
-    kernel_rows = [name for name in variants if name.endswith("kernel") or name.endswith("kernels")]
+    kernel_rows = [name for name, variant in variants.items() if variant.kernels]
     pairs = [(old, new) for old in (args.baseline, "torch's own") if old for new in kernel_rows]
     for old, new in pairs + ([(args.baseline, "torch's own")] if args.baseline else []):
         short = {"torch's own": "own", "linear kernel": "linear", "mish kernel": "mish", "both kernels": "both"}

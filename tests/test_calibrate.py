@@ -394,6 +394,10 @@ def test_blend_at_beta_zero_retraces_the_expert(planar):
                              0.4)
     T = len(ep["q"])
     assert np.all(out.rollouts.n_recorded == T - 1) and np.all(out.kept)
+    # every per-step record spans the rollout's L + 1 states (a shorter one drops the last steps' errors silently)
+    L = int(out.rollouts.n_steps.max())
+    assert out.rollouts.nearest_error.shape == out.rollouts.cursor.shape == out.rollouts.trajectory.shape[:2] == (
+        2, L + 1)
     np.testing.assert_allclose(out.rollouts.trajectory[0], ep["q"], atol=1e-12)   # time-matched, exact
     np.testing.assert_array_equal(out.x, 0.0)
     np.testing.assert_array_equal(out.s, 0.0)
