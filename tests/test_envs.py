@@ -473,6 +473,18 @@ def test_shoulder_check_rejects_a_walled_in_start():
     assert e._shoulder_can_reach(np.array([math.pi - 0.3, 0.0, 0.0]), goal_qs)
 
 
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_shoulder_check_stops_at_the_nearest_block_on_each_side(side):
+    """Two blocks within link 1's reach on one side of the start (q0 = 0), at q0 = 1 and 2 rad on that side: a goal
+    at 1.5 rad lies between them, past the nearer one. Fails if the free interval around the start ends at the
+    farther block (the blocked sample below the start taken as the smallest, or the one above as the largest)."""
+    e = empty_env([[0.2 * math.cos(side * a), 0.2 * math.sin(side * a), 0.02, 0.02, 0.0] for a in (1.0, 2.0)])
+    start = np.zeros(3)
+    assert e._shoulder_can_reach(start, np.array([[side * 0.5, 0.0, 0.0]]))  # before the nearer block
+    assert not e._shoulder_can_reach(start, np.array([[side * 1.5, 0.0, 0.0]]))  # between the blocks
+    assert not e._shoulder_can_reach(start, np.array([[side * 2.5, 0.0, 0.0]]))  # past both
+
+
 def test_set_scene_feeds_both_checks():
     e = PlanarReacher()
     e.set_scene([[0.15, 0.0, 0.035, 0.035, 0.0]], goal=[0.0, 0.5])
