@@ -260,6 +260,7 @@ def test_a_retired_field_is_dropped_at_the_value_that_remains_and_another_value_
 # benchmarks/results/<folder>: the options of the command that reports it (benchmarks/README.md)
 COMMITTED_RESULTS = {
     "mid": ["--profile", "mid"], "table1": ["--profile", "table1"], "table2": ["--profile", "table2"],
+    "table1_strong": ["--profile", "table1_strong"],
     "table2_authors_finetune": ["--profile", "table2", "--recipe", "authors_lever"],
     "table2_authors_finetune_seeds": ["--profile", "table2", "--recipe", "authors_lever_seeds",
                                       "--methods", "hg_dagger,pooled"]}
