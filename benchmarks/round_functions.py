@@ -53,7 +53,8 @@ if __name__ == "__main__":
     found = round_functions(args.out)
     for path, names in found.items():
         print(f"{path}: {len(names)}" + (": " + ", ".join(names) if args.list else ""))
-    core = sum(len(names) for path, names in found.items() if os.sep not in path)
-    print(f"one round of the smoke run: {sum(map(len, found.values()))} project functions in {len(found)} files: "
-          f"{core} in the seven modules (the method), {sum(map(len, found.values())) - core} in experiment/ "
+    total = sum(map(len, found.values()))
+    core = sum(len(names) for path, names in found.items() if os.sep not in path)  # top level: the seven modules
+    print(f"one round of the smoke run: {total} project functions in {len(found)} files: "
+          f"{core} in the seven modules (the method), {total - core} in experiment/ "
           f"(plumbing: run folder, checkpoints, workers, the CPU kernels where they pay on this kind of CPU)")
