@@ -55,8 +55,9 @@ PROFILES = {
                      eval_scenarios=100, eval_repeats=3),
     # Issue 59's study (benchmarks/README.md, "The study on the stronger recipe"): table1 with the strength probe's
     # kept knob, 3x the gradient steps (pi_0 at 30k of one 60k cosine, every row +30k; the kept 2x width left out
-    # for its cost: 2.53x a step), K = 1, the study's seven rows. Measured: ~1.4 h of one core a lineage, ~7.4 CPU-h in all (Zen 3). --prepare and
-    # --export-start, then --lineage i side by side, --export-lineages benchmarks/results/table1_strong.
+    # for its cost: 2.53x a step), K = 1, the study's seven rows. Measured: ~1.4 h of one core a lineage, ~7.4 CPU-h
+    # in all (Zen 3). --prepare and --export-start, then --lineage i side by side, --export-lineages
+    # benchmarks/results/table1_strong. Its result: HG-DAgger 72.8, no noised row above it (benchmarks/README.md).
     "table1_strong": dict(name="table1_strong", n_demos=500, rounds=1, lineages=5,
                             network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=30_000, finetune_steps=30_000,
                             methods=("bc", "hg_dagger", "authors_hg_dagger", "fixed_4", "fixed_8", "fixed_16",
