@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import gzip
 import json
-import math
 import os
 import sys
 import time
@@ -37,7 +36,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
-from strength_probe import machine  # noqa: E402
+from strength_probe import evaluation, machine, paired  # noqa: E402
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "quick_probe")
 CANDIDATES = {
@@ -77,11 +76,6 @@ def load(name):
     return files, json.load(open(os.path.join(RESULTS, name, "cost.json")))
 
 
-def rates(files, key):
-    """Per-scenario success (mean over repeats) and the scenario seeds of one evaluation."""
-    return np.asarray(files[key]["success"], float).mean(axis=1), list(files[key]["seeds"])
-
-
 def table():
     """Per candidate and seed: the four rows, HG - BC paired over scenarios, the wall; then the rule's means."""
     print("| candidate | seed | BC | HG-DAgger | fixed σ = 4 | pooled | HG − BC (paired SE) | wall (workers) |")
@@ -93,13 +87,12 @@ def table():
             if files is None:
                 print(f"| {candidate} | {seed} | not run | | | | | |")
                 continue
-            bc, seeds = rates(files, ROWS["bc"])
-            hg, hg_seeds = rates(files, ROWS["hg_dagger"])
+            bc, seeds = evaluation(files, ROWS["bc"])
+            hg, hg_seeds = evaluation(files, ROWS["hg_dagger"])
             assert seeds == hg_seeds, f"{candidate} seed {seed}: BC and HG-DAgger on other scenarios"
-            d = 100.0 * (hg - bc)
-            gap, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
+            gap, se = paired(hg, bc)
             gaps.setdefault(candidate, []).append(gap)
-            cells = [f"{100 * rates(files, ROWS[m])[0].mean():.1f}" if ROWS[m] in files else "—" for m in ROWS]
+            cells = [f"{100 * evaluation(files, ROWS[m])[0].mean():.1f}" if ROWS[m] in files else "—" for m in ROWS]
             print(f"| {candidate} | {seed} | {' | '.join(cells)} | {gap:+.1f} ± {se:.1f} | "
                   f"{cost['wall_s']:.0f} s ({cost['workers']}) |")
     for candidate, g in gaps.items():

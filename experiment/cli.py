@@ -30,7 +30,8 @@ def parse_args(argv, profiles, methods, recipes):
     p.add_argument("--profile", default="quick", choices=sorted(profiles),
                    help="run size: smoke (CI, ~2 min), quick (default; two worker processes on 2-core AMD EPYCs: "
                         "4.5-5 min on a Zen 5, 8.5 min on an idle Zen 3, 9.5 min on a Zen 4 before issue 61), "
-                        "mid (Table I's analogue: 500 demos, 5 lineages x 2 rounds, hours on 2 cores), table2 (the engine-lever env with Table II's rows), paper "
+                        "mid (Table I's analogue: 500 demos, 5 lineages x 2 rounds, hours on 2 cores), "
+                        "table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
     p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS),
                    help="environment (default planar): planar, engine3d, or a research variant's: engine3d_image "
