@@ -24,7 +24,7 @@ PROFILES = {
                     eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 4 min 25 s - 4 min 57 s wall over three seeds on a 2-core AMD EPYC Zen 5, two
-    # workers; 8 min 27 s on an idle Zen 3, 9 min 26 s on a Zen 4 (benchmarks/README.md, issues 54 and 61).
+    # workers; 8 min 27 s - 9 min 17 s on an idle Zen 3, 9 min 26 s on a Zen 4 (benchmarks/README.md, issues 54, 61).
     "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
