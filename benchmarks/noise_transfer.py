@@ -155,6 +155,7 @@ def evaluate_lineage(root, lineage, log=print):
             raise SystemExit(f"{path}: missing; finish lineage {lineage} first (python dagger.py ... --lineage "
                              f"{lineage})")
         t0 = time.time()
+        os.makedirs(os.path.dirname(out), exist_ok=True)
         ok = evaluate_file(path, NEW_SEEDS, cfg.eval_repeats, sample_seed, cfg.env)
         with open(path, "rb") as fh:
             sha = hashlib.sha256(fh.read()).hexdigest()
