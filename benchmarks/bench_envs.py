@@ -1,7 +1,7 @@
 """Speed of the PlanarReacher: collision checks per second and env steps per second.
 
-Issue 2 target: >= 1e6 configuration checks/s (obstacles + self-collision) for batches of ~1000+
-on a 2-core machine. pymunk's check of the same predicate is shown for contrast.
+The target set when the check was written: >= 1e6 configuration checks/s (obstacles + self-collision)
+for batches of ~1000+ on a 2-core machine. pymunk's check of the same predicate is shown for contrast.
 
 Usage:  python benchmarks/bench_envs.py [--seconds 1.0]
 Prints a markdown table with rates per wall-clock second and per CPU second of this process (the

@@ -1,8 +1,8 @@
 """Speed of the corrective-label augmentation (relabel.py) on the PlanarReacher.
 
-Issue 6 target: the AugmentationSampler runs inside every training step (batch 256, about half
-augmented), so a call for 128 pairs should cost under ~1-2 ms amortized, next to a training step
-of a few ms. Measured here: the fresh-pair generation rate of each stage and of the whole pipeline,
+The target set when the sampler was written: the AugmentationSampler runs inside every training step
+(batch 256, about half augmented), so a call for 128 pairs should cost under ~1-2 ms amortized, next to a
+training step of a few ms. Measured here: the fresh-pair generation rate of each stage and of the whole pipeline,
 and the amortized / median / worst time of sampler calls of 128 pairs (pool refreshes included).
 
 The intervention episodes are stand-ins that need no oracle: straight joint-space paths from a

@@ -3,7 +3,7 @@
 Table II needs a BC policy (pi_0) on the UR5 engine lever in the paper's band (BC 58 %; we ask 45-70 %) at a
 cost the 2-core machine can pay for every cell of the table. The planar recipe (residual MLP, chunk 20, batch 256,
 continued) stays at 15-20 % there; the U-Net (32, 64, 128) at batch 64 reaches 49 % but needs 48 min of one core
-for pi_0 and ~20 min for each fine-tuned cell (benchmarks/README.md, "The mid recipe on the lever").
+for pi_0 and ~20 min for each fine-tuned cell (benchmarks/HISTORY.md, "The mid recipe on the lever").
 
 Each candidate is a profile (default table2) with some dagger.Config fields changed -- the network, the chunk
 (H and the steps executed), the widths, the batch, the steps, the fine-tuning mode -- run as
@@ -41,7 +41,7 @@ from experiment.workers import in_parallel  # noqa: E402
 # one cosine of bc_steps + finetune_steps (the mid recipe, and the table2 profile's since unet16_b256 was chosen).
 CONTINUED = dict(batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000, recipe="paper")
 # (The earlier table2 recipe, U-Net (32, 64, 128), batch 64, BC 30k with its fine-tuning restarted -- measured:
-# pi_0 49.0 %, 48 min -- is gone with finetune='restart': benchmarks/README.md keeps its numbers.)
+# pi_0 49.0 %, 48 min -- is gone with finetune='restart': benchmarks/HISTORY.md keeps its numbers.)
 CANDIDATES = {
     # the planar mid recipe: residual MLP 256 x 3, chunk 20, 10 executed (measured: pi_0 15.0 %, BC row 20.0 %)
     "mlp_h20": dict(network="mlp", **CONTINUED),
@@ -53,7 +53,7 @@ CANDIDATES = {
     # (recipe authors_lever, experiment/lever.py: every arm continues it at a constant lr / 10; the BC row is pi_0)
     "unet16_b256_constant": dict(network="unet", down_dims=(16, 32, 64), **{**CONTINUED, "recipe": "authors_lever"}),
 }
-DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two new ones (measured: benchmarks/README.md, "ε-networks ...")
+DEFAULT_CANDIDATES = ("mlp_h10", "unet16_b256")  # the two new ones (measured: benchmarks/HISTORY.md, "ε-networks ...")
 TIMED_STEPS = 200  # training steps timed for the CPU cost of a step
 BAND = (45.0, 70.0)  # pi_0 success, %: around the paper's BC (Table II: 58.0)
 
@@ -114,7 +114,7 @@ def result_row(out, name):
     cfg = dagger.Config(**without_retired_fields(path, read_json(path)))  # a folder may predate a deleted option
     pi0 = Run(root, cfg).load("checkpoints/bc.pt")
     seconds = cfg.bc_steps * read_json(os.path.join(root, "cpu_per_step.json"))["seconds"]  # pi_0's training, CPU
-    # pi_0's own evaluation (a folder made before issue 41 under the lever recipe has only the BC row's, the same)
+    # pi_0's own evaluation (a folder made before the recipes were named, under the lever recipe, has only the BC row's, the same)
     pi0_eval = "eval/pi0.json" if os.path.exists(os.path.join(root, "eval", "pi0.json")) else "eval/bc.json"
     success = {key: 100.0 * float(np.mean(read_json(os.path.join(root, *path.split("/")))["success"]))
                for key, path in (("pi0", pi0_eval), ("bc_row", "eval/bc.json"))}

@@ -1,7 +1,7 @@
-"""Issue 61's probe of a cheaper quick profile: does `python dagger.py`'s story (HG-DAgger over BC) hold at a
+"""The probe of a cheaper quick profile: does `python dagger.py`'s story (HG-DAgger over BC) hold at a
 training step that costs less, and does the run then take five minutes?
 
-The design (benchmarks/README.md, "A cheaper quick profile (issue 61)"), stated before any of its results:
+The design (benchmarks/HISTORY.md, "A cheaper quick profile"), stated before any of its results:
 
     now      the quick profile as it is (residual MLP width 256, batch 256)
     narrow   the same run with the MLP half as wide and half the batch (mlp_width 128, batch_size 128): every

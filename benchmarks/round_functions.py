@@ -1,5 +1,5 @@
-"""How many of the project's functions one round of the smoke run calls, and in how many files (issue 53's guide:
-one round <= ~150 functions). A reader following a round meets these.
+"""How many of the project's functions one round of the smoke run calls, and in how many files (the guide set for
+the modules' reorganization after 7e18ba9: one round <= ~150 functions). A reader following a round meets these.
 
 The shared stages (D0, pi_0, the BC row) are made first and not counted; then lineage 0's round 1 -- collection,
 HG-DAgger, calibration, every noised arm, their evaluations -- runs in this process (workers=1, so that the arms'

@@ -1,8 +1,8 @@
-"""Issue 59's probe of strength: does one knob of the policy's strength lift BC and HG-DAgger above the table1 recipe?
+"""The probe of strength: does one knob of the policy's strength lift BC and HG-DAgger above the table1 recipe?
 
 One lineage (lineage 0, master seed 0), one round (K = 1), rows BC and HG-DAgger only; every other field is the
-table1 profile's. The knobs, each alone (the design, stated before any result: benchmarks/README.md, "Policy
-strength (issue 59)"):
+table1 profile's. The knobs, each alone (the design, stated before any result: benchmarks/HISTORY.md, "Policy
+strength"; its result: benchmarks/README.md):
 
     base     the table1 recipe itself: pi_0 and the BC row from the committed start, lineage 0's round 1 rerun here
     steps3x  3x the gradient steps: pi_0 at 30k of one 60k cosine, every row continued +30k

@@ -1,6 +1,6 @@
-"""Issue 59's study on the stronger recipe: the seven tests stated before it ran, from committed files only.
+"""The study on the stronger recipe: the seven tests stated before it ran, from committed files only.
 
-The design (benchmarks/README.md, "The study on the stronger recipe (issue 59)"): the `table1_strong` profile, K = 1,
+The design (benchmarks/HISTORY.md, "The study on the stronger recipe"): the `table1_strong` profile, K = 1,
 five lineages, rows BC, HG-DAgger, the authors' HG-DAgger, fixed sigma 4 / 8 / 16, pooled Sigma-bar^alpha, against the
 committed `table1` lineages (benchmarks/results/table1, K = 1). Seven two-sided tests, Bonferroni over the seven
 (a p counts at 0.05 / 7 = 0.0071):
