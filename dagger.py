@@ -3,7 +3,7 @@
 Read `policy_calibrated_dagger` first: Sec. IV-A, steps 1-6, one call per step; below it the config, each step's
 function in the loop's order, Table I's tests, the paper's figures and the entry point.
 
-Paper map (paper.tex):
+Paper map (the paper):
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
   Sec. IV-A step 2, Sec. V . collect_interventions / rollout: HG-DAgger collection gated by the RRT oracle
                              (oracle.Gate); interventions shorter than H are discarded (Sec. IV-C)
@@ -42,7 +42,7 @@ from experiment.workers import InBackground, in_parallel, torch_threads
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
 def policy_calibrated_dagger(run, lineages, workers=1):
     """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
-    PAPER_SETUP.md §2, §4). workers > 1: a round's noised arms and the BC row run in worker processes."""
+    docs/AUTHORS_SETUP.md §2, §4). workers > 1: a round's noised arms and the BC row run in worker processes."""
     cfg, recipe = run.cfg, RECIPES[run.cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
     demos = oracle_demonstrations(run, workers)
@@ -73,7 +73,7 @@ def policy_calibrated_dagger(run, lineages, workers=1):
                         for method in noised]
                 in_parallel(noised_arm, arms, workers, run.log)
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
-            # instead: one more policy per round; see benchmarks/README.md)
+            # instead: one more policy per round; see benchmarks/HISTORY.md)
             collector, collector_success = hg, hg_success
             if "closed_loop" in cfg.methods:
                 # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain from round 1's data
@@ -93,7 +93,7 @@ PI0_THREADS = 2  # torch threads of pi_0's training, whatever --workers (a threa
 
 @dataclass
 class Config:
-    # --- the paper's experiment (Sec. V; the authors' values in PAPER_SETUP.md) ---
+    # --- the paper's experiment (Sec. V; the authors' values in docs/AUTHORS_SETUP.md) ---
     env: str = "planar"  # 'planar' (Table I), 'engine3d' (Table II), or a variant's (envs.ENVIRONMENTS)
     methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
@@ -107,7 +107,7 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
-    intervention_fraction: float = 0.3  # the intervention frames' share of every fine-tuning batch (PAPER_SETUP.md §2)
+    intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (docs/AUTHORS_SETUP.md §2)
     recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
@@ -126,7 +126,7 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train: the authors' planar runs, Table I's (PAPER_SETUP.md §2). A recipe is this set
+    """How pi_0 and every arm train: the authors' planar runs (docs/AUTHORS_SETUP.md §2). A recipe is this set
     of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
@@ -260,7 +260,7 @@ def make_policy(cfg, env):
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
 def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
     """D_k: HG-DAgger rollouts of the lineage's policy on the evaluation scenarios its own evaluation
-    (policy_success, (scenarios, repeats) bool) did not always solve (PAPER_SETUP.md §4), the episodes with an
+    (policy_success, (scenarios, repeats) bool) did not always solve (docs/AUTHORS_SETUP.md §4), the episodes with an
     intervention the label rule keeps. chain: None, or 'closed_loop' (that row's folder and seeds)."""
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
@@ -307,7 +307,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     """One episode in each (already reset) env, in lockstep, until all end; returns the episode dicts.
 
     Without an oracle the policy drives (evaluation). With one, HG-DAgger (Sec. IV-A step 2) with the authors'
-    gate (PAPER_SETUP.md §3, oracle.Gate, seeded by `seed`): before every policy step the gate reads the pending
+    gate (docs/AUTHORS_SETUP.md §3, oracle.Gate, seeded by `seed`): before every policy step the gate reads the pending
     actions; on a predicted collision the oracle plans from here, on a stall or a time trigger the episode first
     rewinds a few policy steps; the expert then drives (expert=True) a random 20-67 steps and hands back."""
     E = len(envs_list)
@@ -396,7 +396,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
 def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
-    """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (PAPER_SETUP.md
+    """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (docs/AUTHORS_SETUP.md
     §5); chain='closed_loop': of that row's policy on its chain's interventions (its folder and seed)."""
     cfg = run.cfg
     where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
@@ -424,7 +424,7 @@ def calibration_config(cfg):
 # ---- Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0 -------------------------
 def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
     """(noise kind, sigma) of `method` for relabel.AugmentationSampler, sigma in our median steps (median_step,
-    rad; PAPER_SETUP.md §1). For 'per_step', `episodes` are the sampler's episodes' indices into the calibration's."""
+    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes`: the sampler's episodes' indices in the calibration's."""
     if method.startswith("fixed_"):
         sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
@@ -466,7 +466,7 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
 
 
 def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
-    """Steps 3-4 (PAPER_SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
+    """Steps 3-4 (docs/AUTHORS_SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
     interventions of rounds 1..k (intervention_sampler); D0 is never noised."""
     cfg = run.cfg
     name = f"lineage_{lineage}/round_{k}/checkpoints/{method}.pt"
@@ -503,7 +503,7 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 
 def observation_noise(policy_cfg):
-    """Per-entry std (obs_dim,) of the training observation noise (PAPER_SETUP.md §2): OBS_NOISE_JOINTS on the joints
+    """Per-entry std (obs_dim,) of training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
     at t and t-1, OBS_NOISE_ENV on the other low-dimensional numbers, none on an encoder's entries (an image)."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
@@ -525,7 +525,7 @@ def noised_arm(root, cfg_fields, lineage, k, method, demos, rounds_data, calibra
 
 
 def closed_loop_round(run, lineage, k, demos, stats, chain, first_round, first_calibration):
-    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (PAPER_SETUP.md §5): the
+    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (docs/AUTHORS_SETUP.md §5): the
     chain's round k-1 policy, co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise
     is measured on it over the chain's rounds 1..k. Round 1 is the main chain's (the authors copy it too).
     chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""

@@ -1,6 +1,6 @@
 """Partial denoising: blend an expert action chunk with the policy's own prior (paper Sec. IV-B, IV-C, Fig. 3).
 
-Paper map (paper.tex), in the paper's order:
+Paper map (the paper), in the paper's order:
   - linear interpolation, Eq. (3) ................................ lerp_blend
   - switching step k_sw = ToInteger(beta K) (Sec. IV-B) .......... switch_step
   - partial diffusion as the learned interpolator f_theta, Eq. (4),

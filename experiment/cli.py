@@ -28,8 +28,8 @@ def parse_args(argv, profiles, methods, recipes):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(profiles),
-                   help="run size: smoke (CI, ~2 min), quick (default; two worker processes on 2-core AMD EPYCs: "
-                        "4.5-5 min on a Zen 5, 8.5-9.5 min on an idle Zen 3, 9.5 min on a Zen 4 before issue 61), "
+                   help="run size: smoke (CI, ~2 min), quick (default; about 5 min on a recent 2-core CPU, AMD Zen 5, "
+                        "about 9 on an older one, Zen 3 / Zen 4: README), "
                         "mid (Table I's analogue: 500 demos, 5 lineages x 2 rounds, hours on 2 cores), "
                         "table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")

@@ -3,8 +3,8 @@
     zero_noise         the noised arms' whole pipeline with sigma = 0: every intervention state relabelled by the
                        return labels, no noise. It separates the effect of the noise from that of relabelling (a noised
                        arm never sees the recorded intervention chunks, HG-DAgger sees nothing else). Measured on the
-                       lever: benchmarks/README.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
-    authors_hg_dagger  HG-DAgger as the authors' kit trained it (PAPER_SETUP.md §2): each intervention its own
+                       lever: benchmarks/HISTORY.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
+    authors_hg_dagger  HG-DAgger as the authors' kit trained it (docs/AUTHORS_SETUP.md §2): each intervention its own
                        episode, every one of its steps a chunk start, a chunk that runs past the intervention's end
                        repeating its last action, and those padded "hold still at the hand-back point" steps in the
                        loss (PCD paper/tables_repro/planar_arms.sh: the hg arm passes only dart_relabel=false, so it
@@ -15,14 +15,14 @@
                        intervention (t + H <= its end, Sec. IV-C) -- except where the intervention ends the episode:
                        the label rule (diffusion.label_mask) keeps those chunks, padded with the last action, so
                        hg_dagger already trains on the padded chunks of an intervention that ends its episode (35 %
-                       of its intervention chunks in table1's lineage 0, round 1, re-collected for issue 59's probe).
+                       of its intervention chunks in table1's lineage 0, round 1, re-collected for the strength probe).
                        The two rows differ only at the hand-backs before the episode's end: the last H - 1 steps of
                        such an intervention are chunk starts (padded, "hold still") here and not in hg_dagger.
     cotrain_fixed_8,   the paper's text's co-training (Sec. IV-A step 4, "co-train on the aggregate dataset and the
     cotrain_pooled     augmented intervention data"): a noised row's intervention rows half as recorded (hg_dagger's
                        chunks), half noised and relabelled (fixed sigma 8, pooled Sigma-bar^alpha). Table I's noised
                        rows noise every frame they draw, as the authors' code does.
-Measured: benchmarks/README.md, "Why the noise's gain does not show here".
+Measured: benchmarks/HISTORY.md, "Why the noise's gain does not show here".
 
 NOISE_MODELS rows are a (noise kind, sigma) of relabel.AugmentationSampler, looked up by dagger.noise_model; ROWS rows
 build a round's intervention sampler themselves, looked up by dagger.intervention_sampler. dagger.ALL_METHODS lists both (`python dagger.py --methods hg_dagger,authors_hg_dagger`). It never

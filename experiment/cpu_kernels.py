@@ -1,7 +1,7 @@
 """Faster CPU kernels for the epsilon-networks' Linear and Mish, swapped in where they pay (none of the paper).
 
 diffusion.py's networks are written with torch's nn.Linear, nn.Mish and nn.functional.linear. On some CPUs two
-kernels compute the same functions faster (benchmarks/README.md, "The training step at the machine's speed"):
+kernels compute the same functions faster (benchmarks/HISTORY.md, "The training step at the machine's speed"):
   - linear(x, W, b) = x W^T + b through oneDNN, which torch ships for its compiler (the internal op
     torch.ops.mkldnn._linear_pointwise): torch's own CPU product calls MKL, which on an AMD CPU takes its AVX2 code,
     where oneDNN uses AVX-512 if the CPU has it. Forward and both gradients one oneDNN call each;
@@ -29,7 +29,7 @@ KERNELS = ("linear", "mish")
 # Which kernels pay on a CPU kind, for training (diffusion.train) and for sampling (DiffusionPolicy.sample)?
 # (vendor, family, model) as /proc/cpuinfo names them, model None: every model of the family. Measured with
 # benchmarks/bench_train_step.py, its rows of each kernel alone and both against torch's own (benchmarks/README.md,
-# "The CPU kernels one at a time (issue 61)"). A CPU kind not in the table was not measured: torch's own.
+# "Speed"; the measurements in benchmarks/HISTORY.md). A CPU kind not in the table was not measured: torch's own.
 MEASURED = {
     # Zen 5 EPYC, both together: train() 1.54x, sample 1.85x (each alone not measured there)
     ("AuthenticAMD", 26, None): {"training": KERNELS, "sampling": KERNELS},

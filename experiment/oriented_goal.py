@@ -1,5 +1,5 @@
 """A research variant: the UR5's success also needs the tool's orientation, the authors' whole rule (the TCP
-within 3 cm AND the flange within 10 deg of one fixed pose; benchmarks/README.md, "The 10° rule": with it BC at
+within 3 cm AND the flange within 10 deg of one fixed pose; benchmarks/HISTORY.md, "The 10° rule": with it BC at
 the table2 recipe reaches 88 %, one end posture; without it 49 %, inside the paper's range). Run it with
 `python dagger.py --env engine3d_oriented` (any profile).
 

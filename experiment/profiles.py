@@ -24,11 +24,11 @@ PROFILES = {
                     eval_scenarios=8, eval_repeats=1),
     # The default of `python dagger.py`: the whole loop on the planar env, the mid recipe at a student's scale
     # (one lineage, one round): 4 min 25 s - 4 min 57 s wall over three seeds on a 2-core AMD EPYC Zen 5, two
-    # workers; 8 min 27 s - 9 min 17 s on an idle Zen 3, 9 min 26 s on a Zen 4 (benchmarks/README.md, issues 54, 61).
+    # workers; 8 min 27 s - 9 min 17 s on an idle Zen 3, 9 min 26 s on a Zen 4 (benchmarks/README.md, "The default run").
     "quick": dict(name="quick", n_demos=300, rounds=1, lineages=1, oracle_attempts=1,
                     network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=6000, finetune_steps=6000,
                     methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=100, eval_repeats=3),
-    # Between quick and paper, for this 2-core machine (benchmarks/README.md, "Table I where DAgger has something
+    # Between quick and paper, for this 2-core machine (benchmarks/HISTORY.md, "Table I where DAgger has something
     # to fix"): the authors' 5 lineages for the paired statistics, 2 rounds, Table I's whole fixed sweep
     # (2 / 4 / 8 / 12 / 16: the paper's sweep, so that its best lies inside it; the sigma = 0 control, measured
     # before, is left out). The authors' evaluation starts (random, often folded: from their fixed
@@ -37,7 +37,7 @@ PROFILES = {
     # epsilon network, which trains ~8x more samples per CPU second than the (32, 64, 128) U-Net.
     # Lineages run side by side: --prepare, then --lineage i, then --report (README). Measured with sigma 2-16 and
     # pooled (2026-11-25): prepare 7 min, lineages 0-2 side by side 77 min, 3-4 side by side 55 min: 2 h 19 min
-    # (benchmarks/README.md, "The mid run with Table I's whole sweep").
+    # (benchmarks/HISTORY.md, "The mid run with Table I's whole sweep").
     "mid": dict(name="mid", n_demos=500, rounds=2, lineages=5,
                   network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                   methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled"),
@@ -47,13 +47,13 @@ PROFILES = {
     # fine-tuned cells; run it as --prepare, then --lineage i (side by side, or on other days and machines:
     # lineage folders join with --report), then --report. Measured (2026-11-25): prepare 7 min, one lineage 1 h 48 min
     # with --workers 2; five lineages 7.2 h projected on 2 cores (python benchmarks/table1_cost.py --run runs/table1;
-    # benchmarks/README.md, "All of Table I: one whole table1 lineage").
+    # benchmarks/HISTORY.md, "All of Table I: one whole table1 lineage").
     "table1": dict(name="table1", n_demos=500, rounds=5, lineages=5,
                      network="mlp", K=20, batch_size=256, lr=1e-3, bc_steps=10_000, finetune_steps=10_000,
                       methods=("bc", "hg_dagger", "fixed_2", "fixed_4", "fixed_8", "fixed_12", "fixed_16", "pooled",
                               "per_step", "closed_loop"),
                      eval_scenarios=100, eval_repeats=3),
-    # Issue 59's study (benchmarks/README.md, "The study on the stronger recipe"): table1 with the strength probe's
+    # The strength study (benchmarks/README.md, "A stronger policy: the probe and the study"): table1 with the strength probe's
     # kept knob, 3x the gradient steps (pi_0 at 30k of one 60k cosine, every row +30k; the kept 2x width left out
     # for its cost: 2.53x a step), K = 1, the study's seven rows. Measured: ~1.4 h of one core a lineage, ~7.4 CPU-h
     # in all (Zen 3). --prepare and --export-start, then --lineage i side by side, --export-lineages
@@ -66,18 +66,18 @@ PROFILES = {
     # The Table II analogue for this machine: the UR5 engine-lever env with Table II's rows (BC, HG-DAgger, pooled
     # Sigma-bar^alpha; the paper's 2 rounds and 3 lineages) and fixed sigma = 4 and 8 (8: the authors' calibrated
     # size in radians). The epsilon network chosen by measurement (python benchmarks/lever_networks.py;
-    # benchmarks/README.md, "epsilon-networks the lever learns at CPU cost"): the U-Net at half the widths, batch 256,
+    # benchmarks/HISTORY.md, "epsilon-networks the lever learns at CPU cost"): the U-Net at half the widths, batch 256,
     # BC 10k steps of one cosine of 20k that every arm continues (pi_0 45.0 % in 9.7 CPU-min; the earlier
     # U-Net (32, 64, 128), batch 64, 30k restarted: 49.0 % in ~48 CPU-min). --prepare, --lineage 0/1/2 side by
     # side, --report (README). Measured (2026-11-25): a cell 10.5 min of fine-tuning + 1 min of evaluations,
     # lineages 0 and 1 side by side 2 h (25 min of it lost to a side job); ~2 h 50 min end to end projected
-    # (benchmarks/README.md, "The Table II analogue today").
+    # (benchmarks/HISTORY.md, "The Table II analogue today").
     "table2": dict(name="table2", env="engine3d", n_demos=500, rounds=2, lineages=3,
                      K=20, down_dims=(16, 32, 64), batch_size=256, lr=1e-3, bc_steps=10_000,
                      finetune_steps=10_000,
                      methods=("bc", "hg_dagger", "fixed_4", "fixed_8", "pooled"),
                      eval_scenarios=100, eval_repeats=3),
-    # Table I's protocol at the authors' sizes (PAPER_SETUP.md §2): their U-Net widths, 100 diffusion
+    # Table I's protocol at the authors' sizes (docs/AUTHORS_SETUP.md §2): their U-Net widths, 100 diffusion
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
     "paper": dict(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
 }

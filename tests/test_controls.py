@@ -1,4 +1,4 @@
-"""experiment/controls.py's rows beside Table I's (research controls, issue 52): HG-DAgger as the authors' kit trained
+"""experiment/controls.py's rows beside Table I's (research controls): HG-DAgger as the authors' kit trained
 it, and the paper's text's co-training (half recorded, half noised); a committed start serving a run of other methods
 and rounds; benchmarks/noise_trade.py's class split."""
 import os
@@ -145,7 +145,7 @@ def test_the_class_split_takes_each_rows_difference_on_the_scenarios_of_pi0s_cla
     other = {0: files_of(pi0, {"hg_dagger": row, "new": row})}
     merged, ok, origin = nt.merge(main, same, [1], ("main", "same"))
     assert ok == {0: True} and {"fixed_8", "new"} <= set(nt.rows_of(merged, 1))
-    # each row names the folder it came from (the audit of issue 52's study: a joined folder's rows titled "table1")
+    # each row names the folder it came from (a joined folder's rows once came out titled "table1")
     assert nt.row_origin(origin, merged, 1, "fixed_8") == "main: 0"
     assert nt.row_origin(origin, merged, 1, "new") == "same: 0"
     assert "| new | 1 |" in nt.class_table("x", merged, 1, origin=origin).split("same: 0 |")[0]

@@ -212,7 +212,7 @@ def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows(load_benchmar
 
 
 def test_the_default_worker_count_is_the_cores_this_process_may_use(monkeypatch):
-    """Issue 54: on a machine with more cores the default run uses them (a round's arms side by side), as many as
+    """On a machine with more cores the default run uses them (a round's arms side by side), as many as
     taskset or a cgroup lets this process use, not the machine's count; one with --lineage (lineages side by side
     are the user's own processes); an explicit --workers wins."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3, 4, 5}, raising=False)

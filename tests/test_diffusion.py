@@ -365,7 +365,7 @@ def test_the_same_seed_trains_bit_identical_losses_and_weights(network, kernels)
     """Two train() runs of one config: every step's loss and every weight (EMA too) equal to the bit, with torch's
     own layers and with experiment/cpu_kernels.py's (the run's on most CPUs): the fused AdamW and the kernels are
     deterministic on one thread. torch.compile is not used (its compile time would cost more than it saves in
-    python dagger.py: benchmarks/README.md, issue 54)."""
+    python dagger.py: benchmarks/HISTORY.md)."""
     obs, chunks = toy_two_mode_data(300, H=4, seed=5)
     cfg = TrainConfig(steps=25, batch_size=48, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25,
                       obs_noise=0.05)

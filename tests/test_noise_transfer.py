@@ -168,3 +168,12 @@ def test_evaluate_policy_command_prints_success_with_its_interval(load_benchmark
     assert "success" in out and "95 % t interval over 3 scenarios, 1 repeats each" in out
     with pytest.raises(SystemExit):
         ep.main(["no_such_policy.pt"])
+
+
+def test_slope_is_the_least_squares_line_through_the_sigmas(nt):
+    """slope() on a curved response: cov(sigma, d) / var(sigma), not a higher coefficient or an end-to-end rise."""
+    sig = np.array([0.0, 4.0, 8.0, 16.0])
+    d = np.array([0.0, 1.0, 4.0, 9.0])
+    expected = ((sig - sig.mean()) * (d - d.mean())).sum() / ((sig - sig.mean()) ** 2).sum()
+    assert nt.slope(dict(zip(sig, d))) == pytest.approx(expected)
+    assert nt.slope({16: 9.0, 0: 0.0, 8: 4.0, 4: 1.0}) == pytest.approx(expected)   # any order of the keys
