@@ -283,27 +283,32 @@ PAPER_CALIBRATION = {"planar": {"sigma": "3.9–5.1", "W": "8.0"}, "engine3d": {
 
 
 def calibration_text(cal):
-    """A calibrate.Calibration as the log says it: W and the per-joint sigma of Sigma_bar^alpha in median steps
-    (Sec. V), then in radians and in the paper's median steps (its numbers compare only in its unit)."""
+    """A calibrate.Calibration as the log says it, in one unit: the paper's median steps (our own median steps
+    for an env the paper gives none for), radians beside; the last line says what each unit is."""
     p = cal.paper_median_step
+    unit, name = (p, "paper median steps") if p is not None else (cal.median_step, "median steps")
     ci = ("" if cal.W_ci is None else
-          f"95 % bootstrap interval {cal.W_ci[0] / cal.median_step:.2f}–"
-          f"{cal.W_ci[1] / cal.median_step:.2f}, ")
+          f"95 % bootstrap interval {cal.W_ci[0] / unit:.2f}–{cal.W_ci[1] / unit:.2f}, ")
     fitted = calibrate.ratio_cells(cal.blend_beta, cal.blend_s, cal.blend_x, cal.blend_kept).fitted
     return "\n".join([
-        f"W = {cal.W / cal.median_step:.2f} median steps ({ci}||W||, {cal.fit_note}"
+        f"W = {in_unit(cal.W, unit, name)} ({ci}||W||, {cal.fit_note}"
         + (f", r = K*/K_theta = {cal.r:.3g})" if cal.r is not None else ")"),
         f"kept blend rollouts: {int(cal.blend_kept.sum())}/{len(cal.blend_kept)} over "
         f"{len(np.unique(cal.blend_beta))} ratios, {int(fitted.sum())} "
         f"with >= {calibrate.CalibrationConfig.min_survivors} kept (fitted)",
-        "pooled Sigma_bar^alpha per-joint sigma [median steps]: "
-        + ", ".join(f"{v:.2f}" for v in cal.sigma_per_joint),
-        f"units: our median step {cal.median_step:.4f} rad (per joint, base demos); "
-        + (f"the paper's {p:.4f} rad (L2 over the joints, 30 Hz): ours = {cal.median_step / p:.2f}x theirs"
-           if p is not None else "the paper gives none for this env: radians only"),
-        f"W = {calibrate.other_units(cal.W, p)}" + ("" if cal.W_ci is None else
-                                                     f" (95 % interval {calibrate.other_units(cal.W_ci, p)})"),
-        f"pooled Sigma_bar^alpha per-joint sigma = {calibrate.other_units(np.sqrt(np.diag(cal.pooled)), p)}"])
+        f"pooled Sigma_bar^alpha per-joint sigma = {in_unit(np.sqrt(np.diag(cal.pooled)), unit, name)}",
+        (f"units: the paper's median step {p:.4f} rad (L2 over the joints, 30 Hz); ours {cal.median_step:.4f} rad "
+         f"(per joint, base demos) = {cal.median_step / p:.2f}x theirs" if p is not None else
+         f"units: our median step {cal.median_step:.4f} rad (per joint, base demos); the paper gives none for "
+         "this env")])
+
+
+def in_unit(rad, unit, name):
+    """A length in rad (a number, or one per joint) in `unit` (rad) named `name`, radians beside:
+    '9.03 paper median steps (0.159 rad)'."""
+    values = np.atleast_1d(np.asarray(rad, dtype=np.float64))
+    return (", ".join(f"{v / unit:.2f}" for v in values) + f" {name} ("
+            + ", ".join(f"{v:.3f}" for v in values) + " rad)")
 
 
 def calibration_summary(run, chain=None):
@@ -480,32 +485,28 @@ def scenario_paired_lines(cfg, paired):
 
 def calibration_lines(cfg, stats):
     """format_table's calibration: per round the pooled Sigma_bar^alpha's per-joint sigma and W (mean over
-    lineages) in our median steps, then in radians and the paper's median steps beside the paper's own
-    numbers (PAPER_CALIBRATION: they compare in its unit only), and the best fixed sigma in hindsight."""
+    lineages) in one unit, the paper's median steps (our own for an env the paper gives none for), radians beside,
+    with the paper's own numbers (PAPER_CALIBRATION: they compare in its unit only), and the best fixed sigma in
+    hindsight."""
     if not stats.get("calibration"):
         return []
     paper = envs.paper_median_step(cfg.env)
     quoted = PAPER_CALIBRATION.get(envs.paper_env(cfg.env)) if paper is not None else None
-    lines = ["", "Calibrated pooled Sigma_bar^alpha, per-joint sigma in median steps (mean over lineages), "
-                 "beside the best fixed sigma of the round in hindsight"
-                 + (" (in the paper's unit)" if paper is not None else "") + "; below each, the "
-                 + ("same in radians and in the paper's median steps "
-                    f"({paper:.4f} rad, L2 over the joints at 30 Hz), beside the paper's numbers:" if paper is not None
-                    else "same in radians (the paper gives no median step for this env):")]
+    name = "paper median steps" if paper is not None else "median steps"
+    lines = ["", f"Calibrated pooled Sigma_bar^alpha, per-joint sigma and W in {name} "
+                 + (f"({paper:.4f} rad, L2 over the joints at 30 Hz), " if paper is not None else
+                    "(the paper gives no median step for this env: ours, per joint), ")
+                 + "mean over lineages, radians beside, and the best fixed sigma of the round in hindsight:"]
     for k, per in stats["calibration"].items():
-        sig = np.mean([v["sigma_per_joint"] for v in per.values()], axis=0)
-        W = [v["W"] for v in per.values()]
-        best = stats.get("best_fixed_per_round", {}).get(k)
-        lines.append(f"- K={k}: sigma = " + ", ".join(f"{x:.2f}" for x in sig)
-                     + f" (W = {np.mean(W):.2f} median steps, {len(W)} lineage{'s' if len(W) > 1 else ''}); best fixed: "
-                     + (best.replace("fixed_", "sigma = ") + (" (paper's unit)" if paper is not None else "")
-                        if best else "–"))
         sig_rad = np.mean([v["sigma_per_joint_rad"] for v in per.values()], axis=0)  # each lineage's own unit
         W_rad = np.mean([v["W_rad"] for v in per.values()])
-        lines.append(f"  - sigma = {calibrate.other_units(sig_rad, paper)}"
+        unit = paper if paper is not None else np.mean([v["median_step"] for v in per.values()])
+        best = stats.get("best_fixed_per_round", {}).get(k)
+        lines.append(f"- K={k}: sigma = {in_unit(sig_rad, unit, name)}"
                      + (f" (the paper: {quoted['sigma']})" if quoted else "")
-                     + f"; W = {calibrate.other_units(W_rad, paper)}"
-                     + (f" (the paper: {quoted['W']})" if quoted else ""))
+                     + f"; W = {in_unit(W_rad, unit, name)}" + (f" (the paper: {quoted['W']})" if quoted else "")
+                     + f"; {len(per)} lineage{'s' if len(per) > 1 else ''}; best fixed: "
+                     + (best.replace("fixed_", "sigma = ") if best else "–"))
         lines.append("  - per lineage" + (" (the paper's median steps)" if paper is not None else " (rad)") + ": "
                      + "; ".join(lineage_calibration(l, v, paper is not None) for l, v in per.items()))
     if stats.get("calibration_closed_loop"):

@@ -179,14 +179,14 @@ def test_calibration_lines_compare_with_the_paper_in_its_unit():
                  "W_paper": 8.0, "W_ci_paper": None, "sigma_per_joint_paper": [4.0, 4.5, 5.0]}}
     stats = {"calibration": {"1": per}, "best_fixed_per_round": {"1": "fixed_4"}}
     text = "\n".join(report.calibration_lines(replace(cfg, lineages=2), stats))
-    assert "sigma = 2.87, 3.23, 3.59 (W = 5.75 median steps, 2 lineages); best fixed: sigma = 4 (paper's unit)" in text
-    assert ("sigma = 0.070, 0.079, 0.088 rad = 4.00, 4.50, 5.00 paper median steps (the paper: 3.9–5.1); "
-            "W = 0.141 rad = 8.00 paper median steps (the paper: 8.0)") in text
+    assert ("sigma = 4.00, 4.50, 5.00 paper median steps (0.070, 0.079, 0.088 rad) (the paper: 3.9–5.1); "
+            "W = 8.00 paper median steps (0.141 rad) (the paper: 8.0); 2 lineages; best fixed: sigma = 4") in text
+    assert " median steps" not in text.replace("paper median steps", "").replace("the paper's median steps", "")
     # each lineage in the paper's unit, with its interval; a fallback is said in capitals
     assert ("per lineage (the paper's median steps): 0: W 8.00 [7.50–8.60], sigma 4.00/4.50/5.00; "
             "1: W 8.00, sigma 4.00/4.50/5.00 FALLBACK") in text
     one = "\n".join(report.calibration_lines(cfg, {"calibration": {"1": {"0": per["0"]}}}))
-    assert "(W = 5.75 median steps, 1 lineage)" in one and "FALLBACK" not in one
+    assert "(the paper: 8.0); 1 lineage; best fixed: –" in one and "FALLBACK" not in one
 
 
 def test_scenario_paired_differences_and_their_se(tmp_path):

@@ -168,16 +168,23 @@ def _calibration():
     return test_calibrate._calibration()
 
 
-def test_report_gives_sigma_and_W_in_radians_and_the_papers_unit():
+def test_report_gives_sigma_and_W_in_one_unit_radians_beside():
+    """One unit in the log: the paper's median steps where the env has one, else ours; radians beside. A W or an
+    interval divided by the other unit, or the two units mixed in one line, fails."""
     c = _calibration()                                                       # median step 0.01 rad, W 0.05 rad
-    assert "paper median steps" not in calibration_text(c) and "W = 0.050 rad" in calibration_text(c)   # no paper unit: rad only
+    text = calibration_text(c)                                               # no paper unit: ours, rad beside
+    assert "paper median steps" not in text
+    assert "W = 5.00 median steps (0.050 rad) (95 % bootstrap interval 4.00–6.20" in text
+    assert "our median step 0.0100 rad (per joint, base demos); the paper gives none" in text
     c.paper_median_step = 0.0176
     text = calibration_text(c)
-    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in text           # ours, unchanged
-    assert f"W = 0.050 rad = {0.05 / 0.0176:.2f} paper median steps" in text
-    assert f"95 % interval 0.040, 0.062 rad = {0.04 / 0.0176:.2f}, {0.062 / 0.0176:.2f} paper median steps" in text
+    assert (f"W = {0.05 / 0.0176:.2f} paper median steps (0.050 rad) (95 % bootstrap interval "
+            f"{0.04 / 0.0176:.2f}–{0.062 / 0.0176:.2f}, ") in text
+    assert text.count("W = ") == 1 and " median steps" not in text.replace("paper median steps", "")
     sigma = np.sqrt(np.diag(c.pooled))
-    assert ", ".join(f"{v / 0.0176:.2f}" for v in sigma) + " paper median steps" in text
+    assert ("per-joint sigma = " + ", ".join(f"{v / 0.0176:.2f}" for v in sigma) + " paper median steps ("
+            + ", ".join(f"{v:.3f}" for v in sigma) + " rad)") in text
+    assert f"ours 0.0100 rad (per joint, base demos) = {0.01 / 0.0176:.2f}x theirs" in text
     back = calibration_from_json(json.loads(json.dumps(calibration_to_json(c))))
     assert back.paper_median_step == 0.0176 and calibration_text(back) == text
 
@@ -194,8 +201,7 @@ def test_calibration_json_round_trip(tmp_path):
             np.testing.assert_array_equal(got, getattr(c, key))
         else:
             assert got == value, key
-    assert "median steps" in calibration_text(back)
-    assert "W = 5.00 median steps (95 % bootstrap interval 4.00–6.20" in calibration_text(back)
+    assert "W = 5.00 median steps (0.050 rad) (95 % bootstrap interval 4.00–6.20" in calibration_text(back)
     np.testing.assert_allclose(back.sigma_per_joint, np.sqrt(np.diag(c.pooled)) / 0.01)
     # a calibration written before W_ci existed still loads
     old = json.loads(path.read_text())
