@@ -55,7 +55,7 @@ from noise_trade import success  # noqa: E402
 from paired_bc import load_lineages, t_test  # noqa: E402
 
 import dagger  # noqa: E402
-from experiment import run_folder  # noqa: E402
+from experiment import report, run_folder  # noqa: E402
 
 NEW_SEEDS = tuple(range(30_000, 30_300))
 FIRST_LINEAGE = 5
@@ -309,40 +309,15 @@ def pooled_sigma(files, lineage):
 
 
 def figure(lineages, path):
-    """Success against sigma on the collected and on the new scenarios, mean over lineages with 95 % t intervals."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Success against sigma on the collected and on the new scenarios, mean over lineages with 95 % t intervals
+    (experiment/report.py's plot_success_vs_sigma, which a run's report draws for its own two sets)."""
     ls = list(lineages)
-    tq = t_quantile(0.975, len(ls) - 1) if len(ls) > 1 else math.nan
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
-    for ax, new, title in ((axes[0], False, "collected: the 100 scenarios of the rounds (the paper's protocol)"),
-                           (axes[1], True, f"new: {len(NEW_SEEDS)} scenarios no stage drew")):
-        r = [rates(lineages[l], l, new) for l in ls]
-
-        def ci(row):
-            v = np.array([x[row] for x in r])
-            return v.mean(), (tq * v.std(ddof=1) / math.sqrt(len(v)) if len(v) > 1 else 0.0)
-        sig = [s for s, _ in SIGMA_ROWS]
-        m, e = zip(*(ci(row) for _, row in SIGMA_ROWS))
-        ax.errorbar(sig, m, yerr=e, marker="o", capsize=3, label="fixed σ (σ = 0: zero_noise)")
-        hm, he = ci("hg_dagger")
-        ax.errorbar([-0.6], [hm], yerr=[he], marker="s", capsize=3, color="k", label="HG-DAgger (σ = 0)")
-        ps = np.mean([pooled_sigma(lineages[l], l) for l in ls])
-        pm, pe = ci("pooled")
-        ax.errorbar([ps], [pm], yerr=[pe], marker="*", markersize=11, capsize=3, color="C3",
-                    label=f"pooled Σ̄^α (σ ≈ {ps:.1f})")
-        bm, _ = ci("bc")
-        ax.axhline(bm, color="gray", ls="--", lw=1, label="BC")
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("noise σ (the paper's median steps)")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel(f"success (%), mean over {len(ls)} lineage{'s' if len(ls) > 1 else ''}, 95 % t interval")
-    axes[1].legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    levels = {float(s): row for s, row in SIGMA_ROWS}
+    sigma = float(np.mean([pooled_sigma(lineages[l], l) for l in ls]))
+    panels = [(title, {row: [rates(lineages[l], l, new)[row] for l in ls] for row in ("bc",) + ROWS}, levels, sigma)
+              for new, title in ((False, "collected: the 100 scenarios of the rounds (the paper's protocol)"),
+                                 (True, f"new: the {len(NEW_SEEDS)} scenarios {NEW_SEEDS[0]}..{NEW_SEEDS[-1]}"))]
+    report.plot_success_vs_sigma(panels, path)
 
 
 def main(argv=None):

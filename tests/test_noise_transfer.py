@@ -177,3 +177,10 @@ def test_slope_is_the_least_squares_line_through_the_sigmas(nt):
     expected = ((sig - sig.mean()) * (d - d.mean())).sum() / ((sig - sig.mean()) ** 2).sum()
     assert nt.slope(dict(zip(sig, d))) == pytest.approx(expected)
     assert nt.slope({16: 9.0, 0: 0.0, 8: 4.0, 4: 1.0}) == pytest.approx(expected)   # any order of the keys
+
+
+def test_the_figure_is_drawn_from_the_lineage_files(nt, tmp_path):
+    lineages = {l: _lineage_files(nt, l, _rates(0.6, 0.4, -0.0025, 0.59), _rates(0.55, 0.54, 1 / 900, 0.57))
+                for l in (5, 6)}
+    nt.figure(lineages, str(tmp_path / "f.png"))
+    assert (tmp_path / "f.png").stat().st_size > 10_000

@@ -266,3 +266,26 @@ def test_inputs_changed_until_recorded_and_again_when_an_input_or_a_drawn_file_c
     assert not run.inputs_changed(stamp, inputs)
     (tmp_path / "run" / "figures" / "fig1.png").unlink()               # a drawn figure deleted
     assert run.inputs_changed(stamp, inputs)
+
+
+def test_a_run_of_two_noise_levels_gets_the_success_vs_sigma_panels():
+    """sigma_panels: none for a run of one fixed sigma (the quick profile: its outputs stay as they were), one panel
+    a scenario set otherwise, at the last round, each row one value a lineage; the pooled row at the isotropic sigma
+    of its per-joint sigmas' mean variance (a mean of the sigmas, or our unit instead of the paper's, fails)."""
+    from dataclasses import replace
+    from experiment import report
+    import dagger
+    cfg = replace(dagger.Config(), rounds=2, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    res = {m: {"0": [50.0, 60.0], "1": [52.0, 58.0]} for m in cfg.methods}
+    res["bc"] = {"0": [40.0], "1": [40.0]}
+    cal = {"2": {"0": {"sigma_per_joint_paper": [3.0, 4.0, 5.0]}, "1": {"sigma_per_joint_paper": [1.0, 1.0, 1.0]}}}
+    assert report.sigma_panels(cfg, {"eval": res, "unseen": res}, cal) == []
+    cfg = replace(cfg, methods=("bc", "hg_dagger", "zero_noise", "fixed_4", "fixed_16", "pooled"))
+    res.update({m: {"0": [50.0, 61.0], "1": [52.0, 59.0]} for m in ("zero_noise", "fixed_16")})
+    panels = report.sigma_panels(cfg, {"eval": res, "unseen": res}, cal)
+    assert len(panels) == 2 and "unseen" in panels[1][0] and "K = 2" in panels[0][0]
+    title, rows, levels, pooled = panels[0]
+    assert levels == {0.0: "zero_noise", 4.0: "fixed_4", 16.0: "fixed_16"}
+    assert rows["hg_dagger"] == [60.0, 58.0] and rows["bc"] == [40.0, 40.0] and rows["fixed_16"] == [61.0, 59.0]
+    assert pooled == pytest.approx((np.sqrt(50 / 3) + 1.0) / 2)
+    assert report.t_975(4) == pytest.approx(2.776) and report.t_975(20) == pytest.approx(2.086, abs=1e-3)
