@@ -33,7 +33,7 @@ class CheckpointDamagedError(ValueError):
 
 
 def save_policy(policy, path, train_state=None, sampler=None, train_config=None):
-    """The policy's config and weights (with its EMA copy and normalizer) in one file, via path.tmp: never
+    """The policy's config and weights (with its EMA copy and normalizer) in one file, via a temporary file: never
     half-written. train_state: diffusion.train's state at a checkpoint step, saved with the sampler's state."""
     payload = {"format": CHECKPOINT_FORMAT, "config": asdict(policy.cfg),
                "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()}}
@@ -42,8 +42,9 @@ def save_policy(policy, path, train_state=None, sampler=None, train_config=None)
                                   "train_config": json.dumps(asdict(train_config)) if train_config else None,
                                   "sampler": _as_torch(sampler_state(sampler))}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    torch.save(payload, f"{path}.tmp")
-    os.replace(f"{path}.tmp", path)
+    tmp = f"{path}.{os.getpid()}.tmp"  # per process: two runs of one folder never write one temporary file
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
 
 
 def load_policy(path, device="cpu"):

@@ -80,10 +80,15 @@ def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=Fa
         join_lineage(run, path)
     t0 = time.time()
     if not report_only:
-        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
         lineages = [] if prepare else [lineage] if lineage is not None else list(range(cfg.lineages))
-        paper.loop(run, lineages, workers)
-    text = write_report(run, paper)
+        run.hold_lineages(lineages)  # a second run of one of them into this folder stops here, naming this PID
+        try:
+            run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
+            paper.loop(run, lineages, workers)
+        finally:
+            run.release_lineages()
+    with run.stage_lock("report"):  # runs of other lineages into this folder write the report one at a time
+        text = write_report(run, paper)
     run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
     for path in export_lineages(run, export_to) if export_to else []:
         run.log(f"wrote {path}")

@@ -7,6 +7,8 @@ stage finished, else compute it, write it atomically, log and time it. Nothing h
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import gzip
 import hashlib
 import io
@@ -32,6 +34,10 @@ class ConfigMismatch(ValueError):
 
 class RunFolderError(ValueError):
     """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
+
+
+class FolderInUse(RunFolderError):
+    """Another process runs the same lineage in this run folder (its PID is named)."""
 
 
 # Config fields a run folder lets differ from the config it was made with: they change no stage's result
@@ -98,6 +104,7 @@ class Run:
             write_json(path, asdict(cfg))
         self._log = open(os.path.join(root, "log.txt"), "a")
         self._claimed = set()
+        self._held = []  # the file descriptors of the lineage locks this process holds (hold_lineages)
 
     def path(self, *parts):
         """root/parts..., its folder made."""
@@ -122,6 +129,14 @@ class Run:
             self.claim_lineage(int(lineage.group(1)))
         if os.path.exists(path):
             return self.load(name)
+        with contextlib.ExitStack() as held:
+            if not lineage:  # a shared stage: another run of this folder (another lineage) may be making it now
+                held.enter_context(self.stage_lock(name))
+                if os.path.exists(path):
+                    return self.load(name)
+            return self._compute(name, path, compute)
+
+    def _compute(self, name, path, compute):
         t0 = time.time()
         value = compute()
         if name.endswith("calibration.json"):
@@ -211,6 +226,43 @@ class Run:
             p = os.path.join(self.root, *name.split("/"))
             states[name] = [os.path.getsize(p), os.stat(p).st_mtime_ns] if os.path.exists(p) else None
         return states
+
+    def hold_lineages(self, lineages):
+        """Lock the lineages this process will run (.locks/lineage_<l>.lock, flock: the system drops a lock when
+        its process dies, so a killed run never leaves one held). FolderInUse, at once, naming the PID of the
+        process that holds one of them; release_lineages() (or the process's end) lets them go."""
+        taken = []
+        for lineage in lineages:
+            fd, holder = try_lock(self.path(LOCK_FOLDER, f"lineage_{lineage}.lock"))
+            if fd is None:
+                for fd in taken:  # none of the lineages asked for, as before the call
+                    os.close(fd)
+                raise FolderInUse(
+                    f"{self.root} is in use: process {holder or '(its PID not yet written)'} runs lineage {lineage} "
+                    "in it. Wait for it to finish (or stop it) and run this command again, or run another lineage "
+                    "(--lineage i) or another folder (--out).")
+            taken.append(fd)
+        self._held += taken
+
+    def release_lineages(self):
+        for fd in self._held:
+            os.close(fd)  # closing the descriptor drops its flock
+        self._held = []
+
+    @contextlib.contextmanager
+    def stage_lock(self, name):
+        """Hold .locks/<name>.lock while a shared stage is made: a second process of this folder waits for it and
+        then loads the stage instead of making it beside the first (their files would cross)."""
+        path = self.path(LOCK_FOLDER, name.replace("/", "__") + ".lock")
+        fd, holder = try_lock(path)
+        if fd is None:
+            self.log(f"waiting for process {holder or '(unknown)'}, which is making {name} in this folder")
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            os.close(fd)
 
     def claim_lineage(self, lineage):
         """lineage_<l>/lineage.json: the config and the pi_0 (the SHA-256 of its weights) the lineage is made
@@ -610,6 +662,24 @@ def timing_name(name):
     kind = {"D0": "demos", "bc": "bc", "bc_continued": "train_bc", "D": "collect",
             "calibration": "calibrate"}.get(parts[-1], "train_" + parts[-1])
     return kind + where
+
+
+LOCK_FOLDER = ".locks"  # the run folder's lock files (Run.hold_lineages, Run.stage_lock); nothing else reads them
+
+
+def try_lock(path):
+    """(file descriptor, None) with an exclusive flock on `path` (created), this process's PID written in it; or
+    (None, the PID written by the process that holds it) if another open file holds it."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        os.close(fd)
+        return None, holder
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd, None
 
 
 def stage_seed(cfg, *keys):
