@@ -48,7 +48,8 @@ def save_policy(policy, path, train_state=None, sampler=None, train_config=None)
 
 
 def load_policy(path, device="cpu"):
-    """The policy saved at path (a variant's obs_encoder must be registered first). FileNotFoundError,
+    """The policy saved at path (a variant's obs_encoder must be registered first), with its train_state if the
+    file keeps one. FileNotFoundError,
     CheckpointDamagedError (a ValueError), or ValueError for a config of a deleted option."""
     payload = read_checkpoint(path)
     config = dict(payload["config"])
@@ -58,6 +59,8 @@ def load_policy(path, device="cpu"):
             raise ValueError(f"{path!r} holds a policy with {name}={stored!r}: {deleted}; retrain the policy")
     policy = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device))
     policy.load_state_dict(payload["state_dict"])
+    if "train_state" in payload:  # pi_0 with its step and AdamW state: what the arms continue (dagger.train_policy)
+        policy.train_state = train_state(path, payload, random_streams=False)
     return policy
 
 

@@ -1,14 +1,17 @@
 """The run folder: every stage's result on disk before the next starts, so a stopped run resumes.
 
 runs/<name>/ holds config.json, log.txt, data/D0.npz, checkpoints/, eval/, lineage_<l>/round_<k>/{D.npz,
-calibration.json, checkpoints/<method>.pt, eval/<method>.json}, timings/ and figures/. dagger.py's steps
-each wrap their work in one `run.stage(...)` (or `run.train(...)` for a policy): load the file if the
-stage finished, else compute it, write it atomically, log and time it. Nothing here is the paper's method.
+calibration.json, checkpoints/<method>.pt, eval/<method>.json}, timings/ and figures/. The harness hands
+dagger.policy_calibrated_dagger `run.memo`: each step's result is a file of the folder (Run.stage: loaded if the
+stage finished, else computed, written atomically, timed), a policy trained by `run.train` (checkpoints, resume).
+Two processes may share a folder (.locks/): one lineage runs in one process at a time, and a shared stage is made
+by one while the other waits for it. Nothing here is the paper's method.
 """
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import gzip
 import hashlib
 import io
@@ -106,6 +109,16 @@ class Run:
         self._claimed = set()
         self._held = []  # the file descriptors of the lineage locks this process holds (hold_lineages)
 
+    def __reduce__(self):  # a worker process opens its own handle on the folder (Run.memo and Run.log pickle so)
+        return Run, (self.root, self.cfg)
+
+    def memo(self, name, step, *args, **kwargs):
+        """dagger's memo: step(*args, **kwargs) kept in the stage file `name` (Run.stage: loaded if it is there). A
+        step that trains a policy (`name` a .pt) is handed fit=Run.train into that file: checkpoints, resume."""
+        if name.endswith(".pt"):
+            kwargs["fit"] = functools.partial(self.train, name)
+        return self.stage(name, lambda: step(*args, **kwargs))
+
     def path(self, *parts):
         """root/parts..., its folder made."""
         p = os.path.join(self.root, *parts)
@@ -161,21 +174,17 @@ class Run:
             check_evaluation(path, data, self.cfg, EVALUATION_ADVICE)
         return data
 
-    def train(self, name, policy, obs, chunks, train_cfg, sampler=None, continue_from=None, keep_state=False):
-        """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
-        run (a stopped run resumes from the last one: weights, AdamW, random streams, the sampler's pool), then
-        the final file.
+    def train(self, name, policy, obs, chunks, train_cfg, sampler=None, start=None, keep_state=False, log=None):
+        """dagger.train_policy for a policy `name` (.pt) of the folder: diffusion.train with checkpoints at quarters
+        of the run (a stopped run resumes from the last one: weights, AdamW, random streams, the sampler's pool),
+        then the final file.
 
-        continue_from: the name of a finished policy with training state (pi_0), the policy given loaded from it,
-        whose optimizer and step count go on to train_cfg.steps; keep_state: the final file keeps the
-        optimizer state, for runs that continue from it.
+        start: the training state (step, AdamW) of the policy given (pi_0's policy.train_state), which goes on to
+        train_cfg.steps; keep_state: the final file keeps the optimizer state, and the policy as
+        policy.train_state, for runs that continue from it. log: default the folder's log.
         """
+        log = log or self.log
         final_path = self.path(*name.split("/"))
-        start = None
-        if continue_from is not None:
-            continue_from = os.path.join(self.root, *continue_from.split("/"))
-            payload = load_stage_file(continue_from, checkpoints.read_checkpoint)
-            start = checkpoints.train_state(continue_from, payload, random_streams=False)
         first, steps = (start["step"] if start else 0), train_cfg.steps
         part = final_path.replace(".pt", "_step{step}.pt")
         marks = tuple(sorted({first + max(1, (steps - first) * i // 4) for i in (1, 2, 3)}
@@ -187,15 +196,18 @@ class Run:
             payload = load_stage_file(resume, checkpoints.read_checkpoint)  # a damaged one is named
             policy.load_state_dict(payload["state_dict"])
             start = checkpoints.train_state(resume, payload, sampler)
-            self.log(f"  resuming from {os.path.relpath(resume, self.root)}")
+            log(f"  resuming from {os.path.relpath(resume, self.root)}")
+        last = {}
 
         def save(state):  # train()'s state at a checkpoint step, with the weights and the sampler's pool
             checkpoints.save_policy(policy, part.format(step=state["step"]), state, sampler, train_cfg)
+            last.update(state)
 
         diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, start=start, on_checkpoint=save,
-                        log=lambda m: self.log("  " + m))
+                        log=lambda m: log("  " + m))
         if keep_state:  # the last checkpoint holds the weights and the optimizer: it is the final file
             os.replace(part.format(step=steps), final_path)
+            policy.train_state = {"step": last["step"], "optimizer": last["optimizer"]}
         else:
             checkpoints.save_policy(policy, final_path)
         for m in marks:  # the finished checkpoint supersedes the partial ones
