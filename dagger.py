@@ -88,7 +88,7 @@ def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
                 # and noise; its round k right after the main chain's, so that a finished round has every row
                 chain = closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, rounds_data[0], calibrations[0],
                                           memo, log)
-    list(bc_row)
+    list(bc_row)  # the BC row done (where map ran it beside the rounds, this waits for it)
 
 
 def compute(name, step, *args, **kwargs):
