@@ -11,19 +11,21 @@ Paper map (the paper):
   Sec. IV-A steps 3-6, IV-E  fine_tune, intervention_sampler, noise_model -> relabel.AugmentationSampler
   Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost
 
-What a student may skip is in experiment/ (its __init__.py lists it): run folder, checkpoints, workers, command
-line, Table I's assembly (report.summarize), result files, and the research variants, which plug into the core's
-tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods). Every step wraps its work in
-`run.stage(file, compute)`: loaded if runs/<name>/<file> exists, else computed and written (a stopped run resumes).
+Each step is a function of its inputs (config values, data, policies, an optional `log`) that returns what it
+makes: call one in a notebook with your own inputs. What a student may skip is in experiment/ (its __init__.py
+lists it): the run folder, which keeps each step's result in its file and resumes (the loop's `memo`), worker
+processes (its `map`), the command line, Table I's assembly (report.summarize), result files, and the research
+variants, which plug into the core's tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods).
 
 Usage: `python dagger.py` (the quick profile), `--profile smoke` (CI), `--help`; README.md, "Profiles and options".
 """
 from __future__ import annotations
 
+import copy
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -35,51 +37,78 @@ import oracle as oracle_mod
 import relabel
 from experiment import cli, controls, cpu_kernels, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
-from experiment.run_folder import Run, stage_seed
-from experiment.workers import InBackground, in_parallel, torch_threads
+from experiment.run_folder import stage_seed
+from experiment.workers import torch_threads
 
 
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
-def policy_calibrated_dagger(run, lineages, workers=1):
+def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
     """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
-    docs/AUTHORS_SETUP.md §2, §4). workers > 1: a round's noised arms and the BC row run in worker processes."""
-    cfg, recipe = run.cfg, RECIPES[run.cfg.recipe]
+    docs/AUTHORS_SETUP.md §2, §4). Each step is a function of its inputs that returns what it makes; without memo and map
+    they are plain calls, one after the other (a notebook: no folder). The harness (experiment/report.py) hands in
+    its own: memo(name, step, *args, **kw) keeps a step's result in the run folder's file `name` and resumes from it;
+    map(fn, jobs), fn(*job) for each job in order, runs them in worker processes (a round's arms, the BC row)."""
+    memo, map = memo or compute, map or one_after_another
+    recipe = RECIPES[cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
-    demos = oracle_demonstrations(run, workers)
+    demos = memo("data/D0.npz", oracle_demonstrations, cfg, map=map, log=log)
     stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
     # ... and pi_0 = BC on D0: every method of every round is fine-tuned from this checkpoint (step 6)
-    pi0 = behavior_cloning(run, demos)
-    pi0_success = evaluate_policy(run, "eval/pi0.json", pi0, "pi_0 (BC)", unseen=False)
-    # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds)
-    bc_row = InBackground(bc_row_arm, (run.root, asdict(cfg), demos), enabled=workers > 1 and bool(lineages))
+    pi0 = memo("checkpoints/bc.pt", behavior_cloning, cfg, demos, log=log)
+    pi0_success = evaluate_policy(memo, cfg, "eval/pi0.json", pi0, "pi_0 (BC)", log, unseen=False)
+    # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds where map runs it so)
+    bc_row = map(bc_row_arm, [(cfg, demos, pi0, memo, log)])
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
         chain = None  # the closed-loop row's own chain of rounds: its interventions and its latest policy
-        source = recipe.data_lineage(run, lineage)  # whose interventions and noise it trains on: its own (Table I)
+        source = recipe.data_lineage(lineage)  # whose interventions and noise it trains on: its own (Table I)
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
-            rounds_data.append(collect_interventions(run, source, k, collector, collector_success))
+            rounds_data.append(memo(f"{folder(source, k)}/D.npz", collect_interventions, cfg, (source, k),
+                                    collector, collector_success, log=log))
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
-            hg, hg_success = train_and_evaluate(run, lineage, k, "hg_dagger", demos, rounds_data, None, stats)
+            hg, hg_success = train_and_evaluate(cfg, lineage, k, "hg_dagger", demos, pi0, rounds_data, None, stats,
+                                                memo, log)
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
-                calibrations.append(calibrate_noise(run, source, k, hg, rounds_data, stats))
+                calibrations.append(memo(f"{folder(source, k)}/calibration.json", calibrate_noise, cfg, (source, k),
+                                         hg, rounds_data, stats, log=log))
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
-                arms = [(run.root, asdict(cfg), lineage, k, method, demos, rounds_data, calibrations[-1], stats)
-                        for method in noised]
-                in_parallel(noised_arm, arms, workers, run.log)
+                list(map(train_and_evaluate, [(cfg, lineage, k, method, demos, pi0, rounds_data, calibrations[-1],
+                                               stats, memo, log) for method in noised]))
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
             # instead: one more policy per round; see benchmarks/HISTORY.md)
             collector, collector_success = hg, hg_success
             if "closed_loop" in cfg.methods:
                 # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain from round 1's data
                 # and noise; its round k right after the main chain's, so that a finished round has every row
-                chain = closed_loop_round(run, lineage, k, demos, stats, chain, rounds_data[0], calibrations[0])
-    bc_row.wait()
+                chain = closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, rounds_data[0], calibrations[0],
+                                          memo, log)
+    list(bc_row)  # the BC row done (where map ran it beside the rounds, this waits for it)
+
+
+def compute(name, step, *args, **kwargs):
+    """The loop's memo without a run folder: the step's result, made now (`name` is where the harness keeps it)."""
+    return step(*args, **kwargs)
+
+
+def one_after_another(fn, jobs):
+    """The loop's map without worker processes: [fn(*job) for job in jobs], here and now."""
+    return [fn(*job) for job in jobs]
+
+
+def folder(lineage, k, chain=None):
+    """Where the harness keeps round k's results of a lineage (and of a chain of its own, e.g. closed_loop)."""
+    return f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
+
+
+def round_label(keys):
+    """'lineage l round k' (and its chain) of a step's keys (lineage, k[, chain]), for the log."""
+    return f"lineage {keys[0]} round {keys[1]}" + (f" ({keys[2]} chain)" if len(keys) > 2 else "")
 
 
 # ---- Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py ------
@@ -107,7 +136,7 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
-    intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (docs/AUTHORS_SETUP.md §2)
+    intervention_fraction: float = 0.3  # the intervention frames' share of every fine-tuning batch (docs/AUTHORS_SETUP.md §2)
     recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
@@ -126,7 +155,7 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train: the authors' planar runs (docs/AUTHORS_SETUP.md §2). A recipe is this set
+    """How pi_0 and every arm train: the authors' planar runs, Table I's (docs/AUTHORS_SETUP.md §2). A recipe is this set
     of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
@@ -135,7 +164,7 @@ class PaperRecipe:
     def arm_training(cfg):  # ... that every arm continues to its end, from pi_0's AdamW state
         return dict(schedule_steps=cfg.bc_steps + cfg.finetune_steps)
 
-    def bc_row(run, continued_on_d0):  # Table I's BC row: pi_0 continued on D0 alone, the arms' step budget
+    def bc_row(pi0, continued_on_d0):  # Table I's BC row: pi_0 continued on D0 alone, the arms' step budget
         return continued_on_d0()
 
     def round_shares(frames):  # a batch's intervention rows: rounds 1..k in equal shares
@@ -146,7 +175,7 @@ class PaperRecipe:
     ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
     AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
 
-    def data_lineage(run, lineage):  # a lineage trains on its own interventions and calibrations
+    def data_lineage(lineage):  # a lineage trains on its own interventions and calibrations
         return lineage
 
     def check(cfg):  # nothing to refuse
@@ -159,36 +188,26 @@ PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()
 
 
 # ---- Step 1: D0 and pi_0 -----------------------------------------------------------------------------------------
-def oracle_demonstrations(run, workers=1):
-    """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan, in batches by
-    `workers` processes (every plan has its scenario's own seed: D0 is the same for any number of them)."""
-    cfg = run.cfg
-
-    def demonstrate():
-        demos, failures, t0 = [], 0, time.time()
-        run.log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
-
-        def progress(batch):  # a batch's plans, in scenario order
-            nonlocal failures
-            demos.extend(d for d in batch if d is not None)
+def oracle_demonstrations(cfg, map=None, log=print):
+    """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan, a batch per tenth of
+    D0 (map: in worker processes; every plan has its scenario's own seed: D0 is the same however they run)."""
+    map = map or one_after_another
+    demos, failures, t0 = [], 0, time.time()
+    log(f"D0: {cfg.n_demos} oracle demonstrations on training scenarios")
+    while len(demos) < cfg.n_demos:  # the scenarios after those tried, one per missing demonstration
+        scenarios = range(len(demos) + failures, cfg.n_demos + failures)
+        size = math.ceil(cfg.n_demos / 10)
+        for batch in map(plan_demonstrations, [(cfg, scenarios[i:i + size]) for i in range(0, len(scenarios), size)]):
+            demos.extend(d for d in batch if d is not None)  # a batch's plans, in scenario order
             failures += sum(d is None for d in batch)
             rate = len(demos) / (time.time() - t0)
-            run.log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
-                    f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
-
-        while len(demos) < cfg.n_demos:  # the scenarios after those tried, one per missing demonstration
-            scenarios = range(len(demos) + failures, cfg.n_demos + failures)
-            size = math.ceil(cfg.n_demos / 10)  # a batch (and a progress line) per tenth of D0
-            in_parallel(plan_demonstrations, [(asdict(cfg), scenarios[i:i + size])
-                                              for i in range(0, len(scenarios), size)], workers, run.log, progress)
-        return demos
-
-    return run.stage("data/D0.npz", demonstrate)
+            log(f"  demos {len(demos)}/{cfg.n_demos} | {rate * 60:.0f}/min | "
+                f"{(cfg.n_demos - len(demos)) / max(rate, 1e-9):.0f} s left | {failures} unplannable")
+    return demos
 
 
-def plan_demonstrations(cfg_fields, scenarios):
-    """A worker's job: the oracle's demonstrations of training scenarios `scenarios`, None where it found no plan."""
-    cfg = Config(**cfg_fields)
+def plan_demonstrations(cfg, scenarios):
+    """The oracle's demonstrations of training scenarios `scenarios`, None where it found no plan."""
     env, expert, demos = make_run_env(cfg), make_oracle(cfg), []
     for i in scenarios:
         try:
@@ -198,35 +217,44 @@ def plan_demonstrations(cfg_fields, scenarios):
     return demos
 
 
-def behavior_cloning(run, demos):
-    """pi_0 = BC on D0's chunks (Sec. IV-C), saved with its optimizer state for every arm to continue."""
-    cfg = run.cfg
-
-    def train_pi0():
-        obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-        run.log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
-        policy = make_policy(cfg, make_run_env(cfg))
-        tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
-                          schedule_steps=RECIPES[cfg.recipe].pi0_schedule_steps(cfg))
-        with torch_threads(PI0_THREADS):  # nothing runs beside pi_0: a second core is free
-            return run.train("checkpoints/bc.pt", policy, obs, chunks, tc, keep_state=True)
-
-    return run.stage("checkpoints/bc.pt", train_pi0)
+def behavior_cloning(cfg, demos, log=print, fit=None):
+    """pi_0 = BC on D0's chunks (Sec. IV-C), with its optimizer state (policy.train_state) for every arm to continue.
+    fit: how a policy trains (default train_policy; the harness's keeps checkpoints in the run folder)."""
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
+    policy = make_policy(cfg, make_run_env(cfg))
+    tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
+                      schedule_steps=RECIPES[cfg.recipe].pi0_schedule_steps(cfg))
+    with torch_threads(PI0_THREADS):  # nothing runs beside pi_0: a second core is free
+        return (fit or train_policy)(policy, obs, chunks, tc, keep_state=True, log=log)
 
 
-def bc_row_arm(root, cfg_fields, demos):
-    """Table I's BC row (a worker's job), evaluated: the paper's recipe continues pi_0 on D0 alone to bc_steps +
-    finetune_steps, the steps every row has trained."""
-    cfg = Config(**cfg_fields)
-    run = Run(root, cfg)  # a worker's own handle on the run folder
+def bc_row_arm(cfg, demos, pi0, memo=None, log=print):
+    """Table I's BC row, evaluated: the paper's recipe continues pi_0 on D0 alone to bc_steps + finetune_steps, the
+    steps every row has trained."""
+    memo = memo or compute
+    policy = RECIPES[cfg.recipe].bc_row(
+        pi0, lambda: memo("checkpoints/bc_continued.pt", continue_on_d0, cfg, demos, pi0, log=log))
+    evaluate_policy(memo, cfg, "eval/bc.json", policy, "bc", log)
 
-    def continue_on_d0():
-        obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-        run.log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
-        return finetune_from_pi0(run, "checkpoints/bc_continued.pt", obs, chunks, stage_seed(cfg, "train", "bc"))
 
-    policy = RECIPES[cfg.recipe].bc_row(run, lambda: run.stage("checkpoints/bc_continued.pt", continue_on_d0))
-    evaluate_policy(run, "eval/bc.json", policy, "bc")
+def continue_on_d0(cfg, demos, pi0, log=print, fit=None):
+    """pi_0 continued on D0 alone for finetune_steps (the arms' budget): the paper's BC row."""
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
+    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", "bc"), fit=fit, log=log)
+
+
+def train_policy(policy, obs, chunks, train_cfg, sampler=None, start=None, keep_state=False, log=print):
+    """diffusion.train from `start` (None, or a policy's train_state: its step and AdamW state, e.g. pi_0's);
+    keep_state: the trained policy keeps its own as policy.train_state, for runs that continue from it."""
+    final = {}
+    if keep_state:
+        train_cfg = replace(train_cfg, checkpoint_steps=(train_cfg.steps,))
+    diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, start=start, on_checkpoint=final.update, log=log)
+    if keep_state:
+        policy.train_state = {"step": final["step"], "optimizer": final["optimizer"]}
+    return policy
 
 
 def demo_statistics(cfg, demos):
@@ -258,40 +286,33 @@ def make_policy(cfg, env):
 
 
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
-def collect_interventions(run, lineage, k, policy, policy_success, chain=None):
+def collect_interventions(cfg, keys, policy, policy_success, log=print):
     """D_k: HG-DAgger rollouts of the lineage's policy on the evaluation scenarios its own evaluation
     (policy_success, (scenarios, repeats) bool) did not always solve (docs/AUTHORS_SETUP.md §4), the episodes with an
-    intervention the label rule keeps. chain: None, or 'closed_loop' (that row's folder and seeds)."""
-    cfg = run.cfg
-    where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
-    keys = (lineage, k) + ((chain,) if chain else ())
-    label = f"lineage {lineage} round {k}" + (f" ({chain} chain)" if chain else "")
-
-    def collect():
-        seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
-        solved = np.asarray(policy_success, bool).all(axis=1)
-        run.log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
-                f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
-        t0, env_list = time.time(), reset_envs(cfg.env, np.asarray(seeds)[~solved])
-        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
-        episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
-                           log=run.log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
-        for ep in episodes:  # D_k: the interventions the label rule keeps (the paper's: >= H steps, Sec. IV-C)
-            runs = RECIPES[cfg.recipe].expert_runs(ep["expert"], cfg.horizon)
-            ep["expert"] = np.zeros(len(ep["expert"]), bool)
-            for start, end in runs:
-                ep["expert"][start:end] = True
-        kept = [ep for ep in episodes if ep["expert"].any()]
-        alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
-        rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
-        run.log(f"  {len(episodes)} episodes: {alone} solved by the policy alone, {rescued} solved with the "
-                f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions, "
-                f"{sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
-        if not kept:
-            raise RuntimeError(f"{label}: no intervention the label rule keeps in {len(episodes)} episodes")
-        return kept
-
-    return run.stage(f"{where}/D.npz", collect)
+    intervention the label rule keeps. keys: (lineage, k), and a chain of its own ('closed_loop'): the seeds."""
+    label = round_label(keys)
+    seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
+    solved = np.asarray(policy_success, bool).all(axis=1)
+    log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
+        f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
+    t0, env_list = time.time(), reset_envs(cfg.env, np.asarray(seeds)[~solved])
+    gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
+    episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
+                       log=log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
+    for ep in episodes:  # D_k: the interventions the label rule keeps (the paper's: >= H steps, Sec. IV-C)
+        runs = RECIPES[cfg.recipe].expert_runs(ep["expert"], cfg.horizon)
+        ep["expert"] = np.zeros(len(ep["expert"]), bool)
+        for start, end in runs:
+            ep["expert"][start:end] = True
+    kept = [ep for ep in episodes if ep["expert"].any()]
+    alone = sum(ep["success"] and ep["interventions"] == 0 for ep in episodes)
+    rescued = sum(ep["success"] and ep["interventions"] > 0 for ep in episodes)
+    log(f"  {len(episodes)} episodes: {alone} solved by the policy alone, {rescued} solved with the "
+        f"expert's help, {len(episodes) - alone - rescued} failed; {len(kept)} kept with interventions, "
+        f"{sum(int(ep['expert'].sum()) for ep in kept)} expert steps, {time.time() - t0:.0f} s")
+    if not kept:
+        raise RuntimeError(f"{label}: no intervention the label rule keeps in {len(episodes)} episodes")
+    return kept
 
 
 def reset_envs(env_name, seeds):
@@ -395,25 +416,17 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
 
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
-def calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain=None):
+def calibrate_noise(cfg, keys, policy, rounds_data, stats, log=print):
     """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (docs/AUTHORS_SETUP.md
-    §5); chain='closed_loop': of that row's policy on its chain's interventions (its folder and seed)."""
-    cfg = run.cfg
-    where = f"lineage_{lineage}/round_{k}" + (f"/{chain}" if chain else "")
-    keys = (lineage, k) + ((chain,) if chain else ())
-    label = f"lineage {lineage} round {k}" + (f" ({chain} chain)" if chain else "")
-
-    def measure():
-        episodes = [ep for D in rounds_data for ep in D]
-        gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", *keys))
-        t0 = time.time()
-        cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
-                                  gen, log=lambda msg: run.log("  calibration: " + msg))
-        run.log(f"{label}: calibration on {len(episodes)} intervention episodes "
-                f"({time.time() - t0:.0f} s)\n  " + report.calibration_text(cal).replace("\n", "\n  "))
-        return cal
-
-    return run.stage(f"{where}/calibration.json", measure)
+    §5); keys (lineage, k[, chain]): its seed (the closed-loop row's chain: its policy on its chain's data)."""
+    episodes = [ep for D in rounds_data for ep in D]
+    gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", *keys))
+    t0 = time.time()
+    cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
+                              gen, log=lambda msg: log("  calibration: " + msg))
+    log(f"{round_label(keys)}: calibration on {len(episodes)} intervention episodes "
+        f"({time.time() - t0:.0f} s)\n  " + report.calibration_text(cal).replace("\n", "\n  "))
+    return cal
 
 
 def calibration_config(cfg):
@@ -424,7 +437,7 @@ def calibration_config(cfg):
 # ---- Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0 -------------------------
 def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
     """(noise kind, sigma) of `method` for relabel.AugmentationSampler, sigma in our median steps (median_step,
-    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes`: the sampler's episodes' indices in the calibration's."""
+    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes` are the sampler's episodes' indices into the calibration's."""
     if method.startswith("fixed_"):
         sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
@@ -465,32 +478,33 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
     return relabel.MixtureSampler(samplers, recipe.round_shares(frames))
 
 
-def fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats):
+def fine_tune(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, log=print, fit=None):
     """Steps 3-4 (docs/AUTHORS_SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
     interventions of rounds 1..k (intervention_sampler); D0 is never noised."""
-    cfg = run.cfg
-    name = f"lineage_{lineage}/round_{k}/checkpoints/{method}.pt"
-
-    def co_train():
-        obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-        sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
-        rows = ("" if method == "hg_dagger" else controls.ROWS[method].what if method in controls.ROWS
-                else ", every drawn frame noised and relabelled")
-        run.log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
-                f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-                f"{len(rounds_data)} round(s){rows} (recipe {cfg.recipe}: continuing pi_0's optimizer)")
-        return finetune_from_pi0(run, name, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
-                                 cfg.intervention_fraction)
-
-    return run.stage(name, co_train)
+    obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
+    sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
+    rows = ("" if method == "hg_dagger" else controls.ROWS[method].what if method in controls.ROWS
+            else ", every drawn frame noised and relabelled")
+    log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
+        f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
+        f"{len(rounds_data)} round(s){rows} (recipe {cfg.recipe}: continuing pi_0's optimizer)")
+    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
+                             cfg.intervention_fraction, fit, log)
 
 
-def finetune_from_pi0(run, name, obs, chunks, seed, sampler=None, aug_fraction=0.0):
-    """pi_0 fine-tuned into `name` to bc_steps + finetune_steps, continuing its AdamW state and cosine (recipe's)."""
-    cfg, policy = run.cfg, run.load("checkpoints/bc.pt")
+def finetune_from_pi0(cfg, pi0, obs, chunks, seed, sampler=None, aug_fraction=0.0, fit=None, log=print):
+    """A copy of pi_0 fine-tuned to bc_steps + finetune_steps, continuing its AdamW state and cosine (recipe's)."""
+    policy = copy_policy(pi0)  # pi_0 itself stays as it is for the next arm
     tc = train_config(cfg, policy, cfg.bc_steps + cfg.finetune_steps, seed, aug_fraction=aug_fraction,
                       **RECIPES[cfg.recipe].arm_training(cfg))
-    return run.train(name, policy, obs, chunks, tc, sampler, continue_from="checkpoints/bc.pt")
+    return (fit or train_policy)(policy, obs, chunks, tc, sampler, start=copy.deepcopy(pi0.train_state), log=log)
+
+
+def copy_policy(policy):
+    """A policy of its own with `policy`'s config and weights (its EMA copy and normalizer too)."""
+    twin = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(policy.cfg, device=policy.device))
+    twin.load_state_dict(policy.state_dict())
+    return twin
 
 
 def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, lr_schedule="cosine"):
@@ -503,7 +517,7 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 
 def observation_noise(policy_cfg):
-    """Per-entry std (obs_dim,) of training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
+    """Per-entry std (obs_dim,) of the training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
     at t and t-1, OBS_NOISE_ENV on the other low-dimensional numbers, none on an encoder's entries (an image)."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
@@ -511,53 +525,54 @@ def observation_noise(policy_cfg):
     return std
 
 
-def train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats):
+def train_and_evaluate(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, memo=None, log=print):
     """One row of round k (steps 4 and 6), fine-tuned and evaluated: (policy, success (scenarios, repeats) bool)."""
-    policy = fine_tune(run, lineage, k, method, demos, rounds_data, calibration, stats)
-    return policy, evaluate_policy(run, f"lineage_{lineage}/round_{k}/eval/{method}.json", policy,
-                                   f"{method} (lineage {lineage}, K={k})")
+    memo = memo or compute
+    policy = memo(f"{folder(lineage, k)}/checkpoints/{method}.pt", fine_tune, cfg, lineage, k, method, demos, pi0,
+                  rounds_data, calibration, stats, log=log)
+    return policy, evaluate_policy(memo, cfg, f"{folder(lineage, k)}/eval/{method}.json", policy,
+                                   f"{method} (lineage {lineage}, K={k})", log)
 
 
-def noised_arm(root, cfg_fields, lineage, k, method, demos, rounds_data, calibration, stats):
-    """One noised method of round k, fine-tuned and evaluated (a worker's job, on the data the loop hands it)."""
-    run = Run(root, Config(**cfg_fields))  # a worker's own handle on the run folder
-    train_and_evaluate(run, lineage, k, method, demos, rounds_data, calibration, stats)
-
-
-def closed_loop_round(run, lineage, k, demos, stats, chain, first_round, first_calibration):
+def closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, first_round, first_calibration, memo=None, log=print):
     """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (docs/AUTHORS_SETUP.md §5): the
     chain's round k-1 policy, co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise
     is measured on it over the chain's rounds 1..k. Round 1 is the main chain's (the authors copy it too).
     chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""
+    memo = memo or compute
     if k == 1:
         rounds_data, calibration = [first_round], first_calibration
     else:  # the previous round's calibrated policy drives, the oracle intervenes (step 2) ...
         rounds_data, policy, success = chain
-        rounds_data = rounds_data + [collect_interventions(run, lineage, k, policy, success, chain="closed_loop")]
+        keys, where = (lineage, k, "closed_loop"), folder(lineage, k, "closed_loop")
+        rounds_data = rounds_data + [memo(f"{where}/D.npz", collect_interventions, cfg, keys, policy, success,
+                                          log=log)]
         # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
-        calibration = calibrate_noise(run, lineage, k, policy, rounds_data, stats, chain="closed_loop")
-    return rounds_data, *train_and_evaluate(run, lineage, k, "closed_loop", demos, rounds_data, calibration, stats)
+        calibration = memo(f"{where}/calibration.json", calibrate_noise, cfg, keys, policy, rounds_data, stats,
+                           log=log)
+    return rounds_data, *train_and_evaluate(cfg, lineage, k, "closed_loop", demos, pi0, rounds_data, calibration,
+                                            stats, memo, log)
 
 
 # ---- Step 5: evaluation (Sec. V: 100 scenarios x 3 evaluations; success = goal reached without collision) --------
-def evaluate_policy(run, name, policy, label, unseen=None):
-    """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, stage `name`. With unseen (default
-    cfg.eval_unseen) also on the unseen scenarios, never trained on (not in the paper), into <name>_unseen.json."""
-    ok = run.stage(name, lambda: evaluation(run, policy, label, "eval"))
-    if run.cfg.eval_unseen if unseen is None else unseen:  # eval/bc.json -> eval/bc_unseen.json
-        run.stage(name[:-len(".json")] + "_unseen.json",
-                  lambda: evaluation(run, policy, label + ", unseen scenarios", "unseen"))
+def evaluate_policy(memo, cfg, name, policy, label, log=print, unseen=None):
+    """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, kept as `name`. With unseen (default
+    cfg.eval_unseen) also on the unseen scenarios, never trained on (not in the paper), as <name>_unseen.json."""
+    ok = memo(name, evaluation, cfg, policy, label, "eval", log=log)
+    if cfg.eval_unseen if unseen is None else unseen:  # eval/bc.json -> eval/bc_unseen.json
+        memo(name[:-len(".json")] + "_unseen.json", evaluation, cfg, policy, label + ", unseen scenarios", "unseen",
+             log=log)
     return np.asarray(ok["success"], bool)
 
 
-def evaluation(run, policy, label, scenarios):
+def evaluation(cfg, policy, label, scenarios, log=print):
     """evaluate on the first eval_scenarios of 'eval' or 'unseen', one sampling seed per set for every method."""
-    cfg, t0 = run.cfg, time.time()
+    t0 = time.time()
     env = make_run_env(cfg)
     seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
     ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act,
-                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), log=run.log)
-    run.log(f"  eval {label}: success {100 * ok.mean():.1f}% ({ok.size} episodes, {time.time() - t0:.0f} s)")
+                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), log=log)
+    log(f"  eval {label}: success {100 * ok.mean():.1f}% ({ok.size} episodes, {time.time() - t0:.0f} s)")
     return {"success": ok.tolist(), "seeds": list(map(int, seeds))}
 
 

@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import envs  # noqa: E402
-from experiment import checkpoints, oriented_goal  # noqa: E402
+from experiment import checkpoints, engine3d, oriented_goal  # noqa: E402
 
 PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")  # rows of PlanarReacher.parts
 
@@ -66,7 +66,7 @@ def classify(env, episode):
 
 
 def classify_engine3d(env, episode):
-    """classify for the UR5 cell: the collision's partner from the clearance terms of envs.EngineReach3D."""
+    """classify for the UR5 cell: the collision's partner from the clearance terms of engine3d.EngineReach3D."""
     outcome, T, dist, _, sweep, hit = ending(env, episode)
     if outcome:
         return outcome, "", T, dist
@@ -74,14 +74,14 @@ def classify_engine3d(env, episode):
         return "collision: other", "pybullet contact only", T, dist
     q = sweep[np.argmax(hit)][None]
     a0, a1 = env._arm_components(q)
-    r, (i, j) = env.link_radii, envs.ENGINE_SELF_PAIRS.T
-    terms = {"the arm itself": float((envs.segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
+    r, (i, j) = env.link_radii, engine3d.ENGINE_SELF_PAIRS.T
+    terms = {"the arm itself": float((engine3d.segment_distance_3d(a0[:, :, i], a1[:, :, i], a0[:, :, j], a1[:, :, j])
                                       - r[i] - r[j]).min()),
              "the table": float(env._ground_clearance(a0, a1)[0]),
              "the wall": float(env._wall_clearance(a0, a1)[0])}
     if len(env.obstacles):
         g = env._geom
-        d = (envs.segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None], g["end"][:, None, None])
+        d = (engine3d.segment_distance_3d(a0[..., None], a1[..., None], g["start"][:, None, None], g["end"][:, None, None])
              - g["contact"]).min(axis=(0, 1))  # (N,) per obstacle
         for k, kind in enumerate(env.obstacle_kinds):
             name = {"engine": "the engine", "lever": "the lever", "box": "a box"}.get(kind, kind)

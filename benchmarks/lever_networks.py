@@ -75,7 +75,7 @@ def candidate_config(base, name, seed=0):
 def shared_demos(out, base, seed=0):
     """OUT/D0/data/D0.npz: the base profile's oracle demonstrations, collected once (a stage: resumable)."""
     run = Run(os.path.join(out, "D0"), replace(dagger.PROFILES[base], seed=seed))
-    dagger.oracle_demonstrations(run)
+    run.memo("data/D0.npz", dagger.oracle_demonstrations, run.cfg, log=run.log)
     return run.path("data", "D0.npz")
 
 
@@ -89,7 +89,8 @@ def measure(out, name, cfg_fields, demos_path):
         os.replace(target + ".part", target)
     cfg = dagger.Config(**cfg_fields)
     dagger.run_experiment(cfg, root, prepare=True)
-    dagger.bc_row_arm(root, cfg_fields, Run(root, cfg).load("data/D0.npz"))
+    run = Run(root, cfg)
+    dagger.bc_row_arm(cfg, run.load("data/D0.npz"), run.load("checkpoints/bc.pt"), run.memo, run.log)
     path = os.path.join(root, "cpu_per_step.json")
     if not os.path.exists(path):
         write_json(path, {"seconds": cpu_seconds_per_step(cfg, Run(root, cfg).load("data/D0.npz"))})

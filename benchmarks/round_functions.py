@@ -36,7 +36,7 @@ def round_functions(out):
 
     sys.setprofile(profile)
     try:
-        dagger.policy_calibrated_dagger(run, [0], workers=1)
+        dagger.policy_calibrated_dagger(cfg, [0], memo=run.memo, log=run.log)
     finally:
         sys.setprofile(None)
     by_file = collections.defaultdict(list)

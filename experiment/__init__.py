@@ -1,18 +1,19 @@
 """The experiment harness of `python dagger.py`: everything a run needs that is not the paper's method.
 
-    run_folder.py  runs/<name>/: stages loaded if finished, else computed and written atomically; resume,
-                   config mismatch, damaged files named, the seed of every stage, resumable training; the episode
-                   files and the calibration's JSON form
+    run_folder.py  runs/<name>/: the loop's memo (Run.memo: a step's result loaded if finished, else computed and
+                   written atomically), resume, config mismatch, damaged files named, the seed of every stage,
+                   resumable training, the folder's locks (two processes); the episode files, the calibration's JSON
     checkpoints.py policy files: the format, older files' retired fields, damage, the training state (AdamW, random
                    streams, the sampler's pool) a stopped training resumes from
-    workers.py     the arms of a round in worker processes, the BC row beside the rounds
+    workers.py     the loop's map (worker_map): the arms of a round in worker processes, the BC row beside the rounds
     cli.py         the command line: profiles, overrides, the run folder's name, Ctrl-C and errors
     profiles.py    the run sizes (smoke, quick, mid, table2, paper) and the config's valid values
     report.py      the command's mode (run_experiment), Table I's assembly (summarize: mean ± SE, the paper's
                    tests that dagger.py hands over in report.Paper), results.json, results.csv, table.md, report.md,
                    the table figures, the paper's figures when their inputs changed
     figures.py     the paper's figures (fig1-fig5) from D0 and lineage 0, round 1
-and the research variants, which plug into the core's tables when dagger.py imports them:
+and Table II's env and the research variants, which plug into the core's tables when dagger.py imports them:
+    engine3d.py       the UR5 reaching an engine lever (Table II), its kinematics: envs.ENVIRONMENTS['engine3d']
     image_obs.py      the UR5 policy on camera images: envs.ENVIRONMENTS['engine3d_image'] and
                       diffusion.OBS_ENCODERS['image_cnn'] (python dagger.py --env engine3d_image)
     oriented_goal.py  the authors' 10-degree goal posture: envs.ENVIRONMENTS['engine3d_oriented']

@@ -33,7 +33,7 @@ class CheckpointDamagedError(ValueError):
 
 
 def save_policy(policy, path, train_state=None, sampler=None, train_config=None):
-    """The policy's config and weights (with its EMA copy and normalizer) in one file, via path.tmp: never
+    """The policy's config and weights (with its EMA copy and normalizer) in one file, via a temporary file: never
     half-written. train_state: diffusion.train's state at a checkpoint step, saved with the sampler's state."""
     payload = {"format": CHECKPOINT_FORMAT, "config": asdict(policy.cfg),
                "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()}}
@@ -42,12 +42,14 @@ def save_policy(policy, path, train_state=None, sampler=None, train_config=None)
                                   "train_config": json.dumps(asdict(train_config)) if train_config else None,
                                   "sampler": _as_torch(sampler_state(sampler))}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    torch.save(payload, f"{path}.tmp")
-    os.replace(f"{path}.tmp", path)
+    tmp = f"{path}.{os.getpid()}.tmp"  # per process: two runs of one folder never write one temporary file
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
 
 
 def load_policy(path, device="cpu"):
-    """The policy saved at path (a variant's obs_encoder must be registered first). FileNotFoundError,
+    """The policy saved at path (a variant's obs_encoder must be registered first), with its train_state if the
+    file keeps one. FileNotFoundError,
     CheckpointDamagedError (a ValueError), or ValueError for a config of a deleted option."""
     payload = read_checkpoint(path)
     config = dict(payload["config"])
@@ -57,6 +59,8 @@ def load_policy(path, device="cpu"):
             raise ValueError(f"{path!r} holds a policy with {name}={stored!r}: {deleted}; retrain the policy")
     policy = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device))
     policy.load_state_dict(payload["state_dict"])
+    if "train_state" in payload:  # pi_0 with its step and AdamW state: what the arms continue (dagger.train_policy)
+        policy.train_state = train_state(path, payload, random_streams=False)
     return policy
 
 

@@ -16,6 +16,7 @@ import envs
 import oracle as oracle_mod
 import partial_denoise
 import relabel
+from experiment import engine3d
 from experiment.run_folder import stage_seed
 
 FIGURE_INPUTS = ("data/D0.npz", "lineage_0/round_1/D.npz", "lineage_0/round_1/calibration.json",
@@ -37,7 +38,7 @@ def make_figures(run, demo_statistics):
         oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
     else:
         env.reset(seed=int(demos[0]["seed"]))
-        envs.render_scene_image(env, fig("fig5_environment.png"))
+        engine3d.render_scene_image(env, fig("fig5_environment.png"))
     env.plot_policy_view(demos[0], fig("fig5_policy_view.png"))  # a variant's camera input; the paper's envs: none
     if not os.path.exists(os.path.join(run.root, "lineage_0", "round_1", "calibration.json")):
         run.log("figures 1-4 need lineage 0 round 1: not finished yet")

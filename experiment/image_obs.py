@@ -14,7 +14,7 @@ of the core knows about images.
 
 The observation stays one flat float32 vector, obs_dim = 15 + 3 S^2 (3,087 at S = 32):
     [0:15]    q, q_prev, goal     as EngineReach3D's
-    [15:]     image               render_image(q): RGB (S, S, 3) from the fixed camera envs.ENGINE_CAMERA(_AUTHORS)
+    [15:]     image               render_image(q): RGB (S, S, 3) from the fixed camera engine3d.ENGINE_CAMERA(_AUTHORS)
                                   with pybullet's TinyRenderer, stored channel-first (3, S, S), flattened, in [0, 1]
 so every consumer (datasets, rollouts, the augmentation) handles it unchanged. The clutter is then seen only in
 the image; the lever's position stays given as coordinates.
@@ -29,16 +29,17 @@ import torch.nn as nn
 
 import diffusion
 import envs
+from experiment import engine3d
 
 
 @dataclass
-class EngineImageConfig(envs.EngineConfig):
+class EngineImageConfig(engine3d.EngineConfig):
     # pixels of the square camera image. Observations are float32 vectors kept for every step of every episode:
     # 32 x 32 x 3 is 12 kB a step (64 x 64: 48 kB)
     image_size: int = 32
 
 
-class EngineReach3DImage(envs.EngineReach3D):
+class EngineReach3DImage(engine3d.EngineReach3D):
     """EngineReach3D whose observation ends with the camera image instead of the obstacle slots (module
     docstring); reset and step also put the image in info['image']."""
 

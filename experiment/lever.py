@@ -87,8 +87,8 @@ class AuthorsLever:
     def arm_training(cfg):
         return dict(lr=cfg.lr / 10, lr_schedule="constant")  # their 1e-6 after BC's 1e-5 peak
 
-    def bc_row(run, continued_on_d0):
-        return run.load("checkpoints/bc.pt")  # the table's BC row is pi_0 itself
+    def bc_row(pi0, continued_on_d0):
+        return pi0  # the table's BC row is pi_0 itself
 
     def round_shares(frames):
         return [f / sum(frames) for f in frames]  # by intervention frames
@@ -99,7 +99,7 @@ class AuthorsLever:
     ChunkSampler = PaddedChunkSampler
     AugmentationSampler = PaddedAugmentationSampler
 
-    def data_lineage(run, lineage):
+    def data_lineage(lineage):
         return lineage  # independent lineages
 
     def check(cfg):
@@ -109,14 +109,8 @@ class AuthorsLever:
 class AuthorsLeverSeeds(AuthorsLever):
     """The lever recipe with seed replicates: lineage l > 0 trains on lineage 0's interventions and calibrations."""
 
-    def data_lineage(run, lineage):
-        if lineage > 0:
-            last = os.path.join(run.root, "lineage_0", f"round_{run.cfg.rounds}", "D.npz")
-            if not os.path.exists(last):
-                raise RunFolderError(f"recipe {run.cfg.recipe}: lineage {lineage} trains on lineage 0's interventions, "
-                                     f"and {last} is not there yet; run lineage 0 first (--lineage 0, or all lineages "
-                                     "in one command)")
-        return 0
+    def data_lineage(lineage):
+        return 0  # lineage 0's interventions and calibrations (check_lineages: made before)
 
     def check(cfg):
         if "closed_loop" in cfg.methods:
@@ -125,3 +119,16 @@ class AuthorsLeverSeeds(AuthorsLever):
 
 
 RECIPES = {"authors_lever": AuthorsLever, "authors_lever_seeds": AuthorsLeverSeeds}
+
+
+def check_lineages(run, lineages):
+    """RunFolderError if the run's recipe trains lineages > 0 on lineage 0's interventions and a run of them alone
+    would find lineage 0's last round missing in the folder (the harness's check before the loop)."""
+    others = [lineage for lineage in lineages if lineage > 0]
+    if run.cfg.recipe != "authors_lever_seeds" or 0 in lineages or not others:
+        return  # lineage 0 runs first in this command, or no lineage needs another's data
+    last = os.path.join(run.root, "lineage_0", f"round_{run.cfg.rounds}", "D.npz")
+    if not os.path.exists(last):
+        raise RunFolderError(f"recipe {run.cfg.recipe}: lineage {others[0]} trains on lineage 0's interventions, and "
+                             f"{last} is not there yet; run lineage 0 first (--lineage 0, or all lineages in one "
+                             "command)")

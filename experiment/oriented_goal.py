@@ -19,10 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 
 import envs
+from experiment import engine3d
 
 
 @dataclass
-class EngineOrientedConfig(envs.EngineConfig):
+class EngineOrientedConfig(engine3d.EngineConfig):
     # deg: success also needs the flange within this angle of goal_q's orientation (the authors' 10)
     goal_angle_tolerance: float = 10.0
 
@@ -30,8 +31,8 @@ class EngineOrientedConfig(envs.EngineConfig):
 def tool_angle(q, goal_q):
     """Degrees between the flange's orientation at q and at the posture goal_q. (B,) or float."""
     q = np.asarray(q, dtype=np.float64)
-    R = envs.ur5_frames(q.reshape(-1, 6))[:, 6, :3, :3]
-    R_goal = envs.ur5_frames(np.asarray(goal_q, dtype=np.float64)[None])[0, 6, :3, :3]
+    R = engine3d.ur5_frames(q.reshape(-1, 6))[:, 6, :3, :3]
+    R_goal = engine3d.ur5_frames(np.asarray(goal_q, dtype=np.float64)[None])[0, 6, :3, :3]
     cos = (np.einsum("bij,ij->b", R, R_goal) - 1) / 2  # (trace(R^T R_goal) - 1) / 2
     angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     return angle.reshape(q.shape[:-1]) if q.ndim > 1 else float(angle[0])
@@ -44,7 +45,7 @@ def axis_rotation(axis, angle):
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
-class EngineReach3DOriented(envs.EngineReach3D):
+class EngineReach3DOriented(engine3d.EngineReach3D):
     """EngineReach3D with the authors' orientation rule (module docstring)."""
 
     goal_is_pose = True  # goal_configurations is the whole goal set: the oracle takes it (oracle.solve_ik)
@@ -69,13 +70,13 @@ class EngineReach3DOriented(envs.EngineReach3D):
         """The closed-form IK branches of goal_q's flange pose and of 6 tilts of it by half the angle tolerance
         (about +-x, y, z of the flange), TCP on the goal; within the limits, collision-free and goal_reached.
         (M, 6)."""
-        frame = envs.ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6]  # (4, 4) flange
+        frame = engine3d.ur5_frames(np.asarray(self.cfg.goal_q, dtype=np.float64)[None])[0, 6]  # (4, 4) flange
         tilt = math.radians(self.cfg.goal_angle_tolerance) / 2
         turns = [np.eye(3)] + [axis_rotation(a, tilt) for a in np.vstack([np.eye(3), -np.eye(3)])]
         flange = np.tile(np.eye(4), (len(turns), 1, 1))
         flange[:, :3, :3] = frame[:3, :3] @ np.array(turns)
         flange[:, :3, 3] = self._goal - self.cfg.tool_length * flange[:, :3, 2]  # TCP on the goal
-        q = envs.ur5_ik(flange).reshape(-1, self.dof)
+        q = engine3d.ur5_ik(flange).reshape(-1, self.dof)
         q = q[~np.isnan(q).any(axis=1)]
         lo, hi = self.joint_limits
         q = q[np.all((q >= lo) & (q <= hi), axis=1)]

@@ -19,8 +19,9 @@ import numpy as np
 
 import calibrate
 import envs
-from experiment import figures
+from experiment import figures, lever
 from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, read_json, write_json
+from experiment.workers import worker_map
 
 # Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
 METHOD_LABELS = {
@@ -59,7 +60,7 @@ PAPER_TABLES = {
 @dataclass(frozen=True)
 class Paper:
     """What the report runs and tests of the paper: dagger.PAPER (this folder never imports dagger.py)."""
-    loop: Callable                # policy_calibrated_dagger(run, lineages, workers): Sec. IV-A on the run folder
+    loop: Callable                # policy_calibrated_dagger(cfg, lineages, memo, map, log): Sec. IV-A
     demo_statistics: Callable     # (cfg, D0) -> relabel.demo_stats: the figures' unit of noise
     paired_ttest: Callable        # (a, b) -> (t, df, p)
     tost: Callable                # (a, b, margin) -> (p, t_lower, t_upper)
@@ -80,10 +81,16 @@ def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=Fa
         join_lineage(run, path)
     t0 = time.time()
     if not report_only:
-        run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
         lineages = [] if prepare else [lineage] if lineage is not None else list(range(cfg.lineages))
-        paper.loop(run, lineages, workers)
-    text = write_report(run, paper)
+        run.hold_lineages(lineages)  # a second run of one of them into this folder stops here, naming this PID
+        try:
+            run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
+            lever.check_lineages(run, lineages)  # a recipe that trains on lineage 0's data needs it there first
+            paper.loop(cfg, lineages, memo=run.memo, map=worker_map(workers, run.log), log=run.log)
+        finally:
+            run.release_lineages()
+    with run.stage_lock("report"):  # runs of other lineages into this folder write the report one at a time
+        text = write_report(run, paper)
     run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
     for path in export_lineages(run, export_to) if export_to else []:
         run.log(f"wrote {path}")

@@ -1,12 +1,17 @@
 """The run folder: every stage's result on disk before the next starts, so a stopped run resumes.
 
 runs/<name>/ holds config.json, log.txt, data/D0.npz, checkpoints/, eval/, lineage_<l>/round_<k>/{D.npz,
-calibration.json, checkpoints/<method>.pt, eval/<method>.json}, timings/ and figures/. dagger.py's steps
-each wrap their work in one `run.stage(...)` (or `run.train(...)` for a policy): load the file if the
-stage finished, else compute it, write it atomically, log and time it. Nothing here is the paper's method.
+calibration.json, checkpoints/<method>.pt, eval/<method>.json}, timings/ and figures/. The harness hands
+dagger.policy_calibrated_dagger `run.memo`: each step's result is a file of the folder (Run.stage: loaded if the
+stage finished, else computed, written atomically, timed), a policy trained by `run.train` (checkpoints, resume).
+Two processes may share a folder (.locks/): one lineage runs in one process at a time, and a shared stage is made
+by one while the other waits for it. Nothing here is the paper's method.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import functools
 import gzip
 import hashlib
 import io
@@ -32,6 +37,10 @@ class ConfigMismatch(ValueError):
 
 class RunFolderError(ValueError):
     """The run folder cannot be created (a bad --out), or one of its stage files is damaged."""
+
+
+class FolderInUse(RunFolderError):
+    """Another process runs the same lineage in this run folder (its PID is named)."""
 
 
 # Config fields a run folder lets differ from the config it was made with: they change no stage's result
@@ -98,6 +107,17 @@ class Run:
             write_json(path, asdict(cfg))
         self._log = open(os.path.join(root, "log.txt"), "a")
         self._claimed = set()
+        self._held = []  # the file descriptors of the lineage locks this process holds (hold_lineages)
+
+    def __reduce__(self):  # a worker process opens its own handle on the folder (Run.memo and Run.log pickle so)
+        return Run, (self.root, self.cfg)
+
+    def memo(self, name, step, *args, **kwargs):
+        """dagger's memo: step(*args, **kwargs) kept in the stage file `name` (Run.stage: loaded if it is there). A
+        step that trains a policy (`name` a .pt) is handed fit=Run.train into that file: checkpoints, resume."""
+        if name.endswith(".pt"):
+            kwargs["fit"] = functools.partial(self.train, name)
+        return self.stage(name, lambda: step(*args, **kwargs))
 
     def path(self, *parts):
         """root/parts..., its folder made."""
@@ -122,6 +142,14 @@ class Run:
             self.claim_lineage(int(lineage.group(1)))
         if os.path.exists(path):
             return self.load(name)
+        with contextlib.ExitStack() as held:
+            if not lineage:  # a shared stage: another run of this folder (another lineage) may be making it now
+                held.enter_context(self.stage_lock(name))
+                if os.path.exists(path):
+                    return self.load(name)
+            return self._compute(name, path, compute)
+
+    def _compute(self, name, path, compute):
         t0 = time.time()
         value = compute()
         if name.endswith("calibration.json"):
@@ -146,21 +174,17 @@ class Run:
             check_evaluation(path, data, self.cfg, EVALUATION_ADVICE)
         return data
 
-    def train(self, name, policy, obs, chunks, train_cfg, sampler=None, continue_from=None, keep_state=False):
-        """Run.stage's compute for a policy `name` (.pt): diffusion.train with checkpoints at quarters of the
-        run (a stopped run resumes from the last one: weights, AdamW, random streams, the sampler's pool), then
-        the final file.
+    def train(self, name, policy, obs, chunks, train_cfg, sampler=None, start=None, keep_state=False, log=None):
+        """dagger.train_policy for a policy `name` (.pt) of the folder: diffusion.train with checkpoints at quarters
+        of the run (a stopped run resumes from the last one: weights, AdamW, random streams, the sampler's pool),
+        then the final file.
 
-        continue_from: the name of a finished policy with training state (pi_0), the policy given loaded from it,
-        whose optimizer and step count go on to train_cfg.steps; keep_state: the final file keeps the
-        optimizer state, for runs that continue from it.
+        start: the training state (step, AdamW) of the policy given (pi_0's policy.train_state), which goes on to
+        train_cfg.steps; keep_state: the final file keeps the optimizer state, and the policy as
+        policy.train_state, for runs that continue from it. log: default the folder's log.
         """
+        log = log or self.log
         final_path = self.path(*name.split("/"))
-        start = None
-        if continue_from is not None:
-            continue_from = os.path.join(self.root, *continue_from.split("/"))
-            payload = load_stage_file(continue_from, checkpoints.read_checkpoint)
-            start = checkpoints.train_state(continue_from, payload, random_streams=False)
         first, steps = (start["step"] if start else 0), train_cfg.steps
         part = final_path.replace(".pt", "_step{step}.pt")
         marks = tuple(sorted({first + max(1, (steps - first) * i // 4) for i in (1, 2, 3)}
@@ -172,15 +196,18 @@ class Run:
             payload = load_stage_file(resume, checkpoints.read_checkpoint)  # a damaged one is named
             policy.load_state_dict(payload["state_dict"])
             start = checkpoints.train_state(resume, payload, sampler)
-            self.log(f"  resuming from {os.path.relpath(resume, self.root)}")
+            log(f"  resuming from {os.path.relpath(resume, self.root)}")
+        last = {}
 
         def save(state):  # train()'s state at a checkpoint step, with the weights and the sampler's pool
             checkpoints.save_policy(policy, part.format(step=state["step"]), state, sampler, train_cfg)
+            last.update(state)
 
         diffusion.train(policy, obs, chunks, train_cfg, sampler=sampler, start=start, on_checkpoint=save,
-                        log=lambda m: self.log("  " + m))
+                        log=lambda m: log("  " + m))
         if keep_state:  # the last checkpoint holds the weights and the optimizer: it is the final file
             os.replace(part.format(step=steps), final_path)
+            policy.train_state = {"step": last["step"], "optimizer": last["optimizer"]}
         else:
             checkpoints.save_policy(policy, final_path)
         for m in marks:  # the finished checkpoint supersedes the partial ones
@@ -211,6 +238,43 @@ class Run:
             p = os.path.join(self.root, *name.split("/"))
             states[name] = [os.path.getsize(p), os.stat(p).st_mtime_ns] if os.path.exists(p) else None
         return states
+
+    def hold_lineages(self, lineages):
+        """Lock the lineages this process will run (.locks/lineage_<l>.lock, flock: the system drops a lock when
+        its process dies, so a killed run never leaves one held). FolderInUse, at once, naming the PID of the
+        process that holds one of them; release_lineages() (or the process's end) lets them go."""
+        taken = []
+        for lineage in lineages:
+            fd, holder = try_lock(self.path(LOCK_FOLDER, f"lineage_{lineage}.lock"))
+            if fd is None:
+                for fd in taken:  # none of the lineages asked for, as before the call
+                    os.close(fd)
+                raise FolderInUse(
+                    f"{self.root} is in use: process {holder or '(its PID not yet written)'} runs lineage {lineage} "
+                    "in it. Wait for it to finish (or stop it) and run this command again, or run another lineage "
+                    "(--lineage i) or another folder (--out).")
+            taken.append(fd)
+        self._held += taken
+
+    def release_lineages(self):
+        for fd in self._held:
+            os.close(fd)  # closing the descriptor drops its flock
+        self._held = []
+
+    @contextlib.contextmanager
+    def stage_lock(self, name):
+        """Hold .locks/<name>.lock while a shared stage is made: a second process of this folder waits for it and
+        then loads the stage instead of making it beside the first (their files would cross)."""
+        path = self.path(LOCK_FOLDER, name.replace("/", "__") + ".lock")
+        fd, holder = try_lock(path)
+        if fd is None:
+            self.log(f"waiting for process {holder or '(unknown)'}, which is making {name} in this folder")
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            os.close(fd)
 
     def claim_lineage(self, lineage):
         """lineage_<l>/lineage.json: the config and the pi_0 (the SHA-256 of its weights) the lineage is made
@@ -610,6 +674,24 @@ def timing_name(name):
     kind = {"D0": "demos", "bc": "bc", "bc_continued": "train_bc", "D": "collect",
             "calibration": "calibrate"}.get(parts[-1], "train_" + parts[-1])
     return kind + where
+
+
+LOCK_FOLDER = ".locks"  # the run folder's lock files (Run.hold_lineages, Run.stage_lock); nothing else reads them
+
+
+def try_lock(path):
+    """(file descriptor, None) with an exclusive flock on `path` (created), this process's PID written in it; or
+    (None, the PID written by the process that holds it) if another open file holds it."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        os.close(fd)
+        return None, holder
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd, None
 
 
 def stage_seed(cfg, *keys):

@@ -1,8 +1,8 @@
 """Worker processes: D0's plans, the arms of a round side by side, the BC row beside the rounds.
 
-Each job is a module-level function and plain arguments: the run folder's path and the config as a dict (a worker
-opens its own handle on the folder to write its stages and log) and the data the loop has in hand (D0, the rounds'
-interventions, the calibration), pickled to it. Every stage has its own seed and file, so the numbers do not depend
+Each job is a module-level function of dagger.py and its arguments: the config, the data the loop has in hand (D0,
+pi_0, the rounds' interventions, the calibration) and the run folder's memo and log (a Run pickles as its path and
+config: a worker opens its own handle on the folder to write its stages and log), pickled to it. Every stage has its own seed and file, so the numbers do not depend
 on how many workers ran them. Workers are spawned (not forked: torch's threads do not survive a
 fork) and run one torch thread each, so two workers use two cores. A stage that runs alone may take more threads
 (torch_threads), a number fixed by the stage: a thread count changes a training's last bits.
@@ -38,22 +38,29 @@ def in_parallel(fn, jobs, workers, log=None, each=None):
         return results
 
 
-class InBackground:
-    """fn(*args) in one worker process while this one goes on (enabled), else here and now; wait() for it."""
+def worker_map(workers, log=None):
+    """The loop's map (dagger.policy_calibrated_dagger) with `workers` processes: map(fn, jobs) starts every job at
+    once in min(workers, len(jobs)) worker processes and yields fn(*job) in the jobs' order as each is done (a job
+    not waited for yet runs beside what the loop does next: the BC row beside the rounds); workers <= 1: here, one
+    after the other, now. A worker's error is raised where its result is asked for."""
+    def map_jobs(fn, jobs):
+        jobs = list(jobs)
+        if workers <= 1 or not jobs:
+            return [fn(*job) for job in jobs]
+        if log is not None:
+            log(f"{len(jobs)} jobs ({fn.__name__}) in {min(workers, len(jobs))} worker processes")
+        pool = concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)),
+                                                      mp_context=multiprocessing.get_context("spawn"))
+        done = [pool.submit(_one_thread, fn, *job) for job in jobs]
 
-    def __init__(self, fn, args, enabled=True):
-        self._pool = self._done = None
-        if enabled:
-            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-            self._done = self._pool.submit(_one_thread, fn, *args)
-        else:
-            fn(*args)
-
-    def wait(self):
-        if self._pool is not None:
-            self._done.result()  # re-raises the worker's error here
-            self._pool.shutdown()
-            self._pool = None
+        def results():
+            try:
+                for future in done:
+                    yield future.result()
+            finally:
+                pool.shutdown()
+        return results()
+    return map_jobs
 
 
 def _one_thread(fn, *args):

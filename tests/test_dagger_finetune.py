@@ -50,7 +50,7 @@ def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path)
         wa = checkpoints.load_policy(os.path.join(two_workers, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         wb = checkpoints.load_policy(os.path.join(root, "lineage_0/round_1/checkpoints", f"{m}.pt"))
         assert all(torch.equal(v, wb.state_dict()[k]) for k, v in wa.state_dict().items())
-    assert "2 jobs (noised_arm) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
+    assert "2 jobs (train_and_evaluate) in 2 worker processes" in open(os.path.join(two_workers, "log.txt")).read()
     # D0 planned in batches by the two workers is the one process's, in scenario order (a batch given the wrong
     # scenarios would fail; its jobs are of equal length and finish in order: results taken in the order they
     # finished would pass here, tests/test_workers.py catches them)
@@ -74,7 +74,7 @@ def test_d0_skips_a_scenario_the_oracle_cannot_plan_and_plans_the_next_one(tmp_p
 
     monkeypatch.setattr(dagger.oracle_mod.Oracle, "demonstrate", fails_on_scenario_1)
     run = run_folder.Run(str(tmp_path / "d0"), replace(TINY, n_demos=3))
-    demos = dagger.oracle_demonstrations(run, workers=1)
+    demos = dagger.oracle_demonstrations(run.cfg, log=run.log)
     assert [d["seed"] for d in demos] == [0, 2, 3]
     assert "demos 3/3 | " in open(os.path.join(run.root, "log.txt")).read() and "1 unplannable" in open(
         os.path.join(run.root, "log.txt")).read()
@@ -272,22 +272,24 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
     calibrations, arms, order = {}, {}, []  # (k, chain): the loop's calibration; (k, method): the arm's samplers
     real_calibrate_noise, real_fine_tune = dagger.calibrate_noise, dagger.fine_tune
 
-    def calibrate_noise(run, lineage, k, *args, chain=None, **kwargs):
-        calibrations[(k, chain)] = real_calibrate_noise(run, lineage, k, *args, chain=chain, **kwargs)
-        return calibrations[(k, chain)]
+    def calibrate_noise(cfg, keys, *args, **kwargs):
+        chain = keys[2] if len(keys) > 2 else None
+        calibrations[(keys[1], chain)] = real_calibrate_noise(cfg, keys, *args, **kwargs)
+        return calibrations[(keys[1], chain)]
 
-    def fine_tune(run, lineage, k, method, *args):
+    def fine_tune(cfg, lineage, k, method, *args, **kwargs):
         first = len(augmentation_samplers)
-        policy = real_fine_tune(run, lineage, k, method, *args)
+        policy = real_fine_tune(cfg, lineage, k, method, *args, **kwargs)
         arms[(k, method)] = augmentation_samplers[first:]
         order.append((k, method))
         return policy
     monkeypatch.setattr(dagger, "calibrate_noise", calibrate_noise)
     monkeypatch.setattr(dagger, "fine_tune", fine_tune)
-    monkeypatch.setattr(dagger, "finetune_from_pi0", lambda run, name, *args, **kwargs: run.load("checkpoints/bc.pt"))
-    monkeypatch.setattr(dagger, "evaluate_policy", lambda run, name, policy, label, unseen=None: np.zeros(
-        (cfg.eval_scenarios, cfg.eval_repeats), bool))
-    dagger.policy_calibrated_dagger(run_folder.Run(str(tmp_path), cfg), [0])
+    monkeypatch.setattr(dagger, "finetune_from_pi0", lambda cfg, pi0, *args, **kwargs: pi0)
+    monkeypatch.setattr(dagger, "evaluate_policy", lambda memo, cfg, name, policy, label, log=None, unseen=None:
+                        np.zeros((cfg.eval_scenarios, cfg.eval_repeats), bool))
+    run = run_folder.Run(str(tmp_path), cfg)
+    dagger.policy_calibrated_dagger(cfg, [0], memo=run.memo, log=run.log)
 
     assert set(calibrations) == {(1, None), (2, None), (2, "closed_loop")}
     assert order.index((1, "closed_loop")) < order.index((2, "hg_dagger"))  # round 1 whole before round 2
@@ -331,7 +333,7 @@ def test_pi0_trains_on_its_fixed_thread_count_and_the_next_stage_on_the_process_
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        dagger.behavior_cloning(run, dagger.oracle_demonstrations(run, workers=1))
+        dagger.behavior_cloning(run.cfg, dagger.oracle_demonstrations(run.cfg))
         assert seen == [dagger.PI0_THREADS] and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)

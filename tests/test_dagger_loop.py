@@ -86,10 +86,10 @@ def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeyp
     root = str(tmp_path / "interrupted")
     real = dagger.fine_tune
 
-    def crash_on_pooled(run, lineage, k, method, *args):
+    def crash_on_pooled(cfg, lineage, k, method, *args, **kwargs):
         if method == "pooled":
             raise KeyboardInterrupt("stopped by the test")
-        return real(run, lineage, k, method, *args)
+        return real(cfg, lineage, k, method, *args, **kwargs)
 
     monkeypatch.setattr(dagger, "fine_tune", crash_on_pooled)
     with pytest.raises(KeyboardInterrupt):

@@ -118,8 +118,7 @@ def test_collection_keeps_the_interventions_of_the_label_rule(tmp_path, monkeypa
         return [{"obs": np.zeros((11, 4), np.float32), "q": np.zeros((11, 2)), "action": np.zeros((11, 2)),
                  "expert": e.copy(), "seed": i, "success": True, "interventions": 3} for i, e in enumerate(recorded)]
     monkeypatch.setattr(dagger, "rollout", fake_rollout)
-    run = run_folder.Run(str(tmp_path), cfg)
-    D = dagger.collect_interventions(run, 0, 1, type("Stub", (), {"device": "cpu"})(), np.zeros((2, 1), bool))
+    D = dagger.collect_interventions(cfg, (0, 1), type("Stub", (), {"device": "cpu"})(), np.zeros((2, 1), bool))
     assert len(D) == 1 and D[0]["expert"].tolist() == [0, 0, 0, 0, 1, 1, 1, 1, 0, 0, 0]
 
 

@@ -1,4 +1,4 @@
-"""Tests of EngineReach3D (envs.py): the UR5 engine-lever reaching env (paper Sec. V, Table II).
+"""Tests of EngineReach3D (experiment/engine3d.py): the UR5 engine-lever reaching env (paper Sec. V, Table II).
 
 FK against hand-computed DH poses, closed-form IK round trips, collision truth on hand-built
 configurations, pybullet (the simulator) vs the vectorized numpy check, scenario determinism,
@@ -10,8 +10,9 @@ import math
 import numpy as np
 import pytest
 
-from envs import (ENGINE_SELF_PAIRS, UR5_A, UR5_D, EngineConfig, EngineReach3D, make_env,
-                  segment_distance_3d, ur5_frames, ur5_ik)
+from envs import make_env
+from experiment.engine3d import (ENGINE_SELF_PAIRS, UR5_A, UR5_D, EngineConfig, EngineReach3D, segment_distance_3d,
+                                 ur5_frames, ur5_ik)
 
 D1, D4, D5, D6 = UR5_D[0], UR5_D[3], UR5_D[4], UR5_D[5]
 A2, A3 = UR5_A[1], UR5_A[2]
@@ -376,7 +377,7 @@ def test_step_terminates_on_collision_success_and_truncates():
 
 # ---- drawing --------------------------------------------------------------------------------------
 def test_render_scene_image_writes_a_png(scene_env, tmp_path):
-    from envs import render_scene_image
+    from experiment.engine3d import render_scene_image
     path = tmp_path / "scene.png"
     image = render_scene_image(scene_env, path, q=scene_env.witness, width=80, height=60)
     assert image.shape == (60, 80, 3) and path.stat().st_size > 1000

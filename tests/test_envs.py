@@ -530,7 +530,8 @@ def test_render_draws_scene_and_arms():
 def test_both_envs_share_the_arm_env_machinery():
     """State, the motion rule, the episode step, the end effector, the goal test and the default of an env
     variant's plug-in points (make_obs_near, plot_policy_view) are written once, in ArmEnv."""
-    from envs import ArmEnv, EngineReach3D
+    from envs import ArmEnv
+    from experiment.engine3d import EngineReach3D
     for cls in (PlanarReacher, EngineReach3D):
         assert issubclass(cls, ArmEnv)
         for name in ("joint_limits", "q", "q_prev", "goal", "set_state", "clip_action", "step", "ee",
@@ -543,7 +544,7 @@ def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
     making the UR5 env imports it. Checked in a fresh interpreter, where nothing else imported it first."""
     import subprocess
     import sys
-    code = ("import sys, envs\n"
+    code = ("import sys, envs, experiment.engine3d\n"
             "env = envs.make_env('planar'); env.reset(seed=0); env.step(env.q + 0.01)\n"
             "print('after planar:', 'pybullet' in sys.modules)\n"
             "envs.make_env('engine3d').reset(seed=0)\n"

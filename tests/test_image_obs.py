@@ -18,6 +18,7 @@ from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train
 from experiment import checkpoints, run_folder, workers
+from experiment import engine3d
 from experiment.image_obs import EngineImageConfig, EngineReach3DImage, ImageEncoder
 
 TINY_NET = dict(down_dims=(16, 32), n_groups=4, step_embed_dim=32)  # as tests/test_diffusion.py's
@@ -48,7 +49,7 @@ def small_images(monkeypatch, size):
 def test_the_variant_registers_its_env_and_encoder_in_the_core_tables():
     assert envs.ENVIRONMENTS["engine3d_image"] == (EngineReach3DImage, EngineImageConfig)
     assert diffusion.OBS_ENCODERS["image_cnn"] is ImageEncoder
-    assert issubclass(EngineReach3DImage, envs.EngineReach3D)
+    assert issubclass(EngineReach3DImage, engine3d.EngineReach3D)
     # for what the core keys by the paper's env (the unit, the tables, the memory bound) the variant is the lever
     assert envs.paper_env("engine3d_image") == "engine3d" and envs.paper_env(EngineReach3DImage()) == "engine3d"
     assert envs.paper_median_step("engine3d_image") == envs.paper_median_step("engine3d") == 0.0166
@@ -114,7 +115,7 @@ def test_image_env_bad_input_names_the_value(image_env):
         env.obs_image(np.zeros(127))
     with pytest.raises(ValueError, match="size"):
         image_env.render_image(size=4)
-    plain = envs.EngineReach3D()  # the core env: recorded observations change nothing, all is recomputed
+    plain = engine3d.EngineReach3D()  # the core env: recorded observations change nothing, all is recomputed
     plain.reset(seed=10_004)
     assert np.array_equal(plain.make_obs_near(plain.q, plain.q, np.zeros(127)), plain.make_obs(plain.q, plain.q))
 

@@ -42,7 +42,7 @@ def test_the_recipe_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi
     monkeypatch.setattr(dagger, "train_config", lambda *a, **kw: made.append(real(*a, **kw)) or made[-1])
     resumed, real_train = [], run_folder.Run.train
     monkeypatch.setattr(run_folder.Run, "train", lambda self, name, *a, **kw: resumed.append(
-        (name, kw.get("continue_from"))) or real_train(self, name, *a, **kw))
+        (name, kw.get("start") is not None)) or real_train(self, name, *a, **kw))
     dagger.run_experiment(cfg, root)
     pi0 = torch.load(os.path.join(root, "checkpoints", "bc.pt"), weights_only=True)["train_state"]
     assert pi0["step"] == cfg.bc_steps and pi0["optimizer"]["state"]
@@ -51,7 +51,7 @@ def test_the_recipe_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi
     assert bc_tc.lr_schedule == "cosine" and bc_tc.steps == cfg.bc_steps
     assert arm_tc.lr_schedule == "constant" and arm_tc.lr == pytest.approx(cfg.lr / 10)
     assert arm_tc.steps == cfg.bc_steps + cfg.finetune_steps  # finetune_steps more, from pi_0's step
-    assert resumed == [("checkpoints/bc.pt", None), ("lineage_0/round_1/checkpoints/hg_dagger.pt", "checkpoints/bc.pt")]
+    assert resumed == [("checkpoints/bc.pt", False), ("lineage_0/round_1/checkpoints/hg_dagger.pt", True)]
     assert not os.path.exists(os.path.join(root, "checkpoints", "bc_continued.pt"))
     row = json.load(open(os.path.join(root, "eval", "bc.json")))["success"]
     assert row == json.load(open(os.path.join(root, "eval", "pi0.json")))["success"]  # pi_0 itself, the same draws
@@ -114,8 +114,7 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
     monkeypatch.setattr(dagger, "rollout", fake_rollout)
     policy = type("Stub", (), {"device": "cpu"})()
     for cfg, kept in ((TINY, 1), (LEVER, 2)):
-        run = run_folder.Run(str(tmp_path / cfg.recipe), cfg)
-        got = dagger.collect_interventions(run, 0, 1, policy, np.zeros((TINY.eval_scenarios, 1), bool))
+        got = dagger.collect_interventions(cfg, (0, 1), policy, np.zeros((TINY.eval_scenarios, 1), bool))
         assert len(got) == kept and bool(got[0]["expert"][s0]) == (cfg is LEVER)
 
 

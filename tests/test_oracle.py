@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import envs
+from experiment import engine3d  # noqa: F401 (makes envs.make_env("engine3d"))
 import oracle
 from oracle import (Oracle, OracleConfig, PlanningFailed, edge_free_fraction, edge_resolution,
                     lever_arms, path_in_collision, rrt_connect, shortcut, smooth_corners, solve_ik,

@@ -5,13 +5,14 @@ import numpy as np
 import pytest
 
 import envs
+from experiment import engine3d
 from experiment.oriented_goal import EngineReach3DOriented, axis_rotation, tool_angle
 
 
 def test_tool_angle_is_the_flange_rotation_from_the_goal_posture():
     """Turning joint 1 (about the base's vertical axis) or joint 6 (about the tool axis) by delta rad
     turns the flange by exactly delta; batched and single inputs agree."""
-    goal_q = np.array(envs.EngineConfig().goal_q)
+    goal_q = np.array(engine3d.EngineConfig().goal_q)
     assert tool_angle(goal_q, goal_q) == pytest.approx(0.0, abs=1e-5)
     qs = []
     for joint, delta in ((0, 0.2), (5, 0.3), (5, -2.0)):

@@ -13,6 +13,7 @@ import torch
 
 import diffusion
 import envs
+from experiment import engine3d  # noqa: F401 (makes envs.make_env("engine3d"))
 from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from experiment import checkpoints

@@ -139,20 +139,24 @@ def test_a_stopped_training_resumes_from_its_last_quarter_as_if_never_stopped(tm
 
 
 def test_continuing_pi0_goes_on_from_its_step_and_optimizer(tmp_path):
-    """Run.train(continue_from=pi_0 kept with its state) trains from pi_0's step to the total: the checkpoints
-    fall at quarters of the remaining steps, and the result is train(start=pi_0's step and AdamW state)."""
+    """Run.train(start=pi_0's train_state, pi_0 kept with its state) trains from pi_0's step to the total: the
+    checkpoints fall at quarters of the remaining steps, and the result is train(start=pi_0's step and AdamW state);
+    pi_0 as trained and as loaded from its file hold the same train_state."""
     obs, chunks = toy_two_mode_data(300, H=4, seed=1)
     base = dict(batch_size=32, warmup_steps=5, log_every=0, schedule_steps=60)
     run = Run(str(tmp_path / "run"), RunCfg())
-    run.train("pi0.pt", tiny_policy(), obs, chunks, TrainConfig(steps=30, seed=1, **base), keep_state=True)
+    trained = run.train("pi0.pt", tiny_policy(), obs, chunks, TrainConfig(steps=30, seed=1, **base), keep_state=True)
     payload = checkpoints.read_checkpoint(str(tmp_path / "run" / "pi0.pt"))
-    assert payload["train_state"]["step"] == 30
+    assert payload["train_state"]["step"] == 30 == trained.train_state["step"]
+    loaded = run.load("pi0.pt").train_state["optimizer"]["state"]
+    assert all(torch.equal(v, loaded[i][name]) for i, s in trained.train_state["optimizer"]["state"].items()
+               for name, v in s.items())
     marks = []
     real = checkpoints.save_policy
     checkpoints.save_policy = lambda p, path, state=None, *a: (marks.append(state and state["step"]), real(p, path, state, *a))
     try:
-        cont = run.train("arm.pt", run.load("pi0.pt"), obs, chunks, TrainConfig(steps=60, seed=2, **base),
-                         continue_from="pi0.pt")
+        pi0 = run.load("pi0.pt")
+        cont = run.train("arm.pt", pi0, obs, chunks, TrainConfig(steps=60, seed=2, **base), start=pi0.train_state)
     finally:
         checkpoints.save_policy = real
     assert marks == [37, 45, 52, None]                                 # 30 + quarters of 30, then the final file
