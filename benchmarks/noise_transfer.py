@@ -30,7 +30,7 @@ Commands (a lineage at a time; each step resumes):
         --lineages 13 --lineage L --out runs/noise_transfer
     python benchmarks/noise_transfer.py --evaluate runs/noise_transfer --lineage L   # the new scenarios
     python dagger.py --profile table1_strong --methods hg_dagger,zero_noise,fixed_4,fixed_8,fixed_16,pooled \\
-        --lineages 13 --out runs/noise_transfer --export-lineages benchmarks/results/noise_transfer
+        --lineages 13 --out runs/noise_transfer --report --export-lineages benchmarks/results/noise_transfer
     python benchmarks/noise_transfer.py                               # every stated test, from the committed files
     python benchmarks/noise_transfer.py --figure benchmarks/figures/noise_transfer.png
 """
@@ -142,7 +142,7 @@ def evaluate_lineage(root, lineage, log=print):
     """Evaluate every study policy of `lineage` in run folder `root` on NEW_SEEDS into
     root/lineage_<l>/new_scenarios/<row>.json (a row already there is kept: the step resumes)."""
     cfg = SimpleNamespace(**run_folder.read_json(os.path.join(root, "config.json")))
-    if cfg.name != "table1_strong" or tuple(cfg.methods) != ("bc",) + ROWS:
+    if not str(cfg.name).startswith("table1_strong") or tuple(cfg.methods) != ("bc",) + ROWS:
         raise SystemExit(f"{root}: not the study's run folder (profile {cfg.name!r}, methods {cfg.methods}); run it "
                          f"as this script's docstring says")
     sample_seed = run_folder.stage_seed(cfg, "eval_new")

@@ -116,6 +116,7 @@ def test_evaluate_lineage_writes_each_row_on_the_new_seeds_and_resumes(nt, tmp_p
     root = tmp_path / "run"
     config = json.load(open(os.path.join(START, "config.json")))
     config["methods"] = ["bc", "hg_dagger", "zero_noise", "fixed_4", "fixed_8", "fixed_16", "pooled"]
+    config["name"] = "table1_strong_hg_dagger-zero_noise-fixed_4-fixed_8-fixed_16-pooled"  # as --methods names it
     (root / "checkpoints").mkdir(parents=True)
     (root / "lineage_5" / "round_1" / "checkpoints").mkdir(parents=True)
     json.dump(config, open(root / "config.json", "w"))
