@@ -639,7 +639,8 @@ def plot_success_vs_sigma(panels, path):
         if "bc" in rows:
             ax.axhline(np.mean(rows["bc"]), color="gray", ls="--", lw=1, label="BC")
         n = len(rows["hg_dagger"])
-        ax.set_title(f"{title}\n{n} lineage{'s' if n > 1 else ''}, mean, 95 % t interval", fontsize=9)
+        ax.set_title(f"{title}\n" + (f"{n} lineages, mean, 95 % t interval" if n > 1 else "1 lineage: no interval"),
+                     fontsize=9)
         ax.set_xticks(list(levels))
         ax.set_xlabel("noise σ (the paper's median steps)")
         ax.grid(alpha=0.3)
