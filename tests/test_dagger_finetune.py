@@ -255,7 +255,7 @@ def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
 
 
 def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypatch, augmentation_samplers):
-    """Fails if, in the loop (policy_calibrated_dagger, noised_arm, closed_loop_round), a noised arm of round k is
+    """Fails if, in the loop (policy_calibrated_dagger, train_and_evaluate, closed_loop_round), a noised arm of round k is
     given another round's calibration (round 1's or k-1's; the first calibration kept for every round) or another
     chain's: round k's pooled, per_step and fixed arms use the main chain's round-k calibration, the closed_loop
     row round 1's main calibration at K=1 and its own chain's at K=2; and if the closed-loop row's round 1 is not

@@ -692,23 +692,23 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
     dagger.run_experiment(cfg, str(tmp_path))
     for name, args, kwargs, out in calls:
         if name == "fine_tune":
-            made[(args[2], args[3])] = (out, args[5], args[6])  # (k, method): policy, data, calibration
+            made[(args[2], args[3])] = (out, args[6], args[7])  # (k, method): policy, data, calibration
         if name == "evaluate_policy":
-            made[args[1]] = out
-        if name == "collect_interventions" and kwargs.get("chain"):
+            made[args[2]] = out
+        if name == "collect_interventions" and len(args[1]) > 2:  # keys (lineage, k, chain)
             chain_collect = args
-        if name == "calibrate_noise" and kwargs.get("chain"):
-            chain_cal = (args, args[4], out)
+        if name == "calibrate_noise" and len(args[1]) > 2:
+            chain_cal = (args, args[3], out)
     cl1, data1, cal1 = made[(1, "closed_loop")]
     hg1_data = made[(1, "hg_dagger")][1]
     assert len(data1) == 1 and data1[0] is hg1_data[0]  # round 1: pi_0's interventions, as HG-DAgger's
     main_cal1 = run_folder.calibration_from_json(json.load(open(tmp_path / "lineage_0/round_1/calibration.json")))
     np.testing.assert_array_equal(cal1.pooled, main_cal1.pooled)
     # round 2: collected by the round-1 closed_loop policy with its own evaluation as the skip list
-    assert chain_collect[3] is cl1 and chain_collect[2] == 2
-    np.testing.assert_array_equal(chain_collect[4], made["lineage_0/round_1/eval/closed_loop.json"])
+    assert chain_collect[2] is cl1 and chain_collect[1] == (0, 2, "closed_loop")
+    np.testing.assert_array_equal(chain_collect[3], made["lineage_0/round_1/eval/closed_loop.json"])
     cal_args, cal_data, chain_calibration = chain_cal
-    assert cal_args[3] is cl1 and len(cal_data) == 2 and cal_data[0] is data1[0]
+    assert cal_args[2] is cl1 and len(cal_data) == 2 and cal_data[0] is data1[0]
     cl2, data2, cal2 = made[(2, "closed_loop")]
     assert cal2 is chain_calibration and len(data2) == 2 and all(a is b for a, b in zip(data2, cal_data))
     assert dagger.noise_model("closed_loop", cal2)[1] is cal2.pooled
@@ -721,8 +721,8 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
         assert {f"{kind}__lineage_0__round_2.json", f"{kind}__lineage_0__round_2__closed_loop.json"} <= set(timings)
     assert "train_closed_loop__lineage_0__round_2.json" in timings
     # the main chain's round 2 is HG-DAgger's: its own folder, collected by HG-DAgger's round-1 policy
-    main_collect = [a for n, a, kw, _ in calls if n == "collect_interventions" and not kw.get("chain") and a[2] == 2]
-    assert main_collect[0][3] is made[(1, "hg_dagger")][0]
+    main_collect = [a for n, a, kw, _ in calls if n == "collect_interventions" and a[1] == (0, 2)]
+    assert main_collect[0][2] is made[(1, "hg_dagger")][0]
     table = open(tmp_path / "table.md").read()
     assert "Closed-loop pooled" in table
     assert "- the closed-loop row's own chain" in table and "  - K=2: 0: W " in table  # its calibration, reported
@@ -855,9 +855,11 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
 
 
 def files_and_times(root):
-    """{path: (mtime_ns, size)} of every file under root: what a refused command must leave as it was."""
+    """{path: (mtime_ns, size)} of every file under root: what a refused command must leave as it was (the folder's
+    lock files aside: a command writes its PID into the lock it takes)."""
     return {os.path.join(top, n): (os.stat(os.path.join(top, n)).st_mtime_ns, os.stat(os.path.join(top, n)).st_size)
-            for top, _, names in os.walk(root) for n in names}
+            for top, _, names in os.walk(root) for n in names
+            if run_folder.LOCK_FOLDER not in os.path.relpath(top, root).split(os.sep)}
 
 
 @pytest.mark.parametrize("name,bad,expected", [
