@@ -142,8 +142,10 @@ def test_swapped_network_gives_the_built_in_fast_paths_numbers_bit_for_bit(netwo
     got = loss_grads_and_samples(swapped)
     assert len(got) == len(expected)
     assert all(torch.equal(a, b) for a, b in zip(got, expected))
-    plain = loss_grads_and_samples(random_policy(network))          # the check can fail: torch's own differ
-    assert not all(torch.equal(a, b) for a, b in zip(plain, expected))
+    plain = loss_grads_and_samples(random_policy(network))          # the check can fail where torch's own differ
+    if all(torch.equal(a, b) for a, b in zip(plain, expected)):     # (Intel Xeon, AVX-512/AMX: the linear kernel)
+        pytest.skip(f"on this CPU torch's own {network} equals the {kernels} kernels' to the bit: a swap that left "
+                    "torch's own in place could not be told apart here")
 
 
 def test_swap_keeps_parameters_state_dict_and_torchs_own_where_it_was():
