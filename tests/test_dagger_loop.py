@@ -3,6 +3,7 @@ import csv
 import dataclasses
 import json
 import os
+import signal
 import sys
 import time
 from dataclasses import replace
@@ -443,8 +444,13 @@ def test_a_ctrl_c_that_lands_in_a_finalizer_still_stops_the_run(capsys):
             time.sleep(0.01)
         return "finished"  # only if the interrupt was lost
 
-    with pytest.raises(SystemExit) as stop:
-        cli.run_command(work)
+    # a background shell (nohup, CI) starts pytest with SIGINT ignored: Python's own handler, as in a terminal
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(SystemExit) as stop:
+            cli.run_command(work)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert stop.value.code == 130 and "run the same command again to resume" in capsys.readouterr().err
     assert sys.unraisablehook is hook
 
