@@ -44,7 +44,7 @@ from experiment.workers import torch_threads
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
 def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
     """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
-    docs/AUTHORS_SETUP.md §2, §4). Each step is a function of its inputs that returns what it makes; without memo and map
+    docs/AUTHORS_SETUP.md §2, §4). Each step is a function of its inputs returning what it makes; without memo and map
     they are plain calls, one after the other (a notebook: no folder). The harness (experiment/report.py) hands in
     its own: memo(name, step, *args, **kw) keeps a step's result in the run folder's file `name` and resumes from it;
     map(fn, jobs), fn(*job) for each job in order, runs them in worker processes (a round's arms, the BC row)."""
@@ -136,7 +136,7 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
-    intervention_fraction: float = 0.3  # the intervention frames' share of every fine-tuning batch (docs/AUTHORS_SETUP.md §2)
+    intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (docs/AUTHORS_SETUP.md §2)
     recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
@@ -155,7 +155,7 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train: the authors' planar runs, Table I's (docs/AUTHORS_SETUP.md §2). A recipe is this set
+    """How pi_0 and every arm train: the authors' planar runs (docs/AUTHORS_SETUP.md §2). A recipe is this set
     of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
@@ -437,7 +437,7 @@ def calibration_config(cfg):
 # ---- Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0 -------------------------
 def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
     """(noise kind, sigma) of `method` for relabel.AugmentationSampler, sigma in our median steps (median_step,
-    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes` are the sampler's episodes' indices into the calibration's."""
+    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes`: the sampler's episodes' indices in the calibration's."""
     if method.startswith("fixed_"):
         sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
@@ -517,7 +517,7 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 
 def observation_noise(policy_cfg):
-    """Per-entry std (obs_dim,) of the training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
+    """Per-entry std (obs_dim,) of training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
     at t and t-1, OBS_NOISE_ENV on the other low-dimensional numbers, none on an encoder's entries (an image)."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
