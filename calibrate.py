@@ -18,7 +18,7 @@ The paper measures both offline, without an expert in the loop (Sec. IV-D). In t
 6. Figures: `plot_method_overview` (Fig. 2) and `plot_blend_fit` (Fig. 4).
 
 Units: radians (rad^2) and env steps (0.1 s); reports and figures add our median steps and the paper's
-(0.0176 rad planar, the unit of every sigma and W it quotes; docs/AUTHORS_SETUP.md §1).
+(0.0176 rad planar, the unit of every sigma and W it quotes; benchmarks/SETUP.md §1).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from partial_denoise import noise_fraction, partial_denoise
 
 @dataclass
 class CalibrationConfig:
-    """Sec. IV-D as the authors ran it (docs/AUTHORS_SETUP.md §5), in our 10 Hz steps."""
+    """Sec. IV-D as the authors ran it (benchmarks/SETUP.md §5), in our 10 Hz steps."""
     n_act: int                           # steps executed per decision, and compared in Eq. (1)
     n_samples: int = 4                   # policy chunks sampled per step for Eq. (1)
     stride: int = 2                      # steps: Sigma_hat_t at every other valid step (Fig. 2a)
@@ -58,7 +58,7 @@ class CalibrationConfig:
 
 
 def diverge_radius(threshold: float, median_step: float, paper_median_step: float | None) -> float:
-    """Radians: `threshold` of the paper's median steps (docs/AUTHORS_SETUP.md §5); for an env without one, of ours."""
+    """Radians: `threshold` of the paper's median steps (benchmarks/SETUP.md §5); for an env without one, of ours."""
     return threshold * (median_step if paper_median_step is None else paper_median_step)
 
 

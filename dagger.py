@@ -44,7 +44,7 @@ from experiment.workers import torch_threads
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
 def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
     """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
-    docs/AUTHORS_SETUP.md §2, §4). Each step is a function of its inputs returning what it makes; without memo and map
+    benchmarks/SETUP.md §2, §4). Each step is a function of its inputs returning what it makes; without memo and map
     they are plain calls, one after the other (a notebook: no folder). The harness (experiment/report.py) hands in
     its own: memo(name, step, *args, **kw) keeps a step's result in the run folder's file `name` and resumes from it;
     map(fn, jobs), fn(*job) for each job in order, runs them in worker processes (a round's arms, the BC row)."""
@@ -122,7 +122,7 @@ PI0_THREADS = 2  # torch threads of pi_0's training, whatever --workers (a threa
 
 @dataclass
 class Config:
-    # --- the paper's experiment (Sec. V; the authors' values in docs/AUTHORS_SETUP.md) ---
+    # --- the paper's experiment (Sec. V; the authors' values in benchmarks/SETUP.md) ---
     env: str = "planar"  # 'planar' (Table I), 'engine3d' (Table II), or a variant's (envs.ENVIRONMENTS)
     methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
@@ -136,7 +136,7 @@ class Config:
     finetune_steps: int = 100_000  # fine-tuning steps of every method per round (paper: to 175k)
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
-    intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (docs/AUTHORS_SETUP.md §2)
+    intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (benchmarks/SETUP.md §2)
     recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
@@ -155,7 +155,7 @@ class Config:
 
 
 class PaperRecipe:
-    """How pi_0 and every arm train: the authors' planar runs (docs/AUTHORS_SETUP.md §2). A recipe is this set
+    """How pi_0 and every arm train: the authors' planar runs (benchmarks/SETUP.md §2). A recipe is this set
     of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
 
     def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
@@ -288,7 +288,7 @@ def make_policy(cfg, env):
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
 def collect_interventions(cfg, keys, policy, policy_success, log=print):
     """D_k: HG-DAgger rollouts of the lineage's policy on the evaluation scenarios its own evaluation
-    (policy_success, (scenarios, repeats) bool) did not always solve (docs/AUTHORS_SETUP.md §4), the episodes with an
+    (policy_success, (scenarios, repeats) bool) did not always solve (benchmarks/SETUP.md §4), the episodes with an
     intervention the label rule keeps. keys: (lineage, k), and a chain of its own ('closed_loop'): the seeds."""
     label = round_label(keys)
     seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
@@ -328,7 +328,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
     """One episode in each (already reset) env, in lockstep, until all end; returns the episode dicts.
 
     Without an oracle the policy drives (evaluation). With one, HG-DAgger (Sec. IV-A step 2) with the authors'
-    gate (docs/AUTHORS_SETUP.md §3, oracle.Gate, seeded by `seed`): before every policy step the gate reads the pending
+    gate (benchmarks/SETUP.md §3, oracle.Gate, seeded by `seed`): before every policy step the gate reads the pending
     actions; on a predicted collision the oracle plans from here, on a stall or a time trigger the episode first
     rewinds a few policy steps; the expert then drives (expert=True) a random 20-67 steps and hands back."""
     E = len(envs_list)
@@ -417,7 +417,7 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
 def calibrate_noise(cfg, keys, policy, rounds_data, stats, log=print):
-    """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (docs/AUTHORS_SETUP.md
+    """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (benchmarks/SETUP.md
     §5); keys (lineage, k[, chain]): its seed (the closed-loop row's chain: its policy on its chain's data)."""
     episodes = [ep for D in rounds_data for ep in D]
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", *keys))
@@ -437,7 +437,7 @@ def calibration_config(cfg):
 # ---- Steps 3-4: the noise of each method, augmentation on the fly, co-training from pi_0 -------------------------
 def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=None):
     """(noise kind, sigma) of `method` for relabel.AugmentationSampler, sigma in our median steps (median_step,
-    rad; docs/AUTHORS_SETUP.md §1). For 'per_step', `episodes`: the sampler's episodes' indices in the calibration's."""
+    rad; benchmarks/SETUP.md §1). For 'per_step', `episodes`: the sampler's episodes' indices in the calibration's."""
     if method.startswith("fixed_"):
         sigma = float(method.split("_")[1])  # Table I: sigma in the paper's median steps (envs.paper_median_step)
         if median_step is None or paper_median_step is None:
@@ -479,7 +479,7 @@ def intervention_sampler(cfg, method, rounds_data, calibration, stats):
 
 
 def fine_tune(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, log=print, fit=None):
-    """Steps 3-4 (docs/AUTHORS_SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
+    """Steps 3-4 (benchmarks/SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
     interventions of rounds 1..k (intervention_sampler); D0 is never noised."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
@@ -517,7 +517,7 @@ def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fracti
 
 
 def observation_noise(policy_cfg):
-    """Per-entry std (obs_dim,) of training observation noise (docs/AUTHORS_SETUP.md §2): OBS_NOISE_JOINTS on the joints
+    """Per-entry std (obs_dim,) of training observation noise (benchmarks/SETUP.md §2): OBS_NOISE_JOINTS on the joints
     at t and t-1, OBS_NOISE_ENV on the other low-dimensional numbers, none on an encoder's entries (an image)."""
     std = np.zeros(policy_cfg.obs_dim)
     std[:2 * policy_cfg.dof] = OBS_NOISE_JOINTS
@@ -535,7 +535,7 @@ def train_and_evaluate(cfg, lineage, k, method, demos, pi0, rounds_data, calibra
 
 
 def closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, first_round, first_calibration, memo=None, log=print):
-    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (docs/AUTHORS_SETUP.md §5): the
+    """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (benchmarks/SETUP.md §5): the
     chain's round k-1 policy, co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise
     is measured on it over the chain's rounds 1..k. Round 1 is the main chain's (the authors copy it too).
     chain: None at k = 1, else round k-1's return: (rounds' data, policy, success)."""

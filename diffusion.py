@@ -16,7 +16,7 @@ A chunk "at level k" is q_sample(schedule, a0, k, eps) = sqrt(alphabar_{k+1}) a0
 the network is told that k, and p_sample(..., a_k, k) returns the chunk at level k - 1; from level 0 the clean
 chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in for level K - 1.
 
-The network is the authors' (docs/AUTHORS_SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
+The network is the authors' (benchmarks/SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
 on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py). It is written with torch's own
 layers; experiment/cpu_kernels.py computes its Linear and Mish faster where that was measured to pay.
 """
@@ -34,7 +34,7 @@ import torch.nn as nn
 # ---- Config ------------------------------------------------------------------------------------------------------
 @dataclass
 class PolicyConfig:
-    # the paper (Sec. IV-B/C) and the authors' setup (docs/AUTHORS_SETUP.md §1-2); dagger.Config holds H, n_act, K
+    # the paper (Sec. IV-B/C) and the authors' setup (benchmarks/SETUP.md §1-2); dagger.Config holds H, n_act, K
     obs_dim: int                 # length of the flat observation o_t; it starts with (q_t, q_{t-1}) (envs.py)
     dof: int                     # joints per action, d (3 planar, 6 UR5)
     horizon: int                 # H: actions per predicted chunk (steps)
@@ -96,13 +96,13 @@ class PolicyConfig:
 
 @dataclass
 class TrainConfig:
-    # the paper (Sec. IV-A) and the authors' setup (docs/AUTHORS_SETUP.md §2)
+    # the paper (Sec. IV-A) and the authors' setup (benchmarks/SETUP.md §2)
     steps: int = 10_000              # optimizer steps of this run (the total, also when resuming)
     batch_size: int = 256            # chunks per step (base + augmented)
     lr: float = 1e-3                 # peak AdamW learning rate (after warmup)
     weight_decay: float = 1e-6       # AdamW weight decay (the authors')
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
-    schedule_steps: int = 0          # where the cosine reaches 0 (0: steps; pi_0 continued: docs/AUTHORS_SETUP.md §2)
+    schedule_steps: int = 0          # where the cosine reaches 0 (0: steps; pi_0 continued: benchmarks/SETUP.md §2)
     lr_schedule: str = "cosine"      # an LR_SCHEDULES name: the authors' warm-up + cosine (a variant adds its own)
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
     obs_noise: object = 0.0          # observation noise std in raw units (authors': 0.01 rad, 0.005 m), or (obs_dim,)
@@ -243,7 +243,7 @@ def p_sample(schedule, eps_pred, a_k, k, generator=None, noise=None, clip=True):
     # <<< exercise 2
 
 
-# ---- eps_theta(a_k, k | o): Chi et al.'s 1-D temporal U-Net, FiLM-conditioned on (k, o) (docs/AUTHORS_SETUP.md §2)
+# ---- eps_theta(a_k, k | o): Chi et al.'s 1-D temporal U-Net, FiLM-conditioned on (k, o) (benchmarks/SETUP.md §2)
 def step_embedding(k, dim):
     """Sinusoidal embedding of the diffusion step (Vaswani et al.; as in DDPM): (N,) -> (N, dim)."""
     half = dim // 2
@@ -525,7 +525,7 @@ class DiffusionPolicy(nn.Module):
 
     def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
         """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}. mask: optional
-        (B, H) bool, True = the chunk step is in the loss (a servo label's held steps not: docs/AUTHORS_SETUP.md §6)."""
+        (B, H) bool, True = the chunk step is in the loss (a servo label's held steps not: benchmarks/SETUP.md §6)."""
         B = chunk_norm.shape[0]
         gdev = generator.device if generator is not None else self.device
         k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
@@ -624,7 +624,7 @@ def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None
       round(cfg.aug_fraction * batch_size) rows of every batch (Sec. IV-A step 4); a mask's False steps are not in
       the loss.
     - start: None (step 0, a fresh AdamW) or a state on_checkpoint handed over: from its 'step' and 'optimizer'
-      along cfg's lr schedule (fine-tuning continues pi_0 so, docs/AUTHORS_SETUP.md §2), and with its 'numpy_rng' and
+      along cfg's lr schedule (fine-tuning continues pi_0 so, benchmarks/SETUP.md §2), and with its 'numpy_rng' and
       'torch_rng' where it has them (a resumed run: its weights and the sampler's pool are the caller's to restore).
     - on_checkpoint(state): after every step of cfg.checkpoint_steps, {'step', 'optimizer', 'numpy_rng', 'torch_rng'}.
     """
@@ -667,7 +667,7 @@ def train(policy, obs, chunks, cfg, sampler=None, start=None, on_checkpoint=None
         if n_aug:                                                      # co-training (Sec. IV-A step 4)
             o, a, mask = _append_augmented(policy, sampler, n_aug, rng, o, a)
         with torch.no_grad():
-            if noisy:   # Sec. V, docs/AUTHORS_SETUP.md §2: labels unchanged: the policy learns from a wrong reading
+            if noisy:   # Sec. V, benchmarks/SETUP.md §2: labels unchanged: the policy learns from a wrong reading
                 o = o + noise_std * torch.randn(o.shape, generator=gen, device=dev)
             o = policy.normalize_obs(o)                                # (B, cond input)
         loss = policy.loss(o, a, generator=gen, mask=mask)

@@ -30,7 +30,7 @@ import numpy as np
 import pymunk
 
 
-# ---- The planar reacher's configuration (Table I; the authors' setup: docs/AUTHORS_SETUP.md §1) ---------
+# ---- The planar reacher's configuration (Table I; the authors' setup: benchmarks/SETUP.md §1) ---------
 @dataclass
 class PlanarConfig:
     # --- the arm: the authors' planar_3joint.urdf ---
@@ -262,7 +262,7 @@ class PlanarReacher(ArmEnv):
     palm, two fingers; `parts`) in their links' frames, the obstacles rows (centre x, y, half x, half y, angle).
 
     Observation layout (float32, obs_dim = 2 dof + 8 = 14; the authors' observation.state and
-    observation.environment_state, docs/AUTHORS_SETUP.md §1):
+    observation.environment_state, benchmarks/SETUP.md §1):
         [0:3]    q        current joint positions (rad)
         [3:6]    q_prev   joint positions one step earlier (rad)
         [6:8]    target   centre of the target block (x, z) in m
@@ -426,7 +426,7 @@ class PlanarReacher(ArmEnv):
     # ---- scenarios ---------------------------------------------------------------------------
     def _draw_scene(self, rng):
         """One candidate scene: (obstacles (N, 5), goal (2,)), or None where blocks overlap. The authors'
-        placement (docs/AUTHORS_SETUP.md §1): each block at an angle uniform in [0, 2 pi) around the shoulder, at a
+        placement (benchmarks/SETUP.md §1): each block at an angle uniform in [0, 2 pi) around the shoulder, at a
         distance uniform in target_radius / obstacle_radius; the obstacles may or may not block the way."""
         cfg = self.cfg
 
@@ -621,7 +621,7 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit (docs/AUTHORS_SETUP.md §1): the median L2 norm over the joints of the authors' 30 Hz demo steps;
+# The paper's own unit (benchmarks/SETUP.md §1): the median L2 norm over the joints of the authors' 30 Hz demo steps;
 # ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step = sigma_paper * this.
 PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
 PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per

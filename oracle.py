@@ -1,4 +1,4 @@
-"""The RRT oracle expert (paper Sec. V; the gate of Sec. IV-A; the authors' setup: docs/AUTHORS_SETUP.md §3).
+"""The RRT oracle expert (paper Sec. V; the gate of Sec. IV-A; the authors' setup: benchmarks/SETUP.md §3).
 
 A deterministic planner with privileged simulator information stands in for HG-DAgger's human, for any serial
 arm behind the env interface of envs.py. In the paper's order:
@@ -31,7 +31,7 @@ class PlanningFailed(RuntimeError):
 
 @dataclass
 class OracleConfig:
-    """The authors' planner and gate (docs/AUTHORS_SETUP.md §3), counts in our 10 Hz steps (theirs: 30 Hz frames). A
+    """The authors' planner and gate (benchmarks/SETUP.md §3), counts in our 10 Hz steps (theirs: 30 Hz frames). A
     sweep: Oracle.sweep."""
     max_goals: int = 32  # IK goal configurations handed to the planner, nearest first (theirs: 32)
     speed_fraction: float = 1.0  # v_max = speed_fraction * env.max_step / env.dt (theirs: 0.5 rad/s)

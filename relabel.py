@@ -6,7 +6,7 @@ augmented data D̂_k of Sec. IV-A steps 3-4. Top to bottom:
                        'per_step' Σ^α_t (Eq. (14)), both measured by calibrate.py
   monotone_projection  Sec. IV-E: "a monotone closest-point projection"                         (exercise 8)
   pd_return_chunk      Sec. IV-E: "a critically-damped PD controller, with accelerations clamped" (exercise 9)
-  servo_return_chunk   the authors' clamped servo (their code, docs/AUTHORS_SETUP.md §6): every profile's label
+  servo_return_chunk   the authors' clamped servo (their code, benchmarks/SETUP.md §6): every profile's label
   corrective_labels    projection -> return chunk, for a batch of noised states
   AugmentationSampler  Sec. IV-A steps 3-4: (observation, chunk, mask) made on the fly for co-training;
                        ChunkSampler, MixtureSampler: a fine-tuning batch's intervention rows, round by round
@@ -32,7 +32,7 @@ class RelabelConfig:
     label: str = "servo"  # 'servo': `servo_return_chunk` (the authors', every profile's); 'pd': `pd_return_chunk`
     settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (label='pd')
     velocity_noise: float = 0.3  # the authors' median steps per 30 Hz frame: std of the velocity noise
-    # the servo's knobs: the authors' values (docs/AUTHORS_SETUP.md §6) per 10 Hz step, in our median steps m
+    # the servo's knobs: the authors' values (benchmarks/SETUP.md §6) per 10 Hz step, in our median steps m
     a_clamp_scale: float = 0.9  # a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
     accel_floor: float = 0.6  # median steps/step²
     gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m)
@@ -252,7 +252,7 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
 
 def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, stats: DemoStats,
                        cfg: RelabelConfig, t_end=None, limits=None) -> tuple[np.ndarray, np.ndarray]:
-    """The label every profile uses: the authors' clamped servo (docs/AUTHORS_SETUP.md §6), a critically damped servo
+    """The label every profile uses: the authors' clamped servo (benchmarks/SETUP.md §6), a critically damped servo
     tracking the expert segment at its own cursor c_k: the monotone projection of x_k, at most `cursor_advance`
     past c_{k-1} (from t_proj). With m = stats.median_step and r_c = trajectory[c], u_c = r_{c+1} - r_c:
         a_k = Kp (r_c - x_k) + Kd (u_c - v_k),  Kp = a_clamp / max(d0, gain_floor · m),  d0 = ‖q0 - r_{t_proj}‖,
@@ -324,7 +324,7 @@ def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray
 
 def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
     """rad per env step: the std of the per-joint velocity noise, the authors' N(0, (0.3 m_p)²) per 30 Hz frame
-    (m_p their median step; docs/AUTHORS_SETUP.md §6) over frames_per_step frames. Without the env's units:
+    (m_p their median step; benchmarks/SETUP.md §6) over frames_per_step frames. Without the env's units:
     velocity_noise · m."""
     if stats.paper_median_step is None or stats.frames_per_step is None:
         return cfg.velocity_noise * stats.median_step
@@ -335,7 +335,7 @@ class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool): noised
     intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
 
-    A pair (docs/AUTHORS_SETUP.md §6): (episode, t) uniform over labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
+    A pair (benchmarks/SETUP.md §6): (episode, t) uniform over labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
     v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
     mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
     noise: 'isotropic', 'pooled' or 'per_step'; sigma: as in `noise_factors`, for 'per_step' a list or dict

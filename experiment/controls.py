@@ -4,7 +4,7 @@
                        return labels, no noise. It separates the effect of the noise from that of relabelling (a noised
                        arm never sees the recorded intervention chunks, HG-DAgger sees nothing else). Measured on the
                        lever: benchmarks/HISTORY.md, "The σ = 0 control on the lever" (and the mid run's σ = 0 row).
-    authors_hg_dagger  HG-DAgger as the authors' kit trained it (docs/AUTHORS_SETUP.md §2): each intervention its own
+    authors_hg_dagger  HG-DAgger as the authors' kit trained it (benchmarks/SETUP.md §2): each intervention its own
                        episode, every one of its steps a chunk start, a chunk that runs past the intervention's end
                        repeating its last action, and those padded "hold still at the hand-back point" steps in the
                        loss (PCD paper/tables_repro/planar_arms.sh: the hg arm passes only dart_relabel=false, so it

@@ -45,7 +45,7 @@ def make_figures(run, demo_statistics):
         return
     D1 = run.load("lineage_0/round_1/D.npz")
     cal = run.load("lineage_0/round_1/calibration.json")
-    # the policy that was calibrated: the round's HG-DAgger policy (docs/AUTHORS_SETUP.md §5)
+    # the policy that was calibrated: the round's HG-DAgger policy (benchmarks/SETUP.md §5)
     calibrated = "lineage_0/round_1/checkpoints/hg_dagger.pt"
     policy = run.load(calibrated if os.path.exists(os.path.join(run.root, calibrated)) else "checkpoints/bc.pt")
     gen = lambda: torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "figures"))  # noqa: E731

@@ -1,4 +1,4 @@
-"""A research variant: the authors' lever recipe, their UR5 runs' training (docs/AUTHORS_SETUP.md §2; PCD lib_repro.sh
+"""A research variant: the authors' lever recipe, their UR5 runs' training (benchmarks/SETUP.md §2; PCD lib_repro.sh
 lever_train and lever_seeds.sh), measured here as benchmarks/results/table2_authors_finetune(_seeds)
 (benchmarks/HISTORY.md, "The authors' lever fine-tuning" and "The authors' replicate design"). Run it with
 `python dagger.py --profile table2 --recipe authors_lever` (or authors_lever_seeds).

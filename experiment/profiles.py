@@ -77,7 +77,7 @@ PROFILES = {
                      finetune_steps=10_000,
                      methods=("bc", "hg_dagger", "fixed_4", "fixed_8", "pooled"),
                      eval_scenarios=100, eval_repeats=3),
-    # Table I's protocol at the authors' sizes (docs/AUTHORS_SETUP.md §2): their U-Net widths, 100 diffusion
+    # Table I's protocol at the authors' sizes (benchmarks/SETUP.md §2): their U-Net widths, 100 diffusion
     # steps, batch 32, lr 1e-5, BC 75k steps, every cell fine-tuned +100k (for a GPU or a cluster).
     "paper": dict(name="paper", down_dims=(128, 256, 512), K=100, batch_size=32, lr=1e-5),
 }

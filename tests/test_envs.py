@@ -92,7 +92,7 @@ def test_paper_median_step_by_name_or_env():
 
 
 def test_paper_frame_is_the_authors_control_step():
-    """Run at dt = PAPER_FRAME_DT, the planar env is the authors' (docs/AUTHORS_SETUP.md §1): 1000-step (33 s)
+    """Run at dt = PAPER_FRAME_DT, the planar env is the authors' (benchmarks/SETUP.md §1): 1000-step (33 s)
     episodes, and driven at full speed each joint moves their 0.5 rad/s limit per frame, about 0.0167 rad.
     One of our 0.1 s steps moves as far as env.dt / PAPER_FRAME_DT of those frames (3)."""
     theirs, ours = make_env("planar", dt=envs.PAPER_FRAME_DT), make_env("planar")
@@ -357,10 +357,10 @@ def test_make_obs_layout(env):
 # ---- the unit of noise levels: our median step and the paper's ----------------------------------------
 # "Median step" has four plausible readings: per joint or the L2 norm over the joints, per 10 Hz env step
 # or per 30 Hz frame of the authors. Ours (envs.median_step) is per joint per env step; the paper's
-# (PAPER_MEDIAN_STEP, 0.0176 rad planar) is L2 over the joints per 30 Hz frame (docs/AUTHORS_SETUP.md §1). The
+# (PAPER_MEDIAN_STEP, 0.0176 rad planar) is L2 over the joints per 30 Hz frame (benchmarks/SETUP.md §1). The
 # tests below compute all four from the data, independently of the code, and check that the code's
 # unit is the one it claims and not another.
-AUTHORS_HZ = 30  # the authors' control rate (docs/AUTHORS_SETUP.md §1 "Control: 30 Hz"): an input fact here
+AUTHORS_HZ = 30  # the authors' control rate (benchmarks/SETUP.md §1 "Control: 30 Hz"): an input fact here
 
 
 def four_median_steps(episodes, dt):

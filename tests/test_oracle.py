@@ -410,7 +410,7 @@ def test_intervention_matches_handoff_velocity_and_hands_back_safely(env, demo):
         assert not info["collision"]
         if terminated:
             break
-    lo, hi = oracle_.cfg.handback_steps  # the authors' random hand-back (docs/AUTHORS_SETUP.md §3) ...
+    lo, hi = oracle_.cfg.handback_steps  # the authors' random hand-back (benchmarks/SETUP.md §3) ...
     assert lo <= len(actions) <= hi or len(actions) == len(plans[-1].samples) - 1  # ... or the whole plan
 
 

@@ -670,7 +670,7 @@ def test_pd_label_is_time_matched(stats):
     assert np.median(np.linalg.norm(timed[:, -1] - traj[proj + H], axis=1)) < 0.1 * stats.median_step
 
 
-# ---------------------------------------------------------------- the authors' relabeling (docs/AUTHORS_SETUP.md §6)
+# ---------------------------------------------------------------- the authors' relabeling (benchmarks/SETUP.md §6)
 
 def line_episode(seed=0, T=60, step=(0.02, -0.01, 0.015)):
     """A constant-velocity expert episode: its demo tangent q_t - q_{t-1} is `step` at every t."""
@@ -699,7 +699,7 @@ def test_velocity_noise_has_the_configured_std_and_rebuilds_q_prev(stats):
 
 def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
     """The authors add N(0, (0.3 m_p)²) per joint to a noised state's velocity, in rad per 30 Hz frame (m_p
-    their median step, docs/AUTHORS_SETUP.md §6). Per env step that must be the same speed in rad/s at any control
+    their median step, benchmarks/SETUP.md §6). Per env step that must be the same speed in rad/s at any control
     period. With the stats built as the project builds them (frames_per_step = env.dt / PAPER_FRAME_DT, as
     dagger's demo statistics do) for one motion sampled at our 10 Hz and at the authors' 30 Hz (where a step
     is their frame, so their 0.3 m_p unconverted), the std over env.dt is one number; one 10 Hz step spans as
@@ -719,7 +719,7 @@ def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
                                   frames_per_step=env.dt / envs.PAPER_FRAME_DT)
 
     env10, q10, at_10hz = project_stats(0.1)
-    env30, q30, at_30hz = project_stats(1 / 30)  # the authors' rate (docs/AUTHORS_SETUP.md §1), not PAPER_FRAME_DT
+    env30, q30, at_30hz = project_stats(1 / 30)  # the authors' rate (benchmarks/SETUP.md §1), not PAPER_FRAME_DT
     # frames per step, from the data: how much further one 10 Hz step moves than one 30 Hz step
     assert at_10hz.frames_per_step == pytest.approx(np.abs(np.diff(q10, axis=0)).max() / np.abs(np.diff(q30, axis=0)).max())
     assert at_30hz.frames_per_step == pytest.approx(1.0)

@@ -2,7 +2,7 @@
 
 A fresh clone holds only what git tracks. The team's notes that once sat beside the repository (the authors'
 setup notes, the design and style notes, the paper's LaTeX source) are not in a clone, so a comment or document
-that sends the reader there is a dead end. The authors' setup is docs/AUTHORS_SETUP.md; where to get the paper is
+that sends the reader there is a dead end. The authors' setup is benchmarks/SETUP.md; where to get the paper is
 in README.md. This test fails on any tracked text file that names the folder beside the repository or one of
 those files.
 """
@@ -64,11 +64,11 @@ def test_the_scanner_finds_each_kind_of_outside_reference():
     sample = ("see ../" "shared/PAPER" "_SETUP.md §2\n"
               "Paper map (paper." "tex):\n"
               "the design's map (DESIGN" ".md)\n"
-              "the authors' setup: docs/AUTHORS_SETUP.md §2; the paper: README.md\n")
+              "the authors' setup: benchmarks/SETUP.md §2; the paper: README.md\n")
     found = outside_references(sample)
     assert [n for n, _ in found] == [1, 1, 2, 3], found
     assert outside_references(sample, tracked_names={"DESIGN" ".md"})[-1][0] == 2  # once tracked, a name is inside
-    assert outside_references("docs/AUTHORS_SETUP.md §5, benchmarks/HISTORY.md, sharedir/x") == []
+    assert outside_references("benchmarks/SETUP.md §5, benchmarks/HISTORY.md, sharedir/x") == []
 
 
 def test_no_tracked_file_refers_to_a_path_outside_the_repository():
@@ -87,5 +87,5 @@ def test_no_tracked_file_refers_to_a_path_outside_the_repository():
         if text is None:
             continue
         bad += [f"{path}:{number}: {match}" for number, match in outside_references(text, names)]
-    assert not bad, ("references to paths outside the repository (the authors' setup is docs/AUTHORS_SETUP.md, "
+    assert not bad, ("references to paths outside the repository (the authors' setup is benchmarks/SETUP.md, "
                      "the paper is named in README.md):\n" + "\n".join(bad))
