@@ -641,7 +641,7 @@ def plot_success_vs_sigma(panels, path):
         n = len(rows["hg_dagger"])
         ax.set_title(f"{title}\n" + (f"{n} lineages, mean, 95 % t interval" if n > 1 else "1 lineage: no interval"),
                      fontsize=9)
-        ax.set_xticks(list(levels))
+        ax.set_xticks(sorted({0.0, *levels}))  # HG-DAgger stands at 0 with or without a zero_noise row
         ax.set_xlabel("noise σ (the paper's median steps)")
         ax.grid(alpha=0.3)
     axes[0, 0].set_ylabel("success (%)")
