@@ -18,7 +18,9 @@ chunk (the posterior variance at k = 0 is zero). Pure noise N(0, I) stands in fo
 
 The network is the authors' (benchmarks/SETUP.md §2: LeRobot's diffusion policy, the CNN variant of Chi et al. 2023);
 on a CPU it is the expensive part of the project (benchmarks/bench_train_step.py). It is written with torch's own
-layers; experiment/cpu_kernels.py computes its Linear and Mish faster where that was measured to pay.
+layers, eps_theta in one function (FiLMNetwork.forward); experiment/cpu_kernels.py computes the same network with
+its FiLM maps split (the step part of all K steps once per sampling call) and its Linear and Mish faster where that
+was measured to pay.
 """
 
 import copy
@@ -282,14 +284,11 @@ class ConditionalResidualBlock(nn.Module):
 
 
 class FiLMNetwork(nn.Module):
-    """What both epsilon networks share: every residual block's FiLM is film(Mish([step features, obs features])).
-
-    Splitting the weight W = [W_s | W_o] along its input, film = (W_s Mish(step) + b) + W_o Mish(obs): film_terms()
-    computes the first term for all K steps at once (the step table), the second once per sampling call, and
-    forward(a, film) takes their sum, all blocks' (scale, bias) in one row. A subclass builds its blocks and its
-    output layer `final` in build() and lists the blocks in residual_blocks() in the order forward() uses them.
-    """
-    film_linear = staticmethod(nn.functional.linear)   # film_terms' products (experiment/cpu_kernels.py: its own)
+    """What both epsilon networks share, eps_theta(a_k, k | o) = body(a_k, film): every residual block's FiLM
+    (scale, bias) is its map `film` of Mish([step features of k, observation features]) (Chi et al.). A subclass
+    builds its blocks and its output layer `final` in build(), lists the blocks in residual_blocks() in the order
+    its body(a, film) uses them, and body reads all blocks' (scale, bias) from one row. experiment/cpu_kernels.py
+    computes the same FiLM with the map split along its input (FiLMTable: the step part of all K steps at once)."""
 
     def __init__(self, cfg):
         super().__init__()
@@ -307,26 +306,21 @@ class FiLMNetwork(nn.Module):
         # built last, so an encoder with weights leaves the others' initialisation as without it
         self.obs_encoder = OBS_ENCODERS[cfg.obs_encoder](**cfg.obs_encoder_args)
 
-    def film_weights(self):
-        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
-        each stacked whole (a CPU kernel reads a contiguous weight faster than a slice: experiment/cpu_kernels.py)."""
-        films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
-        w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
-        w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
-        return w_step, w_obs, torch.cat([film.bias for film in films])         # ..., (F,)
-
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
         return self.step_encoder(step_embedding(k, self.step_embed_dim))
 
-    def film_terms(self, obs_norm):
-        """The FiLM's two parts, the stacked weights built once for both: the obs terms W_o Mish(obs features)
-        (B, F) of normalize_obs's output (the encoder's features, OBS_ENCODERS), and the step table
-        W_s Mish(step features) + b (K, F) of every block's FiLM for all K steps at once."""
-        w_step, w_obs, bias = self.film_weights()
-        obs_part = self.film_linear(self.cond_mish(self.obs_encoder(obs_norm)), w_obs)           # (B, F)
-        k = torch.arange(self.K, device=bias.device)
-        return obs_part, self.film_linear(self.cond_mish(self.step_features(k)), w_step, bias)  # ..., (K, F)
+    def encode(self, obs_norm):
+        """The observation's features (B, .) of normalize_obs's output: what eps_theta reads of o, computed once
+        for all the reverse steps of a sampling call (its rows can be picked: features[rows])."""
+        return self.obs_encoder(obs_norm)
+
+    def forward(self, a, k, features):
+        """eps_theta(a_k, k | o): a (B, H, dof) noisy normalized chunk, k (B,) long code levels, features =
+        encode(o) -> the predicted noise (B, H, dof)."""
+        cond = self.cond_mish(torch.cat([self.step_features(k), features], dim=1))       # (B, dsed + features)
+        film = torch.cat([block.film(cond) for block in self.residual_blocks()], dim=1)  # (B, F): every block's
+        return self.body(a, film)
 
 
 class ConditionalUnet1D(FiLMNetwork):
@@ -368,8 +362,8 @@ class ConditionalUnet1D(FiLMNetwork):
         for first, second, _ in self.up:
             yield from (first, second)
 
-    def forward(self, a, film):
-        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs terms + step table[k] (film_terms) -> eps (B, H, dof)."""
+    def body(self, a, film):
+        """a (B, H, dof) noisy normalized chunk, film (B, F) every block's (scale, bias) -> eps (B, H, dof)."""
         x = a.transpose(1, 2)                                        # (B, dof, H): channels first
         films = iter(film.split(self.film_sizes, dim=1))             # (B, 2 * out_channels) per block
         skips = []
@@ -419,8 +413,8 @@ class ResidualMLP(FiLMNetwork):
     def residual_blocks(self):
         yield from self.blocks
 
-    def forward(self, a, film):
-        """a (B, H, dof) noisy normalized chunk, film (B, F) = obs terms + step table[k] (film_terms) -> eps (B, H, dof)."""
+    def body(self, a, film):
+        """a (B, H, dof) noisy normalized chunk, film (B, F) every block's (scale, bias) -> eps (B, H, dof)."""
         x = self.inp(a.flatten(1))                                   # (B, width)
         for block, f in zip(self.blocks, film.split(self.film_sizes, dim=1)):
             x = block(x, f)                                          # (B, width)
@@ -511,17 +505,15 @@ class DiffusionPolicy(nn.Module):
     def unnormalize_actions(self, a, obs):     # the inverse of normalize_actions
         return a * self.act_half + self.act_center + obs[:, None, :self.cfg.dof]
 
-    def condition(self, obs_norm, use_ema=True):  # FiLM pieces: (obs terms (B, F), step table (K, F))
-        return (self.ema_net if use_ema else self.net).film_terms(obs_norm)
+    def encode(self, obs_norm, use_ema=True):  # the network's observation features (FiLMNetwork.encode)
+        return (self.ema_net if use_ema else self.net).encode(obs_norm)
 
-    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
-        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long, obs_norm = normalize_obs(obs) -> (B, H, dof).
-        cond: optional result of self.condition(obs_norm, use_ema) to reuse across reverse steps."""
+    def predict_eps(self, a_k_norm, k, features, use_ema=True):
+        """eps_theta(a_k, k | o): a_k_norm (B, H, dof), k (B,) long or an int, features = self.encode(obs_norm,
+        use_ema) of o = normalize_obs(obs) -> (B, H, dof)."""
         B = a_k_norm.shape[0]
-        obs_part, step_part = cond if cond is not None else self.condition(obs_norm, use_ema)
         k = k.to(self.device).long() if torch.is_tensor(k) else torch.full((B,), int(k), device=self.device)
-        film = obs_part + step_part.index_select(0, k)                # (B, F): row i is step_part[k[i]]
-        return (self.ema_net if use_ema else self.net)(a_k_norm, film)   # (B, H, dof)
+        return (self.ema_net if use_ema else self.net)(a_k_norm, k, features)   # (B, H, dof)
 
     def loss(self, obs_norm, chunk_norm, generator=None, mask=None):
         """DDPM's simple loss: || eps - eps_theta(q_sample(a0, k, eps), k | o) ||^2, k ~ U{0..K-1}. mask: optional
@@ -531,7 +523,7 @@ class DiffusionPolicy(nn.Module):
         k = torch.randint(0, self.cfg.K, (B,), generator=generator, device=gdev).to(self.device)
         eps = torch.randn(chunk_norm.shape, generator=generator, device=gdev).to(self.device)
         a_k = q_sample(self.schedule, chunk_norm, k, eps)              # Eq. (5)
-        eps_pred = self.predict_eps(a_k, k, obs_norm, use_ema=False)   # (B, H, dof)
+        eps_pred = self.predict_eps(a_k, k, self.encode(obs_norm, use_ema=False), use_ema=False)  # (B, H, dof)
         if mask is None:
             return nn.functional.mse_loss(eps_pred, eps)
         weight = torch.as_tensor(mask, device=self.device).to(eps.dtype)[:, :, None]   # (B, H, 1)
@@ -542,17 +534,17 @@ class DiffusionPolicy(nn.Module):
     def reverse_process(self, a_k, k_start, obs_norm, z, use_ema=True):
         """Eq. (6) from per-row code level k_start (B,) down to the clean chunk. a_k (B, H, dof) normalized, row i
         at level k_start[i] (-1: already clean, returned unchanged); z (B, K, H, dof), z[:, k] the noise at level k."""
-        cond = self.condition(obs_norm, use_ema)
+        features = self.encode(obs_norm, use_ema)                     # once for the K steps
         a = a_k.clone()
         top = int(k_start.max()) if len(k_start) else -1
         for k in range(top, -1, -1):
             active = k_start >= k                                      # the rows that have reached level k
             if bool(active.all()):                                     # every row (from pure noise): no gather
-                eps = self.predict_eps(a, k, None, use_ema, cond=cond)
+                eps = self.predict_eps(a, k, features, use_ema)
                 a = p_sample(self.schedule, eps, a, k, noise=z[:, k])  # Eq. (6)
                 continue
             rows = active.nonzero().squeeze(1)
-            eps = self.predict_eps(a[rows], k, None, use_ema, cond=(cond[0][rows], cond[1]))
+            eps = self.predict_eps(a[rows], k, features[rows], use_ema)
             a[rows] = p_sample(self.schedule, eps, a[rows], k, noise=z[rows, k])   # Eq. (6)
         return a
 

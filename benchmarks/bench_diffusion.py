@@ -14,6 +14,8 @@ Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [-
                                             [--down-dims 32,64,128 64,128,256 128,256,512] [--full-sample] [--K 100]
         python benchmarks/bench_diffusion.py --horizons 20 --mlp 256x3 --down-dims 32,64,128 --full-sample
             (the quick and mid profiles' MLP beside the U-Net they replace)
+        python benchmarks/bench_diffusion.py --film both --horizons 20 --down-dims 64,128,256 --full-sample
+            (the run's FiLM table, experiment/cpu_kernels.py, beside the plain network it computes)
         python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
             (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN of the image
              variant, experiment/image_obs.py: obs_encoder 'image_cnn')
@@ -54,7 +56,7 @@ def per_unit(fn, min_seconds, max_n=None):
     return tuple(max(m - o, 1e-9) / (n - 1) for m, o in zip(many, one))
 
 
-def measure(cfg, args):
+def measure(cfg, args, film):
     """One table row: the costs of the policy built from cfg."""
     rng = np.random.default_rng(0)
     n_labels = 5_000
@@ -62,6 +64,9 @@ def measure(cfg, args):
     obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.obs_dim - cfg.low_dim))   # an encoder's pixels: [0, 1]
     chunks = rng.uniform(-1, 1, (n_labels, cfg.horizon, cfg.dof)).astype(np.float32)
     policy = cpu_kernels.use_kernels(DiffusionPolicy(cfg))              # as the run has it on this CPU
+    if film == "plain":                                                # eps_theta as diffusion.py writes it
+        for net in (policy.net, policy.ema_net):
+            net.__class__ = next(c for c in type(net).__mro__ if c in cpu_kernels.TABLED)
     policy.fit_normalizer(obs, chunks)
     row = {"parameters": sum(p.numel() for p in policy.net.parameters())}
     for batch in (64, 256):
@@ -103,6 +108,8 @@ def main():
     parser.add_argument("--K", type=int, default=100, help="diffusion steps (the authors': 100)")
     parser.add_argument("--episodes", type=int, default=300, help="parallel episodes per decision")
     parser.add_argument("--full-sample", action="store_true", help="time whole policy.sample calls")
+    parser.add_argument("--film", choices=("table", "plain", "both"), default="table",
+                        help="eps_theta through the FiLM table (the run's), as diffusion.py writes it, or both rows")
     parser.add_argument("--image-size", type=int, default=0,
                         help="measure policies whose observation ends with a 3 x S x S image instead")
     args = parser.parse_args()
@@ -110,9 +117,9 @@ def main():
 
     print(f"torch threads: {args.threads}, K = {args.K}, dof = {args.dof}, "
           f"{args.episodes} chunks per decision; CPU ms (wall / CPU)")
-    print("| network | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
+    print("| network | FiLM | H | obs | parameters | train step, batch 64 | train step, batch 256 | "
           f"samples / CPU s at 256 | sample {args.episodes} chunks, K = {args.K} | wall / CPU |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     networks = [("unet", {"down_dims": tuple(int(d) for d in dims.split(","))}) for dims in args.down_dims]
     networks += [("mlp", {"mlp_width": int(spec.split("x")[0]), "mlp_blocks": int(spec.split("x")[1])})
                  for spec in args.mlp]
@@ -130,12 +137,13 @@ def main():
                 obs_name = f"{args.obs_dim} numbers"
             name = (f"U-Net {cfg.down_dims}" if network == "unet"
                     else f"MLP {cfg.mlp_width} x {cfg.mlp_blocks} blocks")
-            row = measure(cfg, args)
-            cpu = [row[key][0] for key in ("train 64", "train 256", "sample")]
-            wall = [row[key][1] for key in ("train 64", "train 256", "sample")]
-            print(f"| {name} | {horizon} | {obs_name} | {row['parameters'] / 1e6:.2f} M | "
-                  f"{cpu[0] * 1e3:.0f} ms | {cpu[1] * 1e3:.0f} ms | {256 / cpu[1]:,.0f} | {cpu[2]:.1f} s | "
-                  f"{sum(wall) / sum(cpu):.2f} |", flush=True)
+            for film in (("table", "plain") if args.film == "both" else (args.film,)):
+                row = measure(cfg, args, film)
+                cpu = [row[key][0] for key in ("train 64", "train 256", "sample")]
+                wall = [row[key][1] for key in ("train 64", "train 256", "sample")]
+                print(f"| {name} | {film} | {horizon} | {obs_name} | {row['parameters'] / 1e6:.2f} M | "
+                      f"{cpu[0] * 1e3:.0f} ms | {cpu[1] * 1e3:.0f} ms | {256 / cpu[1]:,.0f} | {cpu[2]:.1f} s | "
+                      f"{sum(wall) / sum(cpu):.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,10 @@
-"""Faster CPU kernels for the epsilon-networks' Linear and Mish, swapped in where they pay (none of the paper).
+"""The epsilon-network computed faster: its FiLM maps split (the FiLM table), and CPU kernels for its Linear and Mish
+where they pay (none of the paper).
+
+The FiLM table (FiLMTable) computes diffusion.FiLMNetwork's eps_theta with every block's FiLM map split along its
+input: the observation's part once per batch of observations, the step part for all K steps at once, where the plain
+network computes the whole map at each of a sampling call's K reverse steps. use_kernels swaps it into every policy
+the run makes (dagger.make_policy, a loaded checkpoint), on any device: the committed numbers are its.
 
 diffusion.py's networks are written with torch's nn.Linear, nn.Mish and nn.functional.linear. On some CPUs two
 kernels compute the same functions faster (benchmarks/HISTORY.md, "The training step at the machine's speed"):
@@ -20,6 +26,8 @@ import sys
 
 import torch
 import torch.nn as nn
+
+import diffusion
 
 # oneDNN's matrix product as torch's inductor calls it: a torch without it keeps its own product
 ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
@@ -161,27 +169,81 @@ class FastMish(nn.Mish):
         return mish(x)
 
 
+# ---- The FiLM table: eps_theta's FiLM maps split along their input -------------------------------------------------
+class FiLMTerms:
+    """FiLMTable.encode's result: the obs terms (B, F) of a batch and the step table (K, F) of every step; its rows
+    are picked as an observation's features are (terms[rows])."""
+
+    def __init__(self, obs, table):
+        self.obs, self.table = obs, table
+
+    def __getitem__(self, rows):
+        return FiLMTerms(self.obs[rows], self.table)
+
+
+class FiLMTable:
+    """diffusion.FiLMNetwork's eps_theta with every block's FiLM map W = [W_s | W_o] split along its input:
+    film = (W_s Mish(step features) + b) + W_o Mish(obs features). encode() computes the obs terms once per batch of
+    observations and the step terms of all K steps at once (the step table), all blocks' maps stacked in one product
+    each; forward() adds the table's row k. The plain network computes the whole map at each of the K reverse steps.
+    Equal to it to float rounding (tests/test_cpu_kernels.py), not to the bit: every run of this reference computes
+    eps_theta so (use_kernels), its committed numbers too."""
+    film_linear = staticmethod(nn.functional.linear)   # the FiLM products (swap_in: the oneDNN linear where it pays)
+
+    def film_weights(self):
+        """All blocks' FiLM maps stacked and split along the input: (W_s (F, dsed), W_o (F, obs features), b (F,)),
+        each stacked whole (oneDNN reads a contiguous weight faster than a column slice)."""
+        films, d = [b.film for b in self.residual_blocks()], self.step_embed_dim
+        w_step = torch.cat([film.weight[:, :d] for film in films])             # (F, dsed)
+        w_obs = torch.cat([film.weight[:, d:] for film in films])              # (F, obs features)
+        return w_step, w_obs, torch.cat([film.bias for film in films])         # ..., (F,)
+
+    def encode(self, obs_norm):
+        """FiLMTerms: W_o Mish(obs features) (B, F) and W_s Mish(step features) + b (K, F) for all K steps."""
+        w_step, w_obs, bias = self.film_weights()
+        obs_terms = self.film_linear(self.cond_mish(self.obs_encoder(obs_norm)), w_obs)           # (B, F)
+        k = torch.arange(self.K, device=bias.device)
+        return FiLMTerms(obs_terms, self.film_linear(self.cond_mish(self.step_features(k)), w_step, bias))
+
+    def forward(self, a, k, terms):
+        """eps_theta(a_k, k | o) from encode(o)'s FiLMTerms: film = obs terms + the step table's row k."""
+        return self.body(a, terms.obs + terms.table.index_select(0, k))
+
+
+class TabledUnet1D(FiLMTable, diffusion.ConditionalUnet1D):
+    """diffusion.ConditionalUnet1D computed through the FiLM table (the same parameters and state_dict keys)."""
+
+
+class TabledMLP(FiLMTable, diffusion.ResidualMLP):
+    """diffusion.ResidualMLP computed through the FiLM table (the same parameters and state_dict keys)."""
+
+
+TABLED = {diffusion.ConditionalUnet1D: TabledUnet1D, diffusion.ResidualMLP: TabledMLP}
+
+
 # ---- The swap -----------------------------------------------------------------------------------------------------
 def swap_in(net, kernels=KERNELS):
     """An epsilon-network (diffusion.FiLMNetwork) computed by the named kernels, in place: with 'linear' its nn.Linear
-    modules become FastLinear and its FiLM products (film_terms) use linear(); with 'mish' its nn.Mish modules become
-    FastMish (the same Parameters). Left as they are: the observation encoder's layers and the blocks' `film` maps
-    (film_terms reads their weights, stacked; their own forward is not called by the network). Returns net."""
+    modules become FastLinear and a FiLM table's products (film_linear) use linear(); with 'mish' its nn.Mish modules
+    become FastMish (the same Parameters). Left as they are: the observation encoder's layers and the blocks' `film`
+    maps (the FiLM table reads their weights, stacked; a plain network's own is torch's). Returns net."""
     swaps = {nn.Linear: FastLinear if "linear" in kernels else None, nn.Mish: FastMish if "mish" in kernels else None}
     for name, module in net.named_modules():
         if name.startswith("obs_encoder") or name.endswith("film"):
             continue
         if swaps.get(type(module)) is not None:
             module.__class__ = swaps[type(module)]
-    if "linear" in kernels:
+    if "linear" in kernels and isinstance(net, FiLMTable):
         net.film_linear = linear
     return net
 
 
 def use_kernels(policy):
-    """policy (a diffusion.DiffusionPolicy on the CPU) with the kernels kernels_wanted() names: policy.net's for
-    training, policy.ema_net's for sampling. A policy on a GPU keeps torch's own. Returns policy."""
-    if policy.device.type == "cpu":
-        for net, use in ((policy.net, "training"), (policy.ema_net, "sampling")):
+    """policy (a diffusion.DiffusionPolicy) with both networks computed through the FiLM table (on any device), and
+    on the CPU with the kernels kernels_wanted() names: policy.net's for training, policy.ema_net's for sampling.
+    A network class TABLED does not know (a variant's) stays plain. Returns policy."""
+    for net, use in ((policy.net, "training"), (policy.ema_net, "sampling")):
+        net.__class__ = TABLED.get(type(net), type(net))
+        if policy.device.type == "cpu":
             swap_in(net, kernels_wanted(use))
     return policy

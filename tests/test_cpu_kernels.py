@@ -85,7 +85,7 @@ def test_the_networks_products_take_the_fast_path_and_others_torchs():
 class EveryProductAndMishThroughTheKernels(TorchFunctionMode):
     """The fast path as diffusion.py had it built in (76f5251): every nn.functional.linear and mish call of the
     epsilon-network through cpu_kernels.linear and mish (or only those of the named kernels). (Its
-    FlatObservation has no layers, and a block's `film` map is never called as a module: film_terms reads its
+    FlatObservation has no layers, and a block's `film` map is never called as a module: the FiLM table reads its
     weights.)"""
 
     def __init__(self, kernels=cpu_kernels.KERNELS):
@@ -100,8 +100,9 @@ class EveryProductAndMishThroughTheKernels(TorchFunctionMode):
         return func(*args, **(kwargs or {}))
 
 
-def random_policy(network, seed=0):
-    """A small policy with random weights (the zero-initialised output layer would hide a missed layer)."""
+def random_policy(network, seed=0, tabled=True):
+    """A small policy with random weights (the zero-initialised output layer would hide a missed layer), its
+    networks computed through the FiLM table (as use_kernels has them) unless tabled=False."""
     sizes = dict(down_dims=(8, 16), n_groups=4, horizon=4) if network == "unet" else dict(mlp_width=32, mlp_blocks=2,
                                                                                            horizon=5)
     policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(obs_dim=6, dof=2, n_act=2, K=10, network=network,
@@ -112,7 +113,29 @@ def random_policy(network, seed=0):
             p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
     policy.fit_normalizer(torch.randn(50, 6, generator=gen).numpy(), torch.randn(50, sizes["horizon"], 2,
                                                                                  generator=gen).numpy())
+    if tabled:
+        for net in (policy.net, policy.ema_net):
+            net.__class__ = cpu_kernels.TABLED[type(net)]
     return policy
+
+
+@pytest.mark.parametrize("network", ["unet", "mlp"])
+def test_film_table_is_the_plain_networks_eps_theta(network):
+    """The FiLM table's eps_theta (the map split along its input, the step part of all K steps at once) equals the
+    plain network's to float rounding, training (the loss and every gradient) and sampling, and one row of the
+    table is the row of its own step. Fails if the split takes W_s and W_o from the wrong columns, drops the
+    bias, adds the table's row of another step, or picks rows of the obs terms apart from the chunks'."""
+    tabled, plain = random_policy(network), random_policy(network, tabled=False)
+    assert type(tabled.net) is cpu_kernels.TABLED[type(plain.net)]
+    for got, want in zip(loss_grads_and_samples(tabled), loss_grads_and_samples(plain)):
+        assert torch.allclose(got, want, atol=1e-5, rtol=1e-4)
+    net, gen = tabled.net, torch.Generator().manual_seed(2)
+    obs_norm = tabled.normalize_obs(torch.randn(6, 6, generator=gen))
+    a, k = torch.randn(6, tabled.cfg.horizon, 2, generator=gen), torch.tensor([0, 3, 9, 7, 7, 1])
+    rows = torch.tensor([4, 0, 2])
+    got = net(a[rows], k[rows], net.encode(obs_norm)[rows])          # the reverse process's active rows
+    want = plain.net(a[rows], k[rows], plain.net.encode(obs_norm[rows]))
+    assert torch.allclose(got, want, atol=1e-5, rtol=1e-4)
 
 
 def loss_grads_and_samples(policy):
@@ -131,9 +154,9 @@ def loss_grads_and_samples(policy):
 def test_swapped_network_gives_the_built_in_fast_paths_numbers_bit_for_bit(network, kernels):
     """Loss, every parameter's gradient and a sample equal to the bit those of the network with every product and
     Mish through the kernels (the fast path diffusion.py had built in), or with only one kind through its kernel.
-    Fails if the swap leaves a Linear, a Mish module or film_terms' products (film_linear) to torch's own, for
+    Fails if the swap leaves a Linear, a Mish module or the FiLM table's products (film_linear) to torch's own, for
     training (net) or sampling (ema_net), or swaps in a kernel it was not asked for."""
-    swapped = random_policy(network)
+    swapped = random_policy(network)                                 # both through the FiLM table
     cpu_kernels.swap_in(swapped.net, kernels)
     cpu_kernels.swap_in(swapped.ema_net, kernels)
     reference = random_policy(network)

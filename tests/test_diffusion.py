@@ -139,10 +139,10 @@ def test_unet_output_has_the_chunk_shape(B, H, dof, down_dims):
 
 @pytest.mark.parametrize("network", [dict(down_dims=(8, 16, 32), horizon=8),
                                      dict(network="mlp", horizon=7, mlp_width=32, mlp_blocks=2)])
-def test_separated_film_equals_one_linear_map_of_the_concatenated_condition(network):
-    """condition() = (W_o Mish(obs features), W_s Mish(step features) + b) must equal every block's
-    film(Mish([step features, obs features])), and the network's output must be the same either way
-    (both networks: the MLP has no divisibility rule on H)."""
+def test_eps_theta_is_film_of_the_step_and_observation_features(network):
+    """eps_theta(a_k, k | o) = body(a_k, every block's film(Mish([step features of k, encode(o)]))), both networks
+    (the MLP has no divisibility rule on H); the step and the observation both enter. Fails if forward drops or
+    swaps a part of the condition, or hands the blocks another layout of the FiLM row."""
     policy = tiny_policy(K=20, **network)
     net, H = policy.net, policy.cfg.horizon
     gen = torch.Generator().manual_seed(0)
@@ -150,17 +150,15 @@ def test_separated_film_equals_one_linear_map_of_the_concatenated_condition(netw
         p.data = torch.randn(p.shape, generator=gen) * 0.3
     obs_norm = policy.normalize_obs(torch.randn(6, 4, generator=gen))
     k = torch.tensor([0, 3, 19, 7, 7, 12])
-    obs_part, step_table = policy.condition(obs_norm, use_ema=False)
-    assert obs_part.shape == (6, net.film_size) and step_table.shape == (20, net.film_size)
-    separated = obs_part + step_table[k]                              # (6, F)
-    cond = torch.cat([net.step_features(k), net.obs_encoder(obs_norm)], dim=1)       # (6, dsed + obs features)
-    direct = torch.cat([block.film(nn.functional.mish(cond)) for block in net.residual_blocks()], dim=1)
-    assert torch.allclose(separated, direct, atol=1e-5)
+    cond = nn.functional.mish(torch.cat([net.step_features(k), obs_norm], dim=1))   # 'flat': the features as they are
+    film = torch.cat([block.film(cond) for block in net.residual_blocks()], dim=1)
+    assert film.shape == (6, net.film_size)
     a = torch.randn(6, H, 2, generator=gen)
-    eps = policy.predict_eps(a, k, obs_norm, use_ema=False)
-    assert eps.shape == (6, H, 2) and torch.allclose(eps, net(a, direct), atol=1e-5)
-    # the step enters: the same chunk and observation at another step give another prediction
+    eps = policy.predict_eps(a, k, policy.encode(obs_norm, use_ema=False), use_ema=False)
+    assert eps.shape == (6, H, 2) and torch.equal(eps, net.body(a, film))
+    # the step and the observation enter: another step, another observation, another prediction
     assert not torch.allclose(eps, policy.predict_eps(a, (k + 1) % 20, obs_norm, use_ema=False))
+    assert not torch.allclose(eps, policy.predict_eps(a, k, obs_norm.flip(0), use_ema=False))
 
 
 @pytest.mark.parametrize("network,blocks", [("unet", 8), ("mlp", 2)])

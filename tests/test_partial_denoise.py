@@ -22,10 +22,10 @@ class StubPolicy(DiffusionPolicy):
                                       step_embed_dim=4))
         self.eps_fn = eps_fn
 
-    def condition(self, obs_norm, use_ema=True):
-        return obs_norm, None
+    def encode(self, obs_norm, use_ema=True):
+        return obs_norm
 
-    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
+    def predict_eps(self, a_k_norm, k, features, use_ema=True):
         if not torch.is_tensor(k):
             k = torch.full((a_k_norm.shape[0],), int(k))
         return self.eps_fn(a_k_norm, k, self)

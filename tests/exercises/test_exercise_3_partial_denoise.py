@@ -20,10 +20,10 @@ class KnownEpsPolicy(DiffusionPolicy):
                                       step_embed_dim=4))
         self.eps_fn, self.calls = eps_fn, []
 
-    def condition(self, obs_norm, use_ema=True):
-        return obs_norm, None
+    def encode(self, obs_norm, use_ema=True):
+        return obs_norm
 
-    def predict_eps(self, a_k_norm, k, obs_norm, use_ema=True, cond=None):
+    def predict_eps(self, a_k_norm, k, features, use_ema=True):
         k = torch.full((a_k_norm.shape[0],), int(k)) if not torch.is_tensor(k) else k
         self.calls.append((k.clone(), a_k_norm.clone()))
         return self.eps_fn(a_k_norm, k)
