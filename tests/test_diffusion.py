@@ -309,6 +309,18 @@ def test_chunk_dataset_label_rule():
     assert np.array_equal(np.nonzero(label_mask(ep2["expert"], H))[0], [0, 1, 2, 3, 4, 5, 6])
 
 
+@pytest.mark.parametrize("length,kept", [(2, []), (3, [(2, 5)]), (4, [(2, 6)])])
+def test_an_intervention_of_exactly_H_steps_labels_one_chunk_and_one_step_shorter_none(length, kept):
+    """Sec. IV-C at its boundary, H = 3, inside an episode: an intervention of H - 1 steps is discarded, one of H
+    steps is a run with one label (its start), H + 1 steps two. Fails if the rule drops the run of exactly H (> H
+    for >= H) or keeps a run one step short."""
+    H = 3
+    expert = np.zeros(10, dtype=bool)
+    expert[2:2 + length] = True
+    assert expert_runs(expert, H) == kept
+    assert np.array_equal(np.flatnonzero(label_mask(expert, H)), np.arange(2, 2 + max(0, length - H + 1)))
+
+
 def test_every_consumer_of_the_label_rule_agrees_on_random_masks():
     """One rule (diffusion.expert_runs / label_mask); calibrate, relabel and dagger derive from it."""
     import calibrate
