@@ -12,7 +12,7 @@ import pytest
 
 from envs import make_env
 from experiment.engine3d import (ENGINE_SELF_PAIRS, UR5_A, UR5_D, EngineConfig, EngineReach3D, segment_distance_3d,
-                                 ur5_frames, ur5_ik)
+                                 dh_transform, ur5_frames, ur5_ik)
 
 D1, D4, D5, D6 = UR5_D[0], UR5_D[3], UR5_D[4], UR5_D[5]
 A2, A3 = UR5_A[1], UR5_A[2]
@@ -94,12 +94,37 @@ def test_fk_planar_chain_formula_at_random_angles(env):
     np.testing.assert_allclose(flange(q), wrist3 + [0, -D6, 0], atol=1e-12)
 
 
+def test_dh_transform_is_rz_tz_tx_rx():
+    """The standard DH link transform is Rz(theta) Tz(d) Tx(a) Rx(alpha), composed here from the four elementary
+    matrices at random parameters (batched). Fails on a sign, a swapped sin/cos or an entry in the wrong place."""
+    def rot(axis, t):
+        c, s = np.cos(t), np.sin(t)
+        R = np.eye(4)
+        i, j = {"z": (0, 1), "x": (1, 2)}[axis]
+        R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+        return R
+
+    def move(axis, x):
+        T = np.eye(4)
+        T["xz".index(axis) * 2, 3] = x
+        return T
+
+    rng = np.random.default_rng(3)
+    theta, d, a, alpha = rng.uniform(-3, 3, (4, 5))
+    got = dh_transform(theta, d, a, alpha)
+    assert got.shape == (5, 4, 4)
+    for i in range(5):
+        want = rot("z", theta[i]) @ move("z", d[i]) @ move("x", a[i]) @ rot("x", alpha[i])
+        np.testing.assert_allclose(got[i], want, atol=1e-12)
+
+
 def test_fast_fk_equals_the_dh_chain_at_random_angles(env):
     # env.fk / link_segments write the DH chain out point by point; ur5_frames multiplies the
     # 4x4 DH transforms: the same kinematics
     rng = np.random.default_rng(8)
     q = rng.uniform(-4, 4, size=(500, 6))
     frames = ur5_frames(q)
+    assert frames.shape == (500, 7, 4, 4)  # base and frames 1..6: no frame past the flange (an uninitialized one)
     points = env.fk(q)
     np.testing.assert_allclose(points[:, :6], frames[:, :6, :3, 3], atol=1e-12)
     np.testing.assert_allclose(points[:, 6], frames[:, 6, :3, 3] + TOOL * frames[:, 6, :3, 2], atol=1e-12)
