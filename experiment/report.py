@@ -744,7 +744,7 @@ def plot_table(cfg, table, path):
             if is_best:
                 ax.add_patch(Rectangle((k + 0.03, R - 1 - i + 0.06), 0.94, 0.88, fill=False, edgecolor="#d55e00", lw=2))
     ax.set_xlim(0, C)
-    ax.set_ylim(0, R)
+    ax.set_ylim(0, max(R, 1))  # a run with no finished row yet: an empty table
     ax.set_xticks(np.arange(C) + 0.5, [f"K = {k}" for k in range(1, C + 1)])
     ax.xaxis.tick_top()
     ax.set_yticks(R - 0.5 - np.arange(R), [method_label(m) for m in rows])
