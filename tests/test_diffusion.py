@@ -10,7 +10,7 @@ import torch
 import torch.nn as nn
 
 from diffusion import (DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, expert_runs, label_mask, lr_at,
-                       make_schedule, p_sample, q_sample, toy_two_mode_data, train)
+                       make_schedule, p_sample, q_sample, step_embedding, toy_two_mode_data, train)
 from experiment import checkpoints, cpu_kernels
 
 
@@ -159,6 +159,16 @@ def test_eps_theta_is_film_of_the_step_and_observation_features(network):
     # the step and the observation enter: another step, another observation, another prediction
     assert not torch.allclose(eps, policy.predict_eps(a, (k + 1) % 20, obs_norm, use_ema=False))
     assert not torch.allclose(eps, policy.predict_eps(a, k, obs_norm.flip(0), use_ema=False))
+
+
+def test_step_embedding_is_the_sinusoid_of_k_at_geometric_frequencies():
+    """step_embedding(k, dim) = [sin(k w_i), cos(k w_i)], w_i = 10000^(-i / (dim / 2)) (Vaswani et al.), by hand.
+    Fails if the angle divides by the frequency, or sin and cos swap halves."""
+    k, dim = torch.tensor([0, 1, 7, 99]), 8
+    w = 10_000.0 ** (-np.arange(dim // 2) / (dim // 2))
+    angles = k.numpy()[:, None] * w[None, :]
+    want = np.concatenate([np.sin(angles), np.cos(angles)], axis=1)
+    np.testing.assert_allclose(step_embedding(k, dim).numpy(), want, atol=1e-5)
 
 
 @pytest.mark.parametrize("network,blocks", [("unet", 8), ("mlp", 2)])
