@@ -49,7 +49,6 @@ def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
     its own: memo(name, step, *args, **kw) keeps a step's result in the run folder's file `name` and resumes from it;
     map(fn, jobs), fn(*job) for each job in order, runs them in worker processes (a round's arms, the BC row)."""
     memo, map = memo or compute, map or one_after_another
-    recipe = RECIPES[cfg.recipe]
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
     demos = memo("data/D0.npz", oracle_demonstrations, cfg, map=map, log=log)
     stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
@@ -62,11 +61,10 @@ def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
         chain = None  # the closed-loop row's own chain of rounds: its interventions and its latest policy
-        source = recipe.data_lineage(lineage)  # whose interventions and noise it trains on: its own (Table I)
         for k in range(1, cfg.rounds + 1):  # step 5: repeat steps 2-4 for every round of aggregation
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
-            rounds_data.append(memo(f"{folder(source, k)}/D.npz", collect_interventions, cfg, (source, k),
+            rounds_data.append(memo(f"{folder(lineage, k)}/D.npz", collect_interventions, cfg, (lineage, k),
                                     collector, collector_success, log=log))
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
             hg, hg_success = train_and_evaluate(cfg, lineage, k, "hg_dagger", demos, pi0, rounds_data, None, stats,
@@ -74,7 +72,7 @@ def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
-                calibrations.append(memo(f"{folder(source, k)}/calibration.json", calibrate_noise, cfg, (source, k),
+                calibrations.append(memo(f"{folder(lineage, k)}/calibration.json", calibrate_noise, cfg, (lineage, k),
                                          hg, rounds_data, stats, log=log))
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
@@ -174,12 +172,6 @@ class PaperRecipe:
 
     ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
     AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
-
-    def data_lineage(lineage):  # a lineage trains on its own interventions and calibrations
-        return lineage
-
-    def check(cfg):  # nothing to refuse
-        pass
 
 
 RECIPES = {"paper": PaperRecipe, **lever.RECIPES}

@@ -14,11 +14,14 @@ Where it differs from the paper's recipe (dagger.PaperRecipe, the authors' plana
     seeds (three training seeds on one intervention set); lineage 0 runs first.
 
 It plugs in through what the core names: dagger.RECIPES (a recipe is the set of hooks below), diffusion.LR_SCHEDULES
-('constant'), and relabel.AugmentationSampler's label rule (a subclass). It never imports dagger.py.
+('constant'), and relabel.AugmentationSampler's label rule (a subclass); the seeds' data through the harness's memo
+(data_of_lineage_0). It never imports dagger.py.
 """
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -99,26 +102,39 @@ class AuthorsLever:
     ChunkSampler = PaddedChunkSampler
     AugmentationSampler = PaddedAugmentationSampler
 
-    def data_lineage(lineage):
-        return lineage  # independent lineages
-
-    def check(cfg):
-        pass
-
 
 class AuthorsLeverSeeds(AuthorsLever):
-    """The lever recipe with seed replicates: lineage l > 0 trains on lineage 0's interventions and calibrations."""
-
-    def data_lineage(lineage):
-        return 0  # lineage 0's interventions and calibrations (check_lineages: made before)
-
-    def check(cfg):
-        if "closed_loop" in cfg.methods:
-            raise ValueError(f"recipe {cfg.recipe!r} trains every lineage on lineage 0's interventions, but the "
-                             "closed_loop row collects its own chain of them: run it with recipe 'authors_lever'")
+    """The lever recipe with seed replicates: lineage l > 0 trains on lineage 0's interventions and calibrations
+    (the harness's memo reads them there: data_of_lineage_0)."""
 
 
 RECIPES = {"authors_lever": AuthorsLever, "authors_lever_seeds": AuthorsLeverSeeds}
+
+
+def check_recipe(cfg):
+    """ValueError for a config the recipe cannot run (experiment/profiles.check_config, before any folder)."""
+    if cfg.recipe == "authors_lever_seeds" and "closed_loop" in cfg.methods:
+        raise ValueError(f"recipe {cfg.recipe!r} trains every lineage on lineage 0's interventions, but the "
+                         "closed_loop row collects its own chain of them: run it with recipe 'authors_lever'")
+
+
+def data_of_lineage_0(cfg, memo):
+    """The loop's memo for the run's recipe: with authors_lever_seeds, a lineage's interventions and calibrations
+    (lineage_l/round_k/D.npz, calibration.json) are lineage 0's files (check_lineages: made before it)."""
+    return LineageZerosData(memo) if cfg.recipe == "authors_lever_seeds" else memo
+
+
+@dataclass(frozen=True)
+class LineageZerosData:
+    """memo(name, step, ...) with lineage_l/round_k/D.npz and calibration.json read as lineage 0's (a class, not a
+    closure: worker processes receive the loop's memo)."""
+    memo: Callable
+
+    def __call__(self, name, step, *args, **kwargs):
+        parts = name.split("/")
+        if len(parts) == 3 and parts[0].startswith("lineage_") and parts[2] in ("D.npz", "calibration.json"):
+            name = "/".join(["lineage_0", *parts[1:]])
+        return self.memo(name, step, *args, **kwargs)
 
 
 def check_lineages(run, lineages):

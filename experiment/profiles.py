@@ -9,6 +9,7 @@ import numpy as np
 
 import diffusion
 import envs
+from experiment import lever
 
 PROFILES = {
     # CI: every stage and every output file, tiny sizes (about 2 minutes). The calibration keeps the paper's
@@ -103,7 +104,7 @@ def check_config(cfg, methods, recipes):
     if cfg.recipe not in recipes:
         raise ValueError(f"recipe must be one of {', '.join(recipes)} (paper: the authors' planar runs), "
                          f"got {cfg.recipe!r}")
-    recipes[cfg.recipe].check(cfg)
+    lever.check_recipe(cfg)
     if cfg.network not in diffusion.NETWORKS:
         raise ValueError(f"network must be one of {', '.join(diffusion.NETWORKS)}, got {cfg.network!r}")
     if not 0.0 < cfg.intervention_fraction < 1.0:

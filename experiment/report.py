@@ -86,7 +86,8 @@ def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=Fa
         try:
             run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
             lever.check_lineages(run, lineages)  # a recipe that trains on lineage 0's data needs it there first
-            paper.loop(cfg, lineages, memo=run.memo, map=worker_map(workers, run.log), log=run.log)
+            memo = lever.data_of_lineage_0(cfg, run.memo)  # the seeds recipe's lineages read lineage 0's data
+            paper.loop(cfg, lineages, memo=memo, map=worker_map(workers, run.log), log=run.log)
         finally:
             run.release_lineages()
     with run.stage_lock("report"):  # runs of other lineages into this folder write the report one at a time
