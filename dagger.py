@@ -38,6 +38,7 @@ import relabel
 from experiment import cli, controls, cpu_kernels, lever, profiles, report
 from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
 from experiment.run_folder import stage_seed
+from experiment.student_t import student_t_cdf
 from experiment.workers import torch_threads
 
 
@@ -596,7 +597,7 @@ def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="e
                 e.close()  # free the simulator (a pybullet client) before the next group
 
 
-# ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma; no scipy -----------
+# ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma (t: experiment/) --------
 def paired_differences(a, b):
     """a - b per pair, to 1e-9 points: success rates are counts of episodes, so equal gains (47.0 - 46.0 and
     47.33 - 46.33) are equal, not 1e-14 apart (a spread of float rounding would give t ~ 1e14)."""
@@ -636,50 +637,6 @@ def tost(a, b, margin):
     p_upper = student_t_cdf(t_upper, n - 1)
     return max(p_lower, p_upper), t_lower, t_upper
     # <<< exercise 13
-
-
-def student_t_cdf(t, df):
-    """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
-    assert df > 0, df
-    if math.isinf(t):
-        return 1.0 if t > 0 else 0.0
-    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
-    return 1.0 - tail if t > 0 else tail
-
-
-def incomplete_beta(a, b, x):
-    """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
-    assert 0.0 <= x <= 1.0, x
-    if x in (0.0, 1.0):
-        return x
-    log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
-                 + a * math.log(x) + b * math.log1p(-x))
-    if x < (a + 1.0) / (a + b + 2.0):  # the continued fraction converges fast here
-        return math.exp(log_front) * _betacf(a, b, x) / a
-    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
-
-
-def _betacf(a, b, x):
-    """Continued fraction of the regularized incomplete beta function (modified Lentz; 300 terms at most)."""
-    tiny = 1e-300  # keeps every denominator off zero
-
-    def lentz(num, c, d):  # one term num of the fraction: the updated (c, d)
-        d = 1.0 + num * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + num / c
-        return (c if abs(c) > tiny else tiny), d
-
-    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
-    d = 1.0 / (d if abs(d) > tiny else tiny)
-    h = d
-    for m in range(1, 301):
-        c, d = lentz(m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)), c, d)  # even step d_{2m}
-        h *= d * c
-        c, d = lentz(-(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1)), c, d)  # odd step d_{2m+1}
-        h *= d * c
-        if abs(d * c - 1.0) < 1e-15:
-            break
-    return h
 
 
 # ---- The entry point (the run folder, workers, command line, tables and report are in experiment/) --------------

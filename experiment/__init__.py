@@ -12,6 +12,7 @@
                    tests that dagger.py hands over in report.Paper), results.json, results.csv, table.md, report.md,
                    the table figures, the paper's figures when their inputs changed
     figures.py     the paper's figures (fig1-fig5) from D0 and lineage 0, round 1
+    student_t.py   Student's t distribution (no scipy): the p-values of dagger.paired_ttest and dagger.tost
     cpu_kernels.py eps_theta computed faster, the same function: the FiLM table (the step part of all K steps
                    once per sampling call), oneDNN's product and a closed-form Mish where they pay on a CPU kind
 and Table II's env and the research variants, which plug into the core's tables when dagger.py imports them:

@@ -1,4 +1,4 @@
-"""Statistics of dagger.py (self-written, no scipy) against closed forms and known table values."""
+"""Statistics of dagger.py and its t distribution (experiment/student_t.py; self-written, no scipy) against closed forms and known table values."""
 import math
 from dataclasses import replace
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import dagger
-from experiment import checkpoints, report, run_folder
+from experiment import checkpoints, report, run_folder, student_t
 
 
 def t_pdf(x, df):
@@ -18,16 +18,16 @@ def t_pdf(x, df):
 @pytest.mark.parametrize("t", [-3.0, -0.5, 0.0, 0.7, 1.0, 4.2])
 def test_t_cdf_closed_forms(t):
     # df = 1 is the Cauchy distribution, df = 2 has a simple closed form
-    assert dagger.student_t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
-    assert dagger.student_t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
+    assert student_t.student_t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
+    assert student_t.student_t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
 
 
 @pytest.mark.parametrize("df,quantile,prob", [(4, 2.776445, 0.975), (5, 2.570582, 0.975),
                                               (10, 1.812461, 0.95), (30, 2.042272, 0.975),
                                               (3, 5.840909, 0.995)])
 def test_t_cdf_table_quantiles(df, quantile, prob):
-    assert dagger.student_t_cdf(quantile, df) == pytest.approx(prob, abs=1e-6)
-    assert dagger.student_t_cdf(-quantile, df) == pytest.approx(1 - prob, abs=1e-6)
+    assert student_t.student_t_cdf(quantile, df) == pytest.approx(prob, abs=1e-6)
+    assert student_t.student_t_cdf(-quantile, df) == pytest.approx(1 - prob, abs=1e-6)
 
 
 @pytest.mark.parametrize("df", [1.5, 3, 7, 25])
@@ -37,7 +37,7 @@ def test_t_cdf_matches_numeric_integration(df):
     assert np.all(pdf > 0)
     fine = t_pdf_vec(xs, df)
     integral = np.trapezoid(fine, xs) + tail_below(-60, df)
-    assert dagger.student_t_cdf(1.3, df) == pytest.approx(integral, abs=2e-5)
+    assert student_t.student_t_cdf(1.3, df) == pytest.approx(integral, abs=2e-5)
 
 
 def t_pdf_vec(x, df):
@@ -54,10 +54,10 @@ def tail_below(x, df):
 
 def test_incomplete_beta_symmetry_and_closed_forms():
     for a, b, x in [(2.0, 3.0, 0.3), (0.5, 0.5, 0.9), (10.0, 0.5, 0.95)]:
-        assert dagger.incomplete_beta(a, b, x) == pytest.approx(1 - dagger.incomplete_beta(b, a, 1 - x), abs=1e-12)
+        assert student_t.incomplete_beta(a, b, x) == pytest.approx(1 - student_t.incomplete_beta(b, a, 1 - x), abs=1e-12)
     # I_x(1, 1) = x (uniform), I_x(a, 1) = x^a
-    assert dagger.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
-    assert dagger.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
+    assert student_t.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
+    assert student_t.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
 
 
 def test_paired_ttest_known_value():
@@ -68,9 +68,9 @@ def test_paired_ttest_known_value():
     t, df, p = dagger.paired_ttest(a, b)
     assert df == 4
     assert t == pytest.approx(t_expected)
-    assert p == pytest.approx(2 * (1 - dagger.student_t_cdf(abs(t_expected), 4)))
+    assert p == pytest.approx(2 * (1 - student_t.student_t_cdf(abs(t_expected), 4)))
     # the paper's reported t(4) = 5.75 gives p ~ 0.005
-    assert 2 * (1 - dagger.student_t_cdf(5.75, 4)) == pytest.approx(0.0045, abs=3e-4)
+    assert 2 * (1 - student_t.student_t_cdf(5.75, 4)) == pytest.approx(0.0045, abs=3e-4)
 
 
 def test_paired_ttest_symmetry_and_errors():

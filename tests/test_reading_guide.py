@@ -16,7 +16,8 @@ import pytest
 import dagger
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report")
+MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report",
+           "experiment/student_t")
 # The smoke profile (CI's run: every stage and every Table I row kind, two lineages for the paired tests, enough blend
 # rollouts for the equilibrium fit), in one process so that one trace sees every call.
 GUIDE_RUN = dagger.PROFILES["smoke"]
