@@ -54,10 +54,15 @@ def tail_below(x, df):
 
 def test_incomplete_beta_symmetry_and_closed_forms():
     for a, b, x in [(2.0, 3.0, 0.3), (0.5, 0.5, 0.9), (10.0, 0.5, 0.95)]:
-        assert student_t.incomplete_beta(a, b, x) == pytest.approx(1 - student_t.incomplete_beta(b, a, 1 - x), abs=1e-12)
+        assert student_t.incomplete_beta(a, b, x) == pytest.approx(1 - student_t.incomplete_beta(b, a, 1 - x),
+                                                                   abs=1e-12)
     # I_x(1, 1) = x (uniform), I_x(a, 1) = x^a
     assert student_t.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
     assert student_t.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
+    # I_x(1, b) = 1 - (1 - x)^b near x = 1, where the continued fraction must be taken on the symmetric side: read
+    # directly there it gives 0.98999 for b = 1/2 (the t distribution's b) and a negative number for b = 5
+    for b in (0.5, 5.0):
+        assert student_t.incomplete_beta(1.0, b, 0.9999) == pytest.approx(1 - 0.0001 ** b, abs=1e-12)
 
 
 def test_paired_ttest_known_value():
