@@ -1,4 +1,5 @@
-"""Statistics of dagger.py and its t distribution (experiment/student_t.py; self-written, no scipy) against closed forms and known table values."""
+"""Statistics of dagger.py and its t distribution (experiment/student_t.py; self-written, no scipy) against closed
+forms and known table values."""
 import math
 from dataclasses import replace
 
