@@ -32,6 +32,7 @@ Commands (a lineage at a time; each step resumes):
     python dagger.py --profile table1_strong --methods hg_dagger,zero_noise,fixed_4,fixed_8,fixed_16,pooled \\
         --lineages 13 --out runs/noise_transfer --report --export-lineages benchmarks/results/noise_transfer
     python benchmarks/noise_transfer.py                               # every stated test, from the committed files
+                                      # (then, after the fact, the scenarios' part of each SE: a two-way bootstrap)
     python benchmarks/noise_transfer.py --figure benchmarks/figures/noise_transfer.png
 """
 from __future__ import annotations
@@ -275,6 +276,80 @@ def secondary(lineages):
     return lines
 
 
+# ---- after the fact: the scenarios' part of each SE (not a stated test) --------------------------------------------
+BOOT_DRAWS = 2000
+
+
+def per_scenario(files, lineage, row, new):
+    """(scenarios,) a row's success in points on each scenario of a set (the mean over its repeats)."""
+    if new:
+        s = files[f"lineage_{lineage}/{NEW}/{row}.json"]["success"]
+    elif row == "bc":
+        s = files["eval/bc.json"]["success"]
+    else:
+        s = success(files, lineage, 1, row)
+    return 100.0 * np.asarray(s, float).mean(axis=1)
+
+
+def slope_weights():
+    """{row: w} with slope() = sum of w * (row - HG-DAgger): least squares is linear in what it fits."""
+    s = np.array([x for x, _ in SIGMA_ROWS], float)
+    w = (s - s.mean()) / ((s - s.mean()) ** 2).sum()
+    return {row: float(wi) for (_, row), wi in zip(SIGMA_ROWS, w)}
+
+
+def scenario_terms(lineages, key):
+    """per_lineage()[key] spread over the scenarios: {new?: (lineages, scenarios) array} whose means over the
+    scenarios, summed over the sets, are each lineage's value."""
+    ls = list(lineages)
+
+    def diff(row, base, new):
+        return np.array([per_scenario(lineages[l], l, row, new) - per_scenario(lineages[l], l, base, new) for l in ls])
+
+    def slope_on(new):
+        return sum(w * diff(row, "hg_dagger", new) for row, w in slope_weights().items())
+
+    if key == "hg_bc_gap":
+        return {False: diff("hg_dagger", "bc", False), True: -diff("hg_dagger", "bc", True)}
+    name, set_name = key.rsplit("_", 1)                 # slope_new, slope_collected, pooled_new, zero_new, ...
+    new = set_name == "new"
+    if name == "slope":
+        return {new: slope_on(new)}
+    return {new: diff("pooled" if name == "pooled" else "zero_noise", "hg_dagger", new)}
+
+
+def two_way_bootstrap(terms, draws=BOOT_DRAWS, seed=0):
+    """(SE, 2.5 %, 97.5 %) of the mean over lineages when the lineages and, apart, each set's scenarios are drawn
+    again with replacement. The stated tests' SE is over lineages on fixed scenario sets: it leaves out which
+    scenarios were drawn, which this puts in. On the collected set it is an approximation: another draw of those
+    scenarios would also have changed the interventions recorded on them, which this holds fixed."""
+    rng = np.random.default_rng(seed)
+    n = len(next(iter(terms.values())))
+    values = np.empty(draws)
+    for d in range(draws):
+        i = rng.integers(0, n, n)
+        values[d] = sum(m[i][:, rng.integers(0, m.shape[1], m.shape[1])].mean() for m in terms.values())
+    low, high = np.percentile(values, [2.5, 97.5])
+    return float(values.std(ddof=1)), float(low), float(high)
+
+
+def scenario_part(lineages):
+    """Markdown lines: each stated and secondary quantity's SE over lineages beside its SE with the scenarios drawn
+    again too."""
+    q = per_lineage(lineages)
+    lines = ["| quantity | mean | SE over lineages | SE, scenarios drawn again too | 95 % bootstrap interval |",
+             "|---|---|---|---|---|"]
+    named = [("H1 slope, new", "slope_new"), ("H2 pooled − HG-DAgger, new", "pooled_new"),
+             ("H3 slope, collected", "slope_collected"), ("H4 (HG-DAgger − BC) collected − new", "hg_bc_gap"),
+             ("zero_noise − HG-DAgger, new", "zero_new"), ("zero_noise − HG-DAgger, collected", "zero_collected")]
+    for name, key in named:
+        v = np.asarray(q[key])
+        se, low, high = two_way_bootstrap(scenario_terms(lineages, key))
+        lines.append(f"| {name} | {v.mean():+.3f} | {v.std(ddof=1) / math.sqrt(len(v)):.3f} | {se:.3f} | "
+                     f"{low:+.3f} … {high:+.3f} |")
+    return lines
+
+
 def pi0_class(files, lineage, new):
     """(scenarios,) pi_0's class (never / sometimes / always solved over its repeats) on a set."""
     ev = files[f"lineage_{lineage}/{NEW}/pi0.json"] if new else files["eval/pi0.json"]
@@ -355,6 +430,9 @@ def main(argv=None):
             print(f"(an interim look at {len(lineages)} lineages: the stated tests are read at {N_LINEAGES})")
         print("\nsecondary (two-sided, uncorrected):")
         print("\n".join("  " + line for line in secondary(lineages)))
+        print(f"\nafter the fact, not a stated test: the scenarios' part of each SE (a two-way bootstrap, "
+              f"{BOOT_DRAWS} draws: the lineages and each set's scenarios drawn again with replacement)")
+        print("\n".join(scenario_part(lineages)))
     if a.figure:
         figure(lineages, a.figure)
         print(f"figure: {a.figure}")

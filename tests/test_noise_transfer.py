@@ -185,3 +185,47 @@ def test_the_figure_is_drawn_from_the_lineage_files(nt, tmp_path):
                 for l in (5, 6)}
     nt.figure(lineages, str(tmp_path / "f.png"))
     assert (tmp_path / "f.png").stat().st_size > 10_000
+
+
+def _varied_lineages(nt):
+    """Two lineages whose rows differ scenario by scenario (the first k scenarios solved, k from each rate)."""
+    out = {}
+    for l, (gap_c, gap_n, pooled_new) in zip((5, 6), ((0.20, 0.01, 0.02), (0.22, 0.05, -0.03))):
+        out[l] = _lineage_files(nt, l, _rates(0.60, 0.60 - gap_c, -0.0025 * (l - 4), 0.59),
+                                _rates(0.55, 0.55 - gap_n, 0.002 * (l - 4), 0.55 + pooled_new))
+    return out
+
+
+def test_scenario_terms_are_the_stated_quantities_spread_over_the_scenarios(nt):
+    """Each quantity's per-scenario terms, averaged over the scenarios and summed over the sets, give per_lineage()'s
+    value in every lineage: a wrong slope weight, a set swapped, H4's new-set term with the wrong sign or a row
+    compared against the wrong one gives another number."""
+    lineages = _varied_lineages(nt)
+    q = nt.per_lineage(lineages)
+    for key in ("slope_new", "slope_collected", "pooled_new", "hg_bc_gap", "zero_new", "zero_collected"):
+        terms = nt.scenario_terms(lineages, key)
+        assert all(m.shape == (2, 300 if new else 100) for new, m in terms.items()), key
+        assert sum(m.mean(axis=1) for m in terms.values()) == pytest.approx(q[key], abs=1e-9), key
+    assert set(nt.scenario_terms(lineages, "hg_bc_gap")) == {False, True}
+    assert nt.slope_weights() == pytest.approx({"zero_noise": -7 / 140, "fixed_4": -3 / 140, "fixed_8": 1 / 140,
+                                                "fixed_16": 9 / 140})
+
+
+def test_two_way_bootstrap_resamples_lineages_and_each_sets_scenarios_apart(nt):
+    """Lineages alike but scenarios not: the SE is the scenarios' (a bootstrap of lineages alone gives 0).
+    Scenarios alike but lineages not: the lineages' (one of scenarios alone gives 0). One array entered for two
+    sets with opposite signs: the draws cancel only if both sets reuse one draw of scenario indices."""
+    scen = np.tile(np.arange(200.0) % 10, (8, 1))                      # 8 lineages alike; scenarios 0..9 repeating
+    se, low, high = nt.two_way_bootstrap({True: scen}, draws=4000)
+    assert se == pytest.approx(np.std(scen[0]) / math.sqrt(200), rel=0.1) and low < 4.5 < high
+    lin = np.tile(np.arange(8.0)[:, None], (1, 50))                     # lineages 0..7, every scenario alike
+    se, *_ = nt.two_way_bootstrap({True: lin}, draws=4000)
+    assert se == pytest.approx(np.std(np.arange(8.0)) / math.sqrt(8), rel=0.1)
+    se, *_ = nt.two_way_bootstrap({False: scen, True: -scen}, draws=4000)
+    assert se == pytest.approx(math.sqrt(2) * np.std(scen[0]) / math.sqrt(200), rel=0.1)
+    assert nt.two_way_bootstrap({True: scen}, draws=500) == nt.two_way_bootstrap({True: scen}, draws=500)  # seeded
+
+
+def test_the_scenario_part_prints_every_quantity_with_both_ses(nt):
+    lines = nt.scenario_part(_varied_lineages(nt))
+    assert len(lines) == 2 + 6 and lines[2].startswith("| H1 slope, new | ") and "…" in lines[-1]
