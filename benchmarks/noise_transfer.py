@@ -184,16 +184,25 @@ def rates(files, lineage, new):
     """{row: success in points} of one lineage on the new (new=True) or the collected scenarios; BC included."""
     out = {}
     for row in ("bc",) + ROWS:
-        if new:
-            key = f"lineage_{lineage}/{NEW}/{row}.json"
-            if key in files:
-                assert files[key]["seeds"] == list(NEW_SEEDS), f"{key}: other seeds than the study's"
-                out[row] = 100.0 * np.asarray(files[key]["success"], float).mean()
-        elif row == "bc":
-            out[row] = 100.0 * np.asarray(files["eval/bc.json"]["success"], float).mean()
-        elif (s := success(files, lineage, 1, row)) is not None:
-            out[row] = 100.0 * s.mean()
+        if (s := per_scenario(files, lineage, row, new)) is not None:
+            out[row] = float(s.mean())
     return out
+
+
+def per_scenario(files, lineage, row, new):
+    """(scenarios,) a row's success in points on each scenario of a set (the mean over its repeats), or None if the
+    lineage has no such evaluation."""
+    if new:
+        key = f"lineage_{lineage}/{NEW}/{row}.json"
+        if key not in files:
+            return None
+        assert files[key]["seeds"] == list(NEW_SEEDS), f"{key}: other seeds than the study's"
+        s = files[key]["success"]
+    elif row == "bc":
+        s = files["eval/bc.json"]["success"]
+    elif (s := success(files, lineage, 1, row)) is None:
+        return None
+    return 100.0 * np.asarray(s, float).mean(axis=1)
 
 
 def complete(lineages):
@@ -278,17 +287,6 @@ def secondary(lineages):
 
 # ---- after the fact: the scenarios' part of each SE (not a stated test) --------------------------------------------
 BOOT_DRAWS = 2000
-
-
-def per_scenario(files, lineage, row, new):
-    """(scenarios,) a row's success in points on each scenario of a set (the mean over its repeats)."""
-    if new:
-        s = files[f"lineage_{lineage}/{NEW}/{row}.json"]["success"]
-    elif row == "bc":
-        s = files["eval/bc.json"]["success"]
-    else:
-        s = success(files, lineage, 1, row)
-    return 100.0 * np.asarray(s, float).mean(axis=1)
 
 
 def slope_weights():
