@@ -447,7 +447,7 @@ def calibrate(env, policy, episodes: list[dict], median_step: float, cfg: Calibr
     """Sec. IV-D for one round on its intervention episodes (median_step in rad; log: an optional callable(str)).
     Without a fit (fewer than 3 ratios with min_survivors kept rollouts) W falls back to the open-loop error,
     ||W||^2 = tr(Sigma_bar) (Sigma^alpha = Sigma_hat unscaled), r is None and fit_note says "FALLBACK"."""
-    paper_unit = envs.paper_median_step(env)                                 # rad, or None
+    paper_unit = env.paper_median_step                                      # rad, or None
     say = log or (lambda msg: None)
 
     # Step 1 (Fig. 2a): Sigma_hat_t open loop along the expert data, Eq. (1)

@@ -1,7 +1,7 @@
 """Policy-Calibrated DAgger end to end: the paper's loop (Sec. IV-A), evaluation and Table I's statistics.
 
 Read `policy_calibrated_dagger` first: Sec. IV-A, steps 1-6, one call per step; below it the config, each step's
-function in the loop's order, Table I's tests, the paper's figures and the entry point.
+function in the loop's order, Table I's tests and the entry point.
 
 Paper map (the paper):
   Sec. IV-A step 1 ......... oracle_demonstrations (D0), behavior_cloning (pi_0)
@@ -12,20 +12,22 @@ Paper map (the paper):
   Sec. V, Tables I and II .. evaluate (100 scenarios x 3 evaluations, batched), paired_ttest, tost
 
 Each step is a function of its inputs (config values, data, policies, an optional `log`) that returns what it
-makes: call one in a notebook with your own inputs. What a student may skip is in experiment/ (its __init__.py
-lists it): the run folder, which keeps each step's result in its file and resumes (the loop's `memo`), worker
-processes (its `map`), the command line, Table I's assembly (report.summarize), result files, and the research
-variants, which plug into the core's tables (envs.ENVIRONMENTS, diffusion.OBS_ENCODERS, RECIPES, the methods).
+makes, and the loop returns everything it made (Made): call it, or one step, in a notebook with your own inputs.
+This file imports only the concept modules. The harness in experiment/ (a student may skip it; its __init__.py
+lists it) wraps the loop from above: the run folder that keeps each step's result in its file and resumes (the
+loop's `memo`), worker processes (its `map`), the command line and profiles, Table I's assembly and report.md,
+the CPU kernels it swaps into a policy before training, and the research variants, which hand the loop their own
+functions (an env factory, a learning-rate function, a label rule, a sampler, a BC row).
 
 Usage: `python dagger.py` (the quick profile), `--profile smoke` (CI), `--help`; README.md, "Profiles and options".
 """
 from __future__ import annotations
 
 import copy
+import functools
 import math
-import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -35,30 +37,33 @@ import diffusion
 import envs
 import oracle as oracle_mod
 import relabel
-from experiment import cli, controls, cpu_kernels, lever, profiles, report
-from experiment import image_obs, oriented_goal  # noqa: F401 (research variants: register their envs on import)
-from experiment.run_folder import stage_seed
-from experiment.student_t import student_t_cdf
-from experiment.workers import torch_threads
 
 
 # ---- The loop: Sec. IV-A, steps 1-6 ------------------------------------------------------------------------------
-def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
-    """Sec. IV-A's steps 1-6 for the given lineages (an empty list: the shared step 1 only; the authors' way:
-    benchmarks/SETUP.md §2, §4). Each step is a function of its inputs returning what it makes; without memo and map
-    they are plain calls, one after the other (a notebook: no folder). The harness (experiment/report.py) hands in
-    its own: memo(name, step, *args, **kw) keeps a step's result in the run folder's file `name` and resumes from it;
-    map(fn, jobs), fn(*job) for each job in order, runs them in worker processes (a round's arms, the BC row)."""
+def policy_calibrated_dagger(cfg, lineages=None, memo=None, map=None, log=print, make_env=envs.make_env,
+                             lr_schedule=diffusion.warmup_cosine, label_rule=diffusion.expert_runs, sampler=None,
+                             bc_row=None):
+    """Sec. IV-A's steps 1-6 for the given lineages (default all cfg.lineages; an empty list: the shared step 1
+    only); returns what it made (Made). Without memo and map every step is a plain call, one after the other (a
+    notebook: no folder). The harness hands in its own: memo(name, step, *args, **kw) keeps a step's result in the
+    run folder's file `name` and resumes from it; map(fn, jobs), fn(*job) for each job in order, runs them in
+    worker processes (a round's arms, the BC row). The paper's pieces by default; a variant (experiment/) hands in
+    its own: make_env(name) an env, lr_schedule(step, train_cfg) the learning rate, label_rule(expert, H) the
+    interventions D_k keeps, sampler (as intervention_sampler) a row's intervention rows, bc_row (as bc_row_arm)."""
     memo, map = memo or compute, map or one_after_another
+    sampler, bc_row = sampler or intervention_sampler, bc_row or bc_row_arm
+    lineages = range(cfg.lineages) if lineages is None else lineages
     # Step 1: D0, oracle demonstrations on training scenarios (Sec. V: a self-written RRT expert) ...
-    demos = memo("data/D0.npz", oracle_demonstrations, cfg, map=map, log=log)
-    stats = demo_statistics(cfg, demos)  # D0's median step: the unit of every noise level (Sec. V)
+    demos = memo("data/D0.npz", oracle_demonstrations, cfg, map=map, log=log, make_env=make_env)
+    stats = demo_statistics(cfg, demos, make_env)  # D0's median step: the unit of every noise level (Sec. V)
     # ... and pi_0 = BC on D0: every method of every round is fine-tuned from this checkpoint (step 6)
-    pi0 = memo("checkpoints/bc.pt", behavior_cloning, cfg, demos, log=log)
-    pi0_success = evaluate_policy(memo, cfg, "eval/pi0.json", pi0, "pi_0 (BC)", log, unseen=False)
+    pi0 = memo("checkpoints/bc.pt", behavior_cloning, cfg, demos, log=log, make_env=make_env, lr_schedule=lr_schedule)
+    pi0_success = evaluate_policy(memo, cfg, "eval/pi0.json", pi0, "pi_0 (BC)", log, unseen=False, make_env=make_env)
+    made = Made(demos, stats, pi0, pi0_success)
     # Table I's BC row: pi_0 trained on D0 alone for the arms' step budget (beside the rounds where map runs it so)
-    bc_row = map(bc_row_arm, [(cfg, demos, pi0, memo, log)])
+    bc = map(bc_row, [(cfg, demos, pi0, memo, log, make_env, lr_schedule)])
     noised = [m for m in cfg.methods if m not in ("bc", "hg_dagger", "closed_loop")]
+    arm = (make_env, lr_schedule, sampler)  # how every row trains and is evaluated (train_and_evaluate's last three)
     for lineage in lineages:  # independent repeats of steps 2-6 from the same pi_0 (Table I: mean ± SE)
         collector, collector_success, rounds_data, calibrations = pi0, pi0_success, [], []
         chain = None  # the closed-loop row's own chain of rounds: its interventions and its latest policy
@@ -66,28 +71,56 @@ def policy_calibrated_dagger(cfg, lineages, memo=None, map=None, log=print):
             # Step 2: HG-DAgger -- the lineage's policy drives, the oracle takes over when its gate says so;
             # D_k = the interventions of at least H steps (Sec. IV-C), aggregated with D0 and D_1..D_{k-1}
             rounds_data.append(memo(f"{folder(lineage, k)}/D.npz", collect_interventions, cfg, (lineage, k),
-                                    collector, collector_success, log=log))
+                                    collector, collector_success, log=log, make_env=make_env, label_rule=label_rule))
+            made.data[lineage, k] = rounds_data[-1]
             # Steps 4 and 6 without noise, the HG-DAgger row: pi_0 fine-tuned on D0 and D_1..D_k as recorded
             hg, hg_success = train_and_evaluate(cfg, lineage, k, "hg_dagger", demos, pi0, rounds_data, None, stats,
-                                                memo, log)
+                                                memo, log, *arm)
+            made.rows[lineage, k, "hg_dagger"] = hg, hg_success
             if noised or "closed_loop" in cfg.methods:
                 # Step 3's noise, measured from the HG-DAgger policy (Sec. IV-D): Sigma_hat along the
                 # interventions (Eq. 1), W from blended rollouts (Eqs. 8-12), Sigma^alpha (Eqs. 13-16)
                 calibrations.append(memo(f"{folder(lineage, k)}/calibration.json", calibrate_noise, cfg, (lineage, k),
-                                         hg, rounds_data, stats, log=log))
+                                         hg, rounds_data, stats, log=log, make_env=make_env))
+                made.calibrations[lineage, k] = calibrations[-1]
                 # Steps 3, 4 and 6 for every noised row: D_1..D_k noised and relabelled on the fly (Sec. IV-E),
                 # co-trained with D0, fine-tuned from pi_0, evaluated (Sec. V)
-                list(map(train_and_evaluate, [(cfg, lineage, k, method, demos, pi0, rounds_data, calibrations[-1],
-                                               stats, memo, log) for method in noised]))
+                rows = list(map(train_and_evaluate, [(cfg, lineage, k, method, demos, pi0, rounds_data,
+                                                      calibrations[-1], stats, memo, log, *arm) for method in noised]))
+                made.rows.update({(lineage, k, method): row for method, row in zip(noised, rows)})
             # the round's HG-DAgger policy collects D_{k+1} (the authors chain their collector's fine-tuning
-            # instead: one more policy per round; see benchmarks/HISTORY.md)
+            # instead: one more policy per round; see benchmarks/README.md)
             collector, collector_success = hg, hg_success
             if "closed_loop" in cfg.methods:
                 # Table I's closed-loop pooled row: steps 2-5 read literally, its own chain from round 1's data
                 # and noise; its round k right after the main chain's, so that a finished round has every row
                 chain = closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, rounds_data[0], calibrations[0],
-                                          memo, log)
-    list(bc_row)  # the BC row done (where map ran it beside the rounds, this waits for it)
+                                          memo, log, *arm, label_rule)
+                made.rows[lineage, k, "closed_loop"] = chain[1:]
+    made.bc = list(bc)[0]  # the BC row done (where map ran it beside the rounds, this waits for it)
+    return made
+
+
+@dataclass
+class Made:
+    """What policy_calibrated_dagger made: D0 and its statistics, pi_0 and its success, the BC row, and by
+    (lineage, k): D_k and the calibration, by (lineage, k, method): each row's (policy, success). A success is
+    (scenarios, repeats) bool on the evaluation scenarios; table() gives Table I's rows from them."""
+    demos: list
+    stats: relabel.DemoStats
+    pi0: diffusion.DiffusionPolicy
+    pi0_success: np.ndarray
+    bc: tuple = None                                   # (policy, success): Table I's BC row
+    data: dict = field(default_factory=dict)           # (lineage, k) -> D_k, the episodes with kept interventions
+    calibrations: dict = field(default_factory=dict)   # (lineage, k) -> calibrate.Calibration
+    rows: dict = field(default_factory=dict)           # (lineage, k, method) -> (policy, success)
+
+    def table(self):
+        """Table I's cells: {method: {k: [success % of each lineage]}}, BC's under k = 0 (one value for every K)."""
+        table = {"bc": {0: [100.0 * float(np.mean(self.bc[1]))]}}
+        for (lineage, k, method), (_, success) in sorted(self.rows.items()):
+            table.setdefault(method, {}).setdefault(k, []).append(100.0 * float(np.mean(success)))
+        return table
 
 
 def compute(name, step, *args, **kwargs):
@@ -110,19 +143,26 @@ def round_label(keys):
     return f"lineage {keys[0]} round {keys[1]}" + (f" ({keys[2]} chain)" if len(keys) > 2 else "")
 
 
+def stage_seed(cfg, *keys):
+    """A step's seed, derived from the master seed and the step's name and keys (stable across runs)."""
+    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
+
+
+def _key_int(key):
+    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
+
+
 # ---- Configuration: one dataclass, the paper's protocol by default; the run sizes in experiment/profiles.py ------
 FIXED_SIGMAS = (2, 4, 8, 12, 16)  # Table I's sweep, in the paper's median steps (noise_model converts)
 TABLE_I_METHODS = ("bc", "hg_dagger", *[f"fixed_{s}" for s in FIXED_SIGMAS], "pooled", "per_step", "closed_loop")
-ALL_METHODS = TABLE_I_METHODS + tuple(controls.NOISE_MODELS) + tuple(controls.ROWS)  # and research controls' rows
 OBS_NOISE_JOINTS, OBS_NOISE_ENV = 0.01, 0.005  # the authors' training observation noise: rad on q_t, q_{t-1}; m else
 TOST_MARGIN = 2.0  # Table I's equivalence margin, success points (paper: +-2)
-PI0_THREADS = 2  # torch threads of pi_0's training, whatever --workers (a thread count changes the last bits)
 
 
 @dataclass
 class Config:
     # --- the paper's experiment (Sec. V; the authors' values in benchmarks/SETUP.md) ---
-    env: str = "planar"  # 'planar' (Table I), 'engine3d' (Table II), or a variant's (envs.ENVIRONMENTS)
+    env: str = "planar"  # the env make_env builds: 'planar' (Table I); Table II's 'engine3d' comes from experiment/
     methods: tuple = TABLE_I_METHODS  # Table I's rows (BC and HG-DAgger always run: the others pair with them)
     n_demos: int = 500  # |D0|, oracle demonstrations on training scenarios (paper: 500)
     rounds: int = 5  # HG-DAgger rounds K (paper: 5 planar, 2 UR5)
@@ -136,7 +176,7 @@ class Config:
     batch_size: int = 256  # (state, chunk) pairs per training step
     lr: float = 1e-3  # peak learning rate
     intervention_fraction: float = 0.3  # intervention frames' share of a fine-tuning batch (benchmarks/SETUP.md §2)
-    recipe: str = "paper"  # how pi_0 and the arms train: a RECIPES name (the authors' lever runs: experiment/lever.py)
+    recipe: str = "paper"  # the name of how pi_0 and the arms train ('paper'; a variant's: experiment/lever.py)
     eval_scenarios: int = 100  # the fixed held-out scenarios (Sec. V)
     eval_repeats: int = 3  # evaluations per scenario
     # --- not in the paper ---
@@ -149,39 +189,9 @@ class Config:
     mlp_blocks: int = 3  # network='mlp': FiLM-conditioned residual blocks
     eval_unseen: bool = True  # also evaluate on envs.unseen_seeds(), scenarios no stage trains on (a second table)
 
-    def __post_init__(self):
-        profiles.check_config(self, ALL_METHODS, RECIPES)  # every field's valid values, with a clear error
-
-
-class PaperRecipe:
-    """How pi_0 and every arm train: the authors' planar runs (benchmarks/SETUP.md §2). A recipe is this set
-    of hooks, called by the steps below; a variant brings its own (experiment/lever.py)."""
-
-    def pi0_schedule_steps(cfg):  # pi_0 is the bc_steps point of one cosine of bc_steps + finetune_steps ...
-        return cfg.bc_steps + cfg.finetune_steps
-
-    def arm_training(cfg):  # ... that every arm continues to its end, from pi_0's AdamW state
-        return dict(schedule_steps=cfg.bc_steps + cfg.finetune_steps)
-
-    def bc_row(pi0, continued_on_d0):  # Table I's BC row: pi_0 continued on D0 alone, the arms' step budget
-        return continued_on_d0()
-
-    def round_shares(frames):  # a batch's intervention rows: rounds 1..k in equal shares
-        return [1.0] * len(frames)
-
-    expert_runs = diffusion.expert_runs  # the label rule (Sec. IV-C): interventions shorter than H are dropped
-
-    ChunkSampler = relabel.ChunkSampler  # HG-DAgger's intervention rows, as recorded
-    AugmentationSampler = relabel.AugmentationSampler  # a noised arm's, noised and relabelled (Sec. IV-E)
-
-
-RECIPES = {"paper": PaperRecipe, **lever.RECIPES}
-
-PROFILES = {name: Config(**fields) for name, fields in profiles.PROFILES.items()}  # run sizes: experiment/profiles.py
-
 
 # ---- Step 1: D0 and pi_0 -----------------------------------------------------------------------------------------
-def oracle_demonstrations(cfg, map=None, log=print):
+def oracle_demonstrations(cfg, map=None, log=print, make_env=envs.make_env):
     """D0: the oracle's demonstrations of the first cfg.n_demos training scenarios it can plan, a batch per tenth of
     D0 (map: in worker processes; every plan has its scenario's own seed: D0 is the same however they run)."""
     map = map or one_after_another
@@ -190,7 +200,8 @@ def oracle_demonstrations(cfg, map=None, log=print):
     while len(demos) < cfg.n_demos:  # the scenarios after those tried, one per missing demonstration
         scenarios = range(len(demos) + failures, cfg.n_demos + failures)
         size = math.ceil(cfg.n_demos / 10)
-        for batch in map(plan_demonstrations, [(cfg, scenarios[i:i + size]) for i in range(0, len(scenarios), size)]):
+        jobs = [(cfg, scenarios[i:i + size], make_env) for i in range(0, len(scenarios), size)]
+        for batch in map(plan_demonstrations, jobs):
             demos.extend(d for d in batch if d is not None)  # a batch's plans, in scenario order
             failures += sum(d is None for d in batch)
             rate = len(demos) / (time.time() - t0)
@@ -199,9 +210,9 @@ def oracle_demonstrations(cfg, map=None, log=print):
     return demos
 
 
-def plan_demonstrations(cfg, scenarios):
+def plan_demonstrations(cfg, scenarios, make_env=envs.make_env):
     """The oracle's demonstrations of training scenarios `scenarios`, None where it found no plan."""
-    env, expert, demos = make_run_env(cfg), make_oracle(cfg), []
+    env, expert, demos = make_env(cfg.env), make_oracle(cfg), []
     for i in scenarios:
         try:
             demos.append(expert.demonstrate(env, env.train_seeds(1, start=i)[0]))
@@ -210,32 +221,32 @@ def plan_demonstrations(cfg, scenarios):
     return demos
 
 
-def behavior_cloning(cfg, demos, log=print, fit=None):
-    """pi_0 = BC on D0's chunks (Sec. IV-C), with its optimizer state (policy.train_state) for every arm to continue.
-    fit: how a policy trains (default train_policy; the harness's keeps checkpoints in the run folder)."""
+def behavior_cloning(cfg, demos, log=print, fit=None, make_env=envs.make_env, lr_schedule=diffusion.warmup_cosine):
+    """pi_0 = BC on D0's chunks (Sec. IV-C), with its optimizer state (policy.train_state) for every arm to continue:
+    pi_0 is the bc_steps point of one learning-rate schedule of bc_steps + finetune_steps that every arm continues
+    (the authors' planar runs, benchmarks/SETUP.md §2). fit: how a policy trains (default train_policy; the
+    harness's keeps checkpoints in the run folder)."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     log(f"BC: {cfg.bc_steps} steps on {len(obs)} chunks from {len(demos)} demonstrations")
-    policy = make_policy(cfg, make_run_env(cfg))
-    tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"),
-                      schedule_steps=RECIPES[cfg.recipe].pi0_schedule_steps(cfg))
-    with torch_threads(PI0_THREADS):  # nothing runs beside pi_0: a second core is free
-        return (fit or train_policy)(policy, obs, chunks, tc, keep_state=True, log=log)
+    policy = make_policy(cfg, make_env(cfg.env))
+    tc = train_config(cfg, policy, cfg.bc_steps, stage_seed(cfg, "bc"), lr_schedule)
+    return (fit or train_policy)(policy, obs, chunks, tc, keep_state=True, log=log)
 
 
-def bc_row_arm(cfg, demos, pi0, memo=None, log=print):
-    """Table I's BC row, evaluated: the paper's recipe continues pi_0 on D0 alone to bc_steps + finetune_steps, the
-    steps every row has trained."""
+def bc_row_arm(cfg, demos, pi0, memo=None, log=print, make_env=envs.make_env, lr_schedule=diffusion.warmup_cosine):
+    """Table I's BC row, (policy, success): pi_0 continued on D0 alone to bc_steps + finetune_steps, the steps
+    every row has trained, and evaluated."""
     memo = memo or compute
-    policy = RECIPES[cfg.recipe].bc_row(
-        pi0, lambda: memo("checkpoints/bc_continued.pt", continue_on_d0, cfg, demos, pi0, log=log))
-    evaluate_policy(memo, cfg, "eval/bc.json", policy, "bc", log)
+    policy = memo("checkpoints/bc_continued.pt", continue_on_d0, cfg, demos, pi0, log=log, lr_schedule=lr_schedule)
+    return policy, evaluate_policy(memo, cfg, "eval/bc.json", policy, "bc", log, make_env=make_env)
 
 
-def continue_on_d0(cfg, demos, pi0, log=print, fit=None):
+def continue_on_d0(cfg, demos, pi0, log=print, fit=None, lr_schedule=diffusion.warmup_cosine):
     """pi_0 continued on D0 alone for finetune_steps (the arms' budget): the paper's BC row."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     log(f"BC row: pi_0 continued on D0 alone, {cfg.finetune_steps} steps (the arms' budget)")
-    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", "bc"), fit=fit, log=log)
+    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", "bc"), fit=fit, log=log,
+                             lr_schedule=lr_schedule)
 
 
 def train_policy(policy, obs, chunks, train_cfg, sampler=None, start=None, keep_state=False, log=print):
@@ -250,17 +261,11 @@ def train_policy(policy, obs, chunks, train_cfg, sampler=None, start=None, keep_
     return policy
 
 
-def demo_statistics(cfg, demos):
+def demo_statistics(cfg, demos, make_env=envs.make_env):
     """relabel.demo_stats of D0: its median step (the unit of noise), limits, and the paper's median step."""
-    env = make_run_env(cfg)
-    return relabel.demo_stats(demos, envs.median_step(demos), env.max_step,
-                              paper_median_step=envs.paper_median_step(cfg.env),
+    env = make_env(cfg.env)
+    return relabel.demo_stats(demos, envs.median_step(demos), env.max_step, paper_median_step=env.paper_median_step,
                               frames_per_step=env.dt / envs.PAPER_FRAME_DT)
-
-
-def make_run_env(cfg):
-    """A fresh env of this run's kind (one per scenario in rollouts)."""
-    return envs.make_env(cfg.env)
 
 
 def make_oracle(cfg, *keys):
@@ -270,30 +275,35 @@ def make_oracle(cfg, *keys):
 
 
 def make_policy(cfg, env):
-    """A fresh diffusion policy for this run's env and network; the env says how it reads its observation."""
+    """A fresh diffusion policy for this run's env and network; the env says how it reads its observation
+    (env.obs_encoder: None, as numbers, diffusion.FlatObservation; a variant's env names its own encoder class)."""
+    encoder = env.obs_encoder or diffusion.FlatObservation
     pc = diffusion.PolicyConfig(obs_dim=env.obs_dim, dof=env.dof, horizon=cfg.horizon, n_act=cfg.n_act, K=cfg.K,
                                 down_dims=cfg.down_dims, network=cfg.network, mlp_width=cfg.mlp_width,
-                                mlp_blocks=cfg.mlp_blocks, obs_encoder=env.obs_encoder,
-                                obs_encoder_args=dict(env.obs_encoder_args), seed=stage_seed(cfg, "init"))
-    return cpu_kernels.use_kernels(diffusion.DiffusionPolicy(pc, device=cfg.device))  # a CPU's faster Linear, Mish
+                                mlp_blocks=cfg.mlp_blocks, obs_encoder=encoder.__name__,
+                                obs_encoder_args=dict(env.obs_encoder_args),
+                                obs_encoder_sizes=encoder.sizes(**env.obs_encoder_args), seed=stage_seed(cfg, "init"))
+    return diffusion.DiffusionPolicy(pc, device=cfg.device, obs_encoder=encoder)
 
 
 # ---- Step 2: HG-DAgger data collection, many episodes in lockstep ------------------------------------------------
-def collect_interventions(cfg, keys, policy, policy_success, log=print):
+def collect_interventions(cfg, keys, policy, policy_success, log=print, make_env=envs.make_env,
+                          label_rule=diffusion.expert_runs):
     """D_k: HG-DAgger rollouts of the lineage's policy on the evaluation scenarios its own evaluation
     (policy_success, (scenarios, repeats) bool) did not always solve (benchmarks/SETUP.md §4), the episodes with an
-    intervention the label rule keeps. keys: (lineage, k), and a chain of its own ('closed_loop'): the seeds."""
+    intervention the label rule keeps (label_rule(expert, H): the runs kept, the paper's >= H steps, Sec. IV-C).
+    keys: (lineage, k), and a chain of its own ('closed_loop'): the seeds."""
     label = round_label(keys)
-    seeds = make_run_env(cfg).eval_seeds()[: cfg.eval_scenarios]
+    seeds = make_env(cfg.env).eval_seeds()[: cfg.eval_scenarios]
     solved = np.asarray(policy_success, bool).all(axis=1)
     log(f"{label}: HG-DAgger collection on the evaluation scenarios the policy "
         f"does not always solve: {int((~solved).sum())} of {len(seeds)} ({int(solved.sum())} skipped)")
-    t0, env_list = time.time(), reset_envs(cfg.env, np.asarray(seeds)[~solved])
+    t0, env_list = time.time(), reset_envs(cfg.env, np.asarray(seeds)[~solved], make_env)
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "collect", *keys))
     episodes = rollout(env_list, policy, cfg.n_act, gen, oracle=make_oracle(cfg, "collect", *keys),
                        log=log, seed=stage_seed(cfg, "gate", *keys)) if env_list else []
     for ep in episodes:  # D_k: the interventions the label rule keeps (the paper's: >= H steps, Sec. IV-C)
-        runs = RECIPES[cfg.recipe].expert_runs(ep["expert"], cfg.horizon)
+        runs = label_rule(ep["expert"], cfg.horizon)
         ep["expert"] = np.zeros(len(ep["expert"]), bool)
         for start, end in runs:
             ep["expert"][start:end] = True
@@ -308,11 +318,11 @@ def collect_interventions(cfg, keys, policy, policy_success, log=print):
     return kept
 
 
-def reset_envs(env_name, seeds):
+def reset_envs(env_name, seeds, make_env=envs.make_env):
     """A fresh env of env_name per scenario seed, reset to it: the episodes of one lockstep rollout."""
     env_list = []
     for s in seeds:
-        env_list.append(envs.make_env(env_name))
+        env_list.append(make_env(env_name))
         env_list[-1].reset(seed=int(s))
     return env_list
 
@@ -409,16 +419,19 @@ def rollout(envs_list, policy, n_act, generator, oracle=None, log=None, seed=0):
 
 
 # ---- Step 3: calibration (Sec. IV-D, calibrate.py) ---------------------------------------------------------------
-def calibrate_noise(cfg, keys, policy, rounds_data, stats, log=print):
+def calibrate_noise(cfg, keys, policy, rounds_data, stats, log=print, make_env=envs.make_env):
     """calibrate.Calibration of the round's HG-DAgger policy on the interventions of rounds 1..k (benchmarks/SETUP.md
     §5); keys (lineage, k[, chain]): its seed (the closed-loop row's chain: its policy on its chain's data)."""
     episodes = [ep for D in rounds_data for ep in D]
     gen = torch.Generator(device=policy.device).manual_seed(stage_seed(cfg, "calibrate", *keys))
     t0 = time.time()
-    cal = calibrate.calibrate(make_run_env(cfg), policy, episodes, stats.median_step, calibration_config(cfg),
+    cal = calibrate.calibrate(make_env(cfg.env), policy, episodes, stats.median_step, calibration_config(cfg),
                               gen, log=lambda msg: log("  calibration: " + msg))
-    log(f"{round_label(keys)}: calibration on {len(episodes)} intervention episodes "
-        f"({time.time() - t0:.0f} s)\n  " + report.calibration_text(cal).replace("\n", "\n  "))
+    unit = cal.paper_median_step or cal.median_step  # the paper's median step where it gives one (Sec. V)
+    log(f"{round_label(keys)}: calibration on {len(episodes)} intervention episodes ({time.time() - t0:.0f} s): "
+        f"W = {np.linalg.norm(cal.W) / unit:.2f}, pooled Sigma_bar^alpha per-joint sigma "
+        f"{np.round(np.sqrt(np.diag(cal.pooled)) / unit, 2).tolist()} {'paper ' if cal.paper_median_step else ''}"
+        f"median steps")
     return cal
 
 
@@ -445,66 +458,62 @@ def noise_model(method, cal, episodes=None, median_step=None, paper_median_step=
             if rows.any():
                 per_episode[j] = (cal.timestep[rows], cal.sigma_alpha[rows])
         return "per_step", per_episode
-    return controls.NOISE_MODELS[method]  # a research control's row (experiment/controls.py)
+    raise ValueError(f"no noise model for method {method!r}: Table I's are fixed_<sigma>, pooled, per_step and "
+                     "closed_loop (a variant's rows bring their own sampler: policy_calibrated_dagger's sampler)")
 
 
-def intervention_sampler(cfg, method, rounds_data, calibration, stats):
-    """The intervention rows of a fine-tuning batch, rounds 1..k in the recipe's shares (the paper's: equal):
-    HG-DAgger's as recorded, a noised method's every drawn frame noised and relabelled (the authors' code)."""
-    recipe, samplers, offset = RECIPES[cfg.recipe], [], 0
+def intervention_sampler(cfg, method, rounds_data, calibration, stats, make_env=envs.make_env):
+    """The intervention rows of a fine-tuning batch, rounds 1..k in equal shares: HG-DAgger's as recorded, a noised
+    method's every drawn frame noised and relabelled (the authors' code, benchmarks/SETUP.md §2). A variant's rows
+    bring their own function of these arguments (policy_calibrated_dagger's sampler)."""
+    samplers, offset = [], 0
     for D in rounds_data:
-        def recorded(D=D):  # HG-DAgger's rows: the round's chunks as recorded
-            return recipe.ChunkSampler(D, cfg.horizon)
-
-        def noised(noise_method, D=D, offset=offset):  # a noised method's rows: every drawn frame noised, relabelled
-            kind, sigma = noise_model(noise_method, calibration, range(offset, offset + len(D)), stats.median_step,
+        if method == "hg_dagger":  # HG-DAgger's rows: the round's chunks as recorded
+            samplers.append(relabel.ChunkSampler(D, cfg.horizon))
+        else:  # a noised method's rows: every drawn frame noised with the method's noise and relabelled (Sec. IV-E)
+            kind, sigma = noise_model(method, calibration, range(offset, offset + len(D)), stats.median_step,
                                       stats.paper_median_step)
-            return recipe.AugmentationSampler(D, lambda: make_run_env(cfg), stats, kind, sigma,
-                                              relabel.RelabelConfig(horizon=cfg.horizon))
-
-        if method in controls.ROWS:  # a research control's own mix (experiment/controls.py)
-            samplers.append(controls.ROWS[method].sampler(D, cfg.horizon, recorded, noised))
-        else:
-            samplers.append(recorded() if method == "hg_dagger" else noised(method))
+            samplers.append(relabel.AugmentationSampler(D, functools.partial(make_env, cfg.env), stats, kind, sigma,
+                                                        relabel.RelabelConfig(horizon=cfg.horizon)))
         offset += len(D)
-    frames = [sum(int(ep["expert"].sum()) for ep in D) for D in rounds_data]
-    return relabel.MixtureSampler(samplers, recipe.round_shares(frames))
+    return relabel.MixtureSampler(samplers, [1.0] * len(samplers))
 
 
-def fine_tune(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, log=print, fit=None):
+def fine_tune(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, log=print, fit=None,
+              make_env=envs.make_env, lr_schedule=diffusion.warmup_cosine, sampler=None):
     """Steps 3-4 (benchmarks/SETUP.md §2): pi_0 fine-tuned on D0 and, in intervention_fraction of every batch, the
-    interventions of rounds 1..k (intervention_sampler); D0 is never noised."""
+    interventions of rounds 1..k (sampler: default intervention_sampler); D0 is never noised."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-    sampler = intervention_sampler(cfg, method, rounds_data, calibration, stats)
-    rows = ("" if method == "hg_dagger" else controls.ROWS[method].what if method in controls.ROWS
-            else ", every drawn frame noised and relabelled")
+    rows = (sampler or intervention_sampler)(cfg, method, rounds_data, calibration, stats, make_env)
     log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
         f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-        f"{len(rounds_data)} round(s){rows} (recipe {cfg.recipe}: continuing pi_0's optimizer)")
-    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", lineage, k, method), sampler,
-                             cfg.intervention_fraction, fit, log)
+        f"{len(rounds_data)} round(s) (continuing pi_0's optimizer)")
+    return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", lineage, k, method), rows,
+                             cfg.intervention_fraction, fit, log, lr_schedule)
 
 
-def finetune_from_pi0(cfg, pi0, obs, chunks, seed, sampler=None, aug_fraction=0.0, fit=None, log=print):
-    """A copy of pi_0 fine-tuned to bc_steps + finetune_steps, continuing its AdamW state and cosine (recipe's)."""
+def finetune_from_pi0(cfg, pi0, obs, chunks, seed, sampler=None, aug_fraction=0.0, fit=None, log=print,
+                      lr_schedule=diffusion.warmup_cosine):
+    """A copy of pi_0 fine-tuned to bc_steps + finetune_steps, continuing its AdamW state and learning-rate schedule."""
     policy = copy_policy(pi0)  # pi_0 itself stays as it is for the next arm
-    tc = train_config(cfg, policy, cfg.bc_steps + cfg.finetune_steps, seed, aug_fraction=aug_fraction,
-                      **RECIPES[cfg.recipe].arm_training(cfg))
+    tc = train_config(cfg, policy, cfg.bc_steps + cfg.finetune_steps, seed, lr_schedule, aug_fraction)
     return (fit or train_policy)(policy, obs, chunks, tc, sampler, start=copy.deepcopy(pi0.train_state), log=log)
 
 
 def copy_policy(policy):
-    """A policy of its own with `policy`'s config and weights (its EMA copy and normalizer too)."""
-    twin = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(policy.cfg, device=policy.device))
+    """A policy of its own with `policy`'s config, observation encoder and weights (its EMA copy and normalizer too)."""
+    twin = diffusion.DiffusionPolicy(policy.cfg, device=policy.device, obs_encoder=type(policy.net.obs_encoder))
     twin.load_state_dict(policy.state_dict())
     return twin
 
 
-def train_config(cfg, policy, steps, seed, schedule_steps=0, lr=None, aug_fraction=0.0, lr_schedule="cosine"):
-    """diffusion.TrainConfig of a run to step `steps`: AdamW at peak lr, warm-up, a cosine that ends at
-    schedule_steps (0: steps), the authors' observation noise; aug_fraction of every batch from the sampler."""
-    return diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=lr or cfg.lr, seed=seed,
-                                 warmup_steps=min(500, (schedule_steps or steps) // 10), schedule_steps=schedule_steps,
+def train_config(cfg, policy, steps, seed, lr_schedule=diffusion.warmup_cosine, aug_fraction=0.0):
+    """diffusion.TrainConfig of a run to step `steps` of the schedule pi_0 and every arm share (bc_steps +
+    finetune_steps): AdamW at peak lr, warm-up, lr_schedule (the paper's: a cosine to 0 at the schedule's end), the
+    authors' observation noise; aug_fraction of every batch from the sampler."""
+    schedule_steps = cfg.bc_steps + cfg.finetune_steps
+    return diffusion.TrainConfig(steps=steps, batch_size=cfg.batch_size, lr=cfg.lr, seed=seed,
+                                 warmup_steps=min(500, schedule_steps // 10), schedule_steps=schedule_steps,
                                  lr_schedule=lr_schedule, aug_fraction=aug_fraction,
                                  obs_noise=observation_noise(policy.cfg))
 
@@ -518,16 +527,19 @@ def observation_noise(policy_cfg):
     return std
 
 
-def train_and_evaluate(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, memo=None, log=print):
+def train_and_evaluate(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, stats, memo=None, log=print,
+                       make_env=envs.make_env, lr_schedule=diffusion.warmup_cosine, sampler=None):
     """One row of round k (steps 4 and 6), fine-tuned and evaluated: (policy, success (scenarios, repeats) bool)."""
     memo = memo or compute
     policy = memo(f"{folder(lineage, k)}/checkpoints/{method}.pt", fine_tune, cfg, lineage, k, method, demos, pi0,
-                  rounds_data, calibration, stats, log=log)
+                  rounds_data, calibration, stats, log=log, make_env=make_env, lr_schedule=lr_schedule, sampler=sampler)
     return policy, evaluate_policy(memo, cfg, f"{folder(lineage, k)}/eval/{method}.json", policy,
-                                   f"{method} (lineage {lineage}, K={k})", log)
+                                   f"{method} (lineage {lineage}, K={k})", log, make_env=make_env)
 
 
-def closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, first_round, first_calibration, memo=None, log=print):
+def closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, first_round, first_calibration, memo=None, log=print,
+                      make_env=envs.make_env, lr_schedule=diffusion.warmup_cosine, sampler=None,
+                      label_rule=diffusion.expert_runs):
     """Round k of Table I's closed-loop pooled row, Sec. IV-A's steps 2-5 as written (benchmarks/SETUP.md §5): the
     chain's round k-1 policy, co-trained with pooled Sigma_bar^alpha from pi_0, collects round k, and round k's noise
     is measured on it over the chain's rounds 1..k. Round 1 is the main chain's (the authors copy it too).
@@ -539,65 +551,65 @@ def closed_loop_round(cfg, lineage, k, demos, pi0, stats, chain, first_round, fi
         rounds_data, policy, success = chain
         keys, where = (lineage, k, "closed_loop"), folder(lineage, k, "closed_loop")
         rounds_data = rounds_data + [memo(f"{where}/D.npz", collect_interventions, cfg, keys, policy, success,
-                                          log=log)]
+                                          log=log, make_env=make_env, label_rule=label_rule)]
         # ... and its own noise is measured on the chain's interventions of rounds 1..k (step 3)
         calibration = memo(f"{where}/calibration.json", calibrate_noise, cfg, keys, policy, rounds_data, stats,
-                           log=log)
+                           log=log, make_env=make_env)
     return rounds_data, *train_and_evaluate(cfg, lineage, k, "closed_loop", demos, pi0, rounds_data, calibration,
-                                            stats, memo, log)
+                                            stats, memo, log, make_env, lr_schedule, sampler)
 
 
 # ---- Step 5: evaluation (Sec. V: 100 scenarios x 3 evaluations; success = goal reached without collision) --------
-def evaluate_policy(memo, cfg, name, policy, label, log=print, unseen=None):
+def evaluate_policy(memo, cfg, name, policy, label, log=print, unseen=None, make_env=envs.make_env):
     """Success (scenarios, repeats) bool of `policy` on the evaluation scenarios, kept as `name`. With unseen (default
     cfg.eval_unseen) also on the unseen scenarios, never trained on (not in the paper), as <name>_unseen.json."""
-    ok = memo(name, evaluation, cfg, policy, label, "eval", log=log)
+    ok = memo(name, evaluation, cfg, policy, label, "eval", log=log, make_env=make_env)
     if cfg.eval_unseen if unseen is None else unseen:  # eval/bc.json -> eval/bc_unseen.json
         memo(name[:-len(".json")] + "_unseen.json", evaluation, cfg, policy, label + ", unseen scenarios", "unseen",
-             log=log)
+             log=log, make_env=make_env)
     return np.asarray(ok["success"], bool)
 
 
-def evaluation(cfg, policy, label, scenarios, log=print):
+def evaluation(cfg, policy, label, scenarios, log=print, make_env=envs.make_env):
     """evaluate on the first eval_scenarios of 'eval' or 'unseen', one sampling seed per set for every method."""
     t0 = time.time()
-    env = make_run_env(cfg)
+    env = make_env(cfg.env)
     seeds = (env.eval_seeds() if scenarios == "eval" else env.unseen_seeds())[: cfg.eval_scenarios]
     ok = evaluate(policy, cfg.env, seeds, cfg.eval_repeats, cfg.n_act,
-                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), log=log)
+                  stage_seed(cfg, "eval" if scenarios == "eval" else "eval_unseen"), log=log, make_env=make_env)
     log(f"  eval {label}: success {100 * ok.mean():.1f}% ({ok.size} episodes, {time.time() - t0:.0f} s)")
     return {"success": ok.tolist(), "seeds": list(map(int, seeds))}
 
 
-# Episodes run in lockstep at most this many at a time, per env (each EngineReach3D holds a pybullet client)
-MAX_PARALLEL_ENVS = {"planar": None, "engine3d": 100}  # by the paper's env (envs.paper_env)
-
-
-def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env default", log=None):
+def evaluate(policy, env_name, seeds, repeats, n_act, seed, max_parallel="env default", log=None,
+             make_env=envs.make_env):
     """Success (len(seeds), repeats) bool: goal reached without collision within the step limit. `seed` seeds the
     sampling identically for every method: methods face the same draws where their policies agree (paired)."""
     jobs = [int(s) for _ in range(repeats) for s in seeds]
     gen = torch.Generator(device=policy.device).manual_seed(seed)
     ok = np.array([ep["success"] for _, ep in rollouts_in_groups(policy, env_name, jobs, n_act, gen, max_parallel,
-                                                                 log)], bool)
+                                                                 log, make_env)], bool)
     return ok.reshape(repeats, len(seeds)).T
 
 
-def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="env default", log=None):
+def rollouts_in_groups(policy, env_name, jobs, n_act, generator, max_parallel="env default", log=None,
+                       make_env=envs.make_env):
     """(env, episode) for each scenario seed in `jobs`, in order: lockstep rollouts in groups of at most
-    max_parallel (default MAX_PARALLEL_ENVS[env_name]; None: all at once), a group's envs closed after it."""
-    if max_parallel == "env default":
-        max_parallel = MAX_PARALLEL_ENVS.get(envs.paper_env(env_name))
-    group = max_parallel or max(1, len(jobs))
+    max_parallel (default the env's own max_parallel; None: all at once), a group's envs closed after it."""
+    if not jobs:
+        return
+    first = reset_envs(env_name, jobs[:1], make_env)  # the first episode's env says how many may run at once
+    group = (first[0].max_parallel if max_parallel == "env default" else max_parallel) or len(jobs)
     for start in range(0, len(jobs), group):
-        env_list = reset_envs(env_name, jobs[start:start + group])
+        env_list = (reset_envs(env_name, jobs[start:start + group], make_env) if start else
+                    first + reset_envs(env_name, jobs[1:group], make_env))
         yield from zip(env_list, rollout(env_list, policy, n_act, generator, log=log))
         for e in env_list:
             if hasattr(e, "close"):
                 e.close()  # free the simulator (a pybullet client) before the next group
 
 
-# ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma (t: experiment/) --------
+# ---- Table I's statistics (Sec. V): paired t-test vs HG-DAgger, TOST vs the best fixed sigma ---------------------
 def paired_differences(a, b):
     """a - b per pair, to 1e-9 points: success rates are counts of episodes, so equal gains (47.0 - 46.0 and
     47.33 - 46.33) are equal, not 1e-14 apart (a spread of float rounding would give t ~ 1e14)."""
@@ -639,27 +651,53 @@ def tost(a, b, margin):
     # <<< exercise 13
 
 
-# ---- The entry point (the run folder, workers, command line, tables and report are in experiment/) --------------
-# What the harness runs and tests of the paper (experiment/report.py: run_experiment, write_report; the
-# figures: experiment/figures.py)
-PAPER = report.Paper(loop=policy_calibrated_dagger, demo_statistics=demo_statistics, paired_ttest=paired_ttest,
-                     tost=tost, tost_margin=TOST_MARGIN, paired_differences=paired_differences)
 
 
-def run_experiment(cfg, root, **mode):
-    """report.run_experiment (a mode of the command on run folder root) with this file's loop and tests."""
-    return report.run_experiment(PAPER, cfg, root, **mode)
+# Student's t distribution without scipy: the p-values of paired_ttest and tost (a special function, not the paper's)
+def student_t_cdf(t, df):
+    """P(T <= t) for Student's t with df > 0 degrees of freedom: 1 - I_{df/(df+t^2)}(df/2, 1/2) / 2."""
+    assert df > 0, df
+    if math.isinf(t):
+        return 1.0 if t > 0 else 0.0
+    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
+    return 1.0 - tail if t > 0 else tail
 
 
-def parse_args(argv):
-    """(args, cfg) of a command line (experiment/cli.py) with this file's profiles and methods."""
-    return cli.parse_args(argv, PROFILES, ALL_METHODS, RECIPES)
+def incomplete_beta(a, b, x):
+    """Regularized incomplete beta I_x(a, b) for a, b > 0 and 0 <= x <= 1."""
+    assert 0.0 <= x <= 1.0, x
+    if x in (0.0, 1.0):
+        return x
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):  # the continued fraction converges fast here
+        return front * _beta_fraction(a, b, x) / a
+    return 1.0 - front * _beta_fraction(b, a, 1.0 - x) / b  # symmetry I_x(a,b) = 1 - I_{1-x}(b,a)
 
 
+def _beta_fraction(a, b, x):
+    """The continued fraction of I_x(a, b) (modified Lentz; 300 terms at most)."""
+    tiny = 1e-300  # keeps every denominator off zero
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 301):
+        for num in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),  # the even term d_{2m}, then the odd d_{2m+1}
+                    -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
+            break
+    return h
+
+
+# ---- The entry point: the harness's command line (experiment/cli.py: profiles, the run folder, the report) --------
 def main(argv=None):
-    """`python dagger.py`: the command line's mode (experiment/cli.py) run with this file's loop and tests."""
-    args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
-    return cli.main(args, cfg, report.run_experiment, PAPER)
+    """`python dagger.py [options]`: the harness's command line runs this file's loop on a run folder."""
+    from experiment import cli  # the harness stands above this file: imported only when the command runs
+    return cli.main(argv)
 
 
 if __name__ == "__main__":

@@ -49,8 +49,10 @@ class PolicyConfig:
     kernel_size: int = 5         # temporal convolution kernel (steps; odd: padding k // 2 keeps the length)
     n_groups: int = 8            # GroupNorm groups; every down_dim must be a multiple
     step_embed_dim: int = 128    # size of the sinusoidal diffusion-step embedding and of the step features
-    obs_encoder: str = "flat"    # an OBS_ENCODERS name: how the network reads the observation ('flat': as numbers)
-    obs_encoder_args: dict = field(default_factory=dict)   # its keyword arguments (a variant's env gives both)
+    obs_encoder: str = "FlatObservation"  # the class the network reads the observation with, by name (FlatObservation:
+                                 # as numbers; a variant's env hands in its own class, dagger.make_policy records it)
+    obs_encoder_args: dict = field(default_factory=dict)   # its keyword arguments (a variant's env gives them)
+    obs_encoder_sizes: tuple = (0, 0)  # its sizes(**args): (observation entries at the end it reads, features it gives)
     seed: int = 0                # seed of the weight initialisation
 
     def __post_init__(self):
@@ -59,8 +61,8 @@ class PolicyConfig:
         sizes = ("obs_dim", "dof", "horizon", "n_act", "K", "kernel_size", "n_groups", "step_embed_dim", "mlp_width",
                  "mlp_blocks")
         halvings = len(self.down_dims) - 1
-        rules = {f"network must be one of {', '.join(NETWORKS)}": self.network in NETWORKS,   # a variant adds its own
-                 f"obs_encoder must be one of {', '.join(OBS_ENCODERS)}": self.obs_encoder in OBS_ENCODERS,
+        self.obs_encoder_sizes = tuple(int(n) for n in self.obs_encoder_sizes)
+        rules = {f"network must be one of {', '.join(NETWORKS)}": self.network in NETWORKS,
                  f"{', '.join(sizes)} must be positive ints":
                      all(isinstance(getattr(self, n), (int, np.integer)) and getattr(self, n) >= 1 for n in sizes),
                  f"down_dims must be non-empty, multiples of n_groups={self.n_groups} (GroupNorm)": bool(self.down_dims)
@@ -73,11 +75,6 @@ class PolicyConfig:
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"PolicyConfig: {'; '.join(broken)}; got {self}")
-        try:
-            self.encoder_sizes                                         # the encoder checks its own arguments
-        except TypeError as err:                                       # an argument it does not take
-            raise ValueError(f"PolicyConfig.obs_encoder_args {self.obs_encoder_args!r} do not fit the obs_encoder "
-                             f"{self.obs_encoder!r}: {err}") from None
         if self.low_dim < 2 * self.dof:
             raise ValueError(f"PolicyConfig.obs_dim={self.obs_dim} must be longer: the observation starts with "
                              f"(q_t, q_t-1), 2 * dof = {2 * self.dof} numbers, before the {self.encoder_sizes[0]} "
@@ -85,7 +82,7 @@ class PolicyConfig:
 
     @property
     def encoder_sizes(self):     # (observation entries at its end the encoder reads, features it gives for them)
-        return OBS_ENCODERS[self.obs_encoder].sizes(**self.obs_encoder_args)
+        return self.obs_encoder_sizes
 
     @property
     def low_dim(self):           # entries of the observation min-max normalized: all before the encoder's
@@ -105,7 +102,7 @@ class TrainConfig:
     weight_decay: float = 1e-6       # AdamW weight decay (the authors')
     warmup_steps: int = 500          # optimizer steps of linear warmup from 0 to lr, then cosine decay to 0
     schedule_steps: int = 0          # where the cosine reaches 0 (0: steps; pi_0 continued: benchmarks/SETUP.md §2)
-    lr_schedule: str = "cosine"      # an LR_SCHEDULES name: the authors' warm-up + cosine (a variant adds its own)
+    lr_schedule: object = None       # lr_schedule(step, cfg): the learning rate; None: warmup_cosine (the authors')
     aug_fraction: float = 0.0        # fraction of each batch drawn from `sampler` (co-training, Sec. IV-A step 4)
     obs_noise: object = 0.0          # observation noise std in raw units (authors': 0.01 rad, 0.005 m), or (obs_dim,)
     # not in the paper
@@ -126,7 +123,8 @@ class TrainConfig:
                      noise.ndim <= 1 and np.all(np.isfinite(noise)) and np.all(noise >= 0),
                  "schedule_steps 0 (= steps) or >= steps":
                      self.schedule_steps == 0 or self.schedule_steps >= self.steps,
-                 f"lr_schedule one of {', '.join(LR_SCHEDULES)}": self.lr_schedule in LR_SCHEDULES}
+                 "lr_schedule None or a function (step, cfg) -> lr":
+                     self.lr_schedule is None or callable(self.lr_schedule)}
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
             raise ValueError(f"TrainConfig needs {'; '.join(broken)}; got {self}")
@@ -290,7 +288,7 @@ class FiLMNetwork(nn.Module):
     its body(a, film) uses them, and body reads all blocks' (scale, bias) from one row. experiment/cpu_kernels.py
     computes the same FiLM with the map split along its input (FiLMTable: the step part of all K steps at once)."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, obs_encoder=None):
         super().__init__()
         dsed = cfg.step_embed_dim
         self.K, self.step_embed_dim = cfg.K, dsed
@@ -304,7 +302,7 @@ class FiLMNetwork(nn.Module):
         self.film_sizes = [b.film.out_features for b in self.residual_blocks()]
         self.film_size = sum(self.film_sizes)
         # built last, so an encoder with weights leaves the others' initialisation as without it
-        self.obs_encoder = OBS_ENCODERS[cfg.obs_encoder](**cfg.obs_encoder_args)
+        self.obs_encoder = (obs_encoder or FlatObservation)(**cfg.obs_encoder_args)
 
     def step_features(self, k):
         """(N,) long diffusion steps -> (N, dsed) step features."""
@@ -425,9 +423,9 @@ NETWORKS = {"unet": ConditionalUnet1D, "mlp": ResidualMLP}
 
 
 class FlatObservation(nn.Module):
-    """OBS_ENCODERS['flat']: the normalized observation and velocity are the features as they are. An encoder
-    may own the observation's last entries (sizes(): how many, and the features it gives for them); normalize_obs
-    hands those on unnormalized, at the end (experiment/image_obs.py registers 'image_cnn')."""
+    """The policy's observation encoder: the normalized observation and velocity are the features as they are. A
+    variant's encoder may own the observation's last entries (sizes(): how many, and the features it gives for
+    them); normalize_obs hands those on unnormalized, at the end (experiment/image_obs.py's ImageEncoder)."""
 
     @staticmethod
     def sizes():
@@ -436,8 +434,6 @@ class FlatObservation(nn.Module):
     def forward(self, obs_norm):
         return obs_norm
 
-
-OBS_ENCODERS = {"flat": FlatObservation}
 
 
 # ---- The policy: normalizer, the DDPM loss, sampling by the reverse process --------------------------------------
@@ -450,12 +446,12 @@ class DiffusionPolicy(nn.Module):
     with the weights); the interface stays in joint units: sample() returns chunks of joint positions.
     """
 
-    def __init__(self, cfg, device="cpu"):
+    def __init__(self, cfg, device="cpu", obs_encoder=None):
         super().__init__()
         self.cfg = cfg
         with torch.random.fork_rng(devices=[]):                       # init from cfg.seed; caller's RNG untouched
             torch.manual_seed(cfg.seed)
-            self.net = NETWORKS[cfg.network](cfg)                      # eps_theta
+            self.net = NETWORKS[cfg.network](cfg, obs_encoder)         # eps_theta (obs_encoder: the env's class)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         # the min-max normalizer (center, half range): buffers, saved with the weights; identity until fitted
         for prefix, n in (("obs", cfg.obs_dim), ("vel", cfg.dof), ("act", cfg.dof)):
@@ -703,8 +699,8 @@ def make_optimizer(net, cfg):
 
 
 def lr_at(step, cfg):
-    """The learning rate of optimizer step `step`: cfg.lr_schedule's (LR_SCHEDULES)."""
-    return LR_SCHEDULES[cfg.lr_schedule](step, cfg)
+    """The learning rate of optimizer step `step`: cfg.lr_schedule's (None: the authors' warmup_cosine)."""
+    return (cfg.lr_schedule or warmup_cosine)(step, cfg)
 
 
 def warmup_cosine(step, cfg):
@@ -715,8 +711,6 @@ def warmup_cosine(step, cfg):
     progress = (step - cfg.warmup_steps) / max(1, end - cfg.warmup_steps)
     return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
-
-LR_SCHEDULES = {"cosine": warmup_cosine}  # the authors'; experiment/lever.py adds its 'constant'
 
 
 @torch.no_grad()

@@ -8,7 +8,7 @@
 Table II's UR5 env (EngineReach3D) is experiment/engine3d.py; it shares ArmEnv and one interface (gymnasium
 conventions without the dependency):
 
-    env = make_env('planar')                  # or 'engine3d' once experiment.engine3d is imported; keywords: config
+    env = make_env('planar')                  # keywords: config fields (Table II's env: experiment/environments.py)
     obs, info = env.reset(seed=s)             # the deterministic scenario of s; info: 'q', 'goal', 'seed'
     obs, reward, terminated, truncated, info = env.step(action)   # action: absolute joint target (dof,)
     env.dof, env.dim, env.obs_dim             # joints, workspace dimension, observation length
@@ -106,9 +106,13 @@ class ArmEnv:
     (experiment/engine3d.py). A subclass sets dof, dim, max_step, max_steps, obs_dim and supplies fk,
     _in_collision_chunk, simulator_in_collision (judges a step), make_obs, _draw_scenario, render; its config gives dt, goal_tolerance, joint_lo/hi and n_substeps."""
 
-    # How a policy reads the observation (diffusion.OBS_ENCODERS; dagger.make_policy copies both into its config)
-    obs_encoder = "flat"
+    # How a policy reads the observation: None, as numbers (diffusion.FlatObservation); a variant's env names its
+    # encoder class and that class's keyword arguments (dagger.make_policy hands them to the policy)
+    obs_encoder = None
     obs_encoder_args = {}
+    paper_env = None  # the paper's env this one is or derives from ('planar': Table I; 'engine3d': Table II)
+    paper_median_step = None  # rad: the paper's unit of noise levels for that env (Sec. V), None if it gives none
+    max_parallel = None  # episodes of this env that may run in lockstep at once (None: any number)
     goal_is_pose = False  # the goal is a position; True: goal_configurations is the whole goal set (oracle.py)
 
     def __init__(self, cfg):
@@ -273,6 +277,7 @@ class PlanarReacher(ArmEnv):
     """
 
     dim, dof = 2, 3  # workspace dimension, joints
+    paper_env, paper_median_step = "planar", 0.0176  # Table I; rad, the authors' median step (benchmarks/SETUP.md §1)
     collision_chunk = 4096  # configurations per pass of in_collision: the temporaries stay in cache
     # Self-collision pairs: parts of links not joined by a joint (link 1 vs link 3 and the gripper; link 2 vs
     # the gripper, a child of link 3 in the URDF). Adjacent links share a joint and never count.
@@ -582,32 +587,13 @@ def box_distance(a, b):
     return np.where(overlap, 0.0, d)
 
 
-# ---- Environments by name ------------------------------------------------------------------------
-# name -> (env class, its config); the experiment folder adds its envs on import of their modules:
-# experiment/engine3d.py 'engine3d' (Table II), experiment/image_obs.py 'engine3d_image',
-# experiment/oriented_goal.py 'engine3d_oriented'
-ENVIRONMENTS = {"planar": (PlanarReacher, PlanarConfig)}
-PAPER_ENVS = ("planar", "engine3d")  # the paper's two envs: what is keyed by env (its unit, its table) names these
-
-
 def make_env(name="planar", **config):
-    """Environment by name, e.g. make_env('planar', max_steps=200) (keywords: config fields)."""
-    if name not in ENVIRONMENTS:
-        raise ValueError(f"unknown env {name!r}; valid: {', '.join(sorted(ENVIRONMENTS))} (Table II's 'engine3d' "
-                         "and its variants are there once experiment.engine3d / their module is imported)")
-    env_class, config_class = ENVIRONMENTS[name]
-    return env_class(config_class(**config))
-
-
-def paper_env(env):
-    """The paper's env (PAPER_ENVS) that env is or derives from -- a variant's env subclasses one, and is that
-    env for the paper's unit, table and sizes -- or None. env: a name of ENVIRONMENTS or an env object."""
-    if isinstance(env, str) and env in PAPER_ENVS:
-        return env
-    env_class = ENVIRONMENTS.get(env, (None,))[0] if isinstance(env, str) else type(env)
-    return next((name for name in PAPER_ENVS
-                 if env_class is not None and name in ENVIRONMENTS and issubclass(env_class, ENVIRONMENTS[name][0])),
-                None)
+    """The env of a run by name, e.g. make_env('planar', max_steps=200) (keywords: config fields). This file holds
+    Table I's planar reacher; Table II's UR5 and the variants' envs are made by experiment/environments.py."""
+    if name != "planar":
+        raise ValueError(f"unknown env {name!r}; envs.py makes 'planar' (Table II's 'engine3d' and its variants: "
+                         "experiment.environments.make_env, which the harness hands the loop)")
+    return PlanarReacher(PlanarConfig(**config))
 
 
 # ---- The unit of noise levels (Sec. V, Fig. 4): the median step of the demonstrations ------------
@@ -621,15 +607,10 @@ def median_step(episodes):
     return float(np.median(steps))
 
 
-# The paper's own unit (benchmarks/SETUP.md §1): the median L2 norm over the joints of the authors' 30 Hz demo steps;
-# ours (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step = sigma_paper * this.
-PAPER_MEDIAN_STEP = {"planar": 0.0176, "engine3d": 0.0166}  # rad, by the paper's env (paper_env)
-PAPER_FRAME_DT = 1 / 30  # s: the authors' control period (30 Hz), the frame their velocities count per
-
-
-def paper_median_step(env):
-    """The paper's median step (rad) of env (a name of ENVIRONMENTS or an env object), or None where it has none."""
-    return PAPER_MEDIAN_STEP.get(paper_env(env))
+# The authors' control period (30 Hz, benchmarks/SETUP.md §1): the frame their velocities count per. The paper's own
+# unit of noise (an env's paper_median_step) is the median L2 norm over the joints of their 30 Hz demo steps; ours
+# (median_step) is per joint at the env's dt. In rad: sigma_ours * median_step = sigma_paper * paper_median_step.
+PAPER_FRAME_DT = 1 / 30  # s
 
 
 if __name__ == "__main__":

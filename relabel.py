@@ -331,6 +331,16 @@ def velocity_noise_std(cfg: RelabelConfig, stats: DemoStats) -> float:
     return cfg.velocity_noise * stats.paper_median_step * stats.frames_per_step
 
 
+def paper_label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's label rule (diffusion.label_mask, expert_runs): the steps t (n,) whose chunk is a label, and
+    seg_end (n,), the end (exclusive) of t's expert run."""
+    seg_end = np.zeros(len(expert), dtype=np.int64)
+    for start, end in expert_runs(expert, horizon):
+        seg_end[start:end] = end
+    t = np.flatnonzero(label_mask(expert, horizon))
+    return t, seg_end[t]
+
+
 class AugmentationSampler:
     """sampler(n, rng) -> (obs (n, obs_dim) float32, chunks (n, H, dof) float32, mask (n, H) bool): noised
     intervention states with corrective labels, the D̂_1 ∪ ... ∪ D̂_k of Sec. IV-A, made on the fly.
@@ -339,26 +349,15 @@ class AugmentationSampler:
     v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
     mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
     noise: 'isotropic', 'pooled' or 'per_step'; sigma: as in `noise_factors`, for 'per_step' a list or dict
-    {episode index: pair}. make_env: an env factory."""
-    # the pool and its counters: what a resumed training run restores (experiment/checkpoints.py)
-    resume_state = ("_pool_obs", "_pool_chunks", "_pool_mask", "_filled", "_write", "_served", "n_drawn", "n_kept")
-
-    @staticmethod
-    def label_steps(expert: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-        """The paper's label rule (diffusion.label_mask, expert_runs): the steps t (n,) whose chunk is a label,
-        and seg_end (n,), the end (exclusive) of t's expert run. A variant's subclass brings its own rule."""
-        seg_end = np.zeros(len(expert), dtype=np.int64)
-        for start, end in expert_runs(expert, horizon):
-            seg_end[start:end] = end
-        t = np.flatnonzero(label_mask(expert, horizon))
-        return t, seg_end[t]
+    {episode index: pair}. make_env: an env factory. label_steps(expert, H): the steps states are drawn at (the
+    paper's rule by default; a variant hands in its own)."""
 
     def __init__(self, episodes: Sequence[dict], make_env: Callable[[], object], stats: DemoStats,
-                 noise: str, sigma, cfg: RelabelConfig):
+                 noise: str, sigma, cfg: RelabelConfig, label_steps: Callable = None):
         self.cfg, self.noise, self.stats, self._make_env, self._envs = cfg, noise, stats, make_env, {}
         # one flat table of every labelable step, the episodes concatenated: projection and labels run once a batch
         arrays = [(np.asarray(ep["q"], dtype=np.float64), np.asarray(ep["expert"], dtype=bool)) for ep in episodes]
-        steps = [self.label_steps(expert, cfg.horizon) for _, expert in arrays]  # (t, seg_end) each
+        steps = [(label_steps or paper_label_steps)(expert, cfg.horizon) for _, expert in arrays]  # (t, seg_end) each
         labelled = [e for e, (t, _) in enumerate(steps) if t.size]
         self._episode_obs = [ep["obs"] for ep in episodes]  # recorded observations (references, no copy)
         first = np.cumsum([0] + [len(q) for q, _ in arrays])  # each episode's first row in self.trajectory
@@ -619,7 +618,7 @@ if __name__ == "__main__":
     cfg = RelabelConfig(horizon=16)
     episodes = [oracle.Oracle().demonstrate(env, s) for s in env.train_seeds(12)]
     stats = demo_stats(episodes, envs.median_step(episodes), env.max_step,
-                       paper_median_step=envs.paper_median_step(env), frames_per_step=env.dt / envs.PAPER_FRAME_DT)
+                       paper_median_step=env.paper_median_step, frames_per_step=env.dt / envs.PAPER_FRAME_DT)
     sigma = np.diag([5.0, 3.0, 4.0]) ** 2 * stats.median_step ** 2  # a pooled Σ̄^α stand-in
     sampler = AugmentationSampler(episodes, lambda: envs.make_env("planar"), stats, "pooled", sigma, cfg)
     obs, chunks, mask = sampler(128, rng)

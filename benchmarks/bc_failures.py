@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import envs  # noqa: E402
-from experiment import checkpoints, engine3d, oriented_goal  # noqa: E402
+from experiment import checkpoints, engine3d, environments, oriented_goal  # noqa: E402
 
 PART_NAMES = ("link1", "link2", "link3", "palm", "finger_left", "finger_right")  # rows of PlanarReacher.parts
 
@@ -113,13 +113,14 @@ def roll_out(checkpoint, args):
     position-only success, else empty); `scene` what print_failures needs of the env (dt, goal tolerance).
 
     The episodes run as in dagger.evaluate (dagger.rollouts_in_groups: lockstep, in groups of at most
-    dagger.MAX_PARALLEL_ENVS[env], engine3d 100 pybullet clients, each group closed before the next), and every
+    the env's max_parallel, engine3d 100 pybullet clients, each group closed before the next), and every
     episode is classified while its env is open: memory stays that of one group, however many policies."""
     policy = checkpoints.load_policy(checkpoint)
     jobs = [int(s) for _ in range(args.repeats) for s in envs.eval_seeds()]
     gen = torch.Generator().manual_seed(args.seed)
     rows, angles, scene = [], [], None
-    for e, ep in dagger.rollouts_in_groups(policy, args.env, jobs, policy.cfg.n_act, gen):
+    for e, ep in dagger.rollouts_in_groups(policy, args.env, jobs, policy.cfg.n_act, gen,
+                                           make_env=environments.make_env):
         e.reset(seed=ep["seed"])
         rows.append(classify(e, ep) if args.env == "planar" else classify_engine3d(e, ep))
         if scene is None:
@@ -134,7 +135,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT")
     parser.add_argument("--labels", nargs="+", default=None, help="a name per checkpoint for the histogram")
-    parser.add_argument("--env", default="planar", choices=sorted(envs.ENVIRONMENTS))
+    parser.add_argument("--env", default="planar", choices=sorted(environments.ENVIRONMENTS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=123)
     args = parser.parse_args()

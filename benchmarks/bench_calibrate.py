@@ -35,8 +35,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import calibrate as cal  # noqa: E402
 import oracle  # noqa: E402
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, chunk_dataset, train  # noqa: E402
-from envs import make_env, median_step, paper_median_step  # noqa: E402
-from experiment import checkpoints  # noqa: E402
+from envs import make_env, median_step  # noqa: E402
+from experiment import checkpoints, environments, profiles  # noqa: E402
 
 
 def timed(fn):
@@ -96,7 +96,7 @@ def main():
     n_steps = sum(int(e["expert"].sum()) for e in interventions)
 
     cfg = cal.CalibrationConfig(n_act=10)  # dagger.Config.n_act
-    threshold = cal.diverge_radius(cfg.diverge_threshold, unit, paper_median_step(env))  # as calibrate does
+    threshold = cal.diverge_radius(cfg.diverge_threshold, unit, env.paper_median_step)  # as calibrate does
     gen = torch.Generator().manual_seed(0)
     H = policy.cfg.horizon
     blend_beta, chosen = cal.blend_schedule(interventions, H, cfg)  # as calibrate starts them
@@ -148,7 +148,7 @@ def w_spread(root, n_seeds, lineage, k, betas=None):
     saved = without_retired_fields(os.path.join(root, "config.json"), saved)
     cfg = dagger.Config(**{key: value for key, value in saved.items() if key in known})
     run = Run(root, cfg)  # reads the folder's stages; the settings below change only this measurement
-    profile = dagger.PROFILES.get(cfg.name)
+    profile = profiles.PROFILES.get(cfg.name)
     if profile is not None:  # today's calibration settings of the run's profile (the folder may predate them)
         cfg = dataclasses.replace(cfg, **{f: getattr(profile, f) for f in known if f.startswith("calib_")})
     where = f"lineage_{lineage}/round_{k}"
@@ -157,11 +157,11 @@ def w_spread(root, n_seeds, lineage, k, betas=None):
     policy = run.load(f"{where}/checkpoints/hg_dagger.pt")
     episodes = [ep for j in range(1, k + 1) for ep in run.load(f"lineage_{lineage}/round_{j}/D.npz")]
     demos = run.load("data/D0.npz")
-    stats = dagger.demo_statistics(cfg, demos)
+    stats = dagger.demo_statistics(cfg, demos, environments.make_env)
     ccfg = dagger.calibration_config(cfg)
     if betas is not None:
         ccfg = dataclasses.replace(ccfg, betas=betas)
-    paper = paper_median_step(cfg.env) or stats.median_step
+    paper = environments.paper_median_step(cfg.env) or stats.median_step
     seeds = [stage_seed(cfg, "calibrate", lineage, k)] + list(range(1, n_seeds))
     print(f"{root}, {where}: {len(episodes)} intervention episodes, unit {paper:.4f} rad (paper median step); "
           f"calibration settings of {'the ' + cfg.name + ' profile' if profile else 'the run folder'}: {ccfg}")
@@ -170,7 +170,7 @@ def w_spread(root, n_seeds, lineage, k, betas=None):
     Ws, walls = [], []
     for seed in seeds:
         gen = torch.Generator(device=policy.device).manual_seed(seed)
-        c, wall, _ = timed(lambda: cal.calibrate(dagger.make_run_env(cfg), policy, episodes, stats.median_step,
+        c, wall, _ = timed(lambda: cal.calibrate(environments.make_env(cfg.env), policy, episodes, stats.median_step,
                                                  ccfg, gen))
         Ws.append(c.W / paper)
         walls.append(wall)

@@ -18,7 +18,7 @@ Usage:  python benchmarks/bench_diffusion.py [--seconds 3] [--horizons 20 16] [-
             (the run's FiLM table, experiment/cpu_kernels.py, beside the plain network it computes)
         python benchmarks/bench_diffusion.py --image-size 32 --dof 6 --down-dims 64,128,256
             (also a policy whose observation ends with a 3 x 32 x 32 image, encoded by the CNN of the image
-             variant, experiment/image_obs.py: obs_encoder 'image_cnn')
+             variant, experiment/image_obs.py: its ImageEncoder)
 Times are CPU seconds of this process (time.process_time): with one torch thread that is the cost itself,
 also on a machine whose cores are shared; the last column, wall / CPU, shows how loaded the machine was.
 Every reverse step costs the same, so by default the sampling column is measured on a few reverse steps
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import experiment.image_obs  # noqa: E402,F401 (registers the image variant's encoder, 'image_cnn')
+from experiment.image_obs import ImageEncoder  # noqa: E402 (the image variant's encoder)
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train  # noqa: E402
 from experiment import cpu_kernels  # noqa: E402
 
@@ -63,7 +63,8 @@ def measure(cfg, args, film):
     obs = rng.uniform(-1, 1, (n_labels, cfg.obs_dim)).astype(np.float32)
     obs[:, cfg.low_dim:] = rng.uniform(0, 1, (n_labels, cfg.obs_dim - cfg.low_dim))   # an encoder's pixels: [0, 1]
     chunks = rng.uniform(-1, 1, (n_labels, cfg.horizon, cfg.dof)).astype(np.float32)
-    policy = cpu_kernels.use_kernels(DiffusionPolicy(cfg))              # as the run has it on this CPU
+    encoder = ImageEncoder if cfg.obs_encoder == "ImageEncoder" else None             # the env hands its class over
+    policy = cpu_kernels.use_kernels(DiffusionPolicy(cfg, obs_encoder=encoder))        # as the run has it on this CPU
     if film == "plain":                                                # eps_theta as diffusion.py writes it
         for net in (policy.net, policy.ema_net):
             net.__class__ = next(c for c in type(net).__mro__ if c in cpu_kernels.TABLED)
@@ -128,8 +129,8 @@ def main():
             if args.image_size:
                 S = args.image_size
                 cfg = PolicyConfig(obs_dim=2 * args.dof + 3 + 3 * S * S, dof=args.dof, horizon=horizon,
-                                   n_act=horizon // 2, K=args.K, network=network, obs_encoder="image_cnn",
-                                   obs_encoder_args={"shape": (3, S, S)}, **shape)
+                                   n_act=horizon // 2, K=args.K, network=network, obs_encoder="ImageEncoder",
+                                   obs_encoder_args={"shape": (3, S, S)}, obs_encoder_sizes=(3 * S * S, 64), **shape)
                 obs_name = f"image {S}x{S}"
             else:
                 cfg = PolicyConfig(obs_dim=args.obs_dim, dof=args.dof, horizon=horizon, n_act=horizon // 2,

@@ -23,8 +23,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_envs import rate  # noqa: E402
-from envs import make_env  # noqa: E402
-from experiment import engine3d  # noqa: E402,F401 (makes make_env("engine3d"))
+from experiment.environments import make_env  # noqa: E402
 
 
 def speed_rows(env, seconds, n_scenes, rng):

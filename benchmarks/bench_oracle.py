@@ -40,8 +40,7 @@ import numpy as np
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 import oracle  # noqa: E402
-from envs import make_env  # noqa: E402
-from experiment import engine3d  # noqa: E402,F401 (makes make_env("engine3d"))
+from experiment.environments import make_env  # noqa: E402
 from oracle import Oracle, PlanningFailed  # noqa: E402
 
 

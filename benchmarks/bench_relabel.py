@@ -68,7 +68,7 @@ def main():
     pooled = np.diag([4.0, 5.0, 4.5]) ** 2 * unit ** 2
     per_step = {e: (np.arange(0, len(ep["q"]), 2), np.broadcast_to(pooled, (len(range(0, len(ep["q"]), 2)), 3, 3)))
                 for e, ep in enumerate(episodes)}
-    n_steps = sum(len(relabel.AugmentationSampler.label_steps(ep["expert"], cfg.horizon)[0]) for ep in episodes)
+    n_steps = sum(len(relabel.paper_label_steps(ep["expert"], cfg.horizon)[0]) for ep in episodes)
     print(f"{len(episodes)} intervention episodes, {n_steps} labelable steps, median step {unit:.4f} rad, "
           f"accel clamp {np.round(stats.accel_max, 4)} rad/step²\n")
 
@@ -77,7 +77,7 @@ def main():
     rng = np.random.default_rng(0)
     ep = episodes[0]
     env.reset(seed=ep["seed"])
-    t_valid, seg_end = relabel.AugmentationSampler.label_steps(ep["expert"], cfg.horizon)
+    t_valid, seg_end = relabel.paper_label_steps(ep["expert"], cfg.horizon)
     pick = rng.integers(len(t_valid), size=512)
     t, t_end = t_valid[pick], seg_end[pick]
     factors = relabel.noise_factors(pooled, t, 3)

@@ -36,7 +36,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger      # noqa: E402
 import diffusion   # noqa: E402
-from experiment import cpu_kernels  # noqa: E402
+from experiment import cpu_kernels, environments, profiles  # noqa: E402
 
 PARTS = ("index", "forward", "backward", "adamw", "ema", "item")
 N_ROWS = 20_000    # random training rows: the quick profile's D0 is ~20k chunks
@@ -212,7 +212,7 @@ def cpu_name():
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--profile", default="quick", help=f"one of {', '.join(dagger.PROFILES)}")
+    parser.add_argument("--profile", default="quick", help=f"one of {', '.join(profiles.PROFILES)}")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads (1: as dagger's worker processes train; experiment/workers.py)")
@@ -222,16 +222,16 @@ def main():
     parser.add_argument("--baseline", default=None, help="a git revision whose diffusion.py to time alongside")
     parser.add_argument("--ops", action="store_true", help="also print torch.profiler's per-op table")
     args = parser.parse_args()
-    if args.profile not in dagger.PROFILES:
-        raise SystemExit(f"--profile must be one of {', '.join(dagger.PROFILES)}, got {args.profile!r}")
+    if args.profile not in profiles.PROFILES:
+        raise SystemExit(f"--profile must be one of {', '.join(profiles.PROFILES)}, got {args.profile!r}")
     if args.device not in ("cpu", "cuda") or (args.device == "cuda" and not torch.cuda.is_available()):
         raise SystemExit(f"--device must be cpu or cuda (cuda only where torch sees a GPU), got {args.device!r}")
     if min(args.steps, args.warm, args.repeats, args.threads) < 1:
         raise SystemExit("--steps, --warm, --repeats and --threads must be >= 1")
     torch.set_num_threads(args.threads)
-    cfg = dagger.PROFILES[args.profile]
+    cfg = profiles.PROFILES[args.profile]
     cfg.device = args.device
-    env = dagger.make_run_env(cfg)
+    env = environments.make_env(cfg.env)
     rng = np.random.default_rng(0)
     data = (rng.normal(size=(N_ROWS, env.obs_dim)).astype(np.float32),
             rng.normal(size=(N_ROWS, cfg.horizon, env.dof)).astype(np.float32))

@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import dagger  # noqa: E402
-from experiment import run_folder  # noqa: E402
+from experiment import environments, run_folder  # noqa: E402
 
 
 def parse_seeds(text):
@@ -70,7 +70,8 @@ def t_quantile(p, df):
 def evaluate_file(path, seeds, repeats, sample_seed, env="planar", log=None):
     """(scenarios, repeats) bool success of the policy saved at `path` on `seeds` (dagger.evaluate, its n_act)."""
     policy = run_folder.load_policy(path, "cpu")
-    return dagger.evaluate(policy, env, list(seeds), repeats, policy.cfg.n_act, sample_seed, log=log)
+    return dagger.evaluate(policy, env, list(seeds), repeats, policy.cfg.n_act, sample_seed, log=log,
+                           make_env=environments.make_env)
 
 
 def main(argv=None):
@@ -80,7 +81,7 @@ def main(argv=None):
                    "(default: the 300 new scenarios of benchmarks/noise_transfer.py)")
     p.add_argument("--repeats", type=int, default=3, help="evaluations of each scenario (default 3, the paper's)")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of the policy's sampling draws (default 0)")
-    p.add_argument("--env", default="planar", choices=sorted(dagger.envs.ENVIRONMENTS),
+    p.add_argument("--env", default="planar", choices=sorted(environments.ENVIRONMENTS),
                    help="the env the policy was trained on (default planar)")
     a = p.parse_args(argv)
     try:

@@ -34,6 +34,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import diffusion  # noqa: E402
+from experiment import environments, profiles, report
 from experiment.run_folder import Run, read_json, timing_name, without_retired_fields, write_json  # noqa: E402
 from experiment.workers import in_parallel  # noqa: E402
 
@@ -62,9 +63,9 @@ def candidate_config(base, name, seed=0):
     """The dagger.Config of candidate `name`: profile `base` with the candidate's fields and its own folder name."""
     if name not in CANDIDATES:
         raise SystemExit(f"unknown candidate {name!r}; valid: {', '.join(CANDIDATES)} (or all)")
-    if base not in dagger.PROFILES:
-        raise SystemExit(f"unknown --base {base!r}; valid: {', '.join(dagger.PROFILES)}")
-    fields = {**asdict(dagger.PROFILES[base]), **CANDIDATES[name], "name": f"{base}_{name}", "seed": seed,
+    if base not in profiles.PROFILES:
+        raise SystemExit(f"unknown --base {base!r}; valid: {', '.join(profiles.PROFILES)}")
+    fields = {**asdict(profiles.PROFILES[base]), **CANDIDATES[name], "name": f"{base}_{name}", "seed": seed,
               "eval_unseen": False}  # the unseen scenarios do not choose a network
     try:
         return dagger.Config(**fields)
@@ -74,7 +75,7 @@ def candidate_config(base, name, seed=0):
 
 def shared_demos(out, base, seed=0):
     """OUT/D0/data/D0.npz: the base profile's oracle demonstrations, collected once (a stage: resumable)."""
-    run = Run(os.path.join(out, "D0"), replace(dagger.PROFILES[base], seed=seed))
+    run = Run(os.path.join(out, "D0"), replace(profiles.PROFILES[base], seed=seed))
     run.memo("data/D0.npz", dagger.oracle_demonstrations, run.cfg, log=run.log)
     return run.path("data", "D0.npz")
 
@@ -88,7 +89,7 @@ def measure(out, name, cfg_fields, demos_path):
         shutil.copyfile(demos_path, target + ".part")
         os.replace(target + ".part", target)
     cfg = dagger.Config(**cfg_fields)
-    dagger.run_experiment(cfg, root, prepare=True)
+    report.run_experiment(cfg, root, prepare=True)
     run = Run(root, cfg)
     dagger.bc_row_arm(cfg, run.load("data/D0.npz"), run.load("checkpoints/bc.pt"), run.memo, run.log)
     path = os.path.join(root, "cpu_per_step.json")
@@ -101,7 +102,7 @@ def cpu_seconds_per_step(cfg, demos, steps=TIMED_STEPS):
     fresh policy trained `steps` steps at cfg's batch, timed by time.process_time -- a count that other
     processes on the cores do not inflate, unlike the stage's wall seconds."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-    policy = dagger.make_policy(cfg, dagger.make_run_env(cfg))
+    policy = dagger.make_policy(cfg, environments.make_env(cfg.env))
     tc = replace(dagger.train_config(cfg, policy, steps, seed=0), log_every=0)
     t0 = time.process_time()
     diffusion.train(policy, obs, chunks, tc, log=lambda m: None)

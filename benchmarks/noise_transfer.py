@@ -146,7 +146,7 @@ def evaluate_lineage(root, lineage, log=print):
     if not str(cfg.name).startswith("table1_strong") or tuple(cfg.methods) != ("bc",) + ROWS:
         raise SystemExit(f"{root}: not the study's run folder (profile {cfg.name!r}, methods {cfg.methods}); run it "
                          f"as this script's docstring says")
-    sample_seed = run_folder.stage_seed(cfg, "eval_new")
+    sample_seed = dagger.stage_seed(cfg, "eval_new")
     for row, rel in study_policies(lineage).items():
         out = os.path.join(root, f"lineage_{lineage}", NEW, f"{row}.json")
         if os.path.exists(out):

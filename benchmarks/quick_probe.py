@@ -37,6 +37,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
 from strength_probe import evaluation, machine, paired  # noqa: E402
+from experiment import profiles
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "quick_probe")
 CANDIDATES = {
@@ -52,7 +53,7 @@ ROWS = {"bc": "eval/bc.json", "hg_dagger": "lineage_0/round_1/eval/hg_dagger.jso
 def run(candidate, seed, out, workers):
     """The candidate's whole quick run at this master seed (resuming its folder), then its results file and cost."""
     name = f"{candidate}_seed{seed}"
-    dagger.PROFILES[f"quick_{candidate}"] = replace(dagger.PROFILES["quick"], name=f"quick_{candidate}",
+    profiles.PROFILES[f"quick_{candidate}"] = replace(profiles.PROFILES["quick"], name=f"quick_{candidate}",
                                                     **CANDIDATES[candidate])
     folder, dest = os.path.join(out, name), os.path.join(RESULTS, name)
     t0 = time.time()

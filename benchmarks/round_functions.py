@@ -17,14 +17,15 @@ from dataclasses import replace
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
+from experiment import profiles, report
 from experiment.run_folder import Run  # noqa: E402
 
 
 def round_functions(out):
     """{file (relative): sorted function names} called by lineage 0's round 1 of the smoke profile."""
     shutil.rmtree(out, ignore_errors=True)
-    cfg = replace(dagger.PROFILES["smoke"], lineages=1)
-    dagger.run_experiment(cfg, out, prepare=True)          # the shared stages, not counted
+    cfg = replace(profiles.PROFILES["smoke"], lineages=1)
+    report.run_experiment(cfg, out, prepare=True)          # the shared stages, not counted
     run, seen = Run(out, cfg), set()
     skip = (os.path.join(ROOT, "tests"), os.path.join(ROOT, "benchmarks"))
 

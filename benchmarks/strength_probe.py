@@ -34,6 +34,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
+from experiment import profiles
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "strength_probe")
 KNOBS = {
@@ -48,7 +49,7 @@ ROWS = ("bc", "hg_dagger")
 
 def probe_config(knob):
     """table1's Config, one round, rows BC and HG-DAgger, with the knob's fields."""
-    return replace(dagger.PROFILES["table1"], name=f"probe_{knob}", rounds=1, methods=ROWS, **KNOBS[knob])
+    return replace(profiles.PROFILES["table1"], name=f"probe_{knob}", rounds=1, methods=ROWS, **KNOBS[knob])
 
 
 def run(knob, out, workers):
@@ -57,7 +58,7 @@ def run(knob, out, workers):
     if knob == "base":  # the committed start's pi_0 and BC row (the profile table1 copies them in)
         argv = ["--profile", "table1", "--rounds", "1", "--methods", ",".join(ROWS)]
     else:
-        dagger.PROFILES[f"probe_{knob}"] = probe_config(knob)
+        profiles.PROFILES[f"probe_{knob}"] = probe_config(knob)
         argv = ["--profile", f"probe_{knob}"]
     dest = os.path.join(RESULTS, knob)
     t0 = time.time()

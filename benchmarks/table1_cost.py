@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
+from experiment import profiles
 
 
 def read_timings(root, lineages):
@@ -110,10 +111,10 @@ def main(argv=None):
     ap.add_argument("--run", required=True, help="a run folder with timings/ (e.g. runs/mid)")
     ap.add_argument("--lineages", type=int, nargs="*", default=None,
                     help="use only these lineages' stages (those that ran one process per core)")
-    ap.add_argument("--profile", default="table1", choices=sorted(dagger.PROFILES))
+    ap.add_argument("--profile", default="table1", choices=sorted(profiles.PROFILES))
     ap.add_argument("--cores", type=int, nargs="*", default=[2, 4, 8, 16])
     args = ap.parse_args(argv)
-    cfg = dagger.PROFILES[args.profile]
+    cfg = profiles.PROFILES[args.profile]
     timings = read_timings(args.run, set(args.lineages) if args.lineages else None)
     # timings' names: 'bc' is pi_0's training, 'train_bc' the BC row's (pi_0 continued on D0 alone)
     prepare = sum(flat(timings, kind) for kind in ("demos", "bc")) + flat(timings, "evaluate")

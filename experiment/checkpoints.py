@@ -3,20 +3,21 @@
 diffusion.py hands over plain objects -- a policy's config and state_dict, and at train()'s checkpoint steps its
 training state {'step', 'optimizer', 'numpy_rng', 'torch_rng'} -- and this module writes and reads them. A file is
 {'format', 'config', 'state_dict'} and, for a run that goes on from it, 'train_state': that state (the numpy
-stream's state as JSON) with the co-training sampler's own state (its `resume_state` attributes). Nothing here is
+stream's state as JSON) with the co-training sampler's own state (SAMPLER_STATE: relabel's pool). Nothing here is
 the paper's method.
 """
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import torch
 
 import diffusion
-from experiment import cpu_kernels
+import relabel
+from experiment import cpu_kernels, environments
 
 CHECKPOINT_FORMAT = "diffusion-policy-v2"
 # PolicyConfig fields a checkpoint of an earlier version holds: (the one value this code reads, else why not)
@@ -39,7 +40,8 @@ def save_policy(policy, path, train_state=None, sampler=None, train_config=None)
                "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()}}
     if train_state is not None:
         payload["train_state"] = {**train_state, "numpy_rng": json.dumps(train_state["numpy_rng"]),
-                                  "train_config": json.dumps(asdict(train_config)) if train_config else None,
+                                  "train_config": json.dumps(train_config_fields(train_config)) if train_config
+                                  else None,
                                   "sampler": _as_torch(sampler_state(sampler))}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp"  # per process: two runs of one folder never write one temporary file
@@ -47,8 +49,15 @@ def save_policy(policy, path, train_state=None, sampler=None, train_config=None)
     os.replace(tmp, path)
 
 
+def train_config_fields(train_config):
+    """A diffusion.TrainConfig as JSON-able fields: its learning-rate function by name."""
+    schedule = train_config.lr_schedule
+    name = None if schedule is None else getattr(schedule, "__qualname__", type(schedule).__qualname__)
+    return {**asdict(replace(train_config, lr_schedule=None)), "lr_schedule": name}
+
+
 def load_policy(path, device="cpu"):
-    """The policy saved at path (a variant's obs_encoder must be registered first), with its train_state if the
+    """The policy saved at path (its observation encoder by the name its config records), with its train_state if the
     file keeps one. FileNotFoundError,
     CheckpointDamagedError (a ValueError), or ValueError for a config of a deleted option."""
     payload = read_checkpoint(path)
@@ -57,7 +66,11 @@ def load_policy(path, device="cpu"):
         stored = config.pop(name, kept)
         if (tuple(stored) if isinstance(stored, list) else stored) != kept:
             raise ValueError(f"{path!r} holds a policy with {name}={stored!r}: {deleted}; retrain the policy")
-    policy = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device))
+    encoder = environments.OBS_ENCODERS[config.get("obs_encoder", "flat")]
+    config.setdefault("obs_encoder_sizes", encoder.sizes(**config.get("obs_encoder_args", {})))  # files made before
+    config["obs_encoder"] = encoder.__name__
+    policy = cpu_kernels.use_kernels(diffusion.DiffusionPolicy(diffusion.PolicyConfig(**config), device=device,
+                                                               obs_encoder=encoder))
     policy.load_state_dict(payload["state_dict"])
     if "train_state" in payload:  # pi_0 with its step and AdamW state: what the arms continue (dagger.train_policy)
         policy.train_state = train_state(path, payload, random_streams=False)
@@ -101,13 +114,19 @@ def train_state(path, payload, sampler=None, random_streams=True):
     return start
 
 
+# A co-training sampler's attributes that a resumed training run restores, by its class: relabel.AugmentationSampler's
+# pool and its counters (a sampler of another class keeps no state of its own)
+SAMPLER_STATE = {relabel.AugmentationSampler: ("_pool_obs", "_pool_chunks", "_pool_mask", "_filled", "_write",
+                                               "_served", "n_drawn", "n_kept")}
+
+
 def sampler_state(sampler):
-    """A co-training sampler's own state (None if it keeps none): its `resume_state` attributes (relabel's pool),
+    """A co-training sampler's own state (None if it keeps none): its SAMPLER_STATE attributes (relabel's pool),
     a mixture's per part ({'0': ..., '1': ...}), keyed by the attribute's name without its underscore."""
     if hasattr(sampler, "samplers"):                                   # relabel.MixtureSampler: its parts in turn
         parts = {str(i): sampler_state(s) for i, s in enumerate(sampler.samplers)}
         return {i: s for i, s in parts.items() if s is not None}
-    names = getattr(sampler, "resume_state", ())
+    names = SAMPLER_STATE.get(type(sampler), ())
     copy = lambda v: v.copy() if isinstance(v, np.ndarray) else v  # noqa: E731 (the pool goes on changing)
     return {name.lstrip("_"): copy(getattr(sampler, name)) for name in names} if names else None
 
@@ -119,7 +138,7 @@ def restore_sampler(sampler, state):
             if str(i) in state:
                 restore_sampler(s, state[str(i)])
         return
-    for name in getattr(sampler, "resume_state", ()):
+    for name in SAMPLER_STATE.get(type(sampler), ()):
         setattr(sampler, name, state[name.lstrip("_")])
 
 

@@ -3,7 +3,8 @@
 Modes: the whole run (default); --prepare (the shared stages: D0, BC and its evaluation, the BC row; copied from
 benchmarks/results/<profile>/start/ where the repository holds them for this config, as every mode does);
 --lineage i (one lineage, e.g. one task of a cluster job array); --report (merge finished lineages into
-the table and figures); --join / --export-lineages (a lineage's results as one file, to merge elsewhere). dagger.main passes in its profiles and method names: this module never imports it.
+the table and figures); --join / --export-lineages (a lineage's results as one file, to merge elsewhere).
+`python dagger.py` hands over to main here.
 """
 from __future__ import annotations
 
@@ -16,13 +17,16 @@ from dataclasses import replace
 
 import torch
 
-import envs
-from experiment.run_folder import ConfigMismatch, RunFolderError, committed_start, export_start
+from experiment.environments import ENVIRONMENTS
+from experiment.profiles import ALL_METHODS, PROFILES, RECIPES, check_config
+from experiment.report import run_experiment
+from experiment.run_folder import PI0_THREADS, ConfigMismatch, RunFolderError, committed_start, export_start
 
 
-def parse_args(argv, profiles, methods, recipes):
-    """(args, cfg): the profile's config with the command line's overrides and a run-folder name that says
-    what differs from the profile. methods: every valid method name; recipes: dagger.RECIPES."""
+def parse_args(argv):
+    """(args, cfg): the profile's config with the command line's overrides (checked: check_config) and a
+    run-folder name that says what differs from the profile."""
+    profiles, methods, recipes = PROFILES, ALL_METHODS, RECIPES
     p = argparse.ArgumentParser(
         prog="dagger.py",
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
@@ -33,7 +37,7 @@ def parse_args(argv, profiles, methods, recipes):
                         "mid (Table I's analogue: 500 demos, 5 lineages x 2 rounds, hours on 2 cores), "
                         "table2 (the engine-lever env with Table II's rows), paper "
                         "(Table I protocol at the authors' sizes)")
-    p.add_argument("--env", default=None, choices=sorted(envs.ENVIRONMENTS),
+    p.add_argument("--env", default=None, choices=sorted(ENVIRONMENTS),
                    help="environment (default planar): planar, engine3d, or a research variant's: engine3d_image "
                         "(experiment/image_obs.py: the UR5 policy sees a camera image through a small CNN instead of "
                         "the obstacle list), engine3d_oriented (experiment/oriented_goal.py: success also needs the "
@@ -56,7 +60,7 @@ def parse_args(argv, profiles, methods, recipes):
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads of this process's stages (default 1: the networks are small, and more "
                         "threads than free cores slow torch down many times on a shared machine; pi_0's training, "
-                        "which runs alone, always takes dagger.PI0_THREADS = 2)")
+                        f"which runs alone, always takes {PI0_THREADS})")
     p.add_argument("--workers", type=int, default=None,
                    help="processes for the arms of a round (and the BC row beside the rounds; never more than a "
                         "round has arms); default: the cores this process may use (taskset, a cgroup's cpuset), "
@@ -102,7 +106,7 @@ def parse_args(argv, profiles, methods, recipes):
         over["device"] = args.device
     over["name"] = folder_name(cfg, over)
     try:
-        cfg = replace(cfg, **over)
+        cfg = check_config(replace(cfg, **over))
     except ValueError as err:
         p.error(str(err))
     if args.threads < 1:
@@ -128,7 +132,7 @@ def parse_methods(parser, text, methods):
     dup = sorted({m for m in names if names.count(m) > 1})
     if dup:
         parser.error(f"--methods {text!r}: {', '.join(dup)} listed twice; name each method once")
-    return tuple(names)  # an unknown name: profiles.check_config says which
+    return tuple(names)  # an unknown name: check_config says which
 
 
 def folder_name(cfg, over):
@@ -142,11 +146,12 @@ def folder_name(cfg, over):
     return name
 
 
-def main(args, cfg, run_experiment, paper):
-    """dagger.main: the command's mode on its run folder with `paper`'s loop and tests (run_experiment), then
+def main(argv=None):
+    """`python dagger.py`: the command's mode on its run folder (report.run_experiment runs dagger's loop), then
     --export-start's files. Returns the run folder."""
+    args, cfg = parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
-    root = run_command(run_experiment, paper, cfg, args.out, args.lineage, args.prepare, args.report, args.workers,
+    root = run_command(run_experiment, cfg, args.out, args.lineage, args.prepare, args.report, args.workers,
                        args.join, args.export_lineages, args.copy_from)
     for path in run_command(export_start, root, args.export_start) if args.export_start else []:
         print(f"wrote {path}")

@@ -24,19 +24,21 @@
                        rows noise every frame they draw, as the authors' code does.
 Measured: benchmarks/HISTORY.md, "Why the noise's gain does not show here".
 
-NOISE_MODELS rows are a (noise kind, sigma) of relabel.AugmentationSampler, looked up by dagger.noise_model; ROWS rows
-build a round's intervention sampler themselves, looked up by dagger.intervention_sampler. dagger.ALL_METHODS lists both (`python dagger.py --methods hg_dagger,authors_hg_dagger`). It never
-imports dagger.py.
+Each row is a Row of ROWS (its intervention sampler per round, and its words); the harness hands the loop a Rows
+(dagger.policy_calibrated_dagger's sampler) where a config names one of them, or runs a recipe with its own samplers
+(experiment/lever.py). It imports dagger.py, never the reverse.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
+import dagger
 import relabel
 from experiment import lever
-
-NOISE_MODELS = {"zero_noise": ("isotropic", 0.0)}
 
 
 class AuthorsChunkSampler:
@@ -55,8 +57,8 @@ class AuthorsChunkSampler:
 @dataclass(frozen=True)
 class Row:
     """A row that builds a round's intervention sampler itself: sampler(D, H, recorded, noised) with recorded() the
-    round's hg_dagger sampler and noised(method) a Table I method's noised sampler; what: its rows in words (the
-    log's)."""
+    round's hg_dagger sampler and noised(noise) a noised sampler, noise a Table I method's name or a (kind, sigma)
+    of relabel.AugmentationSampler; what: its rows in words (the log's)."""
     sampler: Callable
     what: str
 
@@ -64,10 +66,42 @@ class Row:
 def co_trained(method):
     """Half of the intervention rows as recorded, half noised with `method`'s noise (Sec. IV-A step 4)."""
     return Row(lambda D, H, recorded, noised: relabel.MixtureSampler([recorded(), noised(method)], [0.5, 0.5]),
-               f", half as recorded, half noised ({method}) and relabelled")
+               f"half as recorded, half noised ({method}) and relabelled")
 
 
-ROWS = {"authors_hg_dagger": Row(lambda D, H, recorded, noised: AuthorsChunkSampler(D, H),
-                                 ", every intervention step a chunk start, the padded steps in the loss"),
+ROWS = {"zero_noise": Row(lambda D, H, recorded, noised: noised(("isotropic", 0.0)),
+                          "every drawn frame relabelled, no noise (sigma = 0)"),
+        "authors_hg_dagger": Row(lambda D, H, recorded, noised: AuthorsChunkSampler(D, H),
+                                 "every intervention step a chunk start, the padded steps in the loss"),
         "cotrain_fixed_8": co_trained("fixed_8"),
         "cotrain_pooled": co_trained("pooled")}
+
+
+def equal_shares(frames):
+    """The paper's shares of a batch's intervention rows: rounds 1..k equally."""
+    return [1.0] * len(frames)
+
+
+@dataclass(frozen=True)
+class Rows:
+    """The loop's sampler (dagger.intervention_sampler's arguments and result) for a run with the rows above or a
+    recipe's own samplers: per round, HG-DAgger's rows (chunks), a Table I method's noised rows (states drawn at
+    label_steps, None: the paper's rule), or a ROWS row's own; the rounds in the recipe's shares of their frames."""
+    chunks: Callable = relabel.ChunkSampler
+    label_steps: Callable = None
+    shares: Callable = equal_shares
+
+    def __call__(self, cfg, method, rounds_data, calibration, stats, make_env):
+        per_round, first = [], np.cumsum([0] + [len(D) for D in rounds_data])  # each round's first episode index
+        for D, offset in zip(rounds_data, first):
+            def noised(noise, D=D, offset=offset):
+                kind, sigma = noise if isinstance(noise, tuple) else dagger.noise_model(
+                    noise, calibration, range(offset, offset + len(D)), stats.median_step, stats.paper_median_step)
+                return relabel.AugmentationSampler(D, functools.partial(make_env, cfg.env), stats, kind, sigma,
+                                                   relabel.RelabelConfig(horizon=cfg.horizon), self.label_steps)
+
+            recorded = functools.partial(self.chunks, D, cfg.horizon)
+            per_round.append(ROWS[method].sampler(D, cfg.horizon, recorded, noised) if method in ROWS else
+                             recorded() if method == "hg_dagger" else noised(method))
+        return relabel.MixtureSampler(per_round, self.shares([sum(int(ep["expert"].sum()) for ep in D)
+                                                              for D in rounds_data]))

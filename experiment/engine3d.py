@@ -7,8 +7,7 @@ table2` runs it; Table I's path (the default run) never does.
     segment_distance_3d ................ the capsule check's geometry
     render_scene_image ................. Fig. 5's UR5 scene
 
-envs.ENVIRONMENTS['engine3d'] is this module's entry, made when it is imported (dagger.py imports it through the
-variants that derive from it: experiment/image_obs.py, experiment/oriented_goal.py).
+The harness makes it by name (experiment/environments.py, 'engine3d') and hands that factory to the loop.
 """
 from __future__ import annotations
 
@@ -109,6 +108,8 @@ class EngineReach3D(ArmEnv):
     """
 
     dim, dof = 3, 6  # workspace dimension, joints
+    paper_env, paper_median_step = "engine3d", 0.0166  # Table II; rad, the authors' median step (SETUP.md §1)
+    max_parallel = 100  # each env holds a pybullet client: 300 at once would take ~9 GB
     collision_chunk = 1024  # configurations per pass of in_collision: the temporaries stay in cache
 
     def __init__(self, config: EngineConfig | None = None):
@@ -548,4 +549,3 @@ def render_scene_image(env, path, q=None, width=640, height=480):
     return image
 
 
-envs.ENVIRONMENTS["engine3d"] = (EngineReach3D, EngineConfig)

@@ -11,29 +11,28 @@ import numpy as np
 import torch
 
 import calibrate
+import dagger
 import diffusion
-import envs
 import oracle as oracle_mod
 import partial_denoise
 import relabel
-from experiment import engine3d
-from experiment.run_folder import stage_seed
+from dagger import stage_seed
+from experiment import engine3d, environments
 
 FIGURE_INPUTS = ("data/D0.npz", "lineage_0/round_1/D.npz", "lineage_0/round_1/calibration.json",
                  "lineage_0/round_1/checkpoints/hg_dagger.pt")  # what make_figures draws from
 
 
-def make_figures(run, demo_statistics):
-    """fig1-fig5 (the paper's analogues) from D0 and lineage 0, round 1 (skipped figures are logged);
-    demo_statistics(cfg, D0): dagger.demo_statistics, the unit of the noise drawn."""
+def make_figures(run):
+    """fig1-fig5 (the paper's analogues) from D0 and lineage 0, round 1 (skipped figures are logged)."""
     cfg = run.cfg
     if not os.path.exists(os.path.join(run.root, "data", "D0.npz")):  # a folder of joined lineage results only
         run.log("no data/D0.npz here (lineages joined from results files): the paper's figures need --prepare")
         return
     demos = run.load("data/D0.npz")
-    stats = demo_statistics(cfg, demos)
+    stats = dagger.demo_statistics(cfg, demos, environments.make_env)  # the unit of the noise drawn
     fig = lambda name: run.path("figures", name)  # noqa: E731
-    env = envs.make_env(cfg.env)
+    env = environments.make_env(cfg.env)
     if env.dim == 2:  # fig5: the planar scene drawn with a demonstration; the UR5's scene rendered by pybullet
         oracle_mod.plot_demonstration(env, demos[0], fig("fig5_environment.png"))
     else:

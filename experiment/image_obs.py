@@ -1,13 +1,12 @@
 """A research variant: the UR5's policy sees a camera image instead of the obstacle list (the paper's policy sees
 images, Sec. V). Run it with `python dagger.py --env engine3d_image` (any profile).
 
-It plugs into the core through two tables the core already names, filled when this module is imported
-(dagger.py imports it, so the command line, the profiles and the worker processes see it):
-    envs.ENVIRONMENTS['engine3d_image']  EngineReach3DImage: EngineReach3D with the camera image at the end of
-                                         the observation, where the obstacle slots were
-    diffusion.OBS_ENCODERS['image_cnn']  ImageEncoder: the small CNN the policy reads that image with
-The env names its encoder (env.obs_encoder, env.obs_encoder_args) and dagger.make_policy passes them to the
-policy's config, so a checkpoint of this variant rebuilds its CNN on load (once this module is imported). Noised
+It brings its own functions, which the harness hands to the loop (experiment/environments.py):
+    EngineReach3DImage  EngineReach3D with the camera image at the end of the observation, where the obstacle
+                        slots were: the env factory's 'engine3d_image'
+    ImageEncoder        the small CNN the policy reads that image with: the env names it (env.obs_encoder,
+                        env.obs_encoder_args), dagger.make_policy hands it to the policy, and the harness's
+                        checkpoint loader rebuilds it from the name the policy's config records. Noised
 states reuse the recorded image of the state they were drawn around (EngineReach3DImage.make_obs_near, the
 paper's approximation), and the run draws a figure of what the policy sees (fig5_policy_view.png). No function
 of the core knows about images.
@@ -27,8 +26,6 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-import diffusion
-import envs
 from experiment import engine3d
 
 
@@ -43,7 +40,6 @@ class EngineReach3DImage(engine3d.EngineReach3D):
     """EngineReach3D whose observation ends with the camera image instead of the obstacle slots (module
     docstring); reset and step also put the image in info['image']."""
 
-    obs_encoder = "image_cnn"  # diffusion.OBS_ENCODERS: the policy reads the image with ImageEncoder
 
     def __init__(self, config: EngineImageConfig | None = None):
         cfg = config or EngineImageConfig()
@@ -53,7 +49,7 @@ class EngineReach3DImage(engine3d.EngineReach3D):
         size = int(cfg.image_size)
         self.image_shape = (3, size, size)  # channel-first, as in the observation
         self.obs_dim = 2 * self.dof + self.dim + 3 * size * size
-        self.obs_encoder_args = {"shape": self.image_shape}
+        self.obs_encoder, self.obs_encoder_args = ImageEncoder, {"shape": self.image_shape}  # how a policy reads it
 
     def reset(self, seed=None):
         obs, info = super().reset(seed)
@@ -124,7 +120,7 @@ class EngineReach3DImage(engine3d.EngineReach3D):
 
 
 class ImageEncoder(nn.Module):
-    """diffusion.OBS_ENCODERS['image_cnn']: the observation's last C*H*W entries are a channel-first image in
+    """The image variant's observation encoder: the observation's last C*H*W entries are a channel-first image in
     [0, 1]; a small CNN replaces them by `features` numbers beside the low-dimensional observation features.
 
     Three stride-2 convolutions (16, 32, 32 channels; a 32 x 32 image becomes 4 x 4), flattened, one linear
@@ -138,10 +134,10 @@ class ImageEncoder(nn.Module):
         ValueError on a bad shape or feature count."""
         if (not isinstance(shape, (tuple, list)) or len(shape) != 3 or min(shape) < 1 or min(shape[1:]) < 8
                 or not all(isinstance(n, (int, np.integer)) for n in shape)):
-            raise ValueError(f"image_cnn: shape must be (channels, height, width) with height and width >= 8 "
+            raise ValueError(f"ImageEncoder: shape must be (channels, height, width) with height and width >= 8 "
                              f"(three stride-2 convolutions), got {shape!r}")
         if not isinstance(features, (int, np.integer)) or features < 1:
-            raise ValueError(f"image_cnn: features must be a positive int, got {features!r}")
+            raise ValueError(f"ImageEncoder: features must be a positive int, got {features!r}")
         return int(np.prod(shape)), int(features)
 
     def __init__(self, shape, features=64):
@@ -163,6 +159,3 @@ class ImageEncoder(nn.Module):
         code = nn.functional.silu(self.fc(self.conv(image).flatten(1)))      # (B, features)
         return torch.cat([obs_norm[:, :low], code], dim=1)
 
-
-envs.ENVIRONMENTS["engine3d_image"] = (EngineReach3DImage, EngineImageConfig)
-diffusion.OBS_ENCODERS["image_cnn"] = ImageEncoder

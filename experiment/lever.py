@@ -3,7 +3,7 @@ lever_train and lever_seeds.sh), measured here as benchmarks/results/table2_auth
 (benchmarks/HISTORY.md, "The authors' lever fine-tuning" and "The authors' replicate design"). Run it with
 `python dagger.py --profile table2 --recipe authors_lever` (or authors_lever_seeds).
 
-Where it differs from the paper's recipe (dagger.PaperRecipe, the authors' planar runs, Table I):
+Where it differs from the paper's recipe (dagger.py's defaults, the authors' planar runs, Table I):
   - fine-tuning: pi_0 ends its own cosine at bc_steps; every arm continues pi_0's AdamW state at a constant
     lr / 10 for finetune_steps more (their +20k at 1e-6 after BC's 1e-5 peak); the table's BC row is pi_0 itself;
   - interventions shorter than H are kept (their teleop_pad_short_episodes): a chunk repeats its run's last action
@@ -13,21 +13,26 @@ Where it differs from the paper's recipe (dagger.PaperRecipe, the authors' plana
   - authors_lever_seeds: every lineage trains on lineage 0's interventions and calibrations with its own training
     seeds (three training seeds on one intervention set); lineage 0 runs first.
 
-It plugs in through what the core names: dagger.RECIPES (a recipe is the set of hooks below), diffusion.LR_SCHEDULES
-('constant'), and relabel.AugmentationSampler's label rule (a subclass); the seeds' data through the harness's memo
-(data_of_lineage_0). It never imports dagger.py.
+It brings its own functions, which the harness hands to dagger.policy_calibrated_dagger (loop_arguments): a
+learning-rate function (AuthorsLeverLR), a BC row (pi0_is_the_bc_row), a label rule (every_run) and the
+intervention samplers (controls.Rows with the padded chunks and label steps, rounds by frames); the seeds' data
+through the harness's memo (data_of_lineage_0).
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
+import dagger
 import diffusion
-import relabel
+import envs
 from experiment.run_folder import RunFolderError
+
+RECIPES = ("authors_lever", "authors_lever_seeds")
 
 
 # ---- the padded label rule (their teleop_pad_short_episodes, do_mask_loss_for_padding) ---------------------------
@@ -67,48 +72,43 @@ class PaddedChunkSampler:
         return self.obs[pick], self.chunks[pick], self.mask[pick]
 
 
-class PaddedAugmentationSampler(relabel.AugmentationSampler):
-    """The noised arms' sampler with states drawn at every intervention step (the labels end with the run)."""
-    label_steps = staticmethod(padded_label_steps)
+# ---- the recipe's functions, handed to the loop (loop_arguments) ---------------------------------------------------
+def every_run(expert, H):
+    """The label rule of their collection: every intervention is kept, however short (the paper's: >= H steps)."""
+    return diffusion.expert_runs(expert, 1)
 
 
-def constant_lr(step, cfg):
-    """diffusion.LR_SCHEDULES['constant']: cfg.lr at every step, no warm-up or cosine."""
-    return cfg.lr
+def frame_shares(frames):
+    """A batch's intervention rows over rounds 1..k in proportion to their intervention frames."""
+    return [f / sum(frames) for f in frames]
 
 
-diffusion.LR_SCHEDULES["constant"] = constant_lr
+@dataclass(frozen=True)
+class AuthorsLeverLR:
+    """Their learning rate (train_cfg.lr the peak): pi_0 warms up and ends its own cosine at bc_steps; every arm
+    continues pi_0's AdamW state at a constant lr / 10 (their +20k steps at 1e-6 after BC's 1e-5 peak)."""
+    bc_steps: int
+
+    def __call__(self, step, train_cfg):
+        if step >= self.bc_steps:
+            return train_cfg.lr / 10
+        warmup = min(500, self.bc_steps // 10)
+        if step < warmup:
+            return train_cfg.lr * (step + 1) / warmup
+        progress = (step - warmup) / max(1, self.bc_steps - warmup)
+        return train_cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
-# ---- the recipes (dagger.RECIPES) ----------------------------------------------------------------------------------
-class AuthorsLever:
-    """The authors' lever recipe; dagger.PaperRecipe names what each hook does in the paper's."""
-
-    def pi0_schedule_steps(cfg):
-        return 0  # pi_0 ends its own cosine at bc_steps
-
-    def arm_training(cfg):
-        return dict(lr=cfg.lr / 10, lr_schedule="constant")  # their 1e-6 after BC's 1e-5 peak
-
-    def bc_row(pi0, continued_on_d0):
-        return pi0  # the table's BC row is pi_0 itself
-
-    def round_shares(frames):
-        return [f / sum(frames) for f in frames]  # by intervention frames
-
-    def expert_runs(expert, H):
-        return diffusion.expert_runs(expert, 1)  # every intervention, however short
-
-    ChunkSampler = PaddedChunkSampler
-    AugmentationSampler = PaddedAugmentationSampler
+def pi0_is_the_bc_row(cfg, demos, pi0, memo=None, log=print, make_env=envs.make_env, lr_schedule=None):
+    """Their table's BC row: pi_0 itself, evaluated (dagger.bc_row_arm's arguments and result)."""
+    return pi0, dagger.evaluate_policy(memo or dagger.compute, cfg, "eval/bc.json", pi0, "bc", log, make_env=make_env)
 
 
-class AuthorsLeverSeeds(AuthorsLever):
-    """The lever recipe with seed replicates: lineage l > 0 trains on lineage 0's interventions and calibrations
-    (the harness's memo reads them there: data_of_lineage_0)."""
-
-
-RECIPES = {"authors_lever": AuthorsLever, "authors_lever_seeds": AuthorsLeverSeeds}
+def loop_arguments(cfg):
+    """What the recipe hands dagger.policy_calibrated_dagger (besides the env factory)."""
+    from experiment import controls  # controls builds its rows on this module's padded chunks
+    return dict(lr_schedule=AuthorsLeverLR(cfg.bc_steps), label_rule=every_run, bc_row=pi0_is_the_bc_row,
+                sampler=controls.Rows(chunks=PaddedChunkSampler, label_steps=padded_label_steps, shares=frame_shares))
 
 
 def check_recipe(cfg):

@@ -3,8 +3,8 @@ within 3 cm AND the flange within 10 deg of one fixed pose; benchmarks/HISTORY.m
 the table2 recipe reaches 88 %, one end posture; without it 49 %, inside the paper's range). Run it with
 `python dagger.py --env engine3d_oriented` (any profile).
 
-It plugs into the core through the table the core already names, filled when this module is imported:
-    envs.ENVIRONMENTS['engine3d_oriented']  EngineReach3DOriented: EngineReach3D whose goal_reached also asks
+The harness makes it by name (experiment/environments.py, 'engine3d_oriented'):
+    EngineReach3DOriented: EngineReach3D whose goal_reached also asks
                                             tool_angle(q) <= goal_angle_tolerance (theirs: 10 deg), and whose
                                             goal set (goal_configurations, the oracle's goals, goal_is_pose) is
                                             the IK branches of the goal posture goal_q's own pose, tilted by up
@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import envs
 from experiment import engine3d
 
 
@@ -83,5 +82,3 @@ class EngineReach3DOriented(engine3d.EngineReach3D):
         q = q[~self.in_collision(q)] if len(q) else q
         return q[self.goal_reached(q)] if len(q) else q
 
-
-envs.ENVIRONMENTS["engine3d_oriented"] = (EngineReach3DOriented, EngineOrientedConfig)

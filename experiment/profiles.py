@@ -1,17 +1,22 @@
-"""The run sizes of `python dagger.py --profile NAME`, and the config's valid values.
+"""The run sizes of `python dagger.py --profile NAME`, and the config's valid values (check_config, where a
+config enters: the command line, run_experiment).
 
 Each profile is a set of overrides of dagger.Config's defaults (which are the paper's protocol), as
-nanoGPT keeps its run configurations beside train.py. dagger.PROFILES builds the Configs.
+nanoGPT keeps its run configurations beside train.py; PROFILES holds the checked Configs.
 """
 from __future__ import annotations
 
 import numpy as np
 
+import dagger
 import diffusion
-import envs
-from experiment import lever
+from experiment import controls, environments, lever
 
-PROFILES = {
+# Every method a run may name: Table I's rows and the research controls' (experiment/controls.py)
+ALL_METHODS = dagger.TABLE_I_METHODS + tuple(controls.ROWS)
+RECIPES = ("paper", *lever.RECIPES)  # how pi_0 and the arms train: the paper's (the authors' planar runs), a variant's
+
+PROFILE_FIELDS = {
     # CI: every stage and every output file, tiny sizes (about 2 minutes). The calibration keeps the paper's
     # blend protocol (one rollout per ratio from every intervention segment long enough to keep, 9 in the
     # smoke round), so CI fits W by Eq. (12): with one segment (calib_blend_segments=1) each ratio had one
@@ -84,25 +89,25 @@ PROFILES = {
 }
 
 
-def check_config(cfg, methods, recipes):
-    """dagger.Config.__post_init__: BC and HG-DAgger first in methods, tuples where JSON gives lists, and a
-    clear ValueError for a field outside its valid values, before any folder is made. methods: every valid
-    method name; recipes: dagger.RECIPES."""
+def check_config(cfg):
+    """cfg (a dagger.Config) with BC and HG-DAgger first in methods and tuples where JSON gives lists, or a clear
+    ValueError for a field outside its valid values: where a config enters (the command line, run_experiment, a
+    profile), before any folder is made."""
     cfg.methods = tuple(cfg.methods)
-    bad = [m for m in cfg.methods if m not in methods]
+    bad = [m for m in cfg.methods if m not in ALL_METHODS]
     if bad:
-        raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(methods)}")
+        raise ValueError(f"unknown method(s) {bad}; valid: {', '.join(ALL_METHODS)}")
     # BC and HG-DAgger anchor every comparison (paired design): always present, listed first.
     cfg.methods = ("bc", "hg_dagger") + tuple(m for m in cfg.methods if m not in ("bc", "hg_dagger"))
-    if cfg.env not in envs.ENVIRONMENTS:
-        raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(envs.ENVIRONMENTS))}")
+    if cfg.env not in environments.ENVIRONMENTS:
+        raise ValueError(f"unknown env {cfg.env!r}; valid: {', '.join(sorted(environments.ENVIRONMENTS))}")
     cfg.down_dims = tuple(int(d) for d in cfg.down_dims)
     for key in ("n_demos", "rounds", "lineages", "horizon", "n_act", "K",
                 "bc_steps", "finetune_steps", "batch_size", "eval_scenarios", "eval_repeats"):
         if getattr(cfg, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {getattr(cfg, key)}")
-    if cfg.recipe not in recipes:
-        raise ValueError(f"recipe must be one of {', '.join(recipes)} (paper: the authors' planar runs), "
+    if cfg.recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {', '.join(RECIPES)} (paper: the authors' planar runs), "
                          f"got {cfg.recipe!r}")
     lever.check_recipe(cfg)
     if cfg.network not in diffusion.NETWORKS:
@@ -111,8 +116,12 @@ def check_config(cfg, methods, recipes):
         raise ValueError(f"intervention_fraction must be in (0, 1), got {cfg.intervention_fraction}")
     if cfg.eval_scenarios > 100:
         raise ValueError(f"eval_scenarios must be <= 100 (the fixed set), got {cfg.eval_scenarios}")
-    # every stage's seed is numpy's SeedSequence([seed, ...]) (run_folder.stage_seed): it takes no negative
+    # every stage's seed is numpy's SeedSequence([seed, ...]) (dagger.stage_seed): it takes no negative
     # numbers, so a bad seed is refused here, before the run folder is made, not in the first stage
     if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, (int, np.integer)) or cfg.seed < 0:
         raise ValueError(f"seed must be an integer >= 0 (the master seed every stage's seed is derived from), "
                          f"got {cfg.seed!r}")
+    return cfg
+
+
+PROFILES = {name: check_config(dagger.Config(**fields)) for name, fields in PROFILE_FIELDS.items()}

@@ -2,7 +2,7 @@
 results.csv, table.md, report.md, the table figures -- with the paper's figures.
 
 write_report reads the finished evaluations (collect_results, scenario_paired) and assembles Table I (summarize:
-mean ± SE over lineages, the paired t-tests and TOST that dagger.py writes, handed over in a Paper); here too the
+mean ± SE over lineages, dagger.py's paired t-tests and TOST); here too the
 run's own summaries (the differences paired over scenarios, the calibration in the paper's unit), the formatting
 and the drawing.
 """
@@ -12,14 +12,12 @@ import csv
 import math
 import os
 import time
-from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
 
 import calibrate
-import envs
-from experiment import figures, lever
+import dagger
+from experiment import controls, environments, figures, lever, profiles
+from experiment.environments import paper_env, paper_median_step
 from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, read_json, write_json
 from experiment.workers import worker_map
 
@@ -56,24 +54,14 @@ PAPER_TABLES = {
 }
 
 
-# ---- What the harness runs of the paper, and Table I's assembly (the paper's tests are dagger.py's) --------------
-@dataclass(frozen=True)
-class Paper:
-    """What the report runs and tests of the paper: dagger.PAPER (this folder never imports dagger.py)."""
-    loop: Callable                # policy_calibrated_dagger(cfg, lineages, memo, map, log): Sec. IV-A
-    demo_statistics: Callable     # (cfg, D0) -> relabel.demo_stats: the figures' unit of noise
-    paired_ttest: Callable        # (a, b) -> (t, df, p)
-    tost: Callable                # (a, b, margin) -> (p, t_lower, t_upper)
-    tost_margin: float            # Table I's equivalence margin, success points
-    paired_differences: Callable  # (a, b) -> a - b per pair, as the tests take them
-
-
-def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(),
+# ---- The command's mode: the loop on a run folder, with what this config's variant hands it --------------------
+def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, workers=1, join=(),
                    export_to=None, copy_src=None):
     """The command's mode on run folder `root` (resuming whatever is already there): every lineage, or only
     `lineage`, or (prepare) only the shared stages, then the report; report_only: only the report. join: lineage
     results files unpacked into the folder first; export_to: a folder to write each lineage's results file to;
     copy_src: a finished run folder of the same config with fewer methods whose stages are copied in first."""
+    cfg = profiles.check_config(cfg)  # a clear error for a bad value before the folder is made
     run = Run(root, cfg)
     if copy_src:
         copy_from(run, copy_src)
@@ -87,30 +75,43 @@ def run_experiment(paper, cfg, root, lineage=None, prepare=False, report_only=Fa
             run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
             lever.check_lineages(run, lineages)  # a recipe that trains on lineage 0's data needs it there first
             memo = lever.data_of_lineage_0(cfg, run.memo)  # the seeds recipe's lineages read lineage 0's data
-            paper.loop(cfg, lineages, memo=memo, map=worker_map(workers, run.log), log=run.log)
+            dagger.policy_calibrated_dagger(cfg, lineages, memo=memo, map=worker_map(workers, run.log), log=run.log,
+                                            **loop_arguments(cfg))
         finally:
             run.release_lineages()
     with run.stage_lock("report"):  # runs of other lineages into this folder write the report one at a time
-        text = write_report(run, paper)
+        text = write_report(run)
     run.log(f"done in {time.time() - t0:.0f} s; report.md, table, results and figures in {run.root}\n\n{text}")
     for path in export_lineages(run, export_to) if export_to else []:
         run.log(f"wrote {path}")
     return run.root
 
 
-def write_report(run, paper):
+def loop_arguments(cfg):
+    """What the harness hands dagger.policy_calibrated_dagger for this config: the env factory of every env a run may
+    name (experiment/environments.py), and a variant's own functions: the lever recipe's (experiment/lever.py), or
+    the research rows' sampler (experiment/controls.py) where the config names one of them."""
+    arguments = dict(make_env=environments.make_env)
+    if cfg.recipe != "paper":
+        arguments.update(lever.loop_arguments(cfg))
+    elif any(method in controls.ROWS for method in cfg.methods):
+        arguments["sampler"] = controls.Rows()
+    return arguments
+
+
+def write_report(run):
     """Table I from the evaluations on disk, on both scenario sets: results.json, results.csv, table.md, the
     table figures, the paper's figures (when their inputs changed) and report.md. Returns the table."""
     run.check_lineages()  # a lineage folder copied in from elsewhere joins only if made like this one
     tables = {}
     for scenarios in ("eval", "unseen"):
         success = collect_results(run, scenarios)
-        table, stats = summarize(run.cfg, success, paper)
+        table, stats = summarize(run.cfg, success)
         stats["scenario_paired"] = scenario_paired(run, scenarios)
         tables[scenarios] = (success, table, stats)
     text = write_tables(run, tables)
     if run.inputs_changed("figures/drawn_from.json", figures.FIGURE_INPUTS):
-        figures.make_figures(run, paper.demo_statistics)
+        figures.make_figures(run)
         run.record_inputs("figures/drawn_from.json", figures.FIGURE_INPUTS)
     else:
         run.log("figures 1-5: their inputs have not changed since they were drawn (figures/drawn_from.json)")
@@ -118,10 +119,10 @@ def write_report(run, paper):
     return text
 
 
-def summarize(cfg, results, paper):
+def summarize(cfg, results):
     """Per method and round: (mean, SE over lineages, count); the paired tests over the lineages that finished
     every round (each averaged over rounds), per round, HG-DAgger vs BC, and the best fixed sigma per round.
-    results: {method: {lineage: [success per round]}}, BC's {'all': [success]}; paper: its tests (Paper)."""
+    results: {method: {lineage: [success per round]}}, BC's {'all': [success]}; the tests: dagger.py's."""
     table = {}
     for method, per_lineage in results.items():
         if method == "bc":
@@ -129,9 +130,9 @@ def summarize(cfg, results, paper):
         else:
             rounds = [list(at_round(per_lineage, k).values()) for k in range(cfg.rounds)]
             table[method] = [mean_se(vals) if vals else None for vals in rounds]
-    stats = paired_statistics(cfg, paper, lambda m: {l: float(np.mean(r)) for l, r in results.get(m, {}).items()
+    stats = paired_statistics(cfg, lambda m: {l: float(np.mean(r)) for l, r in results.get(m, {}).items()
                                               if len(r) == cfg.rounds})
-    stats["per_round"] = {str(k + 1): paired_statistics(cfg, paper, lambda m, k=k: at_round(results.get(m, {}), k))
+    stats["per_round"] = {str(k + 1): paired_statistics(cfg, lambda m, k=k: at_round(results.get(m, {}), k))
                           for k in range(cfg.rounds)}
     stats["hg_dagger_vs_bc"], stats["best_fixed_per_round"] = {}, {}
     bc_all = results.get("bc", {}).get("all")
@@ -140,10 +141,10 @@ def summarize(cfg, results, paper):
         hg_k = list(at_round(results.get("hg_dagger", {}), k).values())
         if bc_all and len(hg_k) >= 2:
             bc = [bc_all[0]] * len(hg_k)
-            t, df, p = paper.paired_ttest(hg_k, bc)
+            t, df, p = dagger.paired_ttest(hg_k, bc)
             stats["hg_dagger_vs_bc"][str(k + 1)] = {"diff": float(np.mean(hg_k) - bc_all[0]), "t": t, "df": df,
                                                     "p": p, "n_above": int(sum(v > bc_all[0] for v in hg_k)),
-                                                    "n": len(hg_k), "degenerate": degenerate(paper, hg_k, bc)}
+                                                    "n": len(hg_k), "degenerate": degenerate(hg_k, bc)}
         # the best fixed sigma of the round in hindsight (beside the calibrated sigma, Sec. V)
         cells = {m: table[m][k][0] for m in cfg.methods
                  if m.startswith("fixed_") and m in table and table[m][k] is not None}
@@ -157,9 +158,9 @@ def at_round(rows, k):
     return {l: r[k] for l, r in rows.items() if len(r) > k}
 
 
-def paired_statistics(cfg, paper, values):
+def paired_statistics(cfg, values):
     """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
-    sigma (TOST at paper.tost_margin); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
+    sigma (TOST at dagger.TOST_MARGIN); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
     hg = values("hg_dagger")
     fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
     best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
@@ -169,14 +170,14 @@ def paired_statistics(cfg, paper, values):
             continue
         a, b = pairs(values(method), hg)
         if len(a) >= 2:
-            t, df, p = paper.paired_ttest(a, b)
+            t, df, p = dagger.paired_ttest(a, b)
             stats["paired_vs_hg_dagger"][method] = {"diff": mean_difference(a, b), "t": t, "df": df, "p": p,
-                                                    "degenerate": degenerate(paper, a, b)}
+                                                    "degenerate": degenerate(a, b)}
         a, b = pairs(values(method), values(best_fixed)) if best_fixed else ([], [])
         if method in ("pooled", "per_step", "closed_loop") and len(a) >= 2:
-            p, _, _ = paper.tost(a, b, paper.tost_margin)
+            p, _, _ = dagger.tost(a, b, dagger.TOST_MARGIN)
             stats["tost_vs_best_fixed"][method] = {"vs": best_fixed, "diff": mean_difference(a, b), "p": p,
-                                                   "margin": paper.tost_margin, "degenerate": degenerate(paper, a, b)}
+                                                   "margin": dagger.TOST_MARGIN, "degenerate": degenerate(a, b)}
     return stats
 
 
@@ -197,9 +198,9 @@ def mean_se(values):
     return float(v.mean()), float(se), int(v.size)
 
 
-def degenerate(paper, a, b):
+def degenerate(a, b):
     """Why a paired test of a vs b has no p-value (the differences have no spread), or None."""
-    d = paper.paired_differences(a, b)
+    d = dagger.paired_differences(a, b)
     if d.size >= 2 and np.all(d == d[0]):
         return (f"every lineage differs by exactly {d[0]:+.1f} points: the paired differences have no spread, "
                 "so t and p are undefined")
@@ -208,12 +209,12 @@ def degenerate(paper, a, b):
 
 def table_number(cfg):
     """The paper's table of this run's env: 'I' (planar) or 'II' (the UR5 lever, a variant's env of it too)."""
-    return "II" if envs.paper_env(cfg.env) == "engine3d" else "I"
+    return "II" if paper_env(cfg.env) == "engine3d" else "I"
 
 
 def paper_table(cfg):
     """The paper's cells for this run's env, methods and rounds in table_rows' layout ({} if the paper has none)."""
-    paper = PAPER_TABLES.get(envs.paper_env(cfg.env), {})  # a variant's env: the paper's env it derives from
+    paper = PAPER_TABLES.get(paper_env(cfg.env), {})  # a variant's env: the paper's env it derives from
     return {m: ([paper[m][0]] if m == "bc" else [paper[m][k] if k < len(paper[m]) else None
                                                    for k in range(cfg.rounds)])
             for m in cfg.methods if m in paper}
@@ -283,7 +284,7 @@ def scenario_paired(run, scenarios="eval"):
     return out
 
 
-# The paper's calibrated numbers, in its median steps (envs.PAPER_MEDIAN_STEP), set beside ours in that unit: the
+# The paper's calibrated numbers, in its median steps (an env's paper_median_step), set beside ours in that unit: the
 # pooled Sigma_bar^alpha's per-joint sigma (paper Sec. VI: "3.9--5.1 median per-step joint displacement in 2D
 # planar reacher", "1.3--4.2 median steps in 3D engine lever-reaching") and W (PCD paper/fig_noise_levels/plot.py:
 # PLANAR_W = 8.0; LEVER_W 7.94-8.10 over rounds 1-4).
@@ -324,7 +325,7 @@ def calibration_summary(run, chain=None):
     ('sigma_per_joint', 'W', 'W_ci'), in radians ('..._rad') and in the paper's median steps ('..._paper';
     None where the env has no paper unit). chain='closed_loop': that row's own calibrations (rounds >= 2)."""
     cfg, out = run.cfg, {}
-    paper = envs.paper_median_step(cfg.env)
+    paper = paper_median_step(cfg.env)
     in_paper = lambda rad: None if paper is None or rad is None else (np.asarray(rad) / paper).tolist()  # noqa: E731
     for k in range(1, cfg.rounds + 1):
         for lineage in range(cfg.lineages):
@@ -498,8 +499,8 @@ def calibration_lines(cfg, stats):
     hindsight."""
     if not stats.get("calibration"):
         return []
-    paper = envs.paper_median_step(cfg.env)
-    quoted = PAPER_CALIBRATION.get(envs.paper_env(cfg.env)) if paper is not None else None
+    paper = paper_median_step(cfg.env)
+    quoted = PAPER_CALIBRATION.get(paper_env(cfg.env)) if paper is not None else None
     name = "paper median steps" if paper is not None else "median steps"
     lines = ["", f"Calibrated pooled Sigma_bar^alpha, per-joint sigma and W in {name} "
                  + (f"({paper:.4f} rad, L2 over the joints at 30 Hz), " if paper is not None else
@@ -582,7 +583,7 @@ def sigma_panels(cfg, results, calibration):
     without the paper's median step, the sigmas' unit): [(title, {row: [one value per lineage]}, {sigma: row},
     the pooled row's sigma or None)]. results: {'eval' | 'unseen': success[method][lineage][k-1]} in percent."""
     levels = noise_levels(cfg.methods)
-    if len([s for s in levels if s > 0]) < 2 or envs.paper_median_step(cfg.env) is None:
+    if len([s for s in levels if s > 0]) < 2 or paper_median_step(cfg.env) is None:
         return []
     k = cfg.rounds
     per = calibration.get(str(k), {})
@@ -786,7 +787,7 @@ FIGURE_CAPTIONS = {
 def figure_caption(name, cfg):
     """FIGURE_CAPTIONS[name], said for the run's env (Table II and the top view for the UR5)."""
     caption = FIGURE_CAPTIONS[name]
-    if envs.paper_env(cfg.env) == "engine3d":
+    if paper_env(cfg.env) == "engine3d":
         caption = caption.replace("Table I as", "Table II as")
         if name[:4] in ("fig1", "fig2", "fig3"):
             caption += " The UR5's end effector is drawn in the top view (x, y in m)."

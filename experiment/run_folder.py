@@ -28,7 +28,11 @@ import torch
 import calibrate
 import diffusion
 import envs
-from experiment import checkpoints
+from dagger import stage_seed  # noqa: F401 (the seed of every step: the harness's benchmarks read it here too)
+from experiment import checkpoints, cpu_kernels
+from experiment.workers import torch_threads
+
+PI0_FILE, PI0_THREADS = "checkpoints/bc.pt", 2  # pi_0 trains alone: 2 torch threads (a count changes the last bits)
 
 
 class ConfigMismatch(ValueError):
@@ -114,10 +118,12 @@ class Run:
 
     def memo(self, name, step, *args, **kwargs):
         """dagger's memo: step(*args, **kwargs) kept in the stage file `name` (Run.stage: loaded if it is there). A
-        step that trains a policy (`name` a .pt) is handed fit=Run.train into that file: checkpoints, resume."""
+        step that trains a policy (`name` a .pt) is handed fit=Run.train into that file: checkpoints, resume; pi_0
+        trains with PI0_THREADS torch threads (nothing runs beside it)."""
         if name.endswith(".pt"):
             kwargs["fit"] = functools.partial(self.train, name)
-        return self.stage(name, lambda: step(*args, **kwargs))
+        with torch_threads(PI0_THREADS) if name == PI0_FILE else contextlib.nullcontext():
+            return self.stage(name, lambda: step(*args, **kwargs))
 
     def path(self, *parts):
         """root/parts..., its folder made."""
@@ -184,6 +190,7 @@ class Run:
         policy.train_state, for runs that continue from it. log: default the folder's log.
         """
         log = log or self.log
+        cpu_kernels.use_kernels(policy)  # eps_theta computed faster on this CPU, the same function (cpu_kernels.py)
         final_path = self.path(*name.split("/"))
         first, steps = (start["step"] if start else 0), train_cfg.steps
         part = final_path.replace(".pt", "_step{step}.pt")
@@ -574,7 +581,7 @@ def without_retired_fields(where, stored):
         if combination not in RECIPE_OF_FIELDS:
             raise ConfigMismatch(f"{where} was made with " + ", ".join(
                 f"{k} = {v!r}" for k, v in zip(RECIPE_FIELDS, combination)) + ", a combination no recipe runs now "
-                "(dagger.RECIPES: paper, authors_lever, authors_lever_seeds). Use the commit that made it to run or "
+                "(the recipes: paper, authors_lever, authors_lever_seeds). Use the commit that made it to run or "
                 "report it.")
         stored = {**{k: v for k, v in stored.items() if k not in RECIPE_FIELDS}, "recipe": RECIPE_OF_FIELDS[combination]}
         for old, new in RECIPE_NAME_PARTS.items():
@@ -692,15 +699,6 @@ def try_lock(path):
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
     return fd, None
-
-
-def stage_seed(cfg, *keys):
-    """A seed for one stage, derived from the master seed and the stage's name (stable across runs)."""
-    return int(np.random.SeedSequence([cfg.seed, *[_key_int(k) for k in keys]]).generate_state(1)[0])
-
-
-def _key_int(key):
-    return key if isinstance(key, int) else int.from_bytes(str(key).encode()[:8].ljust(8, b"\0"), "little")
 
 
 def weights_sha256(path):

@@ -13,6 +13,7 @@ import dagger
 import diffusion
 import envs
 from helpers import straight_line_episode  # tests/helpers.py
+from experiment import environments, profiles
 from experiment.run_folder import calibration_to_json
 
 
@@ -482,7 +483,7 @@ def test_calibrate_end_to_end_on_the_planar_env(planar, tmp_path):
     # deterministic: same seed, same calibration
     again = cal.calibrate(env, policy, episodes, unit, cfg, torch.Generator().manual_seed(0))
     assert calibration_to_json(again) == calibration_to_json(c)
-    assert c.paper_median_step == envs.PAPER_MEDIAN_STEP["planar"]           # recorded for the report
+    assert c.paper_median_step == envs.PlanarReacher.paper_median_step           # recorded for the report
     json.dumps(calibration_to_json(c))
     cal.plot_blend_fit(c, unit, tmp_path / "fig4.png")
     cal.plot_method_overview(env, episodes[0], c, policy, tmp_path / "fig2.png", n_samples=2,
@@ -507,7 +508,7 @@ def test_calibrate_holds_W_within_the_authors_fit_bounds(planar, monkeypatch):
     W is held within the authors' curve_fit bounds, [1, 60] of the paper's median steps, and the note says so."""
     env, episodes, policy = planar
     unit = envs.median_step(episodes)
-    paper = envs.PAPER_MEDIAN_STEP["planar"]
+    paper = envs.PlanarReacher.paper_median_step
     cfg = cal.CalibrationConfig(n_samples=2, n_act=10, stride=4, diverge_threshold=1e3, bootstrap=5)
     monkeypatch.setattr(cal, "fit_equilibrium", lambda s, x, **kw: cal.EquilibriumFit(1e5 * unit, 1e2, len(s), 0.0))
     c = cal.calibrate(env, policy, episodes[:2], unit, cfg, torch.Generator().manual_seed(0))
@@ -562,7 +563,7 @@ def test_blend_schedule_starts_every_ratio_from_every_long_enough_segment():
 
 def test_plot_method_overview_draws_the_3d_env_in_the_top_view(tmp_path):
     """Fig. 2 for EngineReach3D: the same panels on the top view (x, y), no arm drawing."""
-    env = envs.make_env("engine3d")
+    env = environments.make_env("engine3d")
     episodes = [straight_line_episode(env, seed) for seed in env.train_seeds(6)]
     episode = max(episodes, key=lambda ep: len(ep["q"]))
     assert env.dim == 3 and len(episode["q"]) >= 30
@@ -592,6 +593,7 @@ class RailEnv:
     """Test double of an env: three joints that move exactly to the commanded joint targets (no limits, no
     obstacles, one scene for every seed); obs = (q, q_prev). The expert's paths run along joint 0."""
     dof, obs_dim = 3, 6
+    paper_median_step = max_parallel = None  # no paper unit; any number in lockstep
 
     def reset(self, seed=None):
         self.set_state(np.zeros(3), np.zeros(3))
@@ -706,7 +708,7 @@ def test_the_smoke_profile_calibration_fits_W():
     intervention segments long enough to keep (the smoke round had 9) and a policy whose rollouts all stay on
     the route (OffsetPolicy at the smoke's K, H and n_act). Catches a smoke profile that starts fewer than
     min_survivors = 3 blended rollouts per ratio (one segment a ratio did: 1 each, W never fitted in CI)."""
-    smoke = dagger.PROFILES["smoke"]
+    smoke = profiles.PROFILES["smoke"]
     cfg = dagger.calibration_config(smoke)
     env = RailEnv()
     policy = OffsetPolicy([0.12, 0.16], 0.25, K=smoke.K, horizon=smoke.horizon, n_act=smoke.n_act)

@@ -9,8 +9,9 @@ import pytest
 
 import dagger
 import diffusion
+import envs
 import relabel
-from experiment import controls, run_folder
+from experiment import controls, profiles, report, run_folder
 
 H = 20
 ROWS = ("authors_hg_dagger", "cotrain_fixed_8", "cotrain_pooled")
@@ -46,7 +47,7 @@ def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_last_steps_of_ea
     same = np.isin(starts, paper_obs[:, 0])
     assert np.array_equal(authors.chunks[same], paper_chunks)  # where both rules label, the same chunk
     assert len(authors(64, np.random.default_rng(0))) == 2  # (obs, chunks): no mask, every padded step in the loss
-    sampler = dagger.intervention_sampler(TINY, "authors_hg_dagger", [[ep]], None, None)
+    sampler = controls.Rows()(TINY, "authors_hg_dagger", [[ep]], None, None, envs.make_env)
     assert isinstance(sampler.samplers[0], controls.AuthorsChunkSampler)
     assert len(sampler(32, np.random.default_rng(1))) == 2
 
@@ -55,7 +56,7 @@ def test_the_authors_rows_differ_from_hg_daggers_exactly_at_the_last_steps_of_ea
 def controls_run(tmp_path_factory):
     """A finished tiny run with the three control rows."""
     root = str(tmp_path_factory.mktemp("controls"))
-    dagger.run_experiment(TINY, root, workers=1)
+    report.run_experiment(TINY, root, workers=1)
     return root
 
 
@@ -82,7 +83,7 @@ def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_
                                                                        "lineage_0/round_1/calibration.json")))
     for method, noise in (("cotrain_fixed_8", "fixed_8"), ("cotrain_pooled", "pooled")):
         augmentation_samplers.clear()
-        mix = dagger.intervention_sampler(TINY, method, [D], cal, stats).samplers[0]
+        mix = controls.Rows()(TINY, method, [D], cal, stats, envs.make_env).samplers[0]
         assert isinstance(mix, relabel.MixtureSampler) and np.allclose(mix.p, [0.5, 0.5])
         recorded, noised = mix.samplers
         assert isinstance(recorded, relabel.ChunkSampler)
@@ -98,7 +99,7 @@ def test_a_committed_start_serves_a_run_of_other_methods_and_rounds_and_a_run_fo
                                                                                                tmp_path):
     """The shared stages (D0, pi_0, the BC row) depend on neither the methods nor the rounds: table1's committed start
     loads into a one-round run of the control rows. A folder with lineages of another round count is refused."""
-    cfg = replace(dagger.PROFILES["table1"], rounds=1, methods=("bc", "hg_dagger") + ROWS)
+    cfg = replace(profiles.PROFILES["table1"], rounds=1, methods=("bc", "hg_dagger") + ROWS)
     start = run_folder.committed_start("table1", cfg, str(tmp_path / "k1"))
     assert start is not None and start.endswith(os.path.join("table1", "start"))
     run = run_folder.Run(str(tmp_path / "k1"), cfg)
@@ -113,7 +114,7 @@ def test_a_folder_of_fewer_rounds_gives_a_longer_run_its_first_rounds(controls_r
     """--rounds 2 --copy-from a one-round folder: only round 2 trains, and round 1's stages are the folder's (no stage
     depends on the round count). Fails if round 1 retrains or the copy is refused."""
     root = str(tmp_path / "two")
-    dagger.run_experiment(replace(TINY, rounds=2), root, copy_src=controls_run)
+    report.run_experiment(replace(TINY, rounds=2), root, copy_src=controls_run)
     assert sorted(trained_stages) == sorted(f"lineage_0/round_2/checkpoints/{m}.pt" for m in ("hg_dagger",) + ROWS)
     for name in ("D.npz", "eval/hg_dagger.json", "eval/authors_hg_dagger.json"):
         a, b = (open(os.path.join(r, "lineage_0", "round_1", name), "rb").read() for r in (controls_run, root))

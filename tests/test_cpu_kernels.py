@@ -176,10 +176,11 @@ def test_swap_keeps_parameters_state_dict_and_torchs_own_where_it_was():
     an observation encoder's layers stay torch's nn.Linear, as they were before the fast path moved. Fails if the
     swap copies a parameter (AdamW and the EMA would update a stale one), renames a key or takes in a layer the
     built-in fast path did not."""
-    import experiment.image_obs  # noqa: F401 (registers 'image_cnn')
+    from experiment.image_obs import ImageEncoder
     cfg = diffusion.PolicyConfig(obs_dim=70, dof=2, horizon=4, n_act=2, K=10, down_dims=(8, 16), n_groups=4,
-                                 obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "features": 16})
-    plain, swapped = diffusion.DiffusionPolicy(cfg), diffusion.DiffusionPolicy(cfg)
+                                 obs_encoder="ImageEncoder", obs_encoder_args={"shape": (1, 8, 8), "features": 16},
+                                 obs_encoder_sizes=(64, 16))
+    plain, swapped = (diffusion.DiffusionPolicy(cfg, obs_encoder=ImageEncoder) for _ in range(2))
     parameters = list(swapped.net.parameters())
     cpu_kernels.swap_in(swapped.net)
     assert [id(p) for p in swapped.net.parameters()] == [id(p) for p in parameters]

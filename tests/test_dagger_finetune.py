@@ -13,7 +13,7 @@ import calibrate
 import dagger
 import envs
 import relabel
-from experiment import checkpoints, run_folder
+from experiment import checkpoints, report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
@@ -24,7 +24,7 @@ TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network=
 @pytest.fixture(scope="module")
 def two_workers(tmp_path_factory):
     root = str(tmp_path_factory.mktemp("workers2"))
-    dagger.run_experiment(TINY, root, workers=2)
+    report.run_experiment(TINY, root, workers=2)
     return root
 
 
@@ -42,7 +42,7 @@ def test_continue_saves_pi0_with_its_optimizer_and_the_bc_row_continues_it(two_w
 
 def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path):
     root = str(tmp_path / "one")
-    dagger.run_experiment(TINY, root, workers=1)
+    report.run_experiment(TINY, root, workers=1)
     a = json.load(open(os.path.join(two_workers, "results.json")))
     b = json.load(open(os.path.join(root, "results.json")))
     assert a["success"] == b["success"]
@@ -142,14 +142,14 @@ def synthetic_calibration(episodes, W, seed=0):
                                  timestep=timestep, pooled=calibrate.pooled_sigma(sigma_hat, W),
                                  blend_beta=empty, blend_s=empty,
                                  blend_x=empty, blend_kept=np.zeros(0, bool), blend_episode=empty,
-                                 blend_start=empty, paper_median_step=envs.paper_median_step("planar"))
+                                 blend_start=empty, paper_median_step=envs.PlanarReacher.paper_median_step)
 
 
 def synthetic_stats(dof=3):
     """DemoStats with our median step 0.02 rad beside the paper's planar 0.0176 rad (fixed sigmas convert)."""
     return relabel.DemoStats(median_step=0.02, accel_max=np.full(dof, 0.01),
                              max_step=np.full(dof, 0.1), acc_p95=0.01,
-                             paper_median_step=envs.paper_median_step("planar"), frames_per_step=3.0)
+                             paper_median_step=envs.PlanarReacher.paper_median_step, frames_per_step=3.0)
 
 
 def eq16_pooled(cal):
@@ -228,7 +228,7 @@ def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
     rounds = synthetic_rounds()
     cal = synthetic_calibration(rounds[0] + rounds[1], W=0.06)
     stats, dof = synthetic_stats(), 3
-    paper = envs.paper_median_step("planar")
+    paper = envs.PlanarReacher.paper_median_step
     assert stats.median_step != paper                                        # the unit conversion matters here
     dagger.intervention_sampler(TINY, "hg_dagger", rounds, None, stats)
     assert augmentation_samplers == []
@@ -307,7 +307,7 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
             D = main[j + 1]
             for method in ("fixed_4", "pooled", "per_step"):
                 assert [ep["seed"] for ep in arms[(k, method)][j]["episodes"]] == [ep["seed"] for ep in D]
-            assert_pooled(arms[(k, "fixed_4")][j]["sampler"], (4 * envs.paper_median_step("planar")) ** 2 * np.eye(
+            assert_pooled(arms[(k, "fixed_4")][j]["sampler"], (4 * envs.PlanarReacher.paper_median_step) ** 2 * np.eye(
                 D[0]["q"].shape[1]))
             assert_pooled(arms[(k, "pooled")][j]["sampler"], eq16_pooled(cal))
             assert_per_step(arms[(k, "per_step")][j]["sampler"], cal, offset)
@@ -322,9 +322,9 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
 
 
 def test_pi0_trains_on_its_fixed_thread_count_and_the_next_stage_on_the_process_own(tmp_path, monkeypatch):
-    """pi_0's training takes dagger.PI0_THREADS torch threads (it runs alone: the second core is free), a number
-    fixed by the stage, so that pi_0 is the same for any --workers; the process's own count is back after it.
-    Fails if pi_0 trains on the process's count (or one set from the workers), or the count leaks into the
+    """pi_0's training takes run_folder.PI0_THREADS torch threads in the harness (it runs alone: the second core is
+    free), a number fixed by the stage, so that pi_0 is the same for any --workers; the process's own count is back
+    after it. Fails if pi_0 trains on the process's count (or one set from the workers), or the count leaks into the
     stages after it (the arms and the collection run one thread each, as in the worker processes)."""
     import diffusion
     seen, train = [], diffusion.train
@@ -333,7 +333,9 @@ def test_pi0_trains_on_its_fixed_thread_count_and_the_next_stage_on_the_process_
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        dagger.behavior_cloning(run.cfg, dagger.oracle_demonstrations(run.cfg))
-        assert seen == [dagger.PI0_THREADS] and torch.get_num_threads() == 1
+        run.memo("checkpoints/bc.pt", dagger.behavior_cloning, run.cfg, dagger.oracle_demonstrations(run.cfg))
+        assert seen == [run_folder.PI0_THREADS] and torch.get_num_threads() == 1
+        run.memo("checkpoints/other.pt", dagger.behavior_cloning, run.cfg, dagger.oracle_demonstrations(run.cfg))
+        assert seen == [run_folder.PI0_THREADS, 1]  # another stage: the process's own count
     finally:
         torch.set_num_threads(before)

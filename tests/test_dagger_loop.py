@@ -18,7 +18,7 @@ import diffusion
 import envs
 from helpers import straight_line_episode  # tests/helpers.py
 import relabel
-from experiment import cli, report, run_folder
+from experiment import cli, controls, environments, profiles, report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, down_dims=(8, 16),
                      bc_steps=30, finetune_steps=12, batch_size=32,
@@ -37,7 +37,7 @@ OUTPUTS = ["config.json", "log.txt", "results.json", "results.csv", "table.md", 
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory):
     root = str(tmp_path_factory.mktemp("full"))
-    dagger.run_experiment(TINY, root)
+    report.run_experiment(TINY, root)
     return root
 
 
@@ -94,12 +94,12 @@ def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeyp
 
     monkeypatch.setattr(dagger, "fine_tune", crash_on_pooled)
     with pytest.raises(KeyboardInterrupt):
-        dagger.run_experiment(TINY, root)
+        report.run_experiment(TINY, root)
     # what finished before the stop is on disk, what did not is not
     assert os.path.isfile(os.path.join(root, "lineage_0/round_1/eval/fixed_4.json"))
     assert not os.path.exists(os.path.join(root, "lineage_0/round_1/eval/pooled.json"))
     monkeypatch.setattr(dagger, "fine_tune", real)
-    dagger.run_experiment(TINY, root)
+    report.run_experiment(TINY, root)
     a = json.load(open(os.path.join(full_run, "results.json")))["success"]
     b = json.load(open(os.path.join(root, "results.json")))["success"]
     assert a == b
@@ -125,20 +125,23 @@ def test_run_folder_refuses_a_different_config(full_run):
 ])
 def test_bad_cli_arguments(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
-        dagger.parse_args(argv)
+        cli.parse_args(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
 
 
 def test_config_rejects_unknown_method():
+    """Fails if a config naming no method this code runs reaches the run (the check where a config enters)."""
     with pytest.raises(ValueError, match="unknown method"):
-        dagger.Config(methods=("bc", "dart"))
+        profiles.check_config(dagger.Config(methods=("bc", "dart")))
+    with pytest.raises(ValueError, match="unknown method"):
+        report.run_experiment(dagger.Config(methods=("bc", "dart")), "/nonexistent/never-made")
 
 
 def test_a_negative_seed_is_refused_before_the_run_folder_is_made(tmp_path, capsys):
     """Bug: --seed -1 passed the command line, wrote config.json, log.txt and data/ and only then died in numpy's
-    SeedSequence with a traceback. Now Config refuses it (programmatic use too), naming the value and the valid
-    range, and the command exits 2 before anything is written."""
+    SeedSequence with a traceback. Now the config's check refuses it (run_experiment too), naming the value and the
+    valid range, and the command exits 2 before anything is written."""
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as exit_info:
         dagger.main(["--profile", "smoke", "--seed", "-1", "--out", str(out)])
@@ -147,7 +150,8 @@ def test_a_negative_seed_is_refused_before_the_run_folder_is_made(tmp_path, caps
     assert "seed must be an integer >= 0" in err and "got -1" in err
     assert not out.exists() or not any(out.iterdir())
     with pytest.raises(ValueError, match=r"seed must be an integer >= 0 .*got -1"):
-        replace(TINY, seed=-1)
+        report.run_experiment(replace(TINY, seed=-1), str(out))
+    assert not out.exists() or not any(out.iterdir())
 
 
 def test_summarize_paired_statistics():
@@ -157,7 +161,7 @@ def test_summarize_paired_statistics():
                "fixed_2": {"0": [73, 75], "1": [74, 76], "2": [72, 77]},
                "fixed_8": {"0": [71, 72], "1": [70, 73], "2": [70, 74]},
                "pooled": {"0": [73, 76], "1": [74, 75], "2": [73, 77]}}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
     assert table["hg_dagger"][0][0] == pytest.approx(70.0) and table["hg_dagger"][0][2] == 3
     assert stats["best_fixed"] == "fixed_2"
     assert stats["paired_vs_hg_dagger"]["pooled"]["diff"] == pytest.approx(
@@ -178,37 +182,44 @@ def test_summarize_paired_statistics():
     assert "Per round (paired over the lineages that finished it)" in text and "- K=2: " in text
     # a lineage that finished round 1 only counts in round 1's pairs, not in the average over rounds
     partial = {m: {**rows, "3": rows["0"][:1]} for m, rows in results.items() if m != "bc"} | {"bc": results["bc"]}
-    _, partial_stats = report.summarize(cfg, partial, dagger.PAPER)
+    _, partial_stats = report.summarize(cfg, partial)
     assert partial_stats["per_round"]["1"]["paired_vs_hg_dagger"]["pooled"]["df"] == 3
     assert partial_stats["per_round"]["2"]["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     assert partial_stats["paired_vs_hg_dagger"]["pooled"]["df"] == 2
     # the sigma = 0 control is paired with HG-DAgger but never the "best fixed noise"
     cfg = replace(cfg, methods=cfg.methods + ("zero_noise",))
     results["zero_noise"] = {"0": [90, 90], "1": [91, 91], "2": [92, 92]}
-    _, stats = report.summarize(cfg, results, dagger.PAPER)
+    _, stats = report.summarize(cfg, results)
     assert stats["best_fixed"] == "fixed_2" and "zero_noise" in stats["paired_vs_hg_dagger"]
     assert "zero_noise" not in stats["tost_vs_best_fixed"]
 
 
 def test_zero_noise_control_is_the_pipeline_without_noise():
-    assert dagger.noise_model("zero_noise", None) == ("isotropic", 0.0)
-    assert dagger.noise_model("zero_noise", None, None, 0.0245, 0.0176) == ("isotropic", 0.0)
+    """Fails if zero_noise's rows are not the noised pipeline at sigma = 0, or the core knows the control's name."""
+    D = [straight_line_episode(envs.make_env("planar"), seed, expert_from=2) for seed in (1, 2)]
+    stats = relabel.demo_stats(D, envs.median_step(D), 0.05)
+    (zero,) = controls.Rows()(replace(TINY, methods=("bc", "hg_dagger", "zero_noise")), "zero_noise", [D], None,
+                              stats, envs.make_env).samplers
+    assert isinstance(zero, relabel.AugmentationSampler) and zero.noise == "isotropic"
+    assert np.all(np.asarray(zero.factors) == 0)  # every state relabelled where it was recorded: no noise
+    with pytest.raises(ValueError, match="no noise model for method 'zero_noise'"):
+        dagger.noise_model("zero_noise", None)
     assert dagger.noise_model("fixed_8", None) == ("isotropic", 8.0)  # no units given: our median steps
     assert "zero_noise" not in dagger.Config().methods  # the paper profile runs Table I's rows only
-    assert "zero_noise" in dagger.ALL_METHODS  # experiment/controls.py's row, selectable with --methods
+    assert "zero_noise" in profiles.ALL_METHODS  # experiment/controls.py's row, selectable with --methods
 
 
 def test_table2_profile_is_the_engine_lever_env_with_table_ii_rows(load_benchmark):
-    _, cfg = dagger.parse_args(["--profile", "table2"])
+    _, cfg = cli.parse_args(["--profile", "table2"])
     assert cfg.env == "engine3d" and cfg.name == "table2"  # the profile's own env adds no suffix
     assert {"bc", "hg_dagger", "pooled"} <= set(cfg.methods) and (cfg.rounds, cfg.lineages) == (2, 3)  # Table II
     assert {"fixed_4", "fixed_8"} <= set(cfg.methods)  # 8: the authors' calibrated size in radians, beside 4
     # the epsilon network chosen by benchmarks/lever_networks.py (unet16_b256), continued as the planar recipe
     chosen = load_benchmark("lever_networks").CANDIDATES["unet16_b256"]
     assert {k: getattr(cfg, k) for k in chosen} == chosen
-    _, cfg = dagger.parse_args(["--profile", "table2", "--env", "planar"])
+    _, cfg = cli.parse_args(["--profile", "table2", "--env", "planar"])
     assert cfg.env == "planar" and cfg.name == "table2_planar"  # never the engine3d run's folder
-    _, cfg = dagger.parse_args(["--profile", "mid", "--env", "engine3d"])
+    _, cfg = cli.parse_args(["--profile", "mid", "--env", "engine3d"])
     assert cfg.name == "mid_engine3d"
 
 
@@ -218,11 +229,11 @@ def test_the_default_worker_count_is_the_cores_this_process_may_use(monkeypatch)
     are the user's own processes); an explicit --workers wins."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3, 4, 5}, raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
-    assert dagger.parse_args([])[0].workers == 6
-    assert dagger.parse_args(["--lineage", "0"])[0].workers == 1
-    assert dagger.parse_args(["--workers", "3"])[0].workers == 3
+    assert cli.parse_args([])[0].workers == 6
+    assert cli.parse_args(["--lineage", "0"])[0].workers == 1
+    assert cli.parse_args(["--workers", "3"])[0].workers == 3
     monkeypatch.delattr(os, "sched_getaffinity")                    # macOS, Windows: the machine's count
-    assert dagger.parse_args([])[0].workers == 64
+    assert cli.parse_args([])[0].workers == 64
 
 
 def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_path):
@@ -271,7 +282,7 @@ COMMITTED_RESULTS = {
 def test_every_committed_results_file_matches_the_config_of_the_command_that_reports_it(folder):
     """--join compares each file's stored config with the command's (a deleted option's field dropped at the
     value that remains): a change to a profile or an option must leave the committed results joinable."""
-    _, cfg = dagger.parse_args(COMMITTED_RESULTS[folder])
+    _, cfg = cli.parse_args(COMMITTED_RESULTS[folder])
     where = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "results", folder)
     paths = sorted(p for p in os.listdir(where) if p.endswith(".json.gz"))
     assert paths
@@ -303,7 +314,9 @@ def test_evaluate_runs_groups_of_at_most_max_parallel_in_scenario_order(monkeypa
         groups.clear()
         ok = dagger.evaluate(policy, "planar", seeds, 2, 8, 0, max_parallel=max_parallel)
         assert groups == sizes and np.array_equal(ok, expected)
-    assert dagger.MAX_PARALLEL_ENVS["engine3d"] == 100  # 300 pybullet clients would take ~9 GB
+    monkeypatch.setattr(envs.PlanarReacher, "max_parallel", 3)  # the env's own bound, read from the first env
+    groups.clear()
+    assert np.array_equal(dagger.evaluate(policy, "planar", seeds, 2, 8, 0), expected) and groups == [3, 3, 3, 3, 2]
 
 
 class DriftPolicy:
@@ -366,14 +379,14 @@ def test_hg_dagger_rollout_rewinds_hands_back_and_keeps_a_consistent_record():
                                               ("pooled,pooled", "pooled listed twice"), ("nope", "unknown")])
 def test_methods_option_rejects_empty_duplicate_and_unknown_items(methods, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
-        dagger.parse_args(["--methods", methods])
+        cli.parse_args(["--methods", methods])
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_another_set_of_methods_gets_its_own_folder():
-    _, cfg = dagger.parse_args(["--methods", "pooled,per_step"])
+    _, cfg = cli.parse_args(["--methods", "pooled,per_step"])
     assert cfg.name == "quick_pooled-per_step"
-    _, same = dagger.parse_args(["--methods", ",".join(dagger.PROFILES["quick"].methods)])
+    _, same = cli.parse_args(["--methods", ",".join(profiles.PROFILES["quick"].methods)])
     assert same.name == "quick"
 
 
@@ -393,7 +406,7 @@ def test_degenerate_statistics_say_why_instead_of_a_p_value():
     cfg = dagger.Config(name="t", rounds=1, lineages=3, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
     results = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [60.0], "1": [61.0], "2": [62.0]},
                "fixed_4": {"0": [60.0], "1": [61.0], "2": [62.0]}, "pooled": {"0": [60.0], "1": [61.0], "2": [62.0]}}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
     text = report.format_table(cfg, table, stats)
     assert "no spread" in text and "p = 0 " not in text and "p = 1 " not in text
     assert report.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and report.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
@@ -474,7 +487,7 @@ def test_every_readme_command_parses_and_none_is_refused_by_another_commands_fol
     for argv in commands:
         if "--help" in argv:
             continue
-        args, cfg = dagger.parse_args(argv)
+        args, cfg = cli.parse_args(argv)
         folder = args.out or os.path.join("runs", cfg.name)
         seen = folders.setdefault(folder, cfg)
         changed = [f.name for f in dataclasses.fields(dagger.Config) if getattr(seen, f.name) != getattr(cfg, f.name)
@@ -494,10 +507,10 @@ def test_a_damaged_stage_file_is_named_and_never_reused(full_run, tmp_path, stag
     with open(path, "wb") as f:
         f.write(data[: len(data) // 2])
     with pytest.raises(run_folder.RunFolderError, match="damaged") as err:
-        dagger.run_experiment(TINY, root)
+        report.run_experiment(TINY, root)
     assert path in str(err.value) and "Delete it and run the same command again" in str(err.value)
     os.remove(path)  # the way forward works: the stage is made again
-    dagger.run_experiment(TINY, root)
+    report.run_experiment(TINY, root)
     assert json.load(open(os.path.join(root, "results.json")))["success"] == \
         json.load(open(os.path.join(full_run, "results.json")))["success"]
 
@@ -536,7 +549,7 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     finished folder, which `--workers 1` and `--report` below still do."""
     smoke = replace(TINY, name="smoke", methods=("bc", "hg_dagger", "fixed_4", "pooled"), eval_scenarios=2,
                     n_demos=2, bc_steps=10, finetune_steps=6)
-    monkeypatch.setitem(dagger.PROFILES, "smoke", smoke)
+    monkeypatch.setitem(profiles.PROFILES, "smoke", smoke)
     monkeypatch.chdir(tmp_path)
     commands, swapped = readme_commands(), []
     assert len(commands) >= 10 and [] in commands and any("--report" in c for c in commands)
@@ -562,7 +575,7 @@ def test_fixed_sigma_is_in_the_papers_median_steps():
     """Table I's sigma = 4 is 4 of the authors' median steps (envs.paper_median_step, rad) per joint, whatever
     our own unit: the noise the sampler draws (relabel.noise_factors) has the same std in radians for two runs
     whose median steps differ 2x, and that is not 4 of our steps. An env without the paper's unit keeps ours."""
-    paper = envs.paper_median_step("planar")
+    paper = envs.PlanarReacher.paper_median_step
     drawn = []
     for ours in (0.02, 0.04):  # two runs' own median steps, rad
         kind, sigma = dagger.noise_model("fixed_4", None, None, ours, paper)
@@ -631,8 +644,8 @@ def test_more_lineages_can_join_an_existing_run_folder(tmp_path):
 
 
 def test_eval_unseen_switch():
-    _, cfg = dagger.parse_args(["--profile", "smoke", "--no-eval-unseen"])
-    assert not cfg.eval_unseen and dagger.PROFILES["smoke"].eval_unseen
+    _, cfg = cli.parse_args(["--profile", "smoke", "--no-eval-unseen"])
+    assert not cfg.eval_unseen and profiles.PROFILES["smoke"].eval_unseen
 
 
 def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
@@ -648,9 +661,9 @@ def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
         os.remove(os.path.join(root, name))
     stages = {os.path.join(d, f): os.stat(os.path.join(d, f)).st_mtime_ns for d, _, fs in os.walk(root) for f in fs
               if f.endswith((".pt", ".npz")) or (f.endswith(".json") and os.sep + "eval" + os.sep in os.path.join(d, f))}
-    dagger.run_experiment(replace(TINY, eval_unseen=False), root)
+    report.run_experiment(replace(TINY, eval_unseen=False), root)
     assert not [n for n in unseen if os.path.exists(os.path.join(root, n))]
-    dagger.run_experiment(TINY, root)
+    report.run_experiment(TINY, root)
     for name in unseen:
         assert json.load(open(os.path.join(root, name))) == json.load(open(os.path.join(full_run, name)))
     assert {p: os.stat(p).st_mtime_ns for p in stages} == stages  # nothing else was made again
@@ -667,7 +680,7 @@ def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_p
     root = str(tmp_path / "joined")
     shutil.copytree(full_run, root)
     shutil.copytree(os.path.join(full_run, "lineage_0"), os.path.join(root, "lineage_1"))  # "run on another machine"
-    dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+    report.run_experiment(replace(TINY, lineages=2), root, report_only=True)
     results = json.load(open(os.path.join(root, "results.json")))
     assert set(results["success"]["hg_dagger"]) == {"0", "1"}
     assert "| HG-DAgger | " in open(os.path.join(root, "table.md")).read() and "(2) |" in open(
@@ -675,10 +688,10 @@ def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_p
     other = os.path.join(root, "lineage_1", "lineage.json")
     json.dump({**record, "config": {**record["config"], "bc_steps": 31}}, open(other, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match=r"lineage_1 holds a run made with another config: bc_steps = 31"):
-        dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+        report.run_experiment(replace(TINY, lineages=2), root, report_only=True)
     json.dump({**record, "pi0_sha256": "0" * 64}, open(other, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match="lineage_1 was made from another pi_0"):
-        dagger.run_experiment(replace(TINY, lineages=2), root, report_only=True)
+        report.run_experiment(replace(TINY, lineages=2), root, report_only=True)
 
 
 def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrated_policy(tmp_path, monkeypatch):
@@ -695,7 +708,7 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
             return out
         monkeypatch.setattr(dagger, name, spy)
     cfg = replace(TINY, rounds=2, methods=("bc", "hg_dagger", "closed_loop"))
-    dagger.run_experiment(cfg, str(tmp_path))
+    report.run_experiment(cfg, str(tmp_path))
     for name, args, kwargs, out in calls:
         if name == "fine_tune":
             made[(args[2], args[3])] = (out, args[6], args[7])  # (k, method): policy, data, calibration
@@ -737,7 +750,7 @@ def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrat
 def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_lineage(tmp_path, load_benchmark):
     """The table1 profile: the mid recipe with the paper's five rounds and all ten rows. benchmarks/table1_cost.py
     counts a lineage's stages as the loop runs them and projects unmeasured rounds from the measured ones."""
-    cfg, mid = dagger.PROFILES["table1"], dagger.PROFILES["mid"]
+    cfg, mid = profiles.PROFILES["table1"], profiles.PROFILES["mid"]
     assert cfg.rounds == 5 and cfg.lineages == 5 and cfg.methods == dagger.TABLE_I_METHODS
     assert {f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(mid, f.name)} == {
         "name", "rounds", "methods"}
@@ -783,7 +796,7 @@ def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrati
         "mlp_h8": dict(network="mlp", mlp_width=32, mlp_blocks=1, horizon=8, n_act=4,
                        bc_steps=40, finetune_steps=20)})
     fields = dict(n_demos=6, bc_steps=40, finetune_steps=20, eval_scenarios=4, K=5)
-    monkeypatch.setitem(dagger.PROFILES, "smoke", replace(dagger.PROFILES["smoke"], **fields))
+    monkeypatch.setitem(profiles.PROFILES, "smoke", replace(profiles.PROFILES["smoke"], **fields))
     out = str(tmp_path / "nets")
     with pytest.raises(SystemExit, match="unknown candidate 'lstm'"):
         bench.main(["--base", "smoke", "--out", out, "--candidates", "unet,lstm"])
@@ -833,8 +846,8 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     assert data["pi0_sha256"] == run_folder.weights_sha256(os.path.join(full_run, "checkpoints", "bc.pt"))
 
     root = str(tmp_path / "joined")  # a folder of results files only: no D0, no pi_0 checkpoint
-    dagger.run_experiment(TINY, root, report_only=True, join=[path])
-    dagger.run_experiment(TINY, root, report_only=True, join=[path])  # joining the same file again changes nothing
+    report.run_experiment(TINY, root, report_only=True, join=[path])
+    report.run_experiment(TINY, root, report_only=True, join=[path])  # joining the same file again changes nothing
     mine, theirs = (json.load(open(os.path.join(r, "results.json")))["success"] for r in (root, full_run))
     assert mine == theirs and set(mine["pooled"]) == {"0"}
     assert "| HG-DAgger | " in open(os.path.join(root, "table.md")).read()
@@ -843,20 +856,20 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     json.dump({**data, "config": {**data["config"], "bc_steps": 31}}, open(bad, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match=r"bad.json \(lineage 0\) holds a run made with another "
                                                         r"config: bc_steps = 31 there, 30 now"):
-        dagger.run_experiment(TINY, str(tmp_path / "other"), report_only=True, join=[bad])
+        report.run_experiment(TINY, str(tmp_path / "other"), report_only=True, join=[bad])
     json.dump({**data, "pi0_sha256": "0" * 64}, open(bad, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match="was made from another pi_0"):
-        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+        report.run_experiment(TINY, root, report_only=True, join=[bad])
     files = dict(data["files"])
     files["lineage_0/round_1/eval/pooled.json"] = {**files["lineage_0/round_1/eval/pooled.json"], "success": [[True]]}
     json.dump({**data, "files": files}, open(bad, "w"))
     with pytest.raises(run_folder.ConfigMismatch, match=r"holds other results than .* lineage_0/round_1/eval/pooled"):
-        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+        report.run_experiment(TINY, root, report_only=True, join=[bad])
     json.dump({"success": []}, open(bad, "w"))
     with pytest.raises(run_folder.RunFolderError, match="not a lineage results file"):
-        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+        report.run_experiment(TINY, root, report_only=True, join=[bad])
     with pytest.raises(run_folder.RunFolderError, match="no such file"):
-        dagger.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
+        report.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
 
 
@@ -890,7 +903,7 @@ def test_the_report_refuses_an_evaluation_of_another_shape_or_scenarios(full_run
     json.dump(bad, open(path, "w"))
     before = files_and_times(root)
     with pytest.raises(SystemExit) as exit_info:
-        cli.run_command(report.run_experiment, dagger.PAPER, TINY, root, None, False, True)
+        cli.run_command(report.run_experiment, TINY, root, None, False, True)
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "Traceback" not in err
     assert f"{path} is not an evaluation of this run: {expected}" in err
@@ -912,7 +925,7 @@ def test_a_joined_results_file_with_an_evaluation_of_another_shape_is_refused_an
     with pytest.raises(run_folder.RunFolderError, match=r"bad.json \(lineage 0\): its lineage_0/round_1/eval/"
                                                         r"hg_dagger.json is not an evaluation of this run: "
                                                         r"success of shape \(1, 1\); expected .*\(3, 1\)"):
-        dagger.run_experiment(TINY, root, report_only=True, join=[bad])
+        report.run_experiment(TINY, root, report_only=True, join=[bad])
     assert not os.path.exists(os.path.join(root, "lineage_0")) and not os.path.exists(os.path.join(root, "eval"))
 
 
@@ -922,7 +935,7 @@ def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(f
     A folder with another config, or with a method this run lacks, is refused before anything is copied."""
     cfg = replace(TINY, methods=TINY.methods + ("zero_noise",), name="tiny_zero")
     root = str(tmp_path / "control")
-    dagger.run_experiment(cfg, root, copy_src=full_run)
+    report.run_experiment(cfg, root, copy_src=full_run)
     assert trained_stages == ["lineage_0/round_1/checkpoints/zero_noise.pt"]
     mine, theirs = (json.load(open(os.path.join(r, "results.json")))["success"] for r in (root, full_run))
     assert set(mine) == set(theirs) | {"zero_noise"} and all(mine[m] == theirs[m] for m in theirs)
@@ -930,14 +943,14 @@ def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(f
     assert record["config"]["methods"][-1] == "zero_noise" and record["config"]["name"] == "tiny_zero"
 
     with pytest.raises(run_folder.ConfigMismatch, match="bc_steps = 30 there, 31 now"):
-        dagger.run_experiment(replace(cfg, bc_steps=31), str(tmp_path / "other"), copy_src=full_run)
+        report.run_experiment(replace(cfg, bc_steps=31), str(tmp_path / "other"), copy_src=full_run)
     fewer = replace(TINY, methods=("bc", "hg_dagger", "fixed_4", "pooled", "per_step"), name="tiny_fewer")
     with pytest.raises(run_folder.ConfigMismatch, match="it runs closed_loop, which this run does not"):
-        dagger.run_experiment(fewer, str(tmp_path / "fewer"), copy_src=full_run)
+        report.run_experiment(fewer, str(tmp_path / "fewer"), copy_src=full_run)
     with pytest.raises(run_folder.RunFolderError, match="not a run folder"):
-        dagger.run_experiment(cfg, str(tmp_path / "third"), copy_src=str(tmp_path / "missing"))
+        report.run_experiment(cfg, str(tmp_path / "third"), copy_src=str(tmp_path / "missing"))
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "data"))  # a refused copy leaves no stage
-    args, _ = dagger.parse_args(["--profile", "table2", "--methods", "hg_dagger,zero_noise", "--copy-from", root])
+    args, _ = cli.parse_args(["--profile", "table2", "--methods", "hg_dagger,zero_noise", "--copy-from", root])
     assert args.copy_from == root
 
 
@@ -949,7 +962,7 @@ def test_w_spread_recalibrates_a_finished_round_at_other_blend_ratios(full_run, 
     bench.w_spread(full_run, 2, 0, 1)
     ours = capsys.readouterr().out
     saved = json.load(open(os.path.join(full_run, "lineage_0", "round_1", "calibration.json")))
-    paper = envs.paper_median_step(TINY.env)
+    paper = environments.paper_median_step(TINY.env)
     assert f"| {saved['W'] / paper:.2f} |" in ours.splitlines()[3] and "/13 |" in ours
     bench.w_spread(full_run, 2, 0, 1, betas=bench.parse_betas("0.2,0.5,0.8"))
     theirs = capsys.readouterr().out
@@ -968,7 +981,7 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     into a run of another config (another seed: another pi_0 must be computed), or over a folder's own pi_0."""
     results = tmp_path / "results"
     monkeypatch.setattr(run_folder, "RESULTS_ROOT", str(results))
-    monkeypatch.setitem(dagger.PROFILES, "tiny", TINY)
+    monkeypatch.setitem(profiles.PROFILES, "tiny", TINY)
     with pytest.raises(SystemExit) as refused:  # nothing to export before --prepare finished
         dagger.main(["--profile", "tiny", "--report", "--out", str(tmp_path / "empty"),
                      "--export-start", str(results / "tiny")])
@@ -990,16 +1003,16 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     assert trained_stages == []  # D0, pi_0 and the BC row came from the start: nothing trained
     assert run_folder.weights_sha256(os.path.join(root, "checkpoints", "bc.pt")) == pi0
     assert f"stage files from {start}" in open(os.path.join(root, "log.txt")).read()
-    args, _ = dagger.parse_args(["--profile", "tiny", "--lineage", "0", "--out", root])
+    args, _ = cli.parse_args(["--profile", "tiny", "--lineage", "0", "--out", root])
     assert args.copy_from is None  # the start is in: a resumed lineage copies nothing again
 
     other = str(tmp_path / "seed1")
-    args, _ = dagger.parse_args(["--profile", "tiny", "--seed", "1", "--out", other])
+    args, _ = cli.parse_args(["--profile", "tiny", "--seed", "1", "--out", other])
     assert args.copy_from is None and "seed = 0 there, 1 now" in capsys.readouterr().out
     own = str(tmp_path / "own")
     os.makedirs(os.path.join(own, "checkpoints"))
     torch.save({"state_dict": {"w": torch.zeros(2)}}, os.path.join(own, "checkpoints", "bc.pt"))
-    args, _ = dagger.parse_args(["--profile", "tiny", "--out", own])
+    args, _ = cli.parse_args(["--profile", "tiny", "--out", own])
     assert args.copy_from is None and "has a pi_0 of its own" in capsys.readouterr().out
-    args, _ = dagger.parse_args(["--profile", "tiny", "--out", str(tmp_path / "new")])
+    args, _ = cli.parse_args(["--profile", "tiny", "--out", str(tmp_path / "new")])
     assert args.copy_from == str(start)

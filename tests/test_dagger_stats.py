@@ -1,4 +1,4 @@
-"""Statistics of dagger.py and its t distribution (experiment/student_t.py; self-written, no scipy) against closed
+"""Statistics of dagger.py and its t distribution (dagger.student_t_cdf; self-written, no scipy) against closed
 forms and known table values."""
 import math
 from dataclasses import replace
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import dagger
-from experiment import checkpoints, report, run_folder, student_t
+from experiment import checkpoints, environments, report, run_folder
 
 
 def t_pdf(x, df):
@@ -19,16 +19,16 @@ def t_pdf(x, df):
 @pytest.mark.parametrize("t", [-3.0, -0.5, 0.0, 0.7, 1.0, 4.2])
 def test_t_cdf_closed_forms(t):
     # df = 1 is the Cauchy distribution, df = 2 has a simple closed form
-    assert student_t.student_t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
-    assert student_t.student_t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
+    assert dagger.student_t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
+    assert dagger.student_t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
 
 
 @pytest.mark.parametrize("df,quantile,prob", [(4, 2.776445, 0.975), (5, 2.570582, 0.975),
                                               (10, 1.812461, 0.95), (30, 2.042272, 0.975),
                                               (3, 5.840909, 0.995)])
 def test_t_cdf_table_quantiles(df, quantile, prob):
-    assert student_t.student_t_cdf(quantile, df) == pytest.approx(prob, abs=1e-6)
-    assert student_t.student_t_cdf(-quantile, df) == pytest.approx(1 - prob, abs=1e-6)
+    assert dagger.student_t_cdf(quantile, df) == pytest.approx(prob, abs=1e-6)
+    assert dagger.student_t_cdf(-quantile, df) == pytest.approx(1 - prob, abs=1e-6)
 
 
 @pytest.mark.parametrize("df", [1.5, 3, 7, 25])
@@ -38,7 +38,7 @@ def test_t_cdf_matches_numeric_integration(df):
     assert np.all(pdf > 0)
     fine = t_pdf_vec(xs, df)
     integral = np.trapezoid(fine, xs) + tail_below(-60, df)
-    assert student_t.student_t_cdf(1.3, df) == pytest.approx(integral, abs=2e-5)
+    assert dagger.student_t_cdf(1.3, df) == pytest.approx(integral, abs=2e-5)
 
 
 def t_pdf_vec(x, df):
@@ -55,15 +55,15 @@ def tail_below(x, df):
 
 def test_incomplete_beta_symmetry_and_closed_forms():
     for a, b, x in [(2.0, 3.0, 0.3), (0.5, 0.5, 0.9), (10.0, 0.5, 0.95)]:
-        assert student_t.incomplete_beta(a, b, x) == pytest.approx(1 - student_t.incomplete_beta(b, a, 1 - x),
+        assert dagger.incomplete_beta(a, b, x) == pytest.approx(1 - dagger.incomplete_beta(b, a, 1 - x),
                                                                    abs=1e-12)
     # I_x(1, 1) = x (uniform), I_x(a, 1) = x^a
-    assert student_t.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
-    assert student_t.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
+    assert dagger.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37, abs=1e-12)
+    assert dagger.incomplete_beta(3.0, 1.0, 0.6) == pytest.approx(0.6 ** 3, abs=1e-12)
     # I_x(1, b) = 1 - (1 - x)^b near x = 1, where the continued fraction must be taken on the symmetric side: read
     # directly there it gives 0.98999 for b = 1/2 (the t distribution's b) and a negative number for b = 5
     for b in (0.5, 5.0):
-        assert student_t.incomplete_beta(1.0, b, 0.9999) == pytest.approx(1 - 0.0001 ** b, abs=1e-12)
+        assert dagger.incomplete_beta(1.0, b, 0.9999) == pytest.approx(1 - 0.0001 ** b, abs=1e-12)
 
 
 def test_paired_ttest_known_value():
@@ -74,9 +74,9 @@ def test_paired_ttest_known_value():
     t, df, p = dagger.paired_ttest(a, b)
     assert df == 4
     assert t == pytest.approx(t_expected)
-    assert p == pytest.approx(2 * (1 - student_t.student_t_cdf(abs(t_expected), 4)))
+    assert p == pytest.approx(2 * (1 - dagger.student_t_cdf(abs(t_expected), 4)))
     # the paper's reported t(4) = 5.75 gives p ~ 0.005
-    assert 2 * (1 - student_t.student_t_cdf(5.75, 4)) == pytest.approx(0.0045, abs=3e-4)
+    assert 2 * (1 - dagger.student_t_cdf(5.75, 4)) == pytest.approx(0.0045, abs=3e-4)
 
 
 def test_paired_ttest_symmetry_and_errors():
@@ -97,7 +97,7 @@ def test_equal_gains_in_episode_counts_have_no_spread_whatever_the_float_roundin
     a, b = [rate(144), rate(143)], [rate(141), rate(140)]
     assert np.subtract(a, b)[0] != np.subtract(a, b)[1]                # the float differences are not equal ...
     assert dagger.paired_ttest(a, b) == (math.inf, 1, 0.0)              # ... but the gains are: no spread
-    assert report.degenerate(dagger.PAPER, a, b).startswith("every lineage differs by exactly +1.0 points")
+    assert report.degenerate(a, b).startswith("every lineage differs by exactly +1.0 points")
     assert dagger.tost(a, b, 2.0)[0] == 0.0 and dagger.tost(a, b, 0.5)[0] == 1.0
 
 
@@ -148,7 +148,7 @@ def test_summarize_pairs_hg_dagger_with_bc_per_round_and_finds_the_best_fixed_si
                "fixed_2": {"0": [60.0, 70.0], "1": [61.0, 70.0], "2": [62.0, 70.0]},
                "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
                "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]}}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
     r1, r2 = stats["hg_dagger_vs_bc"]["1"], stats["hg_dagger_vs_bc"]["2"]
     assert r1["diff"] == pytest.approx(3.0) and r1["n_above"] == 3 and r1["df"] == 2
     t, df, p = dagger.paired_ttest([62.0, 64.0, 63.0], [60.0] * 3)  # one pi_0: the pairs share BC's number
@@ -166,8 +166,8 @@ def test_format_table_adds_the_unseen_scenarios_with_their_own_paired_statistics
                "pooled": {"0": [74.0], "1": [75.0], "2": [73.0]}}
     unseen = {"bc": {"all": [50.0]}, "hg_dagger": {"0": [55.0], "1": [57.0], "2": [54.0]},
               "pooled": {"0": [58.0], "1": [61.0], "2": [59.0]}}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
-    table_u, stats_u = report.summarize(cfg, unseen, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
+    table_u, stats_u = report.summarize(cfg, unseen)
     text = report.format_table(cfg, table, stats, (table_u, stats_u))
     main, second = text.split("**Unseen scenarios.**")
     assert "the 100 evaluation scenarios, on which HG-DAgger collected (the authors' protocol)" in main
@@ -235,7 +235,7 @@ def test_the_table_prints_and_draws_the_papers_cells_for_the_runs_rows_and_round
                "fixed_4": {"0": [66.0, 60.0], "1": [65.0, 61.0], "2": [67.0, 62.0]},
                "pooled": {"0": [65.0, 67.0], "1": [66.0, 66.0], "2": [64.0, 68.0]},
                "zero_noise": {"0": [60.0, 60.0], "1": [61.0, 61.0], "2": [62.0, 62.0]}}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
     ours, theirs = report.format_table(cfg, table, stats).split("The paper's Table I")
     assert "| Pooled Sigma-bar^alpha (Ours) | 82.0 ± 0.6 (5) | 86.2 ± 0.8 (5) |" in theirs
     assert "| HG-DAgger | 63.0 ± 0.6 (3) | 64.0 ± 1.5 (3) |" in ours and "82.0" not in ours
@@ -270,14 +270,14 @@ def test_failure_time_histogram_bins_collisions_by_the_second_they_happen(monkey
 
 
 def test_failure_rollout_runs_in_groups_and_closes_each_group_before_the_next(monkeypatch, tmp_path, load_benchmark):
-    """bc_failures.roll_out holds at most dagger.MAX_PARALLEL_ENVS[env] simulators at once (engine3d: one pybullet
+    """bc_failures.roll_out holds at most the env's max_parallel simulators at once (engine3d: one pybullet
     client each; holding every policy's 300 made the 24 GB machine thrash) and classifies every episode."""
     import argparse
     import diffusion
     import envs
     failures = load_benchmark("bc_failures")
     open_now, most = [0], [0]
-    make = envs.make_env
+    make = environments.make_env
 
     def tracked(name, **kw):
         e = make(name, episode_seconds=0.5, **kw)  # 5 steps: the untrained policy's episodes end fast
@@ -288,9 +288,9 @@ def test_failure_rollout_runs_in_groups_and_closes_each_group_before_the_next(mo
         open_now[0] += 1
         most[0] = max(most[0], open_now[0])
         return e
-    monkeypatch.setattr(envs, "make_env", tracked)
+    monkeypatch.setattr(environments, "make_env", tracked)
     monkeypatch.setattr(envs, "eval_seeds", lambda: [10_000, 10_001, 10_002])
-    monkeypatch.setitem(dagger.MAX_PARALLEL_ENVS, "planar", 2)
+    monkeypatch.setattr(envs.PlanarReacher, "max_parallel", 2)
     e = make("planar")
     policy = diffusion.DiffusionPolicy(diffusion.PolicyConfig(obs_dim=e.obs_dim, dof=e.dof, horizon=4, n_act=2, K=5,
                                                               down_dims=(16, 32), n_groups=4, step_embed_dim=32))

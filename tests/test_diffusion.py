@@ -349,11 +349,11 @@ def test_every_consumer_of_the_label_rule_agrees_on_random_masks():
         for t in range(T):
             inside = [(s, e) for s, e in runs if s <= t < e]
             assert mask[t] == bool(inside and (t + H <= inside[0][1] or inside[0][1] == T)), (expert, H, t)
-        t, seg_end = relabel.AugmentationSampler.label_steps(expert, H)
+        t, seg_end = relabel.paper_label_steps(expert, H)
         assert np.array_equal(t, np.flatnonzero(mask))
         assert all(any(s <= ti < e == se for s, e in runs) for ti, se in zip(t, seg_end))
         kept = np.zeros(T, dtype=bool)                         # what the collection keeps: the runs themselves
-        for s, e in dagger.PaperRecipe.expert_runs(expert, H):
+        for s, e in expert_runs(expert, H):  # the loop's label_rule by default (dagger.collect_interventions)
             kept[s:e] = True
         assert np.array_equal(np.flatnonzero(kept), [i for s, e in runs for i in range(s, e)])
         assert np.array_equal(label_mask(kept, H), mask)       # dropping first changes no label

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from envs import make_env
+from experiment.environments import make_env
 from experiment.engine3d import (ENGINE_SELF_PAIRS, UR5_A, UR5_D, EngineConfig, EngineReach3D, segment_distance_3d,
                                  dh_transform, ur5_frames, ur5_ik)
 

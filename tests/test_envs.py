@@ -7,6 +7,7 @@ import pytest
 
 import envs
 from envs import PlanarReacher, make_env, median_step
+from experiment import environments
 
 
 @pytest.fixture(scope="module")
@@ -74,9 +75,9 @@ def test_seed_ranges_are_disjoint():
     assert envs.eval_seeds() == ev and envs.train_seeds(2) == [0, 1]
 
 
-@pytest.mark.parametrize("name", sorted(envs.ENVIRONMENTS))
+@pytest.mark.parametrize("name", sorted(environments.ENVIRONMENTS))
 def test_unseen_seeds_are_disjoint_from_training_and_evaluation(name):
-    env_class = envs.ENVIRONMENTS[name][0]  # both envs' classes, no instance (a pybullet client) needed
+    env_class = environments.ENVIRONMENTS[name][0]  # every env's class, no instance (a pybullet client) needed
     unseen = env_class.unseen_seeds()
     assert unseen == envs.unseen_seeds() and len(set(unseen)) == 100
     assert not set(unseen) & set(env_class.eval_seeds())
@@ -84,10 +85,11 @@ def test_unseen_seeds_are_disjoint_from_training_and_evaluation(name):
 
 
 def test_paper_median_step_by_name_or_env():
-    # the authors' unit (PCD paper/fig_noise_levels/plot.py), not ours: 0.0176 planar, 0.0166 the UR5 lever
-    assert envs.paper_median_step("planar") == 0.0176 and envs.paper_median_step("engine3d") == 0.0166
-    assert envs.paper_median_step(make_env("planar")) == 0.0176
-    assert envs.paper_median_step("mars") is None and envs.paper_median_step(object()) is None
+    """Fails if an env's paper unit is not the authors' (PCD paper/fig_noise_levels/plot.py), not ours: 0.0176 planar,
+    0.0166 the UR5 lever, or an env the paper gives none for claims one."""
+    assert envs.PlanarReacher.paper_median_step == 0.0176 and environments.paper_median_step("engine3d") == 0.0166
+    assert make_env("planar").paper_median_step == 0.0176 and envs.ArmEnv.paper_median_step is None
+    assert environments.paper_median_step("mars") is None
     assert make_env("planar", episode_seconds=0.7).max_steps == 7  # at dt = 0.1 s
 
 
@@ -440,7 +442,7 @@ def test_paper_median_step_reads_as_an_l2_step_of_a_30hz_frame(oracle_demos):
     same demonstrations are far from it: L2 per 10 Hz step ~3.2x, per joint per frame ~0.5x. (Per joint
     per 10 Hz step, our envs.median_step, is 1.2-1.7x over those sets: too close to tell apart here; the
     synthetic test above does.)"""
-    paper = envs.PAPER_MEDIAN_STEP["planar"]
+    paper = envs.PlanarReacher.paper_median_step
     at_frames = four_median_steps(oracle_demos[envs.PAPER_FRAME_DT], envs.PAPER_FRAME_DT)
     at_10hz = four_median_steps(oracle_demos[0.1], 0.1)
     assert 0.8 < at_frames["L2", "env step"] / paper < 1.25
@@ -544,10 +546,10 @@ def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
     making the UR5 env imports it. Checked in a fresh interpreter, where nothing else imported it first."""
     import subprocess
     import sys
-    code = ("import sys, envs, experiment.engine3d\n"
+    code = ("import sys, envs, experiment.environments\n"
             "env = envs.make_env('planar'); env.reset(seed=0); env.step(env.q + 0.01)\n"
             "print('after planar:', 'pybullet' in sys.modules)\n"
-            "envs.make_env('engine3d').reset(seed=0)\n"
+            "experiment.environments.make_env('engine3d').reset(seed=0)\n"
             "print('after engine3d:', 'pybullet' in sys.modules)\n")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)

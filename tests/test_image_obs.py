@@ -1,7 +1,8 @@
 """The image-observation variant (experiment/image_obs.py): the UR5 env 'engine3d_image' whose observation ends
-with a camera image, the CNN 'image_cnn' the policy reads it with, and how the variant plugs into the core --
-the env and encoder tables, the policy's config and checkpoint, the augmentation's recorded images, the command
-line, worker processes, the run folder's retired config fields -- without a core function knowing images."""
+with a camera image, the CNN ImageEncoder the policy reads it with, and how the variant reaches the core -- the
+env factory the harness hands the loop, the encoder class the env names, the policy's config and checkpoint, the
+augmentation's recorded images, the command line, worker processes, the run folder's retired config fields --
+without a core function knowing images."""
 import gzip
 import json
 import os
@@ -17,7 +18,7 @@ import envs
 from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from diffusion import DiffusionPolicy, PolicyConfig, TrainConfig, train
-from experiment import checkpoints, run_folder, workers
+from experiment import checkpoints, cli, environments, profiles, report, run_folder, workers
 from experiment import engine3d
 from experiment.image_obs import EngineImageConfig, EngineReach3DImage, ImageEncoder
 
@@ -35,36 +36,41 @@ def image_env():
 
 
 def small_images(monkeypatch, size):
-    """Register 'engine3d_image<size>': the variant's env with smaller images (in this process only: a run that
-    uses it must not spawn workers)."""
+    """'engine3d_image<size>' in the harness's env factory: the variant's env with smaller images (in this process
+    only: a run that uses it must not spawn workers)."""
     @dataclass
     class SmallImages(EngineImageConfig):
         image_size: int = size
     name = f"engine3d_image{size}"
-    monkeypatch.setitem(envs.ENVIRONMENTS, name, (EngineReach3DImage, SmallImages))
+    monkeypatch.setitem(environments.ENVIRONMENTS, name, (EngineReach3DImage, SmallImages))
     return name
 
 
 # ---- the plug-in points ----------------------------------------------------------------------------------------
-def test_the_variant_registers_its_env_and_encoder_in_the_core_tables():
-    assert envs.ENVIRONMENTS["engine3d_image"] == (EngineReach3DImage, EngineImageConfig)
-    assert diffusion.OBS_ENCODERS["image_cnn"] is ImageEncoder
+def test_the_variant_is_the_harness_env_factorys_and_the_core_holds_no_table_for_it():
+    """Fails if the core grew a table a variant registers into again, or the variant's env stopped being the lever
+    for what follows the paper's env (the unit, the table, the memory bound)."""
+    assert environments.ENVIRONMENTS["engine3d_image"] == (EngineReach3DImage, EngineImageConfig)
+    assert environments.OBS_ENCODERS["image_cnn"] is ImageEncoder is EngineReach3DImage().obs_encoder
+    assert not hasattr(envs, "ENVIRONMENTS") and not hasattr(diffusion, "OBS_ENCODERS")
+    with pytest.raises(ValueError, match="unknown env 'engine3d_image'"):
+        envs.make_env("engine3d_image")  # the core makes only Table I's env
     assert issubclass(EngineReach3DImage, engine3d.EngineReach3D)
-    # for what the core keys by the paper's env (the unit, the tables, the memory bound) the variant is the lever
-    assert envs.paper_env("engine3d_image") == "engine3d" and envs.paper_env(EngineReach3DImage()) == "engine3d"
-    assert envs.paper_median_step("engine3d_image") == envs.paper_median_step("engine3d") == 0.0166
-    assert envs.paper_env("planar") == "planar" and envs.paper_env("mars") is None
+    assert environments.paper_env("engine3d_image") == "engine3d" and EngineReach3DImage().paper_env == "engine3d"
+    assert environments.paper_median_step("engine3d_image") == environments.paper_median_step("engine3d") == 0.0166
+    assert environments.paper_env("planar") == "planar" and environments.paper_env("mars") is None
+    assert EngineReach3DImage.max_parallel == engine3d.EngineReach3D.max_parallel == 100
     assert not {"image_obs", "image_size"} & {f.name for f in fields(dagger.Config)}  # no Config field for it
 
 
 def test_make_env_builds_the_image_env_with_config_fields():
-    env = envs.make_env("engine3d_image", max_steps=50, image_size=24)
+    env = environments.make_env("engine3d_image", max_steps=50, image_size=24)
     assert isinstance(env, EngineReach3DImage) and env.max_steps == 50 and env.cfg.image_size == 24
     assert env.image_shape == (3, 24, 24) and env.obs_dim == 15 + 3 * 24 * 24
-    assert env.obs_encoder == "image_cnn" and env.obs_encoder_args == {"shape": (3, 24, 24)}
-    assert envs.make_env("engine3d_image").cfg.image_size == 32                    # the variant's default
-    plain = envs.make_env("engine3d")
-    assert plain.obs_encoder == "flat" and plain.obs_encoder_args == {} and plain.obs_dim == 127
+    assert env.obs_encoder is ImageEncoder and env.obs_encoder_args == {"shape": (3, 24, 24)}
+    assert environments.make_env("engine3d_image").cfg.image_size == 32            # the variant's default
+    plain = environments.make_env("engine3d")
+    assert plain.obs_encoder is None and plain.obs_encoder_args == {} and plain.obs_dim == 127
     assert not hasattr(plain, "obs_image") and not hasattr(plain.cfg, "image_size")
 
 
@@ -121,10 +127,14 @@ def test_image_env_bad_input_names_the_value(image_env):
 
 
 # ---- the encoder and the policy ------------------------------------------------------------------------------------
-def tiny_policy(**overrides):
+def tiny_policy(encoder=None, **overrides):
+    """A tiny policy; encoder: its observation encoder class (None: as numbers), recorded in its config as the
+    harness's checkpoint loader reads it."""
     kwargs = dict(obs_dim=4, dof=2, horizon=4, n_act=2, K=50, **TINY_NET)
     kwargs.update(overrides)
-    return DiffusionPolicy(PolicyConfig(**kwargs))
+    if encoder is not None:
+        kwargs.update(obs_encoder=encoder.__name__, obs_encoder_sizes=encoder.sizes(**kwargs["obs_encoder_args"]))
+    return DiffusionPolicy(PolicyConfig(**kwargs), obs_encoder=encoder)
 
 
 def image_direction_data(n, seed=0, side=8):
@@ -144,7 +154,7 @@ def image_direction_data(n, seed=0, side=8):
     return obs, chunks.astype(np.float32), left
 
 
-CNN_8 = dict(obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "features": 16})
+CNN_8 = dict(encoder=ImageEncoder, obs_encoder_args={"shape": (1, 8, 8), "features": 16})
 
 
 def test_image_policy_reads_the_direction_from_the_image():
@@ -178,32 +188,30 @@ def test_image_policy_normalizer_layout_and_round_trip(tmp_path):
     path = tmp_path / "image_policy.pt"
     checkpoints.save_policy(policy, path)
     loaded = checkpoints.load_policy(path)                          # the CNN rebuilt from the saved config
-    assert loaded.cfg.obs_encoder == "image_cnn" and tuple(loaded.cfg.obs_encoder_args["shape"]) == (1, 8, 8)
+    assert loaded.cfg.obs_encoder == "ImageEncoder" and tuple(loaded.cfg.obs_encoder_args["shape"]) == (1, 8, 8)
+    assert isinstance(loaded.net.obs_encoder, ImageEncoder)
     a = policy.sample(obs[:5], generator=torch.Generator().manual_seed(1))
     b = loaded.sample(obs[:5], generator=torch.Generator().manual_seed(1))
     assert np.array_equal(a, b)
 
 
 def test_the_encoder_leaves_image_free_policies_unchanged_and_checks_its_arguments():
-    plain, with_image = tiny_policy(obs_dim=68), tiny_policy(obs_dim=68, obs_encoder="image_cnn",
+    plain, with_image = tiny_policy(obs_dim=68), tiny_policy(ImageEncoder, obs_dim=68,
                                                             obs_encoder_args={"shape": (1, 8, 8)})
     assert not any("obs_encoder" in k for k in plain.state_dict())   # 'flat' has no weights
     shared = {k: v for k, v in with_image.net.state_dict().items() if not k.startswith("obs_encoder")}
     assert sorted(shared) == sorted(plain.net.state_dict())         # the CNN is an addition, nothing else moved
     # obs_dim 68 = 4 + 64 pixels, and the CNN's 64 features: the U-Net's shapes agree, and so do its weights
     assert all(torch.equal(shared[k], plain.net.state_dict()[k]) for k in shared)
-    with pytest.raises(ValueError, match="image_cnn: shape must be"):
-        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (8, 8)})
-    with pytest.raises(ValueError, match="image_cnn: shape must be"):
-        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 4, 4)})
-    with pytest.raises(ValueError, match="image_cnn: features must be"):
-        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8), "features": 0})
+    with pytest.raises(ValueError, match="ImageEncoder: shape must be"):
+        ImageEncoder.sizes(shape=(8, 8))
+    with pytest.raises(ValueError, match="ImageEncoder: shape must be"):
+        ImageEncoder.sizes(shape=(1, 4, 4))
+    with pytest.raises(ValueError, match="ImageEncoder: features must be"):
+        ImageEncoder.sizes(shape=(1, 8, 8), features=0)
     with pytest.raises(ValueError, match="must be longer"):
-        PolicyConfig(obs_dim=64, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"shape": (1, 8, 8)})
-    with pytest.raises(ValueError, match="do not fit the obs_encoder 'image_cnn'"):
-        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="image_cnn", obs_encoder_args={"size": 8})
-    with pytest.raises(ValueError, match="obs_encoder must be one of"):
-        PolicyConfig(obs_dim=100, dof=2, horizon=4, n_act=2, K=10, obs_encoder="depth_cnn")
+        PolicyConfig(obs_dim=64, dof=2, horizon=4, n_act=2, K=10, obs_encoder="ImageEncoder",
+                     obs_encoder_args={"shape": (1, 8, 8)}, obs_encoder_sizes=(64, 64))
 
 
 def test_checkpoints_of_earlier_versions_load_without_an_image_and_are_refused_with_one(tmp_path):
@@ -229,7 +237,7 @@ def test_checkpoints_of_earlier_versions_load_without_an_image_and_are_refused_w
 def test_sampler_reuses_the_recorded_image_for_noised_states():
     """Sec. V: with image observations a noised state keeps the original state's image; only the joint
     positions (and the labels) change. The image part of every pair is a recorded one, not a new render."""
-    make = lambda: envs.make_env("engine3d_image", image_size=8)  # noqa: E731
+    make = lambda: environments.make_env("engine3d_image", image_size=8)  # noqa: E731
     env = make()
     episodes = [straight_line_episode(env, seed, expert_from=2) for seed in (3, 4)]
     episodes = [ep for ep in episodes if len(ep["q"]) > 20]
@@ -249,12 +257,14 @@ def test_sampler_reuses_the_recorded_image_for_noised_states():
 
 # ---- the run: command line, policy, evaluation, workers, the whole loop ------------------------------------------
 def test_env_flag_chooses_the_variant_names_the_run_and_reaches_the_policy():
-    _, cfg = dagger.parse_args(["--env", "engine3d_image", "--profile", "smoke"])
+    _, cfg = cli.parse_args(["--env", "engine3d_image", "--profile", "smoke"])
     assert cfg.env == "engine3d_image" and cfg.name == "smoke_engine3d_image"
-    env = dagger.make_run_env(cfg)
+    env = environments.make_env(cfg.env)
     assert env.image_shape == (3, 32, 32)
     policy = dagger.make_policy(cfg, env)
-    assert policy.cfg.obs_encoder == "image_cnn" and policy.cfg.obs_encoder_args == {"shape": (3, 32, 32)}
+    assert policy.cfg.obs_encoder == "ImageEncoder" and policy.cfg.obs_encoder_args == {"shape": (3, 32, 32)}
+    assert isinstance(policy.net.obs_encoder, ImageEncoder) and isinstance(policy.ema_net.obs_encoder, ImageEncoder)
+    assert policy.cfg.obs_encoder_sizes == (3 * 32 * 32, 64)
     assert policy.cfg.obs_dim == env.obs_dim
     assert policy.cfg.obs_encoder_args is not env.obs_encoder_args   # a copy: the env's stays as it is
     # the training observation noise: joints and goal as the lever's, the pixels none
@@ -264,26 +274,30 @@ def test_env_flag_chooses_the_variant_names_the_run_and_reaches_the_policy():
 
 
 def test_evaluate_runs_an_image_policy_on_image_observations(monkeypatch):
-    """evaluate makes every env by the run's env name: the policy's obs_dim only matches the image layout."""
+    """evaluate makes every env by the run's env name with the factory handed in: the policy's obs_dim only matches
+    the image layout."""
     name = small_images(monkeypatch, 8)
-    cfg = replace(dagger.PROFILES["smoke"], env=name, K=4, down_dims=(8, 16))
-    env = dagger.make_run_env(cfg)
+    cfg = replace(profiles.PROFILES["smoke"], env=name, K=4, down_dims=(8, 16))
+    env = environments.make_env(cfg.env)
     policy = dagger.make_policy(cfg, env)
     obs, _ = env.reset(seed=int(env.train_seeds(1)[0]))
     policy.fit_normalizer(obs[None], np.repeat(env.q[None, None], cfg.horizon, axis=1))
     seen = []
     sample = policy.sample
     policy.sample = lambda o, generator=None: seen.append(o.shape) or sample(o, generator)
-    ok = dagger.evaluate(policy, name, env.eval_seeds()[:2], 1, cfg.n_act, 0)
+    ok = dagger.evaluate(policy, name, env.eval_seeds()[:2], 1, cfg.n_act, 0, make_env=environments.make_env)
     assert ok.shape == (2, 1) and seen and all(shape[1] == env.obs_dim == 15 + 3 * 8 * 8 for shape in seen)
     with pytest.raises(ValueError, match="obs must have shape"):
-        dagger.evaluate(policy, "engine3d", env.eval_seeds()[:1], 1, cfg.n_act, 0)  # no images: 127 != 207
+        dagger.evaluate(policy, "engine3d", env.eval_seeds()[:1], 1, cfg.n_act, 0,
+                        make_env=environments.make_env)  # no images: 127 != 207
 
 
 def test_a_worker_process_rebuilds_the_variant_env():
-    """Workers are spawned: a job (a dagger.py function) imports dagger anew, and with it the variant."""
-    cfg = replace(dagger.PROFILES["smoke"], env="engine3d_image")
-    workers.in_parallel(dagger.make_run_env, [(cfg,), (cfg,)], workers=2)  # a worker's error is raised here
+    """Workers are spawned: a job (a dagger.py function with the harness's env factory) rebuilds the variant's env."""
+    cfg = replace(profiles.PROFILES["smoke"], env="engine3d_image", n_demos=1)
+    workers.in_parallel(dagger.demo_statistics, [(cfg, [ep], environments.make_env) for ep in
+                                                 [straight_line_episode(envs.make_env("planar"), 0)] * 2],
+                        workers=2)  # a worker's error is raised here
 
 
 def test_whole_loop_on_engine3d_with_image_observations(tmp_path, monkeypatch):
@@ -291,7 +305,7 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path, monkeypatch):
     calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""
     name = small_images(monkeypatch, 16)
     cfg = replace(TINY, name="tiny_images", env=name, n_demos=2, eval_scenarios=2)
-    root = dagger.run_experiment(cfg, str(tmp_path / "images"))
+    root = report.run_experiment(cfg, str(tmp_path / "images"))
     results = json.load(open(os.path.join(root, "results.json")))
     assert set(results["success"]) == {"bc", "hg_dagger", "pooled"}
     D0 = run_folder.load_episodes(os.path.join(root, "data", "D0.npz"))
@@ -301,7 +315,7 @@ def test_whole_loop_on_engine3d_with_image_observations(tmp_path, monkeypatch):
         assert os.path.isfile(os.path.join(root, f if "/" in f else os.path.join("figures", f)))
     assert "Table II" in open(os.path.join(root, "table.md")).read()  # the lever's table, as the variant's env is
     pooled = run_folder.Run(root, cfg).load("lineage_0/round_1/checkpoints/pooled.pt")
-    assert pooled.cfg.obs_encoder == "image_cnn"
+    assert pooled.cfg.obs_encoder == "ImageEncoder" and isinstance(pooled.net.obs_encoder, ImageEncoder)
 
 
 def test_planar_runs_draw_no_policy_view(tmp_path):
@@ -336,5 +350,5 @@ def test_a_committed_lineage_file_with_the_retired_fields_joins(tmp_path):
     with gzip.open(path, "rt") as f:
         stored = json.load(f)["config"]
     assert stored["image_obs"] is False and stored["image_size"] == 32
-    run = run_folder.Run(str(tmp_path / "table2"), dagger.PROFILES["table2"])
+    run = run_folder.Run(str(tmp_path / "table2"), profiles.PROFILES["table2"])
     assert run_folder.join_lineage(run, path) == 0

@@ -11,7 +11,8 @@ import torch
 
 import dagger
 import diffusion
-from experiment import lever, run_folder
+import envs
+from experiment import cli, lever, profiles, report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
@@ -20,11 +21,16 @@ TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network=
 LEVER = replace(TINY, recipe="authors_lever")
 
 
+def lever_sampler(*args):
+    """The recipe's intervention rows (what the harness hands the loop as its sampler) for dagger's arguments."""
+    return lever.loop_arguments(LEVER)["sampler"](*args, envs.make_env)
+
+
 @pytest.fixture(scope="module")
 def paper_run(tmp_path_factory):
     """A finished tiny run of the paper's recipe: its D0, interventions and calibration feed the samplers below."""
     root = str(tmp_path_factory.mktemp("paper"))
-    dagger.run_experiment(TINY, root, workers=1)
+    report.run_experiment(TINY, root, workers=1)
     return root
 
 
@@ -43,22 +49,23 @@ def test_the_recipe_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi
     resumed, real_train = [], run_folder.Run.train
     monkeypatch.setattr(run_folder.Run, "train", lambda self, name, *a, **kw: resumed.append(
         (name, kw.get("start") is not None)) or real_train(self, name, *a, **kw))
-    dagger.run_experiment(cfg, root)
+    report.run_experiment(cfg, root)
     pi0 = torch.load(os.path.join(root, "checkpoints", "bc.pt"), weights_only=True)["train_state"]
     assert pi0["step"] == cfg.bc_steps and pi0["optimizer"]["state"]
-    assert json.loads(pi0["train_config"])["schedule_steps"] == 0  # its own cosine, over bc_steps
+    assert json.loads(pi0["train_config"])["lr_schedule"] == "AuthorsLeverLR"
     bc_tc, arm_tc = made  # pi_0, then the HG-DAgger arm
-    assert bc_tc.lr_schedule == "cosine" and bc_tc.steps == cfg.bc_steps
-    assert arm_tc.lr_schedule == "constant" and arm_tc.lr == pytest.approx(cfg.lr / 10)
-    assert arm_tc.steps == cfg.bc_steps + cfg.finetune_steps  # finetune_steps more, from pi_0's step
+    assert bc_tc.lr_schedule == arm_tc.lr_schedule == lever.AuthorsLeverLR(cfg.bc_steps)
+    assert bc_tc.steps == cfg.bc_steps and arm_tc.steps == cfg.bc_steps + cfg.finetune_steps  # from pi_0's step
+    lr = [diffusion.lr_at(step, arm_tc) for step in range(arm_tc.steps)]
+    warmup = min(500, cfg.bc_steps // 10)  # pi_0's own warm-up and cosine, over bc_steps
+    assert lr[:warmup] == pytest.approx([cfg.lr * (s + 1) / warmup for s in range(warmup)]) and lr[warmup] == cfg.lr
+    assert lr[cfg.bc_steps - 1] < 0.01 * cfg.lr and all(np.diff(lr[warmup:cfg.bc_steps]) < 0)
+    assert lr[cfg.bc_steps:] == [cfg.lr / 10] * cfg.finetune_steps  # no warm-up, no cosine: a tenth of the peak
     assert resumed == [("checkpoints/bc.pt", False), ("lineage_0/round_1/checkpoints/hg_dagger.pt", True)]
     assert not os.path.exists(os.path.join(root, "checkpoints", "bc_continued.pt"))
     row = json.load(open(os.path.join(root, "eval", "bc.json")))["success"]
     assert row == json.load(open(os.path.join(root, "eval", "pi0.json")))["success"]  # pi_0 itself, the same draws
-    lrs = [diffusion.lr_at(step, diffusion.TrainConfig(steps=100, lr=2e-4, lr_schedule="constant"))
-           for step in (0, 5, 99)]
-    assert lrs == [2e-4] * 3  # no warm-up, no cosine
-    args, named = dagger.parse_args(["--profile", "table2", "--recipe", "authors_lever"])
+    args, named = cli.parse_args(["--profile", "table2", "--recipe", "authors_lever"])
     assert named.recipe == "authors_lever" and named.name == "table2_authors_lever"
 
 
@@ -69,11 +76,11 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(pape
     frames = np.array([sum(int(ep["expert"].sum()) for ep in x) for x in (D, small)], float)
     assert frames[0] > frames[1]
     assert np.allclose(dagger.intervention_sampler(TINY, "hg_dagger", [D, small], None, stats).p, 0.5)  # the paper's
-    by_frames = dagger.intervention_sampler(LEVER, "hg_dagger", [D, small], None, stats)
+    by_frames = lever_sampler(LEVER, "hg_dagger", [D, small], None, stats)
     assert np.allclose(by_frames.p, frames / frames.sum())
     cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(paper_run,
                                                                        "lineage_0/round_1/calibration.json")))
-    assert np.allclose(dagger.intervention_sampler(LEVER, "fixed_4", [D, small], cal, stats).p, frames / frames.sum())
+    assert np.allclose(lever_sampler(LEVER, "fixed_4", [D, small], cal, stats).p, frames / frames.sum())
 
 
 def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(paper_run, tmp_path, monkeypatch):
@@ -100,12 +107,12 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
     stats = dagger.demo_statistics(TINY, load(paper_run, "data/D0.npz"))
     recorded = dagger.intervention_sampler(TINY, "hg_dagger", [[short]], None, stats)
     assert len(recorded(64, np.random.default_rng(0))) == 2  # the paper's rows carry no loss mask
-    o, c, m = dagger.intervention_sampler(LEVER, "hg_dagger", [[short]], None, stats)(256, np.random.default_rng(0))
+    o, c, m = lever_sampler(LEVER, "hg_dagger", [[short]], None, stats)(256, np.random.default_rng(0))
     assert m.all(axis=1).mean() < 1 and m[:, 0].all()
     cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(paper_run,
                                                                        "lineage_0/round_1/calibration.json")))
-    padded, paper = (dagger.intervention_sampler(c, "fixed_4", [[short]], cal, stats).samplers[0]
-                     for c in (LEVER, TINY))
+    padded = lever_sampler(LEVER, "fixed_4", [[short]], cal, stats).samplers[0]
+    paper = dagger.intervention_sampler(TINY, "fixed_4", [[short]], cal, stats).samplers[0]
     assert len(padded.center) == short["expert"].sum()
     assert len(paper.center) == diffusion.label_mask(short["expert"], H).sum()
 
@@ -113,8 +120,9 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
         return [{**short, "expert": short["expert"].copy()}, {**only_short, "expert": only_short["expert"].copy()}]
     monkeypatch.setattr(dagger, "rollout", fake_rollout)
     policy = type("Stub", (), {"device": "cpu"})()
-    for cfg, kept in ((TINY, 1), (LEVER, 2)):
-        got = dagger.collect_interventions(cfg, (0, 1), policy, np.zeros((TINY.eval_scenarios, 1), bool))
+    for cfg, kept, rule in ((TINY, 1, diffusion.expert_runs), (LEVER, 2, lever.every_run)):
+        got = dagger.collect_interventions(cfg, (0, 1), policy, np.zeros((TINY.eval_scenarios, 1), bool),
+                                           label_rule=rule)
         assert len(got) == kept and bool(got[0]["expert"][s0]) == (cfg is LEVER)
 
 
@@ -127,12 +135,12 @@ def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_it
     lineage 1) and only lineage 1 (and the added row) trains."""
     cfg = replace(TINY, rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4"), recipe="authors_lever_seeds")
     with pytest.raises(run_folder.RunFolderError, match="run lineage 0 first"):
-        dagger.run_experiment(cfg, str(tmp_path / "early"), lineage=1)
+        report.run_experiment(cfg, str(tmp_path / "early"), lineage=1)
     src = str(tmp_path / "lineages")
-    dagger.run_experiment(replace(cfg, recipe="authors_lever", methods=("bc", "hg_dagger")), src)
+    report.run_experiment(replace(cfg, recipe="authors_lever", methods=("bc", "hg_dagger")), src)
     trained_stages.clear()  # from here on: the seeds run's own training
     root = str(tmp_path / "seeds")
-    dagger.run_experiment(cfg, root, copy_src=src)
+    report.run_experiment(cfg, root, copy_src=src)
     assert sorted(trained_stages) == sorted([f"lineage_0/round_{k}/checkpoints/fixed_4.pt" for k in (1, 2)]
                                             + [f"lineage_1/round_{k}/checkpoints/{m}.pt" for k in (1, 2)
                                                for m in ("hg_dagger", "fixed_4")])
@@ -153,7 +161,7 @@ def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_it
     assert set(results["success"]["fixed_4"]) == {"0", "1"}
     assert "A lineage here is a training seed" in open(os.path.join(root, "table.md")).read()
     with pytest.raises(ValueError, match="collects its own chain"):
-        replace(cfg, methods=("bc", "hg_dagger", "closed_loop"))
+        profiles.check_config(replace(cfg, methods=("bc", "hg_dagger", "closed_loop")))
 
 
 @pytest.mark.parametrize("stored,recipe", [
@@ -169,7 +177,7 @@ def test_a_stored_config_of_the_four_old_fields_reads_as_its_recipe(stored, reci
     # the folder name the old options gave (cli.folder_name) reads as the recipe's
     old = "table2" + {"paper": "", "authors_lever": "_constant_frame_shares_pad_short",
                       "authors_lever_seeds": "_constant_frame_shares_pad_short_seed_replicates"}[recipe] + "_hg_dagger-pooled"
-    _, cfg = dagger.parse_args(["--profile", "table2", "--recipe", recipe, "--methods", "hg_dagger,pooled"])
+    _, cfg = cli.parse_args(["--profile", "table2", "--recipe", recipe, "--methods", "hg_dagger,pooled"])
     assert run_folder.without_retired_fields("here", {**stored, "name": old})["name"] == cfg.name
     with pytest.raises(run_folder.ConfigMismatch, match="a combination no recipe runs now"):
         run_folder.without_retired_fields("here", {**stored, "round_shares": "frames", "finetune": "continue"})

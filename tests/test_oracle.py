@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs
-from experiment import engine3d  # noqa: F401 (makes envs.make_env("engine3d"))
+from experiment import engine3d, environments  # noqa: F401
 import oracle
 from oracle import (Oracle, OracleConfig, PlanningFailed, edge_free_fraction, edge_resolution,
                     lever_arms, path_in_collision, rrt_connect, shortcut, smooth_corners, solve_ik,
@@ -480,7 +480,7 @@ def test_planned_paths_keep_their_clearance_under_a_dense_recheck(name, seed_ind
     s = 2 (margin - verify_margin) apart under the planning margin leave every state of the
     path -- RRT-Connect's, then shortcut's, then smooth_corners' -- at least verify_margin
     clear, re-checked 100x more densely than the planner checks."""
-    env = envs.make_env(name)
+    env = environments.make_env(name)
     expert = make_oracle()
     sweep = expert.sweep(env)
     margin, verify = expert.cfg.margin * sweep, expert.cfg.verify_margin * sweep

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import envs
-from experiment import engine3d
+from experiment import engine3d, environments
 from experiment.oriented_goal import EngineReach3DOriented, axis_rotation, tool_angle
 
 
@@ -38,9 +38,9 @@ def test_orientation_rule_keeps_the_scenes_and_asks_for_the_goal_posture():
     TCP on the goal within the angle; a TCP on the goal with the flange turned 0.5 rad about the tool axis is
     reached without the rule and not with it; the oracle's demo ends inside the rule."""
     import oracle
-    plain, posed = envs.make_env("engine3d"), envs.make_env("engine3d_oriented")
+    plain, posed = environments.make_env("engine3d"), environments.make_env("engine3d_oriented")
     assert isinstance(posed, EngineReach3DOriented) and posed.cfg.goal_angle_tolerance == 10.0
-    assert posed.goal_is_pose and not plain.goal_is_pose and envs.paper_env(posed) == "engine3d"
+    assert posed.goal_is_pose and not plain.goal_is_pose and posed.paper_env == "engine3d"
     for seed in envs.eval_seeds()[:3]:
         plain.reset(seed=seed)
         posed.reset(seed=seed)
@@ -61,4 +61,4 @@ def test_orientation_rule_keeps_the_scenes_and_asks_for_the_goal_posture():
     posed.close()
     for bad in (0.0, 200.0):
         with pytest.raises(ValueError, match="goal_angle_tolerance must be degrees"):
-            envs.make_env("engine3d_oriented", goal_angle_tolerance=bad)
+            environments.make_env("engine3d_oriented", goal_angle_tolerance=bad)

@@ -271,8 +271,8 @@ def test_plot_partial_denoising_draws_the_3d_env_in_the_top_view(tmp_path):
     """Fig. 3 for EngineReach3D (dim 3): the same panels, end-effector paths projected on x, y (m)."""
     envs = pytest.importorskip("envs")
     pytest.importorskip("pybullet")
-    pytest.importorskip("experiment.engine3d")  # makes envs.make_env("engine3d")
-    env = envs.make_env("engine3d")
+    from experiment import environments
+    env = environments.make_env("engine3d")
     obs, info = env.reset(seed=int(env.train_seeds(1)[0]))
     q = info["q"]
     assert env.dim == 3 and env.dof == 6

@@ -14,13 +14,13 @@ import sys
 import pytest
 
 import dagger
+from experiment import profiles, report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report",
-           "experiment/student_t")
+MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report")
 # The smoke profile (CI's run: every stage and every Table I row kind, two lineages for the paired tests, enough blend
 # rollouts for the equilibrium fit), in one process so that one trace sees every call.
-GUIDE_RUN = dagger.PROFILES["smoke"]
+GUIDE_RUN = profiles.PROFILES["smoke"]
 
 
 def guide_names(readme_text):
@@ -69,7 +69,7 @@ def traced_run(tmp_path_factory):
     gc.collect()  # finalize what earlier tests left behind before the trace starts
     sys.setprofile(profile)
     try:
-        dagger.run_experiment(GUIDE_RUN, str(tmp_path_factory.mktemp("guide")))
+        report.run_experiment(GUIDE_RUN, str(tmp_path_factory.mktemp("guide")))
     finally:
         sys.setprofile(None)
     return called

@@ -13,7 +13,7 @@ import torch
 
 import diffusion
 import envs
-from experiment import engine3d  # noqa: F401 (makes envs.make_env("engine3d"))
+from experiment import environments
 from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from experiment import checkpoints
@@ -33,6 +33,7 @@ class FakeEnv:
     so collision checks are exact and cheap. Links of length 1 for fk/ee; the Jacobian and the noise
     ellipses are the real envs' (the same maths on this fk)."""
     dof, obs_dim, max_step, max_steps, dt, dim = DOF, 2 * DOF + 2, 0.05, 200, 0.1, 2
+    paper_median_step = max_parallel = None  # no paper unit; any number in lockstep
     ee_jacobian = envs.PlanarReacher.ee_jacobian
     make_obs_near = envs.ArmEnv.make_obs_near  # noised states' observations: make_obs at the new state
     draw_noise_ellipses = envs.PlanarReacher.draw_noise_ellipses
@@ -136,7 +137,7 @@ def test_demo_stats_match_hand_computation(stats):
 
 
 def test_label_steps_follow_the_label_rule():
-    label_steps = AugmentationSampler.label_steps
+    label_steps = relabel.paper_label_steps
     expert = np.array([0, 1, 1, 1, 1, 0, 1, 1, 1, 0, 1, 1], dtype=bool)
     t, seg_end = label_steps(expert, horizon=3)
     # run of 4 at 1..4 -> t = 1, 2 (need 3 steps); run of 3 at 6..8 -> t = 6;
@@ -309,7 +310,7 @@ def perturb(episode, sigma, rng, n, env, t_index=None, median_step=None, max_tri
     over its labelable steps: noise_factors -> perturb_states, as the sampler and Fig. 1 call them.
     Returns (q̃ (m, dof), t (m,)) of the states kept."""
     if t_index is None:
-        t = rng.choice(AugmentationSampler.label_steps(episode["expert"], H)[0], size=n)
+        t = rng.choice(relabel.paper_label_steps(episode["expert"], H)[0], size=n)
     else:
         t = np.broadcast_to(np.asarray(t_index, dtype=np.int64), (n,)).copy()
     factors = noise_factors(sigma, t, DOF, median_step=median_step)
@@ -622,7 +623,7 @@ def test_planar_fig1(planar, tmp_path):
 def test_fig1_on_the_3d_env_writes_a_png(tmp_path):
     """Fig. 1 on EngineReach3D: drawn in the top view (x, y) with env.draw_noise_ellipses in the plane
     (0, 1); EngineReach3D.render would show a camera image, so no arm is drawn."""
-    env = envs.make_env("engine3d")
+    env = environments.make_env("engine3d")
     eps = [straight_line_episode(env, s) for s in (3, 5)]  # 55 and 32 expert steps
     st = demo_stats(eps, envs.median_step(eps), env.max_step)
     path = tmp_path / "fig1_3d.png"
@@ -715,7 +716,7 @@ def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
         q = np.array([0.3, -1.0, 2.0]) + np.arange(round(3.0 / dt) + 1)[:, None] * dt * speeds  # 3 s
         demos = [{"q": q}]
         return env, q, demo_stats(demos, envs.median_step(demos), env.max_step,
-                                  paper_median_step=envs.paper_median_step(env),
+                                  paper_median_step=env.paper_median_step,
                                   frames_per_step=env.dt / envs.PAPER_FRAME_DT)
 
     env10, q10, at_10hz = project_stats(0.1)
@@ -724,7 +725,7 @@ def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
     assert at_10hz.frames_per_step == pytest.approx(np.abs(np.diff(q10, axis=0)).max() / np.abs(np.diff(q30, axis=0)).max())
     assert at_30hz.frames_per_step == pytest.approx(1.0)
     noise_30hz = relabel.velocity_noise_std(cfg, at_30hz)
-    assert noise_30hz == pytest.approx(cfg.velocity_noise * envs.paper_median_step("planar"))  # theirs, as set
+    assert noise_30hz == pytest.approx(cfg.velocity_noise * envs.PlanarReacher.paper_median_step)  # theirs, as set
     noise_10hz = relabel.velocity_noise_std(cfg, at_10hz)
     assert noise_10hz / env10.dt == pytest.approx(noise_30hz / env30.dt)  # the same rad/s at either rate
     assert noise_10hz != pytest.approx(cfg.velocity_noise * at_10hz.median_step, rel=0.2)  # not 0.3 of ours

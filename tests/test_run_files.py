@@ -95,10 +95,16 @@ class RunCfg:
     lineages: int = 1
 
 
+@pytest.fixture(autouse=True)
+def pool_sampler_state(monkeypatch):
+    """PoolSampler's state is what a resumed run restores of it, as relabel.AugmentationSampler's pool."""
+    monkeypatch.setitem(checkpoints.SAMPLER_STATE, PoolSampler, ("_pool",))
+
+
 class PoolSampler:
     """A co-training sampler with state (a pool of pairs, partly refreshed every call), like relabel's; it stops
-    the run (KeyboardInterrupt) at its call `stop_at`."""
-    resume_state = ("_pool",)
+    the run (KeyboardInterrupt) at its call `stop_at`. Its state, like relabel's, is named in
+    checkpoints.SAMPLER_STATE (pool_sampler_state)."""
 
     def __init__(self, stop_at=None):
         self._pool, self.calls, self.stop_at = None, 0, stop_at
@@ -118,7 +124,7 @@ def test_a_stopped_training_resumes_from_its_last_quarter_as_if_never_stopped(tm
     """Run.train writes checkpoints at quarters of the run (10, 20, 30 of 40 steps); a run stopped at step 25
     goes on from step 20's file -- weights, AdamW, both random streams and the sampler's pool -- to the same
     weights bit for bit as the uninterrupted run; the partial files are gone at the end. Fails if the pool
-    (resume_state) or a random stream were not restored, or the resumed run started over."""
+    (SAMPLER_STATE) or a random stream were not restored, or the resumed run started over."""
     obs, chunks = toy_two_mode_data(300, H=4, seed=1)
     cfg = TrainConfig(steps=40, batch_size=32, warmup_steps=5, log_every=0, seed=3, aug_fraction=0.25, obs_noise=0.05)
     whole = Run(str(tmp_path / "whole"), RunCfg()).train("p.pt", tiny_policy(), obs, chunks, cfg, PoolSampler())

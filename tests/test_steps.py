@@ -6,9 +6,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+import calibrate
 import dagger
 import envs
-from experiment import run_folder
+from experiment import cpu_kernels, run_folder
 from helpers import straight_line_episode  # tests/helpers.py
 
 CFG = dagger.Config(name="steps", n_demos=3, rounds=1, lineages=1, K=5, down_dims=(8, 16), bc_steps=20,
@@ -36,17 +37,22 @@ def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeyp
     """behavior_cloning, fine_tune (the HG-DAgger row) and evaluation with hand-made D0 and D_1 and no folder: pi_0
     keeps its AdamW state for the arms, an arm leaves pi_0 as it was, nothing is written; the same calls through a
     run folder's memo give the same weights and successes. Fails if a step needs the run folder, if an arm does not
-    continue pi_0's optimizer (or moves pi_0 itself), or if the harness computes anything the step does not."""
+    continue pi_0's optimizer (or moves pi_0 itself), or if the harness computes anything the step does not but
+    swap the CPU kernels into the policy it trains (here handed the same swap: `fit`)."""
     monkeypatch.chdir(tmp_path)  # a step that wrote a file would write it here
     torch.set_num_threads(1)
     demos, interventions = hand_made_data()
     stats = dagger.demo_statistics(CFG, demos)
     lines = []
 
-    pi0 = dagger.behavior_cloning(CFG, demos, log=lines.append)
+    def fit(policy, *args, **kwargs):  # the harness's swap (Run.train), without its files
+        return dagger.train_policy(cpu_kernels.use_kernels(policy), *args, **kwargs)
+
+    pi0 = dagger.behavior_cloning(CFG, demos, log=lines.append, fit=fit)
     assert pi0.train_state["step"] == CFG.bc_steps and pi0.train_state["optimizer"]["state"]
     before = weights(pi0)
-    hg = dagger.fine_tune(CFG, 0, 1, "hg_dagger", demos, pi0, [interventions], None, stats, log=lines.append)
+    hg = dagger.fine_tune(CFG, 0, 1, "hg_dagger", demos, pi0, [interventions], None, stats, log=lines.append,
+                          fit=fit)
     assert same(weights(pi0), before)  # pi_0 is as it was, for the next arm
     assert not same(weights(hg), before)  # the arm trained
     ok = dagger.evaluation(CFG, hg, "hg_dagger", "eval", log=lines.append)
@@ -68,13 +74,44 @@ def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeyp
     assert same(weights(again.memo("lineage_0/round_1/checkpoints/hg_dagger.pt", None)), weights(hg))
 
 
-def test_the_loop_runs_without_a_folder(tmp_path, monkeypatch):
-    """policy_calibrated_dagger with no memo and no map: every step a plain call, here, nothing written."""
+def test_the_loop_runs_without_a_folder_and_returns_table_i_rows(tmp_path, monkeypatch):
+    """policy_calibrated_dagger as a notebook calls it: no memo, no map, no folder; every step a plain call, here,
+    nothing written, and what it made comes back: pi_0, D_1, the calibration, each row's policy and success, and
+    Table I's cells from them. Fails if the loop drops a row, a round's data or calibration from its return, or if
+    table() is not the mean success of each row's evaluations in percent."""
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)
-    made = []
+    seen = []
     real = dagger.evaluation
-    monkeypatch.setattr(dagger, "evaluation", lambda *a, **k: made.append(a[2]) or real(*a, **k))
-    dagger.policy_calibrated_dagger(replace(CFG, n_demos=2, bc_steps=10, finetune_steps=4), [0], log=lambda m: None)
-    assert made == ["pi_0 (BC)", "bc", "hg_dagger (lineage 0, K=1)", "pooled (lineage 0, K=1)"]
+    monkeypatch.setattr(dagger, "evaluation", lambda *a, **k: seen.append(a[2]) or real(*a, **k))
+    cfg = replace(CFG, n_demos=2, bc_steps=10, finetune_steps=4, lineages=2, methods=("bc", "hg_dagger", "pooled"))
+    made = dagger.policy_calibrated_dagger(cfg, log=lambda m: None)
+    assert seen == ["pi_0 (BC)", "bc", "hg_dagger (lineage 0, K=1)", "pooled (lineage 0, K=1)",
+                    "hg_dagger (lineage 1, K=1)", "pooled (lineage 1, K=1)"]
     assert os.listdir(tmp_path) == []
+    assert len(made.demos) == 2 and made.pi0.train_state["step"] == cfg.bc_steps
+    assert made.pi0_success.shape == made.bc[1].shape == (cfg.eval_scenarios, cfg.eval_repeats)
+    assert sorted(made.rows) == [(lin, 1, m) for lin in (0, 1) for m in ("hg_dagger", "pooled")]
+    assert sorted(made.data) == sorted(made.calibrations) == [(0, 1), (1, 1)]
+    assert all(ep["expert"].any() for ep in made.data[0, 1])  # D_1: episodes with kept interventions
+    assert isinstance(made.calibrations[0, 1], calibrate.Calibration) and made.calibrations[0, 1].W is not None
+    table = made.table()
+    assert sorted(table) == ["bc", "hg_dagger", "pooled"] and table["bc"] == {0: [100.0 * made.bc[1].mean()]}
+    for method in ("hg_dagger", "pooled"):
+        policy, success = made.rows[1, 1, method]
+        assert isinstance(policy, dagger.diffusion.DiffusionPolicy) and success.dtype == bool
+        assert table[method] == {1: [100.0 * made.rows[lin, 1, method][1].mean() for lin in (0, 1)]}
+
+
+def test_the_harness_swap_samples_what_the_plain_policy_samples():
+    """The CPU kernels and the FiLM table the harness swaps into a policy (cpu_kernels.use_kernels, in Run.train and
+    the checkpoint loader) compute the same eps_theta: a trained policy samples the same chunks before and after the
+    swap, to float rounding. Fails if the swap changed the function (a wrong table, a kernel off by a term)."""
+    torch.set_num_threads(1)
+    demos, _ = hand_made_data()
+    plain = dagger.behavior_cloning(replace(CFG, network="mlp", mlp_width=32, mlp_blocks=2), demos, log=lambda m: None)
+    swapped = cpu_kernels.use_kernels(dagger.copy_policy(plain))
+    assert type(swapped.ema_net) is not type(plain.ema_net)  # the FiLM table is in
+    obs = np.stack([d["obs"][0] for d in demos])
+    a, b = (p.sample(obs, generator=torch.Generator().manual_seed(3)) for p in (plain, swapped))
+    assert np.allclose(a, b, rtol=0, atol=1e-4)

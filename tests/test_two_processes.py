@@ -29,7 +29,7 @@ def start(root, code):
 
 def run_lineage(root, lineage):
     """`python dagger.py --lineage i` as the command line runs it: a run-folder error is one line, status 2."""
-    return start(root, f"cli.run_command(lambda: dagger.run_experiment(cfg, root, lineage={lineage}))")
+    return start(root, f"cli.run_command(lambda: report.run_experiment(cfg, root, lineage={lineage}))")
 
 
 def wait_for_lock(root, name, proc, timeout=120):
