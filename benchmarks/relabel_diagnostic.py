@@ -94,7 +94,7 @@ def relabel_every_step(episodes, make_env, stats, cfg, seed=0):
                       stats.median_step)
 
 
-def distances(result):
+def label_distances(result):
     """(N, H): ‖label_k − recorded_k‖₂ over the joints at every chunk step, in median steps."""
     gap = result.chunks.astype(np.float64) - result.recorded.astype(np.float64)  # (N, H, dof) rad
     return np.linalg.norm(gap, axis=-1) / result.median_step
@@ -107,7 +107,7 @@ def summary(result, rows=None):
     rows = np.ones(len(result.kept), bool) if rows is None else np.asarray(rows, bool)
     kept = result.kept & rows
     in_loss = result.mask[kept]  # (kept, H)
-    d = distances(result)[kept][in_loss]
+    d = label_distances(result)[kept][in_loss]
     empty = float("nan")
     return {"rows": int(rows.sum()), "kept": float(kept.sum() / rows.sum()) if rows.any() else empty,
             "masked": float(1.0 - in_loss.mean()) if in_loss.size else empty,
@@ -117,7 +117,7 @@ def summary(result, rows=None):
 
 def per_chunk_step(result):
     """(mean (H,), p90 (H,)): the distance at each chunk step over the kept rows where that step is in the loss."""
-    d, m = distances(result)[result.kept], result.mask[result.kept]
+    d, m = label_distances(result)[result.kept], result.mask[result.kept]
     mean = np.array([d[m[:, k], k].mean() if m[:, k].any() else np.nan for k in range(d.shape[1])])
     p90 = np.array([np.percentile(d[m[:, k], k], 90) if m[:, k].any() else np.nan for k in range(d.shape[1])])
     return mean, p90

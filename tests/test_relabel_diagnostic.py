@@ -3,6 +3,7 @@ is the joints' L2 in median steps; only kept rows' steps in the loss count; the 
 chunk steps; the PD returns the recorded chunk exactly where nothing is to correct; the rows are the ones the
 noised rows' sampler trains on."""
 import dataclasses
+import math
 import os
 import sys
 
@@ -66,7 +67,7 @@ def test_distance_is_the_joints_l2_in_median_steps(rd):
     recorded = np.zeros((1, 2, 3))
     chunks = np.array([[[3 * m, 4 * m, 0.0], [0.0, 0.0, -2 * m]]]) + recorded
     r = hand_made(rd, recorded + 1.0, chunks + 1.0, np.ones((1, 2)), [True], median_step=m)
-    assert rd.distances(r) == pytest.approx(np.array([[5.0, 2.0]]))
+    assert rd.label_distances(r) == pytest.approx(np.array([[5.0, 2.0]]))
 
 
 def test_summary_counts_the_kept_rows_steps_in_the_loss(rd):
@@ -116,11 +117,26 @@ def test_pd_without_velocity_noise_returns_the_recorded_chunk(rd, episodes, stat
     r = rd.relabel_every_step(episodes, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd",
                                                                               velocity_noise=0.0))
     assert r.kept.sum() > 50 and r.reaches_end[r.kept].any() and (~r.reaches_end[r.kept]).any()
-    assert rd.distances(r)[r.kept].max() < 1e-4
+    assert rd.label_distances(r)[r.kept].max() < 1e-4
     s = rd.summary(r)
     assert s["mean"] < 1e-5 and s["p90"] < 1e-5 and s["masked"] == 0.0
     noisy = rd.relabel_every_step(episodes, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd"))
     assert rd.summary(noisy)["mean"] > 0.05  # the velocity noise moves the label: the test above could fail
+
+
+@pytest.mark.xfail(strict=True, reason="pd_return_chunk in the sampler's table of concatenated episodes takes the "
+                   "previous episode's last state for its reference r_-1 at an episode's first step")
+def test_pd_returns_the_recorded_chunk_at_an_episodes_first_step(rd, stats):
+    """Interventions from step 0 (the expert drives from the episode's start): the PD label of the first step of
+    every episode after the first is off by the jump to the previous episode's last state, which the diagnostic
+    shows (9 rows of table1_strong lineage 5's D_1). Strict: when the label's code is mended this test passes and
+    its marker must go."""
+    env = envs.make_env("planar")
+    from_start = [straight_line_episode(env, seed, expert_from=0) for seed in (0, 1)]
+    r = rd.relabel_every_step(from_start, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd",
+                                                                                velocity_noise=0.0))
+    assert r.kept.sum() > 20
+    assert rd.label_distances(r)[r.kept].max() < 1e-4
 
 
 def test_the_rows_are_what_the_noised_rows_sampler_trains_on(rd, episodes, stats):
@@ -186,3 +202,100 @@ def test_the_command_on_a_run_folders_episodes(rd, episodes, tmp_path, capsys):
     assert "H = 8" in out and "statistics of" in out and "data/D0.npz (4 demonstrations)" in out
     assert out.count("| servo (the default) |") == 4 and out.count("| PD (Sec. IV-E) |") == 4
     assert figure.stat().st_size > 10_000
+
+
+# ---- benchmarks/relabel_cost.py --design: the study that measures the label's cost in success -------------------
+@pytest.fixture(scope="module")
+def rc():
+    import importlib.util
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "relabel_cost.py")
+    spec = importlib.util.spec_from_file_location("relabel_cost", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_each_lineage_draws_its_own_new_scenarios_no_stage_draws(rc):
+    """300 consecutive seeds a lineage, from 100000 + 1000 L: above every range a stage or an earlier study draws
+    from, and no two lineages share one (a stride below 300, or a range starting at the training seeds, would)."""
+    seen = set()
+    for lineage in range(rc.FIRST_LINEAGE, rc.FIRST_LINEAGE + rc.N_MAX):
+        seeds = rc.new_seeds(lineage)
+        assert len(seeds) == 300 and seeds == tuple(range(seeds[0], seeds[0] + 300))
+        assert seeds[0] == 100_000 + 1_000 * lineage
+        assert not seen & set(seeds)
+        seen |= set(seeds)
+    taken = set(range(envs.TRAIN_SEED_END)) | set(envs.eval_seeds()) | set(envs.unseen_seeds()) | set(
+        range(30_000, 30_300))
+    assert not seen & taken
+    with pytest.raises(ValueError, match="lineage -1"):
+        rc.new_seeds(-1)
+
+
+def test_variance_components_recover_a_known_table(rc):
+    """A table of lineage effects + scenario effects + an interaction whose mean squares are known: each component
+    and the SE = sqrt((MS_L + MS_S − MS_E) / (R C)) come out (a swapped R and C, a missing −MS_E, a /R for /(R − 1)
+    would not); lineage_se is the lineage means' SD / √R."""
+    R, C = 4, 6
+    a = np.array([-3.0, -1.0, 1.0, 3.0])  # lineage effects: sum of squares 20
+    b = np.array([-5.0, -3.0, -1.0, 1.0, 3.0, 5.0])  # scenario effects: sum of squares 70
+    e = np.outer([1.0, -1.0, 1.0, -1.0], [1.0, -1.0, 1.0, -1.0, 1.0, -1.0])  # rows and columns sum to 0
+    table = 10.0 + a[:, None] + b[None, :] + e
+    vc = rc.variance_components(table)
+    ms_l, ms_s, ms_e = C * 20 / (R - 1), R * 70 / (C - 1), 24.0 / ((R - 1) * (C - 1))
+    assert vc["ms_lineage"] == pytest.approx(ms_l) and vc["ms_scenario"] == pytest.approx(ms_s)
+    assert vc["ms_error"] == pytest.approx(ms_e)
+    assert vc["var_lineage"] == pytest.approx((ms_l - ms_e) / C)
+    assert vc["var_scenario"] == pytest.approx((ms_s - ms_e) / R) and vc["var_error"] == pytest.approx(ms_e)
+    assert vc["se"] == pytest.approx(math.sqrt((ms_l + ms_s - ms_e) / (R * C)))
+    assert vc["lineage_se"] == pytest.approx(np.std(a, ddof=1) / math.sqrt(R))
+
+
+def test_variance_components_floor_a_negative_component_at_zero(rc):
+    """Identical lineages (MS_L = 0 < MS_E): var_L is 0, not negative, and the SE keeps the scenarios' and the
+    noise's parts; a table of one lineage is refused."""
+    table = np.array([[0.0, 1.0, 0.0, 1.0], [1.0, 0.0, 1.0, 0.0]])
+    vc = rc.variance_components(table)
+    assert vc["ms_lineage"] == 0.0 and vc["var_lineage"] == 0.0
+    assert vc["se"] == pytest.approx(math.sqrt(vc["var_scenario"] / 4 + vc["var_error"] / 8))
+    with pytest.raises(ValueError, match="at least 2"):
+        rc.variance_components(np.ones((1, 5)))
+
+
+def test_design_sd_adds_the_scenarios_part_to_the_larger_fixed_set_variance(rc):
+    """The fixed set's variance is the larger of the observed SD² and var_L + var_E / C; fresh scenarios add var_S
+    over the new set's size (dropping either part, or dividing by the pilot's size, changes these numbers)."""
+    vc = {"var_lineage": 0.0, "var_scenario": 90.0, "var_error": 600.0}
+    assert rc.design_sd(1.0, vc, 300) == pytest.approx(math.sqrt(2.0 + 90.0 / 300))
+    assert rc.design_sd(2.0, vc, 300) == pytest.approx(math.sqrt(4.0 + 90.0 / 300))
+    assert rc.design_sd(2.0, vc, 300, scenarios=100) == pytest.approx(math.sqrt(4.0 + 0.9))
+
+
+def test_the_design_still_chooses_the_stated_lineage_count(rc):
+    """A changed pilot, effect, level, SD rule or power rule would choose another count than the stated
+    N_LINEAGES, which the committed design README states with its power table."""
+    n, lines = rc.lineage_count(rc.load_lineages(rc.PILOT))
+    assert n == rc.N_LINEAGES == 13
+    assert lines[-1].startswith("lineages: 13 (the smallest n >= 8")
+    readme = open(os.path.join(os.path.dirname(rc.PILOT), "relabel_cost", "README.md")).read()
+    for line in lines:
+        assert line in readme, line
+
+
+def test_the_cost_sums_a_lineages_stage_seconds(rc):
+    """A lineage's core-hours are the sum of its stages' seconds; the projection is collection and calibration plus
+    the rows' trainings and evaluations plus the new set's at 3 x an evaluation, at the medians."""
+    def files(train, evaluate, collect=40.0, calibrate=5.0):
+        out = {"timings/collect.json": {"stage": "collect/lineage_1/round_1", "seconds": collect},
+               "timings/calibrate.json": {"stage": "calibrate/lineage_1/round_1", "seconds": calibrate}}
+        out.update({f"timings/t{i}.json": {"stage": f"train_row{i}/lineage_1/round_1", "seconds": s}
+                    for i, s in enumerate(train)})
+        out.update({f"timings/e{i}.json": {"stage": f"evaluate/lineage_1/round_1/eval/r{i}", "seconds": s}
+                    for i, s in enumerate(evaluate)})
+        return out
+    pilot = {1: files([100.0, 300.0], [10.0, 10.0]), 2: files([200.0, 200.0], [10.0, 30.0])}
+    c = rc.lineage_cost(pilot[1])
+    assert c["total"] == pytest.approx(40 + 5 + 400 + 20) and sorted(c["train"]) == [100.0, 300.0]
+    lines = rc.cost_per_lineage(pilot, rows=3, new_policies=5)
+    projected = 45 + 3 * (200 + 2 * 10) + 5 * 3 * 10
+    assert f"= {projected} s = {projected / 3600:.2f} core-hours" in lines[-1]
