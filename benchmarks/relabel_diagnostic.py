@@ -75,11 +75,11 @@ def relabel_every_step(episodes, make_env, stats, cfg, seed=0):
         raise ValueError(f"{len(recorded)} recorded chunks for {len(table.center)} labelable steps")
     q_tilde, free = np.empty_like(table.center), np.zeros(len(table.center), bool)
     limits = None
-    for seed_ in np.unique(table.seeds):  # q̃ = q_t + 0 z, dropped where in collision (one env per scenario)
+    for scenario in np.unique(table.seeds):  # q̃ = q_t + 0 z, dropped where in collision (one env per scenario)
         env = make_env()
-        env.reset(seed=int(seed_))
+        env.reset(seed=int(scenario))
         limits = env.joint_limits
-        rows = table.seeds == seed_
+        rows = table.seeds == scenario
         q_tilde[rows], free[rows] = relabel.perturb_states(table.center[rows], table.factors[rows], rng, env,
                                                            cfg.max_tries)
     v = table.velocity + relabel.velocity_noise_std(cfg, stats) * rng.standard_normal(q_tilde.shape)  # (N, dof)

@@ -124,6 +124,21 @@ def test_pd_without_velocity_noise_returns_the_recorded_chunk(rd, episodes, stat
     assert rd.summary(noisy)["mean"] > 0.05  # the velocity noise moves the label: the test above could fail
 
 
+def test_the_velocity_noise_has_the_runs_spread(rd, episodes, stats):
+    """Velocity noise on: the PD's first target is the recorded one moved by (1 − Kd) times the noise (no error to
+    close, clamps far), so its distance's mean square is 3 (1 − Kd)² std² / m² with std = relabel.velocity_noise_std,
+    the run's (a std divided instead of multiplied, or another std, would not give it)."""
+    loose = dataclasses.replace(stats, accel_max=stats.accel_max * 100)
+    cfg = relabel.RelabelConfig(horizon=H, label="pd")
+    r = rd.relabel_every_step(episodes, make_env, loose, cfg)
+    inside = r.kept & ~r.reaches_end
+    _, kd = relabel.critically_damped_gains(cfg.settle_steps)
+    std = relabel.velocity_noise_std(cfg, loose)
+    first = rd.label_distances(r)[inside, 0] * loose.median_step / (1 - kd)  # ‖noise‖, rad
+    assert inside.sum() > 60
+    assert np.mean(first ** 2) == pytest.approx(3 * std ** 2, rel=0.25)
+
+
 @pytest.mark.xfail(strict=True, reason="pd_return_chunk in the sampler's table of concatenated episodes takes the "
                    "previous episode's last state for its reference r_-1 at an episode's first step")
 def test_pd_returns_the_recorded_chunk_at_an_episodes_first_step(rd, stats):
@@ -299,3 +314,17 @@ def test_the_cost_sums_a_lineages_stage_seconds(rc):
     lines = rc.cost_per_lineage(pilot, rows=3, new_policies=5)
     projected = 45 + 3 * (200 + 2 * 10) + 5 * 3 * 10
     assert f"= {projected} s = {projected / 3600:.2f} core-hours" in lines[-1]
+    totals = {1: 465.0, 2: 485.0}  # each lineage's stages, and its row of the table in core-hours
+    for lineage, line in zip((1, 2), lines[2:4]):
+        assert line.split()[0] == str(lineage) and line.split()[-1] == f"{totals[lineage] / 3600:.2f}"
+    quiet = projected * totals[1] / np.median(list(totals.values()))  # at the quietest lineage's load
+    assert f"({quiet / 3600:.2f} at its quietest lineage's)" in lines[-1]
+
+
+def test_the_design_runs_the_most_lineages_where_none_reaches_the_power(rc, monkeypatch):
+    """An effect too small for 80 % power at any n up to N_MAX: the design says so and runs N_MAX lineages, the
+    range named from FIRST_LINEAGE."""
+    monkeypatch.setattr(rc, "EFFECT", 0.2)
+    n, lines = rc.lineage_count(rc.load_lineages(rc.PILOT))
+    assert n == rc.N_MAX == 16
+    assert lines[-1].startswith("lineages: 16 (no n <= 16 reaches power 0.8") and lines[-1].endswith("lineages 13..28")
