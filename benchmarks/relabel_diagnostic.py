@@ -278,7 +278,7 @@ def main(argv=None):
     print("\n".join(end_split(results)))
     if args.figure:
         title = (f"Relabelled vs recorded chunk at σ = 0, H = {horizon}: "
-                 + (os.path.relpath(args.episodes) if args.episodes else f"{len(episodes)} oracle demonstrations"))
+                 + (args.episodes if args.episodes else f"{len(episodes)} oracle demonstrations"))
         print(f"\nwrote {figure(results, args.figure, title)}")
     print(f"({time.time() - t0:.0f} s)")
 
