@@ -30,6 +30,7 @@ Seconds on a laptop core for 20 demonstrations (planning them ~8 s).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -44,6 +45,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 import diffusion  # noqa: E402
 import envs  # noqa: E402
 import relabel  # noqa: E402
+from experiment import environments, profiles  # noqa: E402
 
 LABELS = ("servo", "pd")
 LABEL_NAMES = {"servo": "servo (the default)", "pd": "PD (Sec. IV-E)"}
@@ -194,7 +196,7 @@ def figure(results, path, title):
 def oracle_demonstrations(env_name, n, first_seed=0, log=print):
     """n oracle demonstrations on training scenarios first_seed, first_seed + 1, ... (unplannable ones skipped)."""
     import oracle
-    env, expert, demos, seed = envs.make_env(env_name), oracle.Oracle(), [], first_seed
+    env, expert, demos, seed = environments.make_env(env_name), oracle.Oracle(), [], first_seed
     while len(demos) < n:
         try:
             demos.append(expert.demonstrate(env, envs.train_seeds(1, start=seed)[0]))
@@ -207,7 +209,7 @@ def oracle_demonstrations(env_name, n, first_seed=0, log=print):
 def run_statistics(env_name, demos):
     """relabel.DemoStats of D0 as the run makes them (dagger.demo_statistics)."""
     import dagger
-    return dagger.demo_statistics(SimpleNamespace(env=env_name), demos)
+    return dagger.demo_statistics(SimpleNamespace(env=env_name), demos, environments.make_env)
 
 
 def run_folder_of(episodes_path):
@@ -221,7 +223,7 @@ def collect_table1_strong(lineage, path, log=print):
     (pi_0 and its evaluation on the 100 collected scenarios; the lineage's own collection seeds), as the run does."""
     import dagger
     from experiment import run_folder
-    cfg = dagger.PROFILES["table1_strong"]
+    cfg = profiles.PROFILES["table1_strong"]
     pi0 = run_folder.load_policy(os.path.join(START, "checkpoints", "bc.pt"), cfg.device)
     success = run_folder.read_json(os.path.join(START, "eval", "pi0.json"))["success"]
     episodes = dagger.collect_interventions(cfg, (lineage, 1), pi0, success, log=log)
@@ -267,8 +269,8 @@ def main(argv=None):
         what = (f"{len(episodes)} oracle demonstrations on training scenarios {episodes[0]['seed']}.."
                 f"{episodes[-1]['seed']}, every step an intervention, labelled with their own statistics")
     stats = run_statistics(env_name, d0)
-    results = diagnose(episodes, lambda: envs.make_env(env_name), stats, horizon, args.seed)
-    paper = envs.paper_median_step(env_name)
+    results = diagnose(episodes, functools.partial(environments.make_env, env_name), stats, horizon, args.seed)
+    paper = environments.paper_median_step(env_name)
     unit = (f"median step m = {stats.median_step:.4f} rad" + (f" = {stats.median_step / paper:.2f} of the paper's "
                                                                 f"median step ({paper} rad)" if paper else ""))
     print(f"{what}; σ = 0, H = {horizon}; distance per chunk step ‖relabelled − recorded‖₂ in {unit}; "

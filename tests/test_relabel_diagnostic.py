@@ -42,7 +42,7 @@ def stats(episodes):
     99th percentile would clamp the top 1 % of their own steps)."""
     env = envs.make_env("planar")
     base = relabel.demo_stats(episodes, envs.median_step(episodes), env.max_step,
-                              paper_median_step=envs.paper_median_step(env),
+                              paper_median_step=env.paper_median_step,
                               frames_per_step=env.dt / envs.PAPER_FRAME_DT)
     steepest = max(np.abs(np.diff(ep["q"], 2, axis=0)).max() for ep in episodes)
     return dataclasses.replace(base, accel_max=np.full(3, 2.0 * steepest))
