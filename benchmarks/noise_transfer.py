@@ -184,23 +184,26 @@ def rates(files, lineage, new):
     """{row: success in points} of one lineage on the new (new=True) or the collected scenarios; BC included."""
     out = {}
     for row in ("bc",) + ROWS:
-        if (s := per_scenario(files, lineage, row, new)) is not None:
+        if (s := per_scenario(files, lineage, row, "new" if new else "collected")) is not None:
             out[row] = float(s.mean())
     return out
 
 
-def per_scenario(files, lineage, row, new):
+def per_scenario(files, lineage, row, scenario_set):
     """(scenarios,) a row's success in points on each scenario of a set (the mean over its repeats), or None if the
-    lineage has no such evaluation."""
-    if new:
+    lineage has no such evaluation. Sets: 'collected', 'new' and (read after the fact) 'unseen', the run's own
+    20000..20099."""
+    if scenario_set == "new":
         key = f"lineage_{lineage}/{NEW}/{row}.json"
         if key not in files:
             return None
         assert files[key]["seeds"] == list(NEW_SEEDS), f"{key}: other seeds than the study's"
         s = files[key]["success"]
+    elif scenario_set not in ("collected", "unseen"):
+        raise ValueError(f"scenario set {scenario_set!r}: 'collected', 'new' or 'unseen'")
     elif row == "bc":
-        s = files["eval/bc.json"]["success"]
-    elif (s := success(files, lineage, 1, row)) is None:
+        s = files["eval/bc.json" if scenario_set == "collected" else "eval/bc_unseen.json"]["success"]
+    elif (s := success(files, lineage, 1, row, unseen=scenario_set == "unseen")) is None:
         return None
     return 100.0 * np.asarray(s, float).mean(axis=1)
 
@@ -361,19 +364,23 @@ def observed_power(lineages, pilot):
 
 def scenario_terms(lineages, key):
     """per_lineage()[key] spread over the scenarios: {set: (lineages, scenarios) array} whose means over the
-    scenarios, summed over the sets, are each lineage's value."""
+    scenarios, summed over the sets, are each lineage's value. After the fact, also 'hg_bc_new_unseen' and
+    'zero_new_unseen': (HG-DAgger - BC) and (zero_noise - HG-DAgger) on new minus the same on the run's unseen set."""
     ls = list(lineages)
 
-    def diff(row, base, new):
-        return np.array([per_scenario(lineages[l], l, row, new) - per_scenario(lineages[l], l, base, new) for l in ls])
+    def diff(row, base, scenario_set):
+        return np.array([per_scenario(lineages[l], l, row, scenario_set) - per_scenario(lineages[l], l, base,
+                                                                                        scenario_set) for l in ls])
 
     if key == "hg_bc_gap":
-        return {"collected": diff("hg_dagger", "bc", False), "new": -diff("hg_dagger", "bc", True)}
+        return {"collected": diff("hg_dagger", "bc", "collected"), "new": -diff("hg_dagger", "bc", "new")}
+    if key.endswith("_new_unseen"):
+        row, base = ("hg_dagger", "bc") if key.startswith("hg_bc") else ("zero_noise", "hg_dagger")
+        return {"new": diff(row, base, "new"), "unseen": -diff(row, base, "unseen")}
     name, set_name = key.rsplit("_", 1)                 # slope_new, slope_collected, pooled_new, zero_new, ...
-    new = set_name == "new"
     if name == "slope":
-        return {set_name: sum(w * diff(row, "hg_dagger", new) for row, w in slope_weights().items())}
-    return {set_name: diff("pooled" if name == "pooled" else "zero_noise", "hg_dagger", new)}
+        return {set_name: sum(w * diff(row, "hg_dagger", set_name) for row, w in slope_weights().items())}
+    return {set_name: diff("pooled" if name == "pooled" else "zero_noise", "hg_dagger", set_name)}
 
 
 def mean_squares(table):
@@ -407,20 +414,23 @@ def components_se(terms, level=0.95):
 
 def scenario_part(lineages):
     """Markdown lines: each stated and secondary quantity's SE over lineages on fixed scenario sets beside its SE with
-    the scenarios drawn too (variance components), the mean squares it rests on, and the t interval."""
+    the scenarios drawn too (variance components), the mean squares it rests on, and the t interval; then two
+    differences between the new set and the run's unseen one."""
     lines = ["| quantity | mean | SE over lineages | MS_L / MS_S / MS_E | SE, variance components | 95 % t interval |",
              "|---|---|---|---|---|---|"]
     named = [("H1 slope, new", "slope_new"), ("H2 pooled − HG-DAgger, new", "pooled_new"),
              ("H3 slope, collected", "slope_collected"), ("H4 (HG-DAgger − BC) collected − new", "hg_bc_gap"),
-             ("zero_noise − HG-DAgger, new", "zero_new"), ("zero_noise − HG-DAgger, collected", "zero_collected")]
-    q = per_lineage(lineages)
+             ("zero_noise − HG-DAgger, new", "zero_new"), ("zero_noise − HG-DAgger, collected", "zero_collected"),
+             ("(HG-DAgger − BC) new − unseen (20000..20099)", "hg_bc_new_unseen"),
+             ("(zero_noise − HG-DAgger) new − unseen", "zero_new_unseen")]
     for name, key in named:
         terms = scenario_terms(lineages, key)
         mean, se, low, high = components_se(terms)
+        per_lineage_values = sum(m.mean(axis=1) for m in terms.values())
         ms = "; ".join((f"{s} " if len(terms) > 1 else "") + " / ".join(f"{x:.0f}" if x >= 100 else f"{x:.2f}"
                                                                          for x in mean_squares(m))
                        for s, m in terms.items())
-        lines.append(f"| {name} | {mean:+.3f} | {t_test(q[key])[1]:.3f} | {ms} | {se:.3f} | "
+        lines.append(f"| {name} | {mean:+.3f} | {t_test(per_lineage_values)[1]:.3f} | {ms} | {se:.3f} | "
                      f"{low:+.3f} … {high:+.3f} |")
     return lines
 

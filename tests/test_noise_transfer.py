@@ -69,6 +69,11 @@ def _lineage_files(nt, lineage, collected, new):
     for row in ("pi0", "bc") + nt.ROWS:
         files[f"lineage_{lineage}/{nt.NEW}/{row}.json"] = {"success": _table(new["bc" if row == "pi0" else row], 300),
                                                           "seeds": new_seeds}
+    unseen = {row: round(v - 0.01 * i, 4) for i, (row, v) in enumerate(new.items())}   # the run's own 20000..20099
+    files["eval/bc_unseen.json"] = {"success": _table(unseen["bc"], 100), "seeds": list(range(20_000, 20_100))}
+    for row in nt.ROWS:
+        files[f"lineage_{lineage}/round_1/eval/{row}_unseen.json"] = {"success": _table(unseen[row], 100),
+                                                                      "seeds": list(range(20_000, 20_100))}
     return files
 
 
@@ -202,11 +207,22 @@ def test_scenario_terms_are_the_stated_quantities_spread_over_the_scenarios(nt):
     compared against the wrong one gives another number."""
     lineages = _varied_lineages(nt)
     q = nt.per_lineage(lineages)
-    for key in ("slope_new", "slope_collected", "pooled_new", "hg_bc_gap", "zero_new", "zero_collected"):
+    unseen = {l: {row: nt.per_scenario(f, l, row, "unseen").mean() for row in ("bc",) + nt.ROWS}
+              for l, f in lineages.items()}
+    new = {l: nt.rates(f, l, True) for l, f in lineages.items()}
+    q["hg_bc_new_unseen"] = [(new[l]["hg_dagger"] - new[l]["bc"]) - (unseen[l]["hg_dagger"] - unseen[l]["bc"])
+                             for l in lineages]
+    q["zero_new_unseen"] = [(new[l]["zero_noise"] - new[l]["hg_dagger"]) -
+                            (unseen[l]["zero_noise"] - unseen[l]["hg_dagger"]) for l in lineages]
+    for key in q:
         terms = nt.scenario_terms(lineages, key)
         assert all(m.shape == (2, 300 if s == "new" else 100) for s, m in terms.items()), key
         assert sum(m.mean(axis=1) for m in terms.values()) == pytest.approx(q[key], abs=1e-9), key
+    assert q["hg_bc_new_unseen"] == pytest.approx([1.0, 1.0])          # HG - BC: new 1 / 5 points, unseen 1 less
     assert set(nt.scenario_terms(lineages, "hg_bc_gap")) == {"collected", "new"}
+    assert set(nt.scenario_terms(lineages, "zero_new_unseen")) == {"new", "unseen"}
+    with pytest.raises(ValueError, match="'collected', 'new' or 'unseen'"):
+        nt.per_scenario(lineages[5], 5, "pooled", "other")
     assert list(nt.scenario_terms(lineages, "slope_collected")) == ["collected"]
     assert nt.slope_weights() == pytest.approx({"zero_noise": -7 / 140, "fixed_4": -3 / 140, "fixed_8": 1 / 140,
                                                 "fixed_16": 9 / 140})
@@ -264,8 +280,9 @@ def test_the_variance_components_se_over_two_sets_counts_the_lineages_once(nt):
 
 def test_the_scenario_part_prints_every_quantity_with_its_mean_squares(nt):
     lines = nt.scenario_part(_varied_lineages(nt))
-    assert len(lines) == 2 + 6 and lines[2].startswith("| H1 slope, new | ") and "…" in lines[-1]
+    assert len(lines) == 2 + 8 and lines[2].startswith("| H1 slope, new | ") and "…" in lines[-1]
     assert "collected " in lines[5] and "; new " in lines[5]                  # H4: each set's mean squares
+    assert lines[-1].startswith("| (zero_noise − HG-DAgger) new − unseen |") and "; unseen " in lines[-1]
 
 
 def test_the_slope_without_zero_noise_two_ways(nt):
@@ -312,6 +329,8 @@ def test_the_committed_study_prints_the_numbers_its_readmes_quote(nt, capsys):
                  "power > 0.99 at 8 lineages",
                  "| H2 pooled − HG-DAgger, new | -1.028 | 0.241 | 139 / 693 / 417 | 0.416 | -2.011 … -0.045 |",
                  "| zero_noise − HG-DAgger, new | -1.694 | 0.311 | 233 / 703 / 418 | 0.464 | -2.792 … -0.597 |",
+                 "| H4 (HG-DAgger − BC) collected − new | +19.125 | 0.716 |",
+                 "| (HG-DAgger − BC) new − unseen (20000..20099) | +1.875 | 0.732 |",
                  "variance components"):
         assert line in out, line
 
