@@ -32,8 +32,10 @@ Commands (a lineage at a time; each step resumes):
     python dagger.py --profile table1_strong --methods hg_dagger,zero_noise,fixed_4,fixed_8,fixed_16,pooled \\
         --lineages 13 --out runs/noise_transfer --report --export-lineages benchmarks/results/noise_transfer
     python benchmarks/noise_transfer.py                               # every stated test, from the committed files
-                                      # (then, after the fact, the scenarios' part of each SE: a two-way bootstrap)
-    python benchmarks/noise_transfer.py --figure benchmarks/figures/noise_transfer.png
+        # then, after the fact: what H1's slope is made of, the power the study had at the SDs it observed, and
+        # each quantity's SE with the scenarios' draw counted (variance components of the lineage x scenario table)
+    python benchmarks/noise_transfer.py --figure benchmarks/figures/noise_transfer.png \
+        --paired-figure benchmarks/figures/noise_transfer_paired.png  # success against sigma; each row - HG-DAgger
 """
 from __future__ import annotations
 
