@@ -40,6 +40,7 @@ Commands (a lineage at a time; each step resumes):
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import math
 import os
@@ -59,6 +60,8 @@ from paired_bc import load_lineages, t_test  # noqa: E402
 
 import dagger  # noqa: E402
 from experiment import report, run_folder  # noqa: E402
+
+t_quantile = functools.lru_cache(maxsize=None)(t_quantile)  # 200 bisection steps a call: each (p, df) computed once
 
 NEW_SEEDS = tuple(range(30_000, 30_300))
 FIRST_LINEAGE = 5
