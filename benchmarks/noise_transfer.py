@@ -332,8 +332,8 @@ def slope_parts(lineages):
     total = {new: float(np.mean(slopes(lineages, new)["stated"])) for new in (True, False)}
     lines.append(f"| | the stated slope | | | {total[True]:+.3f} | | {total[False]:+.3f} |")
     share = w["zero_noise"] * np.mean(diff[True]["zero_noise"])
-    lines.append(f"zero_noise's part of the slope on new: {share:+.3f} of {total[True]:+.3f} "
-                 f"({100 * share / total[True]:.0f} %)")
+    lines.append(f"zero_noise's part of the slope on new: {share:+.3f} of {total[True]:+.3f}"
+                 + (f" ({100 * share / total[True]:.0f} %)" if total[True] else ""))
     for variant, words in (("hg_at_0", "with HG-DAgger at σ = 0 (the pilot's slope)"),
                            ("fixed_only", "over σ 4 / 8 / 16 alone")):
         parts = []
@@ -488,20 +488,20 @@ def figure(lineages, path):
 def paired_points(lineages, new):
     """[(row, sigma per lineage, row - HG-DAgger per lineage in points)] on a set: zero_noise at sigma 0, the fixed
     rows at theirs, pooled at each lineage's calibrated sigma (pooled_sigma)."""
-    out = []
+    sigma, out = {row: float(s) for s, row in SIGMA_ROWS}, []
     for row in ("zero_noise", "fixed_4", "fixed_8", "fixed_16", "pooled"):
         x, d = [], []
         for l, f in lineages.items():
             r = rates(f, l, new)
-            x.append(pooled_sigma(f, l) if row == "pooled" else float(dict((m, s) for s, m in SIGMA_ROWS)[row]))
+            x.append(pooled_sigma(f, l) if row == "pooled" else sigma[row])
             d.append(r[row] - r["hg_dagger"])
         out.append((row, x, d))
     return out
 
 
 def paired_figure(lineages, path):
-    """What the tests compare: each row - HG-DAgger per lineage (points), their mean with its paired 95 % t interval,
-    against sigma; HG-DAgger is the line at 0. One panel a scenario set, each with its own y-axis."""
+    """What the tests compare: each row - HG-DAgger per lineage (points), their mean with its paired 95 % t interval
+    (none for one lineage), against sigma; HG-DAgger at sigma = 0 and 0. One panel a set, each with its own y-axis."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -518,13 +518,14 @@ def paired_figure(lineages, path):
             jitter = np.linspace(-0.3, 0.3, n) if row != "pooled" else np.zeros(n)   # the lineages side by side
             ax.scatter(np.add(x, jitter), d, s=14, color=colour, alpha=0.45, lw=0,
                        label="one lineage" if row == "zero_noise" else None)
-            half = t_quantile(0.975, n - 1) * np.std(d, ddof=1) / math.sqrt(n)
+            half = t_quantile(0.975, n - 1) * np.std(d, ddof=1) / math.sqrt(n) if n > 1 else 0.0
             ax.errorbar([np.mean(x)], [np.mean(d)], yerr=[half], marker="*" if row == "pooled" else "o",
                         markersize=11 if row == "pooled" else 6, capsize=4, color=colour, lw=1.6, ls="none",
                         label=(rf"pooled $\bar\Sigma^\alpha$ at its calibrated σ (≈ {np.mean(x):.1f}): mean, 95 % t "
                                "interval") if row == "pooled" else
                         ("zero_noise (σ = 0) and fixed σ: mean, 95 % t interval" if row == "zero_noise" else None))
-        ax.set_title(f"{title}\n{n} lineages, each row minus its lineage's HG-DAgger", fontsize=9)
+        ax.set_title(f"{title}\n{n} lineages, each row minus its lineage's HG-DAgger" if n > 1 else
+                     f"{title}\n1 lineage: no interval", fontsize=9)
         ax.set_xticks([0, 4, 8, 16])
         ax.set_xlabel("noise σ (the paper's median steps)")
         ax.grid(alpha=0.3)

@@ -350,3 +350,5 @@ def test_the_paired_figure_places_each_row_at_its_sigma(nt, tmp_path):
         [collected[l]["fixed_16"] - collected[l]["hg_dagger"] for l in (5, 6)])       # the set asked for
     nt.paired_figure(lineages, str(tmp_path / "p.png"))
     assert (tmp_path / "p.png").stat().st_size > 10_000
+    nt.paired_figure({5: lineages[5]}, str(tmp_path / "one.png"))     # an interim look at one lineage: no interval
+    assert (tmp_path / "one.png").stat().st_size > 10_000
