@@ -314,6 +314,24 @@ def test_lineages_needed_is_the_first_count_with_the_power(nt):
     assert nt.power(0.135, 0.140, n, 0.0125) >= 0.8 > nt.power(0.135, 0.140, n - 1, 0.0125)
     assert nt.lineages_needed(0.135, 0.090, 0.0125) < n
     assert nt.lineages_needed(0.01, 1.0, 0.0125) is None                  # beyond 60 lineages
+    assert nt.lineages_needed(0.135, 0.140, 0.0125, n_max=n) == n         # the last count asked is tried ...
+    assert nt.lineages_needed(0.135, 0.140, 0.0125, n_max=n - 1) is None  # ... and none beyond it
+    assert nt.lineages_needed(10.0, 0.1, 0.05) == 2                       # two lineages: the fewest a t test takes
+
+
+def test_observed_power_uses_the_studys_sds_at_the_designs_effects_and_level(nt):
+    """H1 at the pilot's mean slope and H2 at +2 points, each at 0.05 / 4, with the SDs of the study's own lineages:
+    the printed powers are power() of those, the SD ratio is the study's over the pilot's. A pilot SD in place of the
+    study's, the level 0.05, or the stated slope's mean in place of the pilot's gives other numbers."""
+    lineages, pilot = nt.complete(nt.load_lineages(nt.RESULTS)), nt.load_lineages(nt.PILOT)
+    d, q = nt.pilot_differences(pilot), nt.per_lineage(lineages)
+    sd1, sd2 = np.std(q["slope_new"], ddof=1), np.std(q["pooled_new"], ddof=1)
+    p1 = nt.power(np.mean(d["slope"]), sd1, len(lineages), 0.0125)
+    lines = nt.observed_power(lineages, pilot)
+    assert f"power {p1:.2f} at 8 lineages" in lines[1] and f"{sd1 / np.std(d['slope'], ddof=1):.2f} ×" in lines[1]
+    assert f"80 % needs {nt.lineages_needed(np.mean(d['slope']), sd1, 0.0125)}" in lines[1]
+    assert f"SD {sd2:.3f}" in lines[2] and "> 0.99" in lines[2] and nt.power(2.0, sd2, 8, 0.0125) > 0.99
+    assert f"the pilot's {np.std(d['pooled'], ddof=1):.3f}" in lines[2] and "+0.135" in lines[1]
 
 
 def test_the_committed_study_prints_the_numbers_its_readmes_quote(nt, capsys):
