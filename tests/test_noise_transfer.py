@@ -69,6 +69,11 @@ def _lineage_files(nt, lineage, collected, new):
     for row in ("pi0", "bc") + nt.ROWS:
         files[f"lineage_{lineage}/{nt.NEW}/{row}.json"] = {"success": _table(new["bc" if row == "pi0" else row], 300),
                                                           "seeds": new_seeds}
+    unseen = {row: round(v - 0.01 * i, 4) for i, (row, v) in enumerate(new.items())}   # the run's own 20000..20099
+    files["eval/bc_unseen.json"] = {"success": _table(unseen["bc"], 100), "seeds": list(range(20_000, 20_100))}
+    for row in nt.ROWS:
+        files[f"lineage_{lineage}/round_1/eval/{row}_unseen.json"] = {"success": _table(unseen[row], 100),
+                                                                      "seeds": list(range(20_000, 20_100))}
     return files
 
 
@@ -202,30 +207,166 @@ def test_scenario_terms_are_the_stated_quantities_spread_over_the_scenarios(nt):
     compared against the wrong one gives another number."""
     lineages = _varied_lineages(nt)
     q = nt.per_lineage(lineages)
-    for key in ("slope_new", "slope_collected", "pooled_new", "hg_bc_gap", "zero_new", "zero_collected"):
+    unseen = {l: {row: nt.per_scenario(f, l, row, "unseen").mean() for row in ("bc",) + nt.ROWS}
+              for l, f in lineages.items()}
+    new = {l: nt.rates(f, l, True) for l, f in lineages.items()}
+    q["hg_bc_new_unseen"] = [(new[l]["hg_dagger"] - new[l]["bc"]) - (unseen[l]["hg_dagger"] - unseen[l]["bc"])
+                             for l in lineages]
+    q["zero_new_unseen"] = [(new[l]["zero_noise"] - new[l]["hg_dagger"]) -
+                            (unseen[l]["zero_noise"] - unseen[l]["hg_dagger"]) for l in lineages]
+    for key in q:
         terms = nt.scenario_terms(lineages, key)
-        assert all(m.shape == (2, 300 if new else 100) for new, m in terms.items()), key
+        assert all(m.shape == (2, 300 if s == "new" else 100) for s, m in terms.items()), key
         assert sum(m.mean(axis=1) for m in terms.values()) == pytest.approx(q[key], abs=1e-9), key
-    assert set(nt.scenario_terms(lineages, "hg_bc_gap")) == {False, True}
+    assert q["hg_bc_new_unseen"] == pytest.approx([1.0, 1.0])          # HG - BC: new 1 / 5 points, unseen 1 less
+    assert set(nt.scenario_terms(lineages, "hg_bc_gap")) == {"collected", "new"}
+    assert set(nt.scenario_terms(lineages, "zero_new_unseen")) == {"new", "unseen"}
+    with pytest.raises(ValueError, match="'collected', 'new' or 'unseen'"):
+        nt.per_scenario(lineages[5], 5, "pooled", "other")
+    assert list(nt.scenario_terms(lineages, "slope_collected")) == ["collected"]
     assert nt.slope_weights() == pytest.approx({"zero_noise": -7 / 140, "fixed_4": -3 / 140, "fixed_8": 1 / 140,
                                                 "fixed_16": 9 / 140})
 
 
-def test_two_way_bootstrap_resamples_lineages_and_each_sets_scenarios_apart(nt):
-    """Lineages alike but scenarios not: the SE is the scenarios' (a bootstrap of lineages alone gives 0).
-    Scenarios alike but lineages not: the lineages' (one of scenarios alone gives 0). One array entered for two
-    sets with opposite signs: the draws cancel only if both sets reuse one draw of scenario indices."""
-    scen = np.tile(np.arange(200.0) % 10, (8, 1))                      # 8 lineages alike; scenarios 0..9 repeating
-    se, low, high = nt.two_way_bootstrap({True: scen}, draws=4000)
-    assert se == pytest.approx(np.std(scen[0]) / math.sqrt(200), rel=0.1) and low < 4.5 < high
-    lin = np.tile(np.arange(8.0)[:, None], (1, 50))                     # lineages 0..7, every scenario alike
-    se, *_ = nt.two_way_bootstrap({True: lin}, draws=4000)
-    assert se == pytest.approx(np.std(np.arange(8.0)) / math.sqrt(8), rel=0.1)
-    se, *_ = nt.two_way_bootstrap({False: scen, True: -scen}, draws=4000)
-    assert se == pytest.approx(math.sqrt(2) * np.std(scen[0]) / math.sqrt(200), rel=0.1)
-    assert nt.two_way_bootstrap({True: scen}, draws=500) == nt.two_way_bootstrap({True: scen}, draws=500)  # seeded
+def test_mean_squares_and_the_variance_components_se_by_hand(nt):
+    """[[1, 2], [3, 6]]: grand mean 3, lineage means 1.5 / 4.5, scenario means 2 / 4, residuals ±0.5: MS_L = 2 x 4.5
+    = 9, MS_S = 2 x 2 = 4, MS_E = 1 / 1 = 1; SE^2 = (9 + 4 - 1) / 4 = 3, the interval 3 ± t(0.975, 1) sqrt(3).
+    Catches a mean square without its count (MS_L without C), a wrong df, a sign of the formula turned, a z or
+    a df of R x C in place of the lineages' R - 1."""
+    assert nt.mean_squares([[1.0, 2.0], [3.0, 6.0]]) == pytest.approx((9.0, 4.0, 1.0))
+    mean, se, low, high = nt.components_se({"new": np.array([[1.0, 2.0], [3.0, 6.0]])})
+    assert (mean, se) == pytest.approx((3.0, math.sqrt(3.0)))
+    assert (low, high) == pytest.approx((3 - 12.7062 * math.sqrt(3), 3 + 12.7062 * math.sqrt(3)), rel=1e-4)
+    rng = np.random.default_rng(1)                                     # a 3 x 4 table against numpy's own sums
+    y = rng.normal(size=(3, 4))
+    fit = y.mean(axis=1, keepdims=True) + y.mean(axis=0) - y.mean()
+    assert nt.mean_squares(y) == pytest.approx((4 * y.mean(axis=1).var(ddof=1), 3 * y.mean(axis=0).var(ddof=1),
+                                                ((y - fit) ** 2).sum() / 6))
 
 
-def test_the_scenario_part_prints_every_quantity_with_both_ses(nt):
+def test_the_variance_components_se_is_the_lineage_se_without_a_scenario_effect(nt):
+    """Every scenario column with one mean (MS_S = 0 < MS_E): the scenarios add nothing, and the SE is the plain SE
+    over the lineages' means. Catches the scenario part left negative (then the SE falls below the lineages'
+    alone) and the residual counted in again beside MS_L (the two-way bootstrap's error)."""
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=(6, 40)) + np.arange(6.0)[:, None]
+    y -= y.mean(axis=0) - y.mean()                                     # the scenarios' means made equal
+    _, ms_s, ms_e = nt.mean_squares(y)
+    assert ms_s == pytest.approx(0.0, abs=1e-12) and ms_e > 0.5
+    assert nt.components_se({"new": y})[1] == pytest.approx(y.mean(axis=1).std(ddof=1) / math.sqrt(6))
+
+
+def test_the_variance_components_se_is_the_spread_of_the_mean_over_fresh_draws(nt):
+    """Tables y = lineage + scenario + residual drawn 3,000 times (SDs 1, 2, 3; R = 6, C = 20): the mean of SE^2
+    is Var(mean) = 1/6 + 4/20 + 9/120 (unbiased), within 4 %. Catches the lineage part shrunk by (R - 1)/R, the
+    residual counted three times (+2 x 9/120: +19 %) and the scenario part left out (-45 %)."""
+    rng = np.random.default_rng(3)
+    r, c = 6, 20
+    se2 = [nt.components_se({"new": rng.normal(0, 1, (r, 1)) + rng.normal(0, 2, (1, c)) + rng.normal(0, 3, (r, c))})[1]
+           ** 2 for _ in range(3000)]
+    assert np.mean(se2) == pytest.approx(1 / r + 4 / c + 9 / (r * c), rel=0.04)
+
+
+def test_the_variance_components_se_over_two_sets_counts_the_lineages_once(nt):
+    """Two sets whose lineage effects cancel in the sum (H4 is such a sum): each lineage's quantity is the same, so
+    the SE is the two sets' scenario parts alone, var(b) / C + var(b') / C'. Adding the two sets' own SEs instead
+    counts the lineages' spread twice; one set's scenario part left out gives less."""
+    rng = np.random.default_rng(4)
+    a, b, b2 = rng.normal(0, 5, (8, 1)), rng.normal(0, 1, (1, 30)), rng.normal(0, 2, (1, 50))
+    mean, se, *_ = nt.components_se({"collected": a + b, "new": -a + b2})
+    assert mean == pytest.approx(b.mean() + b2.mean())
+    assert se == pytest.approx(math.sqrt(b.var(ddof=1) / 30 + b2.var(ddof=1) / 50))
+
+
+def test_the_scenario_part_prints_every_quantity_with_its_mean_squares(nt):
     lines = nt.scenario_part(_varied_lineages(nt))
-    assert len(lines) == 2 + 6 and lines[2].startswith("| H1 slope, new | ") and "…" in lines[-1]
+    assert len(lines) == 2 + 8 and lines[2].startswith("| H1 slope, new | ") and "…" in lines[-1]
+    assert "collected " in lines[5] and "; new " in lines[5]                  # H4: each set's mean squares
+    assert lines[-1].startswith("| (zero_noise − HG-DAgger) new − unseen |") and "; unseen " in lines[-1]
+
+
+def test_the_slope_without_zero_noise_two_ways(nt):
+    """Rows built with row - HG-DAgger = p sigma on the fixed rows and zero_noise z under HG-DAgger: the stated
+    slope is p + 0.05 z (zero_noise's weight -7 / 140), the pilot's (HG-DAgger at 0) and the fixed rows' alone
+    are p; the printed parts sum to the stated slope. A sigma mapped to another row, HG-DAgger left out at 0 or
+    zero_noise kept in gives other numbers."""
+    lineages = {}
+    for l, (p, z) in zip((5, 6, 7), ((1 / 900, 0.02), (2 / 900, 0.01), (3 / 900, 0.03))):
+        new = {**_rates(0.55, 0.54, p, 0.56), "zero_noise": 0.55 - z}
+        lineages[l] = _lineage_files(nt, l, _rates(0.6, 0.4, -0.0025, 0.59), new)
+    s = nt.slopes(lineages, True)
+    assert s["stated"] == pytest.approx([100 / 900 + 0.05 * 2, 200 / 900 + 0.05 * 1, 300 / 900 + 0.05 * 3])
+    assert s["hg_at_0"] == pytest.approx([100 / 900, 200 / 900, 300 / 900])
+    assert s["fixed_only"] == pytest.approx([100 / 900, 200 / 900, 300 / 900])
+    assert nt.slopes(lineages, False)["hg_at_0"] == pytest.approx([-0.25] * 3)
+    lines = nt.slope_parts(lineages)
+    parts = [float(line.split("|")[5]) for line in lines[2:6]]
+    assert sum(parts) == pytest.approx(np.mean(s["stated"]), abs=2e-3)
+    assert lines[6].startswith("| | the stated slope | | | +0.322 |")
+    assert lines[7] == "zero_noise's part of the slope on new: +0.100 of +0.322 (31 %)"
+    assert lines[8].startswith("the slope with HG-DAgger at σ = 0 (the pilot's slope): new +0.222 ± 0.064")
+
+
+def test_lineages_needed_is_the_first_count_with_the_power(nt):
+    """The smallest n whose power reaches the target: n - 1 falls short (an off-by-one or a '>' for '>=' fails);
+    more spread needs more lineages."""
+    n = nt.lineages_needed(0.135, 0.140, 0.0125)
+    assert nt.power(0.135, 0.140, n, 0.0125) >= 0.8 > nt.power(0.135, 0.140, n - 1, 0.0125)
+    assert nt.lineages_needed(0.135, 0.090, 0.0125) < n
+    assert nt.lineages_needed(0.01, 1.0, 0.0125) is None                  # beyond 60 lineages
+    assert nt.lineages_needed(0.135, 0.140, 0.0125, n_max=n) == n         # the last count asked is tried ...
+    assert nt.lineages_needed(0.135, 0.140, 0.0125, n_max=n - 1) is None  # ... and none beyond it
+    assert nt.lineages_needed(10.0, 0.1, 0.05) == 2                       # two lineages: the fewest a t test takes
+
+
+def test_observed_power_uses_the_studys_sds_at_the_designs_effects_and_level(nt):
+    """H1 at the pilot's mean slope and H2 at +2 points, each at 0.05 / 4, with the SDs of the study's own lineages:
+    the printed powers are power() of those, the SD ratio is the study's over the pilot's. A pilot SD in place of the
+    study's, the level 0.05, or the stated slope's mean in place of the pilot's gives other numbers."""
+    lineages, pilot = nt.complete(nt.load_lineages(nt.RESULTS)), nt.load_lineages(nt.PILOT)
+    d, q = nt.pilot_differences(pilot), nt.per_lineage(lineages)
+    sd1, sd2 = np.std(q["slope_new"], ddof=1), np.std(q["pooled_new"], ddof=1)
+    p1 = nt.power(np.mean(d["slope"]), sd1, len(lineages), 0.0125)
+    lines = nt.observed_power(lineages, pilot)
+    assert f"power {p1:.2f} at 8 lineages" in lines[1] and f"{sd1 / np.std(d['slope'], ddof=1):.2f} ×" in lines[1]
+    assert f"80 % needs {nt.lineages_needed(np.mean(d['slope']), sd1, 0.0125)}" in lines[1]
+    assert f"SD {sd2:.3f}" in lines[2] and "> 0.99" in lines[2] and nt.power(2.0, sd2, 8, 0.0125) > 0.99
+    assert f"the pilot's {np.std(d['pooled'], ddof=1):.3f}" in lines[2] and "+0.135" in lines[1]
+
+
+def test_the_committed_study_prints_the_numbers_its_readmes_quote(nt, capsys):
+    """The script over the committed lineage files prints what benchmarks/README.md and the study's README quote
+    after the fact: the slope's parts, the power, the variance-components SEs and intervals."""
+    nt.main([])
+    out = capsys.readouterr().out
+    for line in ("| 0 | zero_noise | -0.050 | -1.69 ± 0.31 | +0.085 |",
+                 "zero_noise's part of the slope on new: +0.085 of +0.125 (68 %)",
+                 "the slope with HG-DAgger at σ = 0 (the pilot's slope): new +0.040 ± 0.043, t(7) = 0.94, p = 0.19",
+                 "the slope over σ 4 / 8 / 16 alone: new +0.042 ± 0.072",
+                 "1.56 × the pilot's 0.090: power 0.50 at 8 lineages; 80 % needs 13",
+                 "power > 0.99 at 8 lineages",
+                 "| H2 pooled − HG-DAgger, new | -1.028 | 0.241 | 139 / 693 / 417 | 0.416 | -2.011 … -0.045 |",
+                 "| zero_noise − HG-DAgger, new | -1.694 | 0.311 | 233 / 703 / 418 | 0.464 | -2.792 … -0.597 |",
+                 "| H4 (HG-DAgger − BC) collected − new | +19.125 | 0.716 |",
+                 "| (HG-DAgger − BC) new − unseen (20000..20099) | +1.875 | 0.732 |",
+                 "variance components"):
+        assert line in out, line
+
+
+def test_the_paired_figure_places_each_row_at_its_sigma(nt, tmp_path):
+    """Each row minus its lineage's HG-DAgger, at its sigma: zero_noise at 0, the fixed rows at theirs, pooled at
+    each lineage's calibrated sigma; the figure is drawn."""
+    lineages = _varied_lineages(nt)
+    points = {row: (x, d) for row, x, d in nt.paired_points(lineages, True)}
+    assert list(points) == ["zero_noise", "fixed_4", "fixed_8", "fixed_16", "pooled"]
+    assert [points[r][0][0] for r in ("zero_noise", "fixed_4", "fixed_8", "fixed_16")] == [0.0, 4.0, 8.0, 16.0]
+    assert points["pooled"][0] == pytest.approx([nt.pooled_sigma(lineages[l], l) for l in (5, 6)])
+    rates = {l: nt.rates(f, l, True) for l, f in lineages.items()}
+    assert points["fixed_16"][1] == pytest.approx([rates[l]["fixed_16"] - rates[l]["hg_dagger"] for l in (5, 6)])
+    collected = {l: nt.rates(f, l, False) for l, f in lineages.items()}
+    assert nt.paired_points(lineages, False)[3][2] == pytest.approx(
+        [collected[l]["fixed_16"] - collected[l]["hg_dagger"] for l in (5, 6)])       # the set asked for
+    nt.paired_figure(lineages, str(tmp_path / "p.png"))
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+    nt.paired_figure({5: lineages[5]}, str(tmp_path / "one.png"))     # an interim look at one lineage: no interval
+    assert (tmp_path / "one.png").stat().st_size > 10_000
