@@ -191,7 +191,8 @@ def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
 
 
 def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, H: int, lookahead,
-                    accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None) -> np.ndarray:
+                    accel_max, max_step, settle_steps: float | None = None, t_end=None, limits=None,
+                    t_start=None) -> np.ndarray:
     """Roll out a critically damped PD controller from (q0, v0) back onto the expert trajectory (Sec. IV-E).
 
     The reference r_k = trajectory[t_proj + lookahead + k], held at the segment's last point (t_end - 1): the
@@ -204,6 +205,8 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     Sec. IV-E's "a few timesteps further" is lookahead 0 here: the feed-forward removes the lag.
 
     q0, v0: (B, dof) or (dof,) rad, rad/step; trajectory (T, dof); t_proj, lookahead, t_end: int or (B,) steps;
+    t_start: int or (B,), the episode's first step in `trajectory` (episodes laid end to end: the reference never
+    reaches before it, so at an episode's first step r_-1 = r_0, the arm at rest; default 0);
     limits: optional (lo, hi). Returns the joint targets q_1 .. q_H: (B, H, dof) (or (H, dof) for a single q0).
     """
     trajectory = np.asarray(trajectory, dtype=np.float64)
@@ -226,7 +229,8 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     kp, kd = critically_damped_gains(H / 2 if settle_steps is None else settle_steps)
     # reference r_{-1} .. r_H, held at the segment's last point
     idx = np.minimum(start[:, None] + np.arange(-1, H + 1)[None, :], t_end[:, None] - 1)  # (B, H+2)
-    idx = np.maximum(idx, 0)
+    first = np.broadcast_to(np.asarray(0 if t_start is None else t_start, dtype=np.int64), (B,))
+    idx = np.maximum(idx, first[:, None])  # never before the episode's first step
     ref = trajectory[idx]  # (B, H+2, dof)
     u = np.diff(ref, axis=1)  # (B, H+1, dof): u[:, k] = r_k - r_{k-1}
     feedforward = np.diff(u, axis=1)  # (B, H, dof): the reference's own acceleration u_{k+1} - u_k
@@ -307,16 +311,18 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t
 
 
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
-                      stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None) -> tuple[np.ndarray, np.ndarray]:
+                      stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None,
+                      t_start=None) -> tuple[np.ndarray, np.ndarray]:
     """Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) from steps t (m,): monotone projection
     (or `t_proj` given) -> return chunk by `cfg.label` ('servo' or 'pd', lookahead 0); t_end (m,): the exclusive
-    end of each state's expert segment. Returns (chunks (m, H, dof), mask (m, H) bool; all True for 'pd')."""
+    end of each state's expert segment; t_start (m,): its episode's first step in `trajectory` (the PD reference's
+    floor; default 0). Returns (chunks (m, H, dof), mask (m, H) bool; all True for 'pd')."""
     if t_proj is None:
         t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
     if cfg.label == "servo":
         return servo_return_chunk(q_tilde, v, trajectory, t_proj, stats, cfg, t_end=t_end, limits=limits)
     chunks = pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, 0, stats.accel_max, stats.max_step,
-                             settle_steps=cfg.settle_steps, t_end=t_end, limits=limits)
+                             settle_steps=cfg.settle_steps, t_end=t_end, limits=limits, t_start=t_start)
     return chunks, np.ones(chunks.shape[:2], dtype=bool)
 
 
@@ -364,7 +370,8 @@ class AugmentationSampler:
         self.trajectory = np.concatenate([q for q, _ in arrays])  # (sum T, dof) the episodes' joints in turn
         self.episode_of = np.concatenate([np.full(steps[e][0].size, e) for e in labelled])  # (N,) episode ...
         self.step_of = np.concatenate([steps[e][0] for e in labelled])  # (N,) ... and step t
-        self.t_glob = first[self.episode_of] + self.step_of  # (N,) index of q_t in self.trajectory
+        self.start_glob = first[self.episode_of]  # (N,) index of the episode's first step in self.trajectory
+        self.t_glob = self.start_glob + self.step_of  # (N,) index of q_t in self.trajectory
         self.end_glob = first[self.episode_of] + np.concatenate([steps[e][1] for e in labelled])  # (N,) its run's end
         self.center = self.trajectory[self.t_glob]  # (N, dof) q_t
         t_prev = np.where(self.step_of > 0, self.t_glob - 1, self.t_glob)  # at t = 0 the arm starts at rest
@@ -466,7 +473,8 @@ class AugmentationSampler:
                                      t_end=self.end_glob[r])
         ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
         chunks, mask = corrective_labels(q_tilde[ok], v[ok], self.trajectory, self.t_glob[r[ok]],
-                                         self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok])
+                                         self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok],
+                                         t_start=self.start_glob[r[ok]])
         moving = mask.sum(axis=1) >= cfg.min_moving_steps  # enough steps left in the loss
         ok[ok] = moving
         return (r[ok], q_tilde[ok], v[ok], chunks[moving], mask[moving]), r[~ok]

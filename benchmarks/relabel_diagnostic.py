@@ -88,7 +88,7 @@ def relabel_every_step(episodes, make_env, stats, cfg, seed=0):
     t_proj = relabel.monotone_projection(q_tilde, table.trajectory, table.t_glob, window=cfg.projection_window,
                                          t_end=table.end_glob)
     chunks, mask = relabel.corrective_labels(q_tilde, v, table.trajectory, table.t_glob, table.end_glob, stats, cfg,
-                                             limits=limits, t_proj=t_proj)
+                                             limits=limits, t_proj=t_proj, t_start=table.start_glob)
     kept = (free & (t_proj < table.end_glob - cfg.near_end_steps)  # the sampler's redraws, at σ = 0 for good
             & (mask.sum(axis=1) >= cfg.min_moving_steps))
     reaches_end = table.t_glob + cfg.horizon >= table.end_glob

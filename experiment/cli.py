@@ -22,6 +22,8 @@ from experiment.profiles import ALL_METHODS, PROFILES, RECIPES, check_config
 from experiment.report import run_experiment
 from experiment.run_folder import PI0_THREADS, ConfigMismatch, RunFolderError, committed_start, export_start
 
+SMOKE_TIME = "about 2 min on 2 idle cores"  # measured: README, 'Profiles and options' (the same words there)
+
 
 def parse_args(argv):
     """(args, cfg): the profile's config with the command line's overrides (checked: check_config) and a
@@ -32,18 +34,20 @@ def parse_args(argv):
         description="Policy-Calibrated DAgger end to end (Wang & Kantor): data, BC, HG-DAgger rounds, "
                     "calibration, augmentation, every method of Table I, evaluation, table and figures.")
     p.add_argument("--profile", default="quick", choices=sorted(profiles),
-                   help="run size: smoke (CI, ~2 min), quick (default; about 5 min on a recent 2-core CPU, AMD Zen 5, "
-                        "about 9 on an older one, Zen 3 / Zen 4: README), "
-                        "mid (Table I's analogue: 500 demos, 5 lineages x 2 rounds, hours on 2 cores), "
-                        "table2 (the engine-lever env with Table II's rows), paper "
-                        "(Table I protocol at the authors' sizes)")
+                   help="run size (README, 'Profiles and options'): smoke (every stage at tiny sizes, CI's run; "
+                        f"{SMOKE_TIME}), quick (the default: the whole loop, one lineage, one round, four rows; about "
+                        "5-10 min on a 2-core laptop CPU), mid (Table I's analogue for 2 cores: 500 demos, 5 lineages "
+                        "x 2 rounds, the fixed sweep and pooled; hours), table1 (all of Table I: 5 lineages x 5 rounds, "
+                        "ten rows; run a lineage at a time), table1_strong (table1 with 3x the gradient steps, one "
+                        "round, seven rows: the studies' profile), table2 (the engine-lever env with Table II's rows), "
+                        "paper (Table I's protocol at the authors' sizes: a GPU or a cluster)")
     p.add_argument("--env", default=None, choices=sorted(ENVIRONMENTS),
                    help="environment (default planar): planar, engine3d, or a research variant's: engine3d_image "
                         "(experiment/image_obs.py: the UR5 policy sees a camera image through a small CNN instead of "
                         "the obstacle list), engine3d_oriented (experiment/oriented_goal.py: success also needs the "
                         "tool's orientation within the authors' 10 degrees)")
     p.add_argument("--methods", default=None,
-                   help=f"comma-separated subset of: {','.join(methods)} (BC and HG-DAgger always run)")
+                   help=f"comma-separated subset of: {', '.join(methods)} (BC and HG-DAgger always run)")
     p.add_argument("--recipe", default=None, choices=sorted(recipes),
                    help="how pi_0 and every arm train: paper (the authors' planar runs: every arm continues pi_0's "
                         "optimizer along one cosine), or a research variant's, e.g. authors_lever (experiment/lever.py: "

@@ -57,8 +57,9 @@ class AuthorsChunkSampler:
 @dataclass(frozen=True)
 class Row:
     """A row that builds a round's intervention sampler itself: sampler(D, H, recorded, noised) with recorded() the
-    round's hg_dagger sampler and noised(noise) a noised sampler, noise a Table I method's name or a (kind, sigma)
-    of relabel.AugmentationSampler; what: its rows in words (the log's)."""
+    round's hg_dagger sampler and noised(noise, label='servo') a noised sampler, noise a Table I method's name or a
+    (kind, sigma) of relabel.AugmentationSampler, label its return label (relabel.RelabelConfig.label: 'servo' the
+    authors', 'pd' the paper's Sec. IV-E); what: its rows in words (the log's)."""
     sampler: Callable
     what: str
 
@@ -75,6 +76,17 @@ ROWS = {"zero_noise": Row(lambda D, H, recorded, noised: noised(("isotropic", 0.
                                  "every intervention step a chunk start, the padded steps in the loss"),
         "cotrain_fixed_8": co_trained("fixed_8"),
         "cotrain_pooled": co_trained("pooled")}
+
+
+def pd_labelled(noise):
+    """A noised row with the paper's PD return label (relabel.pd_return_chunk) instead of the authors' servo."""
+    return Row(lambda D, H, recorded, noised: noised(noise, "pd"),
+               "every drawn frame noised and relabelled by the paper's PD controller (Sec. IV-E)")
+
+
+# The noised rows with the paper's PD label beside the servo's (zero_noise, fixed_8, pooled): the label's cost
+ROWS.update({"zero_noise_pd": pd_labelled(("isotropic", 0.0)), "fixed_8_pd": pd_labelled("fixed_8"),
+             "pooled_pd": pd_labelled("pooled")})
 
 
 def equal_shares(frames):
@@ -94,11 +106,12 @@ class Rows:
     def __call__(self, cfg, method, rounds_data, calibration, stats, make_env):
         per_round, first = [], np.cumsum([0] + [len(D) for D in rounds_data])  # each round's first episode index
         for D, offset in zip(rounds_data, first):
-            def noised(noise, D=D, offset=offset):
+            def noised(noise, label="servo", D=D, offset=offset):
                 kind, sigma = noise if isinstance(noise, tuple) else dagger.noise_model(
                     noise, calibration, range(offset, offset + len(D)), stats.median_step, stats.paper_median_step)
                 return relabel.AugmentationSampler(D, functools.partial(make_env, cfg.env), stats, kind, sigma,
-                                                   relabel.RelabelConfig(horizon=cfg.horizon), self.label_steps)
+                                                   relabel.RelabelConfig(horizon=cfg.horizon, label=label),
+                                                   self.label_steps)
 
             recorded = functools.partial(self.chunks, D, cfg.horizon)
             per_round.append(ROWS[method].sampler(D, cfg.horizon, recorded, noised) if method in ROWS else

@@ -11,7 +11,9 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import time
+
 import numpy as np
 
 import calibrate
@@ -32,6 +34,9 @@ METHOD_LABELS = {
     "authors_hg_dagger": "HG-DAgger as the authors' kit trained it (not in the paper)",
     "cotrain_fixed_8": "Half recorded, half fixed sigma=8 (the paper's co-training; not in its table)",
     "cotrain_pooled": "Half recorded, half pooled Sigma-bar^alpha (the paper's co-training; not in its table)",
+    "zero_noise_pd": "Co-training control (sigma=0), the paper's PD label (not in the paper's table)",
+    "fixed_8_pd": "Fixed iso. noise (sigma=8), the paper's PD label (not in the paper's table)",
+    "pooled_pd": "Pooled Sigma-bar^alpha, the paper's PD label (not in the paper's table)",
 }
 
 
@@ -147,7 +152,7 @@ def summarize(cfg, results):
                                                     "n": len(hg_k), "degenerate": degenerate(hg_k, bc)}
         # the best fixed sigma of the round in hindsight (beside the calibrated sigma, Sec. V)
         cells = {m: table[m][k][0] for m in cfg.methods
-                 if m.startswith("fixed_") and m in table and table[m][k] is not None}
+                 if is_fixed(m) and m in table and table[m][k] is not None}
         if cells:
             stats["best_fixed_per_round"][str(k + 1)] = max(cells, key=cells.get)
     return table, stats
@@ -162,7 +167,7 @@ def paired_statistics(cfg, values):
     """Each method against HG-DAgger (paired t over lineages) and the calibrated methods against the best fixed
     sigma (TOST at dagger.TOST_MARGIN); values(method) -> {lineage: success} (a round's, or averaged over rounds)."""
     hg = values("hg_dagger")
-    fixed = [m for m in cfg.methods if m.startswith("fixed_") and values(m)]
+    fixed = [m for m in cfg.methods if is_fixed(m) and values(m)]
     best_fixed = max(fixed, key=lambda m: np.mean(list(values(m).values()))) if fixed else None
     stats = {"paired_vs_hg_dagger": {}, "tost_vs_best_fixed": {}, "best_fixed": best_fixed}
     for method in cfg.methods:
@@ -220,9 +225,14 @@ def paper_table(cfg):
             for m in cfg.methods if m in paper}
 
 
+def is_fixed(method):
+    """Whether `method` is a row of Table I's fixed sweep, fixed_<sigma> (fixed_8_pd, a variant's row, is not)."""
+    return re.fullmatch(r"fixed_\d+", method) is not None
+
+
 def method_label(method):
     """The table's name of a method: METHOD_LABELS, or 'Fixed iso. noise (sigma=s, ...)' for fixed_<s>."""
-    if method.startswith("fixed_"):
+    if is_fixed(method):
         return f"Fixed iso. noise (sigma={method.split('_', 1)[1]}, paper's unit)"
     return METHOD_LABELS[method]
 
@@ -575,7 +585,7 @@ def write_tables(run, tables):
 def noise_levels(methods):
     """{sigma: row} of a run's noise-level rows: fixed_<s> at s (the paper's median steps), zero_noise at 0."""
     return dict(sorted({**({0.0: "zero_noise"} if "zero_noise" in methods else {}),
-                        **{float(m[len("fixed_"):]): m for m in methods if m.startswith("fixed_")}}.items()))
+                        **{float(m[len("fixed_"):]): m for m in methods if is_fixed(m)}}.items()))
 
 
 def sigma_panels(cfg, results, calibration):

@@ -42,8 +42,8 @@ def augmentation_samplers(monkeypatch):
     import relabel
     built, real = [], relabel.AugmentationSampler.__init__
 
-    def spy(self, episodes, make_env, stats, noise, sigma, cfg=None):
-        real(self, episodes, make_env, stats, noise, sigma, cfg)
+    def spy(self, episodes, make_env, stats, noise, sigma, cfg=None, *rest, **kwargs):
+        real(self, episodes, make_env, stats, noise, sigma, cfg, *rest, **kwargs)
         built.append(dict(noise=noise, sigma=sigma, episodes=list(episodes), sampler=self))
     monkeypatch.setattr(relabel.AugmentationSampler, "__init__", spy)
     return built

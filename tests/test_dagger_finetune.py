@@ -13,7 +13,7 @@ import calibrate
 import dagger
 import envs
 import relabel
-from experiment import checkpoints, report, run_folder
+from experiment import checkpoints, controls, profiles, report, run_folder
 
 TINY = dagger.Config(name="tiny", n_demos=4, rounds=1, lineages=1, K=5, network="mlp",
                      mlp_width=16, mlp_blocks=1, bc_steps=30, finetune_steps=12, batch_size=32,
@@ -102,8 +102,9 @@ def test_hg_dagger_draws_the_recorded_chunks_and_a_noised_arm_only_noised_states
     (dict(network="gru"), "network must be one of"),
 ])
 def test_bad_recipe_fields_raise(overrides, match):
+    """Fails if a recipe or network this code does not run passes the config's check (where a config enters)."""
     with pytest.raises(ValueError, match=match):
-        replace(TINY, **overrides)
+        profiles.check_config(replace(TINY, **overrides))
 
 
 # ---- each noised arm's sampler gets its own round's noise (Eqs. 14-16, Table I's rows) -------------------------
@@ -234,7 +235,8 @@ def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
     assert augmentation_samplers == []
     for method in ("fixed_2", "fixed_16", "zero_noise", "pooled", "closed_loop", "per_step"):
         augmentation_samplers.clear()
-        dagger.intervention_sampler(TINY, method, rounds, cal, stats)
+        (controls.Rows() if method == "zero_noise" else dagger.intervention_sampler)(TINY, method, rounds, cal, stats,
+                                                                                    envs.make_env)
         assert len(augmentation_samplers) == len(rounds), method
         offset = 0
         for built, D in zip(augmentation_samplers, rounds):
@@ -286,8 +288,8 @@ def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypat
     monkeypatch.setattr(dagger, "calibrate_noise", calibrate_noise)
     monkeypatch.setattr(dagger, "fine_tune", fine_tune)
     monkeypatch.setattr(dagger, "finetune_from_pi0", lambda cfg, pi0, *args, **kwargs: pi0)
-    monkeypatch.setattr(dagger, "evaluate_policy", lambda memo, cfg, name, policy, label, log=None, unseen=None:
-                        np.zeros((cfg.eval_scenarios, cfg.eval_repeats), bool))
+    monkeypatch.setattr(dagger, "evaluate_policy", lambda memo, cfg, name, policy, label, log=None, unseen=None,
+                        make_env=None: np.zeros((cfg.eval_scenarios, cfg.eval_repeats), bool))
     run = run_folder.Run(str(tmp_path), cfg)
     dagger.policy_calibrated_dagger(cfg, [0], memo=run.memo, log=run.log)
 

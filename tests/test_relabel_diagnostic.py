@@ -139,13 +139,11 @@ def test_the_velocity_noise_has_the_runs_spread(rd, episodes, stats):
     assert np.mean(first ** 2) == pytest.approx(3 * std ** 2, rel=0.25)
 
 
-@pytest.mark.xfail(strict=True, reason="pd_return_chunk in the sampler's table of concatenated episodes takes the "
-                   "previous episode's last state for its reference r_-1 at an episode's first step")
 def test_pd_returns_the_recorded_chunk_at_an_episodes_first_step(rd, stats):
-    """Interventions from step 0 (the expert drives from the episode's start): the PD label of the first step of
-    every episode after the first is off by the jump to the previous episode's last state, which the diagnostic
-    shows (9 rows of table1_strong lineage 5's D_1). Strict: when the label's code is mended this test passes and
-    its marker must go."""
+    """Interventions from step 0 (the expert drives from the episode's start): the PD label of every episode's first
+    step returns the recorded chunk. Fails if pd_return_chunk, in the sampler's table of episodes laid end to end,
+    takes the previous episode's last state for its reference r_-1 at an episode's first step (the bug the
+    diagnostic found: 9 rows of table1_strong lineage 5's D_1 off by that jump)."""
     env = envs.make_env("planar")
     from_start = [straight_line_episode(env, seed, expert_from=0) for seed in (0, 1)]
     r = rd.relabel_every_step(from_start, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd",

@@ -9,7 +9,7 @@ import torch
 import calibrate
 import dagger
 import envs
-from experiment import cpu_kernels, run_folder
+from experiment import cpu_kernels, run_folder, workers
 from helpers import straight_line_episode  # tests/helpers.py
 
 CFG = dagger.Config(name="steps", n_demos=3, rounds=1, lineages=1, K=5, down_dims=(8, 16), bc_steps=20,
@@ -38,7 +38,8 @@ def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeyp
     keeps its AdamW state for the arms, an arm leaves pi_0 as it was, nothing is written; the same calls through a
     run folder's memo give the same weights and successes. Fails if a step needs the run folder, if an arm does not
     continue pi_0's optimizer (or moves pi_0 itself), or if the harness computes anything the step does not but
-    swap the CPU kernels into the policy it trains (here handed the same swap: `fit`)."""
+    swap the CPU kernels into the policy it trains and give pi_0 its two torch threads (here the same: `fit`,
+    torch_threads)."""
     monkeypatch.chdir(tmp_path)  # a step that wrote a file would write it here
     torch.set_num_threads(1)
     demos, interventions = hand_made_data()
@@ -48,7 +49,8 @@ def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeyp
     def fit(policy, *args, **kwargs):  # the harness's swap (Run.train), without its files
         return dagger.train_policy(cpu_kernels.use_kernels(policy), *args, **kwargs)
 
-    pi0 = dagger.behavior_cloning(CFG, demos, log=lines.append, fit=fit)
+    with workers.torch_threads(run_folder.PI0_THREADS):  # as the harness trains pi_0 (Run.memo)
+        pi0 = dagger.behavior_cloning(CFG, demos, log=lines.append, fit=fit)
     assert pi0.train_state["step"] == CFG.bc_steps and pi0.train_state["optimizer"]["state"]
     before = weights(pi0)
     hg = dagger.fine_tune(CFG, 0, 1, "hg_dagger", demos, pi0, [interventions], None, stats, log=lines.append,
