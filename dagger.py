@@ -693,12 +693,7 @@ def _beta_fraction(a, b, x):
     return h
 
 
-# ---- The entry point: the harness's command line (experiment/cli.py: profiles, the run folder, the report) --------
-def main(argv=None):
-    """`python dagger.py [options]`: the harness's command line runs this file's loop on a run folder."""
-    from experiment import cli  # the harness stands above this file: imported only when the command runs
-    return cli.main(argv)
-
-
-if __name__ == "__main__":
-    main()
+# ---- The entry point: `python dagger.py [options]` hands the process to the harness's command line ---------------
+if __name__ == "__main__":  # experiment/cli.py: profiles, the run folder, this file's loop, the report (--help)
+    import runpy
+    runpy.run_module("experiment.cli", run_name="__main__", alter_sys=True)

@@ -37,7 +37,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
 from strength_probe import evaluation, machine, paired  # noqa: E402
-from experiment import profiles
+from experiment import cli, profiles
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "quick_probe")
 CANDIDATES = {
@@ -57,7 +57,7 @@ def run(candidate, seed, out, workers):
                                                     **CANDIDATES[candidate])
     folder, dest = os.path.join(out, name), os.path.join(RESULTS, name)
     t0 = time.time()
-    dagger.main(["--profile", f"quick_{candidate}", "--seed", str(seed), "--out", folder,
+    cli.main(["--profile", f"quick_{candidate}", "--seed", str(seed), "--out", folder,
                  "--workers", str(workers), "--export-lineages", dest])
     timings = os.path.join(folder, "timings")
     cost = {"wall_s": round(time.time() - t0, 1), "workers": workers, "machine": machine(),

@@ -34,7 +34,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import dagger  # noqa: E402
-from experiment import profiles
+from experiment import cli, profiles
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "strength_probe")
 KNOBS = {
@@ -62,10 +62,10 @@ def run(knob, out, workers):
         argv = ["--profile", f"probe_{knob}"]
     dest = os.path.join(RESULTS, knob)
     t0 = time.time()
-    dagger.main(argv + ["--lineage", "0", "--out", folder, "--workers", str(workers)])
+    cli.main(argv + ["--lineage", "0", "--out", folder, "--workers", str(workers)])
     cpu = sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
               for f in ("ru_utime", "ru_stime"))
-    dagger.main(argv + ["--lineages", "1", "--report", "--out", folder, "--export-lineages", dest]
+    cli.main(argv + ["--lineages", "1", "--report", "--out", folder, "--export-lineages", dest]
                 if knob != "base" else argv + ["--report", "--out", folder, "--export-lineages", dest])
     cost_path = os.path.join(dest, "cost.json")
     cost = json.load(open(cost_path)) if os.path.exists(cost_path) else {"sittings": []}

@@ -199,3 +199,7 @@ def usable_cores():
         return len(os.sched_getaffinity(0))
     except AttributeError:  # no sched_getaffinity (macOS, Windows)
         return os.cpu_count() or 1
+
+
+if __name__ == "__main__":  # `python dagger.py` (or python -m experiment.cli)
+    main()

@@ -37,8 +37,34 @@ from typing import Callable
 import numpy as np
 
 import dagger
+import diffusion
 import relabel
-from experiment import lever
+
+
+# ---- the authors' padded cut (their teleop_pad_short_episodes; lever.py masks the padded steps) ----------------
+def padded_chunks(episodes, H):
+    """(obs (N, obs_dim), chunks (N, H, dof), mask (N, H) bool) at every expert-driven step of every episode: the
+    chunk repeats its run's last action past the run's end, and the mask is False on those padded steps."""
+    obs_list, chunk_list, mask_list = [], [], []
+    for ep in episodes:
+        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"], bool)
+        starts, ends = padded_label_steps(expert, H)
+        steps = starts[:, None] + np.arange(H)[None, :]                 # (n, H)
+        last = ends[:, None] - 1                                         # the last step of each start's own run
+        obs_list.append(obs[starts].astype(np.float32))
+        chunk_list.append(action[np.minimum(steps, last)].astype(np.float32))
+        mask_list.append(steps <= last)
+    return np.concatenate(obs_list), np.concatenate(chunk_list), np.concatenate(mask_list)
+
+
+def padded_label_steps(expert, H):
+    """(t, seg_end): every step t of every expert run, however short, and the end (exclusive) of its run."""
+    expert = np.asarray(expert, bool)
+    seg_end = np.zeros(len(expert), np.int64)
+    for start, end in diffusion.expert_runs(expert, 1):  # with H = 1 every run counts, however short
+        seg_end[start:end] = end
+    t = np.flatnonzero(expert)
+    return t, seg_end[t]
 
 
 class AuthorsChunkSampler:
@@ -47,7 +73,7 @@ class AuthorsChunkSampler:
     loss (lever.PaddedChunkSampler is the same cut with those steps masked, as the authors' noised arms do)."""
 
     def __init__(self, episodes, H):
-        self.obs, self.chunks, _ = lever.padded_chunks(episodes, H)  # the padded steps' mask is not used
+        self.obs, self.chunks, _ = padded_chunks(episodes, H)  # the padded steps' mask is not used
 
     def __call__(self, n, rng):
         pick = rng.integers(len(self.obs), size=n)

@@ -25,42 +25,16 @@ import os
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
 import dagger
 import diffusion
 import envs
+from experiment.controls import Rows, padded_chunks, padded_label_steps
 from experiment.run_folder import RunFolderError
 
 RECIPES = ("authors_lever", "authors_lever_seeds")
 
 
-# ---- the padded label rule (their teleop_pad_short_episodes, do_mask_loss_for_padding) ---------------------------
-def padded_chunks(episodes, H):
-    """(obs (N, obs_dim), chunks (N, H, dof), mask (N, H) bool) at every expert-driven step of every episode: the
-    chunk repeats its run's last action past the run's end, and the mask is False on those padded steps."""
-    obs_list, chunk_list, mask_list = [], [], []
-    for ep in episodes:
-        obs, action, expert = np.asarray(ep["obs"]), np.asarray(ep["action"]), np.asarray(ep["expert"], bool)
-        starts, ends = padded_label_steps(expert, H)
-        steps = starts[:, None] + np.arange(H)[None, :]                 # (n, H)
-        last = ends[:, None] - 1                                         # the last step of each start's own run
-        obs_list.append(obs[starts].astype(np.float32))
-        chunk_list.append(action[np.minimum(steps, last)].astype(np.float32))
-        mask_list.append(steps <= last)
-    return np.concatenate(obs_list), np.concatenate(chunk_list), np.concatenate(mask_list)
-
-
-def padded_label_steps(expert, H):
-    """(t, seg_end): every step t of every expert run, however short, and the end (exclusive) of its run."""
-    expert = np.asarray(expert, bool)
-    seg_end = np.zeros(len(expert), np.int64)
-    for start, end in diffusion.expert_runs(expert, 1):  # with H = 1 every run counts, however short
-        seg_end[start:end] = end
-    t = np.flatnonzero(expert)
-    return t, seg_end[t]
-
-
+# ---- the padded label rule (their teleop_pad_short_episodes, do_mask_loss_for_padding: controls.padded_chunks)
 class PaddedChunkSampler:
     """HG-DAgger's intervention rows as recorded, at every intervention step, with the padded steps' loss mask."""
 
@@ -106,9 +80,8 @@ def pi0_is_the_bc_row(cfg, demos, pi0, memo=None, log=print, make_env=envs.make_
 
 def loop_arguments(cfg):
     """What the recipe hands dagger.policy_calibrated_dagger (besides the env factory)."""
-    from experiment import controls  # controls builds its rows on this module's padded chunks
     return dict(lr_schedule=AuthorsLeverLR(cfg.bc_steps), label_rule=every_run, bc_row=pi0_is_the_bc_row,
-                sampler=controls.Rows(chunks=PaddedChunkSampler, label_steps=padded_label_steps, shares=frame_shares))
+                sampler=Rows(chunks=PaddedChunkSampler, label_steps=padded_label_steps, shares=frame_shares))
 
 
 def check_recipe(cfg):

@@ -144,7 +144,7 @@ def test_a_negative_seed_is_refused_before_the_run_folder_is_made(tmp_path, caps
     valid range, and the command exits 2 before anything is written."""
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as exit_info:
-        dagger.main(["--profile", "smoke", "--seed", "-1", "--out", str(out)])
+        cli.main(["--profile", "smoke", "--seed", "-1", "--out", str(out)])
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "Traceback" not in err
     assert "seed must be an integer >= 0" in err and "got -1" in err
@@ -396,7 +396,7 @@ def test_a_config_mismatch_names_the_fields_and_exits_without_a_traceback(tmp_pa
     with pytest.raises(run_folder.ConfigMismatch, match=r"bc_steps = 30 there, 31 now"):
         run_folder.Run(root, replace(TINY, bc_steps=31))
     with pytest.raises(SystemExit) as exit_info:
-        dagger.main(["--profile", "smoke", "--out", root])
+        cli.main(["--profile", "smoke", "--out", root])
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "Traceback" not in err
     assert "--out" in err and "delete" in err and "n_demos = 4 there, 16 now" in err
@@ -519,7 +519,7 @@ def test_an_out_folder_that_cannot_be_made_is_a_clear_error(tmp_path, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     with pytest.raises(SystemExit) as exit_info:
-        dagger.main(["--profile", "smoke", "--out", str(blocker / "run")])
+        cli.main(["--profile", "smoke", "--out", str(blocker / "run")])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "cannot use" in err and str(blocker / "run") in err and "--out" in err and "Traceback" not in err
@@ -563,10 +563,10 @@ def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeyp
     for argv in swapped:
         if "--help" in argv:
             with pytest.raises(SystemExit) as done:
-                dagger.main(argv)
+                cli.main(argv)
             assert done.value.code == 0 and "--methods" in capsys.readouterr().out
             continue
-        root = dagger.main(argv + ["--profile", "smoke"])
+        root = cli.main(argv + ["--profile", "smoke"])
         if "--prepare" not in argv:
             assert os.path.isfile(os.path.join(root, "report.md")), argv
 
@@ -983,7 +983,7 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     monkeypatch.setattr(run_folder, "RESULTS_ROOT", str(results))
     monkeypatch.setitem(profiles.PROFILES, "tiny", TINY)
     with pytest.raises(SystemExit) as refused:  # nothing to export before --prepare finished
-        dagger.main(["--profile", "tiny", "--report", "--out", str(tmp_path / "empty"),
+        cli.main(["--profile", "tiny", "--report", "--out", str(tmp_path / "empty"),
                      "--export-start", str(results / "tiny")])
     assert refused.value.code == 2 and "--prepare first" in capsys.readouterr().err
     assert not os.path.exists(results / "tiny")
@@ -999,7 +999,7 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     pi0 = run_folder.weights_sha256(os.path.join(full_run, "checkpoints", "bc.pt"))
 
     root = str(tmp_path / "elsewhere")
-    dagger.main(["--profile", "tiny", "--prepare", "--out", root])
+    cli.main(["--profile", "tiny", "--prepare", "--out", root])
     assert trained_stages == []  # D0, pi_0 and the BC row came from the start: nothing trained
     assert run_folder.weights_sha256(os.path.join(root, "checkpoints", "bc.pt")) == pi0
     assert f"stage files from {start}" in open(os.path.join(root, "log.txt")).read()
