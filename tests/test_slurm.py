@@ -57,7 +57,8 @@ class Cluster:
         key = self.file("munge.key")
         with open(os.open(key, os.O_WRONLY | os.O_CREAT, 0o600), "wb") as f:
             f.write(os.urandom(1024))
-        # --force: munged refuses by default to run as root with its files in a folder others may list
+        # --force: munged refuses a socket in a folder that not everyone may enter (pytest's are 0700; every
+        # client of this one runs as root)
         subprocess.run(["munged", "--force", f"--key-file={key}", f"--socket={self.file('munge.socket')}",
                         f"--pid-file={self.file('munged.pid')}", f"--log-file={self.file('munged.log')}",
                         f"--seed-file={self.file('munged.seed')}"], check=True, env=self.env)
@@ -214,10 +215,12 @@ def reference(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def recipe_run(cluster, tmp_path_factory):
-    """The recipe submitted once on the smoke profile, waited for: (run folder, job IDs, the jobs' end states)."""
+    """The recipe submitted once on the smoke profile, waited for: (run folder, job IDs, the dependency Slurm held
+    for each job when it was submitted, the jobs' end states)."""
     out = str(tmp_path_factory.mktemp("recipe") / "smoke")
     jobs = cluster.submit_recipe(out)
-    return out, jobs, cluster.wait(*jobs)
+    held = {job: cluster.records(job)[0]["Dependency"] for job in jobs}  # the prepare job runs for minutes
+    return out, jobs, held, cluster.wait(*jobs)
 
 
 def method_numbers(results):
@@ -237,15 +240,21 @@ def partial_checkpoints(out, lineage):
     return sorted(glob.glob(os.path.join(out, f"lineage_{lineage}", "**", "*_step*.pt"), recursive=True))
 
 
-def test_the_recipe_on_slurm_makes_the_single_process_table_each_task_running_its_own_lineage(recipe_run, reference):
+def test_the_recipe_on_slurm_makes_the_single_process_table_each_task_running_its_own_lineage(
+        cluster, recipe_run, reference):
     """experiment/slurm_recipe.sh smoke OUT, as experiment/RUNNING.md has a user submit it, on a real Slurm. Catches
     a job that fails under the scheduler (another interpreter or working directory, the array task's ID read at
     submission instead of in the task), an array over other lineages than the profile's, a lineage that makes the
     shared stages itself (no dependency on the prepare job, or a folder it does not share with it), a report job
     that runs before every lineage has ended, and any number of the joined table that differs from one process's."""
-    out, (prepare, array, report), states = recipe_run
+    out, (prepare, array, report), held, states = recipe_run
+    assert held == {prepare: "(null)", array: f"afterok:{prepare}(unfulfilled)",
+                    report: f"afterok:{array}_*(unfulfilled)"}  # _*: every task of the array
     assert {job: state for job, (state, _) in states.items()} == {
         prepare: "COMPLETED", f"{array}_0": "COMPLETED", f"{array}_1": "COMPLETED", report: "COMPLETED"}
+    (shared_job,), tasks, (report_job,) = (cluster.records(job) for job in (prepare, array, report))
+    assert all(task["StartTime"] >= shared_job["EndTime"] for task in tasks)  # ISO times: their order is the text's
+    assert report_job["StartTime"] >= max(task["EndTime"] for task in tasks)
     shared = job_output(out, f"prepare-{prepare}.out")
     assert "D0: 16 oracle demonstrations" in shared and "BC: 300 steps" in shared
     assert "HG-DAgger collection" not in shared and "fine-tune" not in shared  # no lineage's stage
@@ -279,7 +288,7 @@ def test_a_lineage_cancelled_mid_stage_finishes_with_the_same_numbers_when_the_r
         assert time.time() < deadline, f"lineage 1 wrote no checkpoint within {JOB_TIMEOUT} s"
         task = cluster.records(f"{array}_1")[0]["JobState"]
         assert task not in ENDED, f"lineage 1's task ended ({task}) before it wrote a checkpoint"
-        time.sleep(0.2)
+        time.sleep(0.5)  # the first checkpoint comes at a quarter of a training: three quarters, seconds, remain
     cluster.slurm("scancel", f"{array}_1")
     states = cluster.wait(prepare, array, report)
     assert {job: state for job, (state, _) in states.items()} == {
