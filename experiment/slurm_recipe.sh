@@ -18,18 +18,18 @@ if [ $# -lt 2 ]; then
 fi
 profile=$1 out=$2
 shift 2
-cd "$(dirname "$0")/.."  # the repository: every job runs dagger.py from here (sbatch's default --chdir)
+cd "$(dirname "$0")/.."  # the repository: sbatch runs each job in the folder it was called from, dagger.py's
 lineages=$(python -c "import sys, dagger; print(dagger.PROFILES[sys.argv[1]].lineages)" "$profile")
 mkdir -p "$out/slurm"  # sbatch writes a job's output file, but makes no folder for it
 run="python dagger.py --profile $(printf %q "$profile") --out $(printf %q "$out")"
 
 # 2 CPUs: pi_0 trains on two threads (dagger.PI0_THREADS); the script's value wins over one given after OUT
-prepare=$(sbatch --parsable "$@" --cpus-per-task=2 --job-name=prepare --output="$out/slurm/prepare-%j.out" \
-            --wrap "$run --prepare")
+prepare=$(sbatch --parsable "$@" --cpus-per-task=2 --job-name="$profile-prepare" \
+            --output="$out/slurm/prepare-%j.out" --wrap "$run --prepare")
 # single quotes: the task's own SLURM_ARRAY_TASK_ID and SLURM_CPUS_PER_TASK, read when it runs, not here
 array=$(sbatch --parsable --cpus-per-task=1 "$@" --dependency=afterok:"$prepare" --array=0-$((lineages - 1)) \
-             --job-name=lineage --output="$out/slurm/lineage_%a-%A.out" \
-             --wrap "$run"' --lineage $SLURM_ARRAY_TASK_ID --workers $SLURM_CPUS_PER_TASK')
-report=$(sbatch --parsable "$@" --dependency=afterok:"$array" --job-name=report \
+          --job-name="$profile-lineage" --output="$out/slurm/lineage_%a-%A.out" \
+          --wrap "$run"' --lineage $SLURM_ARRAY_TASK_ID --workers $SLURM_CPUS_PER_TASK')
+report=$(sbatch --parsable "$@" --dependency=afterok:"$array" --job-name="$profile-report" \
            --output="$out/slurm/report-%j.out" --wrap "$run --report")
 echo "$prepare $array $report"
