@@ -39,7 +39,7 @@ pytestmark = [
 # the reason DependencyNeverSatisfied: Slurm's default keeps it until it is cancelled).
 ENDED = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "BOOT_FAIL",
          "DEADLINE"}
-# s: the two smoke runs took 8.5-10 min together on the Intel Xeon above; an hour leaves room for a slower, busier one
+# s: the two smoke runs took 8.5-10 min together on the Intel Xeon above; an hour leaves room for a busier machine
 JOB_TIMEOUT = 3600
 
 
