@@ -1003,3 +1003,33 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     assert args.copy_from is None and "has a pi_0 of its own" in capsys.readouterr().out
     args, _ = dagger.parse_args(["--profile", "tiny", "--out", str(tmp_path / "new")])
     assert args.copy_from == str(start)
+
+
+def test_collection_skips_only_the_scenarios_the_policy_always_solves(monkeypatch):
+    """HG-DAgger collects on every evaluation scenario the policy does not ALWAYS solve (benchmarks/SETUP.md §4):
+    with 3 repeats, a scenario solved 3 of 3 times is skipped, one solved 2, 1 or 0 times is rolled out (once each,
+    in the evaluation's order). Fails if the skip rule is another one: skip when solved at least once, by a majority
+    or by its first or last repeat, collect on every scenario, or read the success table along the wrong axis."""
+    cfg = replace(TINY, eval_scenarios=6, eval_repeats=3)
+    policy_success = np.array([[1, 1, 1],   # always solved: skipped
+                               [1, 1, 0],   # 2 of 3 (its first repeat solved, its last not)
+                               [0, 1, 1],   # 2 of 3 (its last repeat solved, its first not)
+                               [1, 0, 1],   # 2 of 3
+                               [0, 0, 0],   # never
+                               [1, 1, 1]],  # always solved: skipped
+                              bool)
+    rolled_out = []
+
+    def fake_rollout(env_list, policy, n_act, gen, oracle=None, log=None, seed=0):
+        rolled_out.extend(int(env.seed) for env in env_list)  # the scenarios the collection was reset to
+        return [{"obs": np.zeros((40, 4), np.float32), "q": np.zeros((40, 2)), "action": np.zeros((40, 2)),
+                 "expert": np.arange(40) >= 10, "seed": int(env.seed), "success": True, "interventions": 1}
+                for env in env_list]
+    monkeypatch.setattr(dagger, "rollout", fake_rollout)
+    lines = []
+    kept = dagger.collect_interventions(cfg, (0, 1), type("Stub", (), {"device": "cpu"})(), policy_success,
+                                        log=lines.append)
+    seeds = envs.eval_seeds()[:cfg.eval_scenarios]
+    assert rolled_out == [seeds[i] for i in (1, 2, 3, 4)]
+    assert [ep["seed"] for ep in kept] == rolled_out
+    assert "4 of 6 (2 skipped)" in lines[0]

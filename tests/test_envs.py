@@ -553,3 +553,37 @@ def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "after planar: False" in out.stdout and "after engine3d: True" in out.stdout
+
+
+def test_no_success_on_a_step_that_collides_at_the_goal():
+    """Success is the goal reached WITHOUT a collision on that step: a step that ends within goal_tolerance but
+    touches a block (at its end state, or only at a state inside the step) is a collision, not a success, and
+    earns no reward. Fails if step's success ignores the step's collision (goal_reached alone), or reads it from
+    the end state only. Each scene is first stepped without its block, to show that the same step succeeds there."""
+    h = 0.035  # obstacle half size
+    lifted = np.array([0.0, 0.03])  # the target 3 cm above the straight arm's end effector
+    # (1) the end state collides: link 1 swings up onto a block resting on it (gap 0 < the 5 mm contact margin)
+    q0, q1 = np.array([-0.05, 0.0, 0.0]), np.zeros(3)
+    at_end = [[0.15, 0.02 + h, h, h, 0.0]]
+    # (2) only a state inside the step collides: a small block on the fingers' path, passed at q = 0 (the second of
+    # the step's four checked states), as in test_step_checks_states_inside_the_step
+    e0 = empty_env()
+    tip = e0.link_lengths.sum() + e0.cfg.palm_size[0] + e0.cfg.finger_size[0]
+    finger_y = 0.5 * (e0.cfg.finger_gap + e0.cfg.finger_size[1])
+    p0, p1 = np.array([-0.025, 0.0, 0.0]), np.array([0.025, 0.0, 0.0])  # one full step (max_step 0.05)
+    inside = [[tip + 0.005, finger_y, 0.002, 0.002, 0.0]]
+    for start, end, block, end_collides in ((q0, q1, at_end, True), (p0, p1, inside, False)):
+        for obstacles in ([], block):
+            e = empty_env()
+            e.set_scene(obstacles, goal=e.ee(end) + lifted)
+            assert e.goal_reached(end) and not e.goal_reached(start) and not e.in_collision(start)
+            assert bool(e.in_collision(end)) == (end_collides and obstacles == block)
+            assert bool(e.in_collision(0.5 * (start + end))) == (obstacles == block)  # both collide inside
+            e.set_state(start)
+            _, reward, terminated, truncated, info = e.step(end)
+            np.testing.assert_allclose(e.q, end)  # within one step's speed limit: the step reaches `end`
+            assert terminated and not truncated
+            if obstacles == block:
+                assert info["collision"] and not info["success"] and reward == 0.0
+            else:
+                assert info["success"] and not info["collision"] and reward == 1.0
