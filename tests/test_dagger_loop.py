@@ -1033,3 +1033,22 @@ def test_collection_skips_only_the_scenarios_the_policy_always_solves(monkeypatc
     assert rolled_out == [seeds[i] for i in (1, 2, 3, 4)]
     assert [ep["seed"] for ep in kept] == rolled_out
     assert "4 of 6 (2 skipped)" in lines[0]
+
+
+def test_no_spread_is_explained_once_however_many_tests_it_concerns():
+    """When every lineage differs by the same amount, each paired test says "no spread" and the reason (t and p are
+    undefined) is given once under the tables, not beside every test (a smoke report had it about 15 times). Fails
+    if the reason is repeated per test, dropped, or printed for a table whose every test has a spread."""
+    cfg = dagger.Config(name="t", rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    same = {"0": [60.0, 62.0], "1": [61.0, 63.0]}
+    results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": same, "pooled": same}
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    text = report.format_table(cfg, table, stats, (table, stats))
+    words = "\n".join(report.paired_words(stats))
+    assert text.count("no spread") >= 10 and words.count("no spread") == 3
+    assert text.count(report.NO_SPREAD) == 1 and "t and p are undefined" not in words
+    assert text.count("undefined") == 1
+    fixed, pooled = {"0": [60.0, 62.0], "1": [65.0, 61.0]}, {"0": [61.0, 60.0], "1": [63.0, 66.0]}  # every test spread
+    results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": fixed, "pooled": pooled}
+    text = report.format_table(cfg, *report.summarize(cfg, results, dagger.PAPER))
+    assert "no spread" not in text and report.NO_SPREAD not in text
