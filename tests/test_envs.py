@@ -556,34 +556,27 @@ def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
 
 
 def test_no_success_on_a_step_that_collides_at_the_goal():
-    """Success is the goal reached WITHOUT a collision on that step: a step that ends within goal_tolerance but
-    touches a block (at its end state, or only at a state inside the step) is a collision, not a success, and
-    earns no reward. Fails if step's success ignores the step's collision (goal_reached alone), or reads it from
-    the end state only. Each scene is first stepped without its block, to show that the same step succeeds there."""
-    h = 0.035  # obstacle half size
-    lifted = np.array([0.0, 0.03])  # the target 3 cm above the straight arm's end effector
-    # (1) the end state collides: link 1 swings up onto a block resting on it (gap 0 < the 5 mm contact margin)
-    q0, q1 = np.array([-0.05, 0.0, 0.0]), np.zeros(3)
-    at_end = [[0.15, 0.02 + h, h, h, 0.0]]
-    # (2) only a state inside the step collides: a small block on the fingers' path, passed at q = 0 (the second of
-    # the step's four checked states), as in test_step_checks_states_inside_the_step
-    e0 = empty_env()
-    tip = e0.link_lengths.sum() + e0.cfg.palm_size[0] + e0.cfg.finger_size[0]
-    finger_y = 0.5 * (e0.cfg.finger_gap + e0.cfg.finger_size[1])
-    p0, p1 = np.array([-0.025, 0.0, 0.0]), np.array([0.025, 0.0, 0.0])  # one full step (max_step 0.05)
-    inside = [[tip + 0.005, finger_y, 0.002, 0.002, 0.0]]
-    for start, end, block, end_collides in ((q0, q1, at_end, True), (p0, p1, inside, False)):
-        for obstacles in ([], block):
-            e = empty_env()
-            e.set_scene(obstacles, goal=e.ee(end) + lifted)
-            assert e.goal_reached(end) and not e.goal_reached(start) and not e.in_collision(start)
-            assert bool(e.in_collision(end)) == (end_collides and obstacles == block)
-            assert bool(e.in_collision(0.5 * (start + end))) == (obstacles == block)  # both collide inside
-            e.set_state(start)
-            _, reward, terminated, truncated, info = e.step(end)
-            np.testing.assert_allclose(e.q, end)  # within one step's speed limit: the step reaches `end`
-            assert terminated and not truncated
-            if obstacles == block:
-                assert info["collision"] and not info["success"] and reward == 0.0
-            else:
-                assert info["success"] and not info["collision"] and reward == 1.0
+    """Success is the goal reached WITHOUT a collision on that step, and the step's states are q0 + k/n (q1 - q0),
+    k = 1 .. n (n = n_substeps): the first one after the start, those inside, the end, nothing beyond. One step of
+    every joint by max_step ends with the end effector on the target; a 4 mm block in its way touches exactly one
+    state k of the sweep (k = n + 1: a quarter step past the end, never reached). Fails if success ignores the step's
+    collision (goal_reached alone) or reads it from the end state only, or if the sweep skips its first or last
+    state or checks one beyond the end. Without a block the same step is a success."""
+    q0, q1 = np.zeros(3), np.full(3, 0.05)                      # one step at the speed limit
+    n = empty_env().cfg.n_substeps
+    assert n == 4                                                 # the blocks below are placed for four states
+    states = q0 + np.arange(n + 2)[:, None] / n * (q1 - q0)      # (n + 2, 3): the start s_0 .. the end s_n, s_n+1
+    # block centres (m) that touch state k alone, each with >= 2 mm to spare in x and y
+    touching = {1: (0.755, 0.063), 2: (0.788, 0.083), 3: (0.790, 0.011), 4: (0.783, 0.120), 5: (0.714, 0.133)}
+    for k, centre in [(None, None)] + sorted(touching.items()):
+        e = empty_env()
+        e.set_scene([] if centre is None else [[*centre, 0.002, 0.002, 0.0]], goal=e.ee(q1))
+        assert e.goal_reached(q1) and not e.goal_reached(q0)
+        for check in (e.in_collision, e.pymunk_in_collision):   # the block touches state k and no other
+            assert np.flatnonzero(check(states)).tolist() == ([] if k is None else [k])
+        e.set_state(q0)
+        _, reward, terminated, truncated, info = e.step(q1)
+        np.testing.assert_allclose(e.q, q1)                       # the step ends on the target
+        collides = k is not None and k <= n
+        assert (info["collision"], info["success"], reward) == (collides, not collides, float(not collides)), k
+        assert terminated and not truncated
