@@ -1028,8 +1028,11 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
 def test_collection_skips_only_the_scenarios_the_policy_always_solves(monkeypatch):
     """HG-DAgger collects on every evaluation scenario the policy does not ALWAYS solve (benchmarks/SETUP.md §4):
     with 3 repeats, a scenario solved 3 of 3 times is skipped, one solved 2, 1 or 0 times is rolled out (once each,
-    in the evaluation's order). Fails if the skip rule is another one: skip when solved at least once, by a majority
-    or by its first or last repeat, collect on every scenario, or read the success table along the wrong axis."""
+    in the evaluation's order), and the episodes with an intervention are kept. Fails if the skip rule is another
+    one: skip when solved at least once, by a majority or by its first or last repeat, collect on every scenario, or
+    read the success table along the wrong axis; or if the log's counts (skipped; solved alone, with the expert's
+    help, failed; kept; expert steps) or its seconds are wrong."""
+    import re
     cfg = replace(TINY, eval_scenarios=6, eval_repeats=3)
     policy_success = np.array([[1, 1, 1],   # always solved: skipped
                                [1, 1, 0],   # 2 of 3 (its first repeat solved, its last not)
@@ -1038,21 +1041,26 @@ def test_collection_skips_only_the_scenarios_the_policy_always_solves(monkeypatc
                                [0, 0, 0],   # never
                                [1, 1, 1]],  # always solved: skipped
                               bool)
+    # the four episodes' (success, interventions, expert steps): two solved alone, one with help, one failed
+    outcomes = [(True, 0, 0), (True, 0, 0), (True, 2, 30), (False, 1, 25)]
     rolled_out = []
 
     def fake_rollout(env_list, policy, n_act, gen, oracle=None, log=None, seed=0):
         rolled_out.extend(int(env.seed) for env in env_list)  # the scenarios the collection was reset to
         return [{"obs": np.zeros((40, 4), np.float32), "q": np.zeros((40, 2)), "action": np.zeros((40, 2)),
-                 "expert": np.arange(40) >= 10, "seed": int(env.seed), "success": True, "interventions": 1}
-                for env in env_list]
+                 "expert": np.arange(40) >= 40 - steps, "seed": int(env.seed), "success": ok, "interventions": n}
+                for env, (ok, n, steps) in zip(env_list, outcomes)]
     monkeypatch.setattr(dagger, "rollout", fake_rollout)
     lines = []
     kept = dagger.collect_interventions(cfg, (0, 1), type("Stub", (), {"device": "cpu"})(), policy_success,
                                         log=lines.append)
     seeds = envs.eval_seeds()[:cfg.eval_scenarios]
     assert rolled_out == [seeds[i] for i in (1, 2, 3, 4)]
-    assert [ep["seed"] for ep in kept] == rolled_out
+    assert [ep["seed"] for ep in kept] == rolled_out[2:]            # the two with an intervention of >= H steps
     assert "4 of 6 (2 skipped)" in lines[0]
+    counts = re.search(r"4 episodes: (\d+) solved by the policy alone, (\d+) solved with the expert's help, (\d+) "
+                       r"failed; (\d+) kept with interventions, (\d+) expert steps, (\d+) s", lines[1])
+    assert counts and tuple(map(int, counts.groups()[:5])) == (2, 1, 1, 2, 55) and int(counts.group(6)) < 60
 
 
 def test_no_spread_is_explained_once_however_many_tests_it_concerns():
