@@ -613,7 +613,7 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
     spread (fitted: filled; too few kept: open), the fitted Eq. (12), W and its 95 % bootstrap interval."""
     plt, c, min_survivors = _pyplot(), calibration, CalibrationConfig.min_survivors
     unit = c.median_step if median_step is None else median_step
-    fig, ax = plt.subplots(figsize=(10.5, 3.8))
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
     kept = c.blend_kept
     ax.scatter(c.blend_s[kept], c.blend_x[kept] / unit, s=9, color="C0", alpha=0.35, zorder=2,
                label=f"kept rollouts ({int(kept.sum())})")
@@ -654,9 +654,9 @@ def plot_blend_fit(calibration: Calibration, median_step: float | None, path) ->
     ax.set(ylim=(0, top), xlim=(0, 1.04), title="Blend fit for W (paper Fig. 4)",   # x: room for W's error bar
            xlabel=r"noise fraction $\sigma^2_{k_{sw}} = 1 - \bar\alpha_{k_{sw}}$",
            ylabel="settling error [our median steps]")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.16, 1.0), frameon=False)  # outside the data
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
+    # the legend below the axes, in two columns: off the data, and the plot keeps the figure's width
+    ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+    fig.savefig(path, dpi=150, bbox_inches="tight")  # the legend below the axes stays in the picture
     plt.close(fig)
 
 

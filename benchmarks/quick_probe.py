@@ -13,7 +13,7 @@ each at master seeds 0, 1, 2 on one machine kind. The rule, fixed now: `narrow` 
 mean over the three seeds of HG-DAgger - BC (paired over the 100 scenarios x 3) is no smaller than `now`'s; `short`
 by the same rule.
 
-    python benchmarks/quick_probe.py --run CANDIDATE --seed S [--out /root/runs/quick_probe] [--workers 2]
+    python benchmarks/quick_probe.py --run CANDIDATE --seed S [--out runs/quick_probe] [--workers 2]
     python benchmarks/quick_probe.py --table       # the probe's table from the committed files
 
 A run writes its run folder (OUT/CANDIDATE_seedS; it resumes), then its results file and its stages' seconds to

@@ -10,8 +10,8 @@ strength"; its result: benchmarks/README.md):
     k100     K = 100 diffusion steps, trained and sampled (a DDPM trained on 20 noise levels cannot be sampled at 100)
     unet     the authors' 1-D conv U-Net at (32, 64, 128) in place of the MLP, at the table1 budget (10k + 10k, batch 256)
 
-    python benchmarks/strength_probe.py --run KNOB [--out /root/runs/probe]   # resumable: run it again after a stop
-    python benchmarks/strength_probe.py --table                              # the probe's table from the committed files
+    python benchmarks/strength_probe.py --run KNOB [--out runs/strength_probe]  # resumable: run it again after a stop
+    python benchmarks/strength_probe.py --table                                # the probe's table from the committed files
 
 A run writes its run folder (OUT/KNOB), then the lineage's results file and its stages' costs to
 benchmarks/results/strength_probe/KNOB/ (lineage_0.json.gz, cost.json). --table reads only those committed files.

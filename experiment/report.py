@@ -377,8 +377,17 @@ def format_cell(cell):
 
 
 def stat_words(s):
-    """t(df) = .., p = .. -- or why there is no p-value."""
-    return s["degenerate"] if s.get("degenerate") else f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}"
+    """t(df) = .., p = .. -- or 'no spread' (NO_SPREAD, said once under the table, says why there is no p)."""
+    return "no spread" if s.get("degenerate") else f"t({s['df']}) = {s['t']:.2f}, p = {s['p']:.3g}"
+
+
+NO_SPREAD = ("\"No spread\": every lineage differs by the same number of points, so the paired differences have no "
+             "spread and t and p are undefined.")
+
+
+def has_no_spread(stats):
+    """True where any paired statistic in stats (nested dicts, as summarize returns them) has no spread."""
+    return isinstance(stats, dict) and (bool(stats.get("degenerate")) or any(map(has_no_spread, stats.values())))
 
 
 def table_rows(cfg, table):
@@ -425,6 +434,8 @@ def format_table(cfg, table, stats, unseen=None):
         lines += ["", f"**Unseen scenarios.** The same policies on {scenario_words(cfg, 'unseen')} x "
                       f"{cfg.eval_repeats} evaluations (not in the paper; one sampling seed for every method):", ""]
         lines += table_rows(cfg, unseen[0]) + paired_lines(cfg, unseen[1])
+    if has_no_spread(stats) or (unseen is not None and has_no_spread(unseen[1])):
+        lines += ["", NO_SPREAD]  # once, not beside every test it concerns
     lines += calibration_lines(cfg, stats)
     if stats.get("stage_times"):
         lines.append("")
@@ -452,7 +463,7 @@ def paired_lines(cfg, stats):
                      f"({stats['best_fixed']}):")
         for m, s in stats["tost_vs_best_fixed"].items():
             lines.append(f"- {method_label(m)}: {s['diff']:+.1f} points, "
-                         + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.3g}"))
+                         + ("no spread" if s.get("degenerate") else f"p = {s['p']:.3g}"))
     per_round = {k: r for k, r in (stats.get("per_round") or {}).items() if r["paired_vs_hg_dagger"]}
     if per_round:
         lines.append("")
@@ -461,7 +472,7 @@ def paired_lines(cfg, stats):
                      "calibrated ones vs that round's best fixed noise"
                      + "".join(f", TOST ±{m:g}" for m in sorted(margins)) + ":")
         for k, r in per_round.items():
-            parts = [f"{m} {s['diff']:+.1f} (" + (s["degenerate"] if s.get("degenerate") else f"p = {s['p']:.2g}")
+            parts = [f"{m} {s['diff']:+.1f} (" + ("no spread" if s.get("degenerate") else f"p = {s['p']:.2g}")
                      + ")" for m, s in r["paired_vs_hg_dagger"].items()]
             parts += [f"{m} vs {s['vs']} {s['diff']:+.1f} (TOST " + ("no spread" if s.get("degenerate") else
                                                                    f"p = {s['p']:.2g}") + ")"
@@ -838,7 +849,7 @@ def paired_words(stats):
                      + stat_words(s) + ".")
     for m, s in stats.get("tost_vs_best_fixed", {}).items():
         words.append(f"- {method_label(m)} against the best fixed noise in hindsight ({s['vs']}): "
-                     f"{s['diff']:+.1f} points; " + (s["degenerate"] if s.get("degenerate") else
+                     f"{s['diff']:+.1f} points; " + ("no spread" if s.get("degenerate") else
                      f"TOST at ±{s['margin']:g} points, p = {s['p']:.3g} "
                      + ("(equivalent at 5 %)" if s["p"] < 0.05 else "(equivalence not shown)")) + ".")
     return words

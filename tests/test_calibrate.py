@@ -752,3 +752,28 @@ def test_W_interval_resamples_the_kept_rollouts_within_each_ratio(monkeypatch):
     monkeypatch.setattr(cal, "fit_equilibrium", lambda *a, **k: fits.append(real_fit(*a, **k)) or fits[-1])
     assert cal.W_interval(betas, s, x, kept, (0.01, 5.0), cfg) == (lo, hi)
     assert (lo, hi) == tuple(np.percentile(np.clip([f.W for f in fits], 0.01, 5.0), [2.5, 97.5]))
+
+
+def test_fig4s_legend_is_off_the_data_and_leaves_the_plot_the_figures_width(tmp_path, monkeypatch):
+    """Fig. 4's legend (eight long entries) lies wholly outside the axes, and the axes keep at least 70 % of the
+    saved picture's width. Fails if the legend is drawn on the data (it hid half of it) or beside the plot, where
+    it took half the figure's width and squeezed the plot."""
+    import matplotlib.figure
+    saved = []
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        saved.append(fig)
+        return original(fig, *args, **kwargs)
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    cal.plot_blend_fit(_calibration(), None, tmp_path / "fig4.png")
+    (fig,) = saved
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    renderer = FigureCanvasAgg(fig).get_renderer()                                # (plt.close left a bare canvas)
+    ax = fig.axes[0]
+    legend = ax.get_legend()
+    assert legend is not None and len(legend.get_texts()) >= 6
+    box, plot = legend.get_window_extent(renderer), ax.get_window_extent(renderer)
+    assert not box.overlaps(plot)                                                 # off the data
+    picture = fig.get_tightbbox(renderer)                                         # what bbox_inches="tight" saves
+    assert plot.width / (picture.width * fig.dpi) >= 0.7

@@ -64,6 +64,7 @@ def load(root, name):
     return run_folder.load_episodes(os.path.join(root, name))
 
 
+@pytest.mark.slow
 def test_the_control_rows_train_evaluate_and_are_named_in_the_table(controls_run):
     """Fails if a control row is not fine-tuned, evaluated or named in table.md (the report's METHOD_LABELS)."""
     for m in ROWS:
@@ -73,6 +74,7 @@ def test_the_control_rows_train_evaluate_and_are_named_in_the_table(controls_run
     assert "HG-DAgger as the authors' kit trained it" in table and "Half recorded, half pooled" in table
 
 
+@pytest.mark.slow
 def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_noise(controls_run,
                                                                                      augmentation_samplers):
     """controls.co_trained. Fails if a co-training row's mix is not half and half, if its recorded half is not HG-DAgger's chunks, or if its
@@ -95,6 +97,7 @@ def test_the_co_training_rows_draw_half_as_recorded_half_noised_with_their_rows_
         assert 0.4 < mask.all(axis=1).mean() <= 1.0 and obs.shape == (400, recorded.obs.shape[1])
 
 
+@pytest.mark.slow
 def test_a_committed_start_serves_a_run_of_other_methods_and_rounds_and_a_run_folder_does_not(controls_run,
                                                                                                tmp_path):
     """The shared stages (D0, pi_0, the BC row) depend on neither the methods nor the rounds: table1's committed start
@@ -110,6 +113,7 @@ def test_a_committed_start_serves_a_run_of_other_methods_and_rounds_and_a_run_fo
         run_folder.copy_from(run_folder.Run(str(tmp_path / "half"), TINY), longer)
 
 
+@pytest.mark.slow
 def test_a_folder_of_fewer_rounds_gives_a_longer_run_its_first_rounds(controls_run, tmp_path, trained_stages):
     """--rounds 2 --copy-from a one-round folder: only round 2 trains, and round 1's stages are the folder's (no stage
     depends on the round count). Fails if round 1 retrains or the copy is refused."""

@@ -28,6 +28,7 @@ def two_workers(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_continue_saves_pi0_with_its_optimizer_and_the_bc_row_continues_it(two_workers):
     state = torch.load(os.path.join(two_workers, "checkpoints", "bc.pt"), weights_only=True)["train_state"]
     assert state["step"] == TINY.bc_steps and state["optimizer"]["state"]          # AdamW moments kept
@@ -40,6 +41,7 @@ def test_continue_saves_pi0_with_its_optimizer_and_the_bc_row_continues_it(two_w
     assert "pi_0 continued on D0 alone" in open(os.path.join(two_workers, "log.txt")).read()
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_numbers_of_one_process(two_workers, tmp_path):
     root = str(tmp_path / "one")
     report.run_experiment(TINY, root, workers=1)
@@ -80,6 +82,7 @@ def test_d0_skips_a_scenario_the_oracle_cannot_plan_and_plans_the_next_one(tmp_p
         os.path.join(run.root, "log.txt")).read()
 
 
+@pytest.mark.slow
 def test_hg_dagger_draws_the_recorded_chunks_and_a_noised_arm_only_noised_states(two_workers):
     D = run_folder.load_episodes(os.path.join(two_workers, "lineage_0/round_1/D.npz"))
     demos = run_folder.load_episodes(os.path.join(two_workers, "data/D0.npz"))
@@ -256,6 +259,7 @@ def test_every_noised_arm_gets_its_own_noise(augmentation_samplers):
             offset += len(D)
 
 
+@pytest.mark.slow
 def test_each_rounds_noised_arms_get_that_rounds_calibration(tmp_path, monkeypatch, augmentation_samplers):
     """Fails if, in the loop (policy_calibrated_dagger, train_and_evaluate, closed_loop_round), a noised arm of round k is
     given another round's calibration (round 1's or k-1's; the first calibration kept for every round) or another

@@ -41,6 +41,7 @@ def full_run(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_every_output_file(full_run):
     """Every output file is there and holds what it should: the config, D0, pi_0 with its optimizer state, the
     evaluations on the right scenarios, interventions >= H, a usable calibration, results that agree with the
@@ -83,6 +84,7 @@ def test_every_output_file(full_run):
     assert "done in" in open(at("log.txt")).read()
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeypatch):
     root = str(tmp_path / "interrupted")
     real = dagger.fine_tune
@@ -109,6 +111,7 @@ def test_interrupted_run_resumes_to_the_same_results(full_run, tmp_path, monkeyp
     assert np.allclose(ca["pooled"], cb["pooled"])
 
 
+@pytest.mark.slow
 def test_run_folder_refuses_a_different_config(full_run):
     with pytest.raises(ValueError, match="made with another config"):
         run_folder.Run(full_run, replace(TINY, bc_steps=31))
@@ -236,6 +239,7 @@ def test_the_default_worker_count_is_the_cores_this_process_may_use(monkeypatch)
     assert cli.parse_args([])[0].workers == 64
 
 
+@pytest.mark.slow
 def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_path):
     old = json.load(open(os.path.join(full_run, "config.json")))
     del old["mlp_width"], old["mlp_blocks"]  # a run folder written before these fields existed
@@ -247,6 +251,7 @@ def test_run_folder_accepts_fields_added_later_at_their_default(full_run, tmp_pa
         run_folder.Run(str(root), replace(TINY, mlp_width=128))
 
 
+@pytest.mark.slow
 def test_a_retired_field_is_dropped_at_the_value_that_remains_and_another_value_is_refused(full_run, tmp_path):
     """A config stored before an option was deleted (run_folder.RETIRED_FIELDS: config.json, a lineage record, a
     --join file, a --copy-from folder all compare through check_same_config) still matches where the field holds
@@ -412,6 +417,7 @@ def test_degenerate_statistics_say_why_instead_of_a_p_value():
     assert report.format_cell((55.0, 0.0, 1)) == "55.0 (1)" and report.format_cell((55.0, 1.5, 3)) == "55.0 ± 1.5 (3)"
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_with_one_line_and_status_130_and_the_run_resumes(tmp_path):
     """SIGINT during a smoke run: exit status 130, no traceback, one line saying how to resume; the same
     command then continues from the finished stages (D0 is not made again)."""
@@ -495,6 +501,7 @@ def test_every_readme_command_parses_and_none_is_refused_by_another_commands_fol
         assert not changed, f"{argv} would be refused in {folder}: {changed} differ"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage_file", ["data/D0.npz", "checkpoints/bc.pt", "eval/bc.json",
                                         "lineage_0/round_1/calibration.json", "lineage_0/round_1/D.npz"])
 def test_a_damaged_stage_file_is_named_and_never_reused(full_run, tmp_path, stage_file, capsys):
@@ -540,6 +547,7 @@ def readme_commands():
     return commands
 
 
+@pytest.mark.slow
 def test_the_readme_commands_run_in_order_on_the_smoke_profile(tmp_path, monkeypatch, capsys):
     """Each README command, as written but with its profile (and the profile's folder runs/<profile>) swapped
     for a shrunken smoke profile, runs to the end in the order the README gives them, in one working folder:
@@ -596,6 +604,7 @@ def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
     assert relabel.velocity_noise_std(relabel.RelabelConfig(horizon=16), stats) == pytest.approx(0.3 * 0.0176 * 3)
 
 
+@pytest.mark.slow
 def test_every_policy_is_also_evaluated_on_unseen_scenarios(full_run):
     unseen = envs.unseen_seeds()[:TINY.eval_scenarios]
     paths = ["eval/bc_unseen.json", *[f"lineage_0/round_1/eval/{m}_unseen.json" for m in TINY.methods if m != "bc"]]
@@ -618,6 +627,7 @@ def test_every_policy_is_also_evaluated_on_unseen_scenarios(full_run):
     assert "unseen scenarios (never trained on)" in open(os.path.join(full_run, "report.md")).read()
 
 
+@pytest.mark.slow
 def test_calibration_is_reported_in_the_papers_unit_radians_beside(full_run):
     results = json.load(open(os.path.join(full_run, "results.json")))
     cal = results["stats"]["calibration"]["1"]["0"]
@@ -648,6 +658,7 @@ def test_eval_unseen_switch():
     assert not cfg.eval_unseen and profiles.PROFILES["smoke"].eval_unseen
 
 
+@pytest.mark.slow
 def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
     """eval_unseen may differ from the folder's config: off, the run re-makes no stage and adds no unseen
     evaluation; on again, it adds exactly the unseen evaluations, equal to the ones made in the first place."""
@@ -669,6 +680,7 @@ def test_eval_unseen_can_change_on_an_existing_run_folder(full_run, tmp_path):
     assert {p: os.stat(p).st_mtime_ns for p in stages} == stages  # nothing else was made again
 
 
+@pytest.mark.slow
 def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_path):
     """A lineage records the config and the pi_0 it was made with (lineage_<l>/lineage.json); a lineage folder
     copied in from another run folder with the same shared stages joins the report (--lineages N), and one made
@@ -694,6 +706,7 @@ def test_a_lineage_run_elsewhere_joins_a_run_folder_made_like_it(full_run, tmp_p
         report.run_experiment(replace(TINY, lineages=2), root, report_only=True)
 
 
+@pytest.mark.slow
 def test_closed_loop_row_is_its_own_chain_collected_and_measured_by_its_calibrated_policy(tmp_path, monkeypatch):
     """Table I's closed-loop pooled row: round 1 shares pi_0's interventions and HG-DAgger's round-1
     calibration; from round 2 on, the previous round's closed_loop policy collects (skipping what its own
@@ -784,6 +797,7 @@ def test_table1_profile_is_all_of_table_i_and_its_cost_counts_every_stage_of_a_l
     assert wall1 - wall7 == pytest.approx(5 * 6 * cell)
 
 
+@pytest.mark.slow
 def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrations(tmp_path, monkeypatch,
                                                                                       load_benchmark):
     """benchmarks/lever_networks.py: D0 collected once and copied into every candidate's folder; each candidate's
@@ -824,6 +838,7 @@ def test_lever_networks_benchmark_trains_every_candidate_on_the_same_demonstrati
     assert os.path.getmtime(os.path.join(out, "mlp_h8", "checkpoints", "bc.pt")) == stamp
 
 
+@pytest.mark.slow
 def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refused_where_it_does_not_belong(
         full_run, tmp_path):
     """--export-lineages writes one small file per lineage (its evaluations, calibrations, timings and the shared
@@ -881,6 +896,7 @@ def files_and_times(root):
             if run_folder.LOCK_FOLDER not in os.path.relpath(top, root).split(os.sep)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,bad,expected", [
     # a cell's evaluation of another shape: was averaged into the table as if it were the cell's (100 % here)
     ("lineage_0/round_1/eval/pooled.json", {"success": [[True]], "seeds": [10_000]},
@@ -910,6 +926,7 @@ def test_the_report_refuses_an_evaluation_of_another_shape_or_scenarios(full_run
     assert files_and_times(root) == before  # no table, no results, no figure written over
 
 
+@pytest.mark.slow
 def test_a_joined_results_file_with_an_evaluation_of_another_shape_is_refused_and_leaves_nothing(full_run, tmp_path):
     """Bug: --join unpacked a lineage results file whose evaluation had another shape than its config says, and
     the report then averaged it into the table. Now the join names the results file and the evaluation in it,
@@ -929,6 +946,7 @@ def test_a_joined_results_file_with_an_evaluation_of_another_shape_is_refused_an
     assert not os.path.exists(os.path.join(root, "lineage_0")) and not os.path.exists(os.path.join(root, "eval"))
 
 
+@pytest.mark.slow
 def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(full_run, tmp_path, trained_stages):
     """--copy-from FOLDER (the sigma = 0 control beside a finished table): the stages of a run with the same config
     and fewer methods are copied in, so only the added method trains, and the copied rows report the same numbers.
@@ -954,6 +972,7 @@ def test_copy_from_adds_a_method_to_a_finished_run_and_trains_only_that_method(f
     assert args.copy_from == root
 
 
+@pytest.mark.slow
 def test_w_spread_recalibrates_a_finished_round_at_other_blend_ratios(full_run, load_benchmark, capsys):
     """benchmarks/bench_calibrate.py --run --betas (the authors' six lever ratios against our 13): the round's
     HG-DAgger policy recalibrated per seed with the ratios given; the first seed is the run's own, so with the run's
@@ -972,6 +991,7 @@ def test_w_spread_recalibrates_a_finished_round_at_other_blend_ratios(full_run, 
             bench.parse_betas(bad)
 
 
+@pytest.mark.slow
 def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_computes_its_own(
         full_run, tmp_path, monkeypatch, trained_stages, capsys):
     """--export-start writes a run's shared stages (D0, pi_0 with its optimizer state, the BC row, their evaluations)
@@ -1016,3 +1036,60 @@ def test_a_committed_start_gives_every_lineage_the_same_pi0_and_another_config_c
     assert args.copy_from is None and "has a pi_0 of its own" in capsys.readouterr().out
     args, _ = cli.parse_args(["--profile", "tiny", "--out", str(tmp_path / "new")])
     assert args.copy_from == str(start)
+
+
+def test_collection_skips_only_the_scenarios_the_policy_always_solves(monkeypatch):
+    """HG-DAgger collects on every evaluation scenario the policy does not ALWAYS solve (benchmarks/SETUP.md §4):
+    with 3 repeats, a scenario solved 3 of 3 times is skipped, one solved 2, 1 or 0 times is rolled out (once each,
+    in the evaluation's order), and the episodes with an intervention are kept. Fails if the skip rule is another
+    one: skip when solved at least once, by a majority or by its first or last repeat, collect on every scenario, or
+    read the success table along the wrong axis; or if the log's counts (skipped; solved alone, with the expert's
+    help, failed; kept; expert steps) or its seconds are wrong."""
+    import re
+    cfg = replace(TINY, eval_scenarios=6, eval_repeats=3)
+    policy_success = np.array([[1, 1, 1],   # always solved: skipped
+                               [1, 1, 0],   # 2 of 3 (its first repeat solved, its last not)
+                               [0, 1, 1],   # 2 of 3 (its last repeat solved, its first not)
+                               [1, 0, 1],   # 2 of 3
+                               [0, 0, 0],   # never
+                               [1, 1, 1]],  # always solved: skipped
+                              bool)
+    # the four episodes' (success, interventions, expert steps): two solved alone, one with help, one failed
+    outcomes = [(True, 0, 0), (True, 0, 0), (True, 2, 30), (False, 1, 25)]
+    rolled_out = []
+
+    def fake_rollout(env_list, policy, n_act, gen, oracle=None, log=None, seed=0):
+        rolled_out.extend(int(env.seed) for env in env_list)  # the scenarios the collection was reset to
+        return [{"obs": np.zeros((40, 4), np.float32), "q": np.zeros((40, 2)), "action": np.zeros((40, 2)),
+                 "expert": np.arange(40) >= 40 - steps, "seed": int(env.seed), "success": ok, "interventions": n}
+                for env, (ok, n, steps) in zip(env_list, outcomes)]
+    monkeypatch.setattr(dagger, "rollout", fake_rollout)
+    lines = []
+    kept = dagger.collect_interventions(cfg, (0, 1), type("Stub", (), {"device": "cpu"})(), policy_success,
+                                        log=lines.append)
+    seeds = envs.eval_seeds()[:cfg.eval_scenarios]
+    assert rolled_out == [seeds[i] for i in (1, 2, 3, 4)]
+    assert [ep["seed"] for ep in kept] == rolled_out[2:]            # the two with an intervention of >= H steps
+    assert "4 of 6 (2 skipped)" in lines[0]
+    counts = re.search(r"4 episodes: (\d+) solved by the policy alone, (\d+) solved with the expert's help, (\d+) "
+                       r"failed; (\d+) kept with interventions, (\d+) expert steps, (\d+) s", lines[1])
+    assert counts and tuple(map(int, counts.groups()[:5])) == (2, 1, 1, 2, 55) and int(counts.group(6)) < 60
+
+
+def test_no_spread_is_explained_once_however_many_tests_it_concerns():
+    """When every lineage differs by the same amount, each paired test says "no spread" and the reason (t and p are
+    undefined) is given once under the tables, not beside every test (a smoke report had it about 15 times). Fails
+    if the reason is repeated per test, dropped, or printed for a table whose every test has a spread."""
+    cfg = dagger.Config(name="t", rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
+    same = {"0": [60.0, 62.0], "1": [61.0, 63.0]}
+    results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": same, "pooled": same}
+    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    text = report.format_table(cfg, table, stats, (table, stats))
+    words = "\n".join(report.paired_words(stats))
+    assert text.count("no spread") >= 10 and words.count("no spread") == 3
+    assert text.count(report.NO_SPREAD) == 1 and "t and p are undefined" not in words
+    assert text.count("undefined") == 1
+    fixed, pooled = {"0": [60.0, 62.0], "1": [65.0, 61.0]}, {"0": [61.0, 60.0], "1": [63.0, 66.0]}  # every test spread
+    results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": fixed, "pooled": pooled}
+    text = report.format_table(cfg, *report.summarize(cfg, results, dagger.PAPER))
+    assert "no spread" not in text and report.NO_SPREAD not in text

@@ -199,6 +199,7 @@ def test_bad_configs_raise(overrides, match):
 
 # ---------------------------------------------------------------------------------------------- policy
 
+@pytest.mark.slow
 def test_two_mode_toy_policy_keeps_both_modes(toy_trained):
     obs = np.zeros((400, 4), dtype=np.float32)                        # at rest at the origin
     chunks = toy_trained.sample(obs, generator=torch.Generator().manual_seed(0))
@@ -213,6 +214,7 @@ def test_two_mode_toy_policy_keeps_both_modes(toy_trained):
     assert np.median(worst) < 0.03, f"samples must stay near the data modes, median error {np.median(worst):.3f}"
 
 
+@pytest.mark.slow
 def test_batched_sampling_equals_looped(toy_trained):
     obs = np.random.default_rng(1).uniform(-1, 1, (3, 4)).astype(np.float32)
     batched = toy_trained.sample(obs, generator=torch.Generator().manual_seed(5))
@@ -264,6 +266,7 @@ def test_normalizer_is_relative_to_q_and_adds_velocity():
         policy.fit_normalizer(obs, chunks.reshape(-1, 2))                # chunks must pair with obs
 
 
+@pytest.mark.slow
 def test_policy_continues_the_velocity_precisely():
     """The velocity is an input and the chunk is learned relative to q_t: after a short training run the
     sampled chunk keeps the velocity to a small fraction of a step (velocities are up to 0.05 rad per step;

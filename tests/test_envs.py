@@ -555,3 +555,30 @@ def test_the_planar_env_never_loads_pybullet_and_the_ur5_env_does():
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "after planar: False" in out.stdout and "after engine3d: True" in out.stdout
+
+
+def test_no_success_on_a_step_that_collides_at_the_goal():
+    """Success is the goal reached WITHOUT a collision on that step, and the step's states are q0 + k/n (q1 - q0),
+    k = 1 .. n (n = n_substeps): the first one after the start, those inside, the end, nothing beyond. One step of
+    every joint by max_step ends with the end effector on the target; a 4 mm block in its way touches exactly one
+    state k of the sweep (k = n + 1: a quarter step past the end, never reached). Fails if success ignores the step's
+    collision (goal_reached alone) or reads it from the end state only, or if the sweep skips its first or last
+    state or checks one beyond the end. Without a block the same step is a success."""
+    q0, q1 = np.zeros(3), np.full(3, 0.05)                      # one step at the speed limit
+    n = empty_env().cfg.n_substeps
+    assert n == 4                                                 # the blocks below are placed for four states
+    states = q0 + np.arange(n + 2)[:, None] / n * (q1 - q0)      # (n + 2, 3): the start s_0 .. the end s_n, s_n+1
+    # block centres (m) that touch state k alone, each with >= 2 mm to spare in x and y
+    touching = {1: (0.755, 0.063), 2: (0.788, 0.083), 3: (0.790, 0.011), 4: (0.783, 0.120), 5: (0.714, 0.133)}
+    for k, centre in [(None, None)] + sorted(touching.items()):
+        e = empty_env()
+        e.set_scene([] if centre is None else [[*centre, 0.002, 0.002, 0.0]], goal=e.ee(q1))
+        assert e.goal_reached(q1) and not e.goal_reached(q0)
+        for check in (e.in_collision, e.pymunk_in_collision):   # the block touches state k and no other
+            assert np.flatnonzero(check(states)).tolist() == ([] if k is None else [k])
+        e.set_state(q0)
+        _, reward, terminated, truncated, info = e.step(q1)
+        np.testing.assert_allclose(e.q, q1)                       # the step ends on the target
+        collides = k is not None and k <= n
+        assert (info["collision"], info["success"], reward) == (collides, not collides, float(not collides)), k
+        assert terminated and not truncated

@@ -157,6 +157,7 @@ def image_direction_data(n, seed=0, side=8):
 CNN_8 = dict(encoder=ImageEncoder, obs_encoder_args={"shape": (1, 8, 8), "features": 16})
 
 
+@pytest.mark.slow
 def test_image_policy_reads_the_direction_from_the_image():
     obs, chunks, _ = image_direction_data(2000, seed=0)
     test_obs, _, left = image_direction_data(200, seed=1)
@@ -292,6 +293,7 @@ def test_evaluate_runs_an_image_policy_on_image_observations(monkeypatch):
                         make_env=environments.make_env)  # no images: 127 != 207
 
 
+@pytest.mark.slow
 def test_a_worker_process_rebuilds_the_variant_env():
     """Workers are spawned: a job (a dagger.py function with the harness's env factory) rebuilds the variant's env."""
     cfg = replace(profiles.PROFILES["smoke"], env="engine3d_image", n_demos=1)
@@ -300,6 +302,7 @@ def test_a_worker_process_rebuilds_the_variant_env():
                         workers=2)  # a worker's error is raised here
 
 
+@pytest.mark.slow
 def test_whole_loop_on_engine3d_with_image_observations(tmp_path, monkeypatch):
     """Every stage with the UR5 env and camera images: demos, BC, HG-DAgger with the 6-dof oracle,
     calibration, augmentation that reuses recorded images, evaluation, every figure (figs 1-3 in the top view)."""

@@ -69,6 +69,7 @@ def test_the_recipe_continues_pi0s_optimizer_at_a_tenth_of_its_peak_and_keeps_pi
     assert named.recipe == "authors_lever" and named.name == "table2_authors_lever"
 
 
+@pytest.mark.slow
 def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(paper_run):
     D, demos = load(paper_run, "lineage_0/round_1/D.npz"), load(paper_run, "data/D0.npz")
     stats = dagger.demo_statistics(TINY, demos)
@@ -83,6 +84,7 @@ def test_round_shares_by_frames_weigh_each_round_by_its_intervention_frames(pape
     assert np.allclose(lever_sampler(LEVER, "fixed_4", [D, small], cal, stats).p, frames / frames.sum())
 
 
+@pytest.mark.slow
 def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(paper_run, tmp_path, monkeypatch):
     """An intervention shorter than H is kept at collection, every one of its steps starts a chunk that repeats its
     last action past its end with those steps masked, and the noised arms draw states there too; the paper's recipe
@@ -126,6 +128,7 @@ def test_short_interventions_are_kept_with_their_padded_steps_out_of_the_loss(pa
         assert len(got) == kept and bool(got[0]["expert"][s0]) == (cfg is LEVER)
 
 
+@pytest.mark.slow
 def test_seed_replicates_train_every_lineage_on_lineage_0s_interventions_with_its_own_training_seed(
         tmp_path, trained_stages):
     """authors_lever_seeds: lineage 1 collects and calibrates nothing of its own -- it trains on lineage 0's D_1, D_2

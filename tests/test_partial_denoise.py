@@ -170,6 +170,7 @@ def test_error_variance_matches_closed_form_for_zero_noise_prediction(beta):
 
 # ---------------------------------------------------------------------------------------------- beta = 0, 1
 
+@pytest.mark.slow
 def test_beta_zero_returns_expert_chunk(toy_policy):
     expert = np.random.default_rng(0).uniform(-1, 1, (16, 4, 2))
     obs = np.zeros((16, 4), dtype=np.float32)
@@ -179,6 +180,7 @@ def test_beta_zero_returns_expert_chunk(toy_policy):
     assert np.array_equal(out, expert)
 
 
+@pytest.mark.slow
 def test_beta_one_is_unguided_sampling(toy_policy):
     n = 400
     obs = np.zeros((n, 4), dtype=np.float32)
@@ -193,6 +195,7 @@ def test_beta_one_is_unguided_sampling(toy_policy):
     assert abs(up_guided - up_plain) < 0.02 and 0.3 < up_plain < 0.7
 
 
+@pytest.mark.slow
 def test_distance_to_expert_grows_with_beta(toy_policy):
     n = 300
     obs = np.zeros((n, 4), dtype=np.float32)
@@ -206,6 +209,7 @@ def test_distance_to_expert_grows_with_beta(toy_policy):
     assert np.all(np.diff(dists) > 0), f"mean distance must grow with beta, got {np.round(dists, 3)}"
 
 
+@pytest.mark.slow
 def test_batched_equals_looped(toy_policy):
     rng = np.random.default_rng(3)
     obs = rng.uniform(-1, 1, (4, 4)).astype(np.float32)  # (q_t, q_{t-1}) of the toy's 2 joints

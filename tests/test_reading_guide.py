@@ -94,6 +94,7 @@ def test_the_guide_parser_reads_marks_and_modules():
                                  ("dagger", "tost"): ("7b. stats", False), ("report", "summarize"): ("7b. stats", False)}
 
 
+@pytest.mark.slow
 def test_every_function_the_reading_guide_names_runs_or_is_marked(traced_run):
     """Fails if the guide names a function that one run of the loop never calls (outside the figures) without
     marking it '(not run: ...)', or marks one the run does call."""

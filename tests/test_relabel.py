@@ -914,3 +914,31 @@ def test_generate_labels_in_one_pass_when_no_redraw_is_allowed(stats):
     obs, chunks, mask = sampler.generate(64, np.random.default_rng(0))  # the same draws
     assert len(obs) == len(kept) and sampler.n_kept == len(kept)
     assert chunks.shape == (len(obs), H, DOF) and mask.shape == (len(obs), H)
+
+
+def test_servo_gains_are_the_discrete_critically_damped_pair(stats):
+    """The servo label's gains are the discrete critically damped pair of its own ω: Kp = (1 - p)², Kd = 1 - p²,
+    p = e^{-ω}, ω² = a_clamp / max(d0, gain_floor · m). On a path that stands still (r constant, no cap in reach)
+    the error map [[1 - Kp, 1 - Kd], [-Kp, 1 - Kd]] then has the double root p, and from rest the error is
+    e_k = (1 + k (1 - p)) p^k e0, the discrete (1 + ωt) e^{-ωt}: it never crosses the path. Fails if the servo
+    uses another damping (the continuous Kd = 2 √Kp overshoots at 10 Hz; a smaller Kd rings, a larger one creeps),
+    or another Kp (ω from d0 without the floor, or a_clamp's square root dropped)."""
+    m, T, t0 = stats.median_step, 40, 10
+    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)  # RelabelConfig's defaults
+    point = np.array([0.3, -0.2, 0.1])
+    traj = np.broadcast_to(point, (T, DOF)).copy()  # r_c = point, u_c = 0 wherever the cursor is
+    direction = np.array([2.0, -1.0, 2.0]) / 3.0  # unit vector: the error stays on this line
+    d0 = np.array([0.5, 4.0, 12.0]) * m  # below the floor 4/3 m (ω from the floor), and above it (ω from d0)
+    q0 = point + d0[:, None] * direction  # (3, DOF) at rest
+    loose = RelabelConfig(H, jerk_slew=1e6, speed_cap=1e6, speed_cap_v0=1e6)  # only the PD acts
+    chunk, _ = relabel.servo_return_chunk(q0, np.zeros_like(q0), traj, t0, replace(stats, max_step=1.0), loose)
+    err = (chunk - point) @ direction  # (3, H) signed error along the line
+    np.testing.assert_allclose(chunk - point, err[..., None] * direction, atol=1e-12)  # straight back, no sideways
+    k = np.arange(1, H + 1)
+    omega = np.sqrt(a_clamp / np.maximum(d0, 4.0 / 3.0 * m))  # (3,)
+    p = np.exp(-omega)[:, None]
+    np.testing.assert_allclose(err, (1 + k * (1 - p)) * p ** k * d0[:, None], rtol=1e-9, atol=1e-15)
+    assert np.all(err > 0)  # no overshoot: every step on the side it started
+    assert np.all(np.diff(err, axis=1) < 0)  # and always closing in
+    # the error's own recursion: its characteristic roots coincide at p (e_{k+2} - 2p e_{k+1} + p² e_k = 0)
+    np.testing.assert_allclose(err[:, 2:] - 2 * p * err[:, 1:-1] + p ** 2 * err[:, :-2], 0, atol=1e-12 * m)

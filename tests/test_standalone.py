@@ -89,3 +89,85 @@ def test_no_tracked_file_refers_to_a_path_outside_the_repository():
         bad += [f"{path}:{number}: {match}" for number, match in outside_references(text, names)]
     assert not bad, ("references to paths outside the repository (the authors' setup is benchmarks/SETUP.md, "
                      "the paper is named in README.md):\n" + "\n".join(bad))
+
+
+# A machine's own folders: a path that starts there is one person's checkout or run folder, not the reader's.
+MACHINE_PATH = re.compile(r"(?<![\w.~])/(?:" + "root|home|work" + r")/")
+
+
+def heading_anchor(heading):
+    """The anchor a markdown heading gets on GitHub: its text without links' targets and backticks, lower case,
+    every character but letters, digits, '_', '-' and spaces dropped, each space a '-'."""
+    text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading).replace("`", "").strip().lower()
+    return "".join(ch for ch in text if ch.isalnum() or ch in "_- ").replace(" ", "-")
+
+
+def anchors(text):
+    """The anchors of a markdown text's headings (outside code fences); a repeated heading's get -1, -2, ..."""
+    found, seen, fenced = set(), {}, False
+    for line in text.splitlines():
+        fenced ^= line.startswith("```")
+        m = None if fenced else re.match(r"(#{1,6})\s+(.*?)\s*$", line)
+        if m:
+            anchor = heading_anchor(m.group(2))
+            n = seen[anchor] = seen.get(anchor, -1) + 1
+            found.add(anchor if n == 0 else f"{anchor}-{n}")
+    return found
+
+
+def test_the_anchor_rule_matches_githubs():
+    """Fails if heading_anchor drops or keeps the wrong characters (then the test below checks the wrong anchors):
+    the anchors GitHub gives these headings."""
+    assert heading_anchor("Table I (planar reacher), five lineages × five rounds") == \
+        "table-i-planar-reacher-five-lineages--five-rounds"
+    assert heading_anchor("The default run, `python dagger.py`") == "the-default-run-python-daggerpy"
+    assert heading_anchor("The σ = 0 control on the lever: is it the noise?") == \
+        "the-σ--0-control-on-the-lever-is-it-the-noise"
+    assert heading_anchor("What the env takes from the authors' code (`benchmarks/SETUP.md`)") == \
+        "what-the-env-takes-from-the-authors-code-benchmarkssetupmd"
+    assert anchors("# A\n```\n# not a heading\n```\n## A\n") == {"a", "a-1"}
+
+
+def test_every_markdown_link_to_a_section_finds_its_heading():
+    """Fails, naming file and line, when a tracked markdown file links to a section (`(#anchor)` or
+    `(FILE.md#anchor)`) that no heading of that file has: a renamed heading leaves a dead link."""
+    bad = []
+    for path in (p for p in tracked_files() if p.endswith(".md")):
+        text = read_text(path)
+        for m in re.finditer(r"\]\(([^)\s#]*)#([^)\s]+)\)", text):
+            target, anchor = m.group(1), m.group(2)
+            if re.match(r"\w+://", target):
+                continue
+            linked = os.path.normpath(os.path.join(os.path.dirname(path), target)) if target else path
+            full = os.path.join(ROOT, linked)
+            if not os.path.isfile(full) or anchor not in anchors(read_text(linked)):
+                bad.append(f"{path}:{text[:m.start()].count(chr(10)) + 1}: {target}#{anchor}")
+    assert not bad, "links to sections that no heading has:\n" + "\n".join(bad)
+
+
+def test_no_tracked_file_names_a_machine_path():
+    """Fails, naming file and line, when a tracked text file names a path under one machine's /root, /home or /work
+    (a run folder or script on the machine that wrote it): the reader's clone has it elsewhere or not at all."""
+    me = os.path.relpath(os.path.abspath(__file__), ROOT)
+    bad = []
+    for path in tracked_files():
+        text = None if path == me or not os.path.isfile(os.path.join(ROOT, path)) else read_text(path)
+        for number, line in enumerate((text or "").splitlines(), start=1):
+            bad += [f"{path}:{number}: {line.strip()[:100]}" for _ in MACHINE_PATH.finditer(line)]
+    assert MACHINE_PATH.search("--out /" "root/runs/x") and not MACHINE_PATH.search("runs/x, ~/work/x, a/home/b")
+    assert not bad, "machine paths in tracked files (name run folders relative to the repository):\n" + "\n".join(bad)
+
+
+def test_no_tracked_file_names_an_issue_number():
+    """Fails, naming file and line, when a tracked text file cites the project tracker's issues by number ("issue
+    42", "issues 60-61", "issue-59"): a reader of a clone has no tracker; a change is named by what it did (and its
+    commit)."""
+    issue = re.compile(r"\b[Ii]ssues?[ -]#?\d+")
+    assert issue.search("as in issue" " 42") and issue.search("the issue-" "59 study") and not issue.search("an issue")
+    me = os.path.relpath(os.path.abspath(__file__), ROOT)
+    bad = []
+    for path in tracked_files():
+        text = None if path == me or not os.path.isfile(os.path.join(ROOT, path)) else read_text(path)
+        for number, line in enumerate((text or "").splitlines(), start=1):
+            bad += [f"{path}:{number}: {m.group(0)}" for m in issue.finditer(line)]
+    assert not bad, "issue numbers in tracked files:\n" + "\n".join(bad)

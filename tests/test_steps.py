@@ -4,6 +4,7 @@ import os
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 import calibrate
@@ -33,6 +34,7 @@ def same(a, b):
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.slow
 def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeypatch):
     """behavior_cloning, fine_tune (the HG-DAgger row) and evaluation with hand-made D0 and D_1 and no folder: pi_0
     keeps its AdamW state for the arms, an arm leaves pi_0 as it was, nothing is written; the same calls through a
@@ -76,6 +78,7 @@ def test_three_steps_called_as_in_a_notebook_equal_the_harness(tmp_path, monkeyp
     assert same(weights(again.memo("lineage_0/round_1/checkpoints/hg_dagger.pt", None)), weights(hg))
 
 
+@pytest.mark.slow
 def test_the_loop_runs_without_a_folder_and_returns_table_i_rows(tmp_path, monkeypatch):
     """policy_calibrated_dagger as a notebook calls it: no memo, no map, no folder; every step a plain call, here,
     nothing written, and what it made comes back: pi_0, D_1, the calibration, each row's policy and success, and

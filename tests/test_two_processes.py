@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from experiment import run_folder
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -43,6 +45,7 @@ def wait_for_lock(root, name, proc, timeout=120):
     raise AssertionError(f"process {proc.pid} never wrote {path}: {proc.communicate()[1][-3000:]}")
 
 
+@pytest.mark.slow
 def test_two_lineages_into_one_folder_both_finish_and_a_second_run_of_one_stops_naming_its_pid(tmp_path):
     root = str(tmp_path / "run")
     first, second = run_lineage(root, 0), run_lineage(root, 1)  # started together: both make D0 and pi_0 ...
@@ -64,6 +67,7 @@ def test_two_lineages_into_one_folder_both_finish_and_a_second_run_of_one_stops_
     assert log.count("D0: 4 oracle demonstrations") == 1
 
 
+@pytest.mark.slow
 def test_a_killed_run_leaves_its_lineage_free(tmp_path):
     """The lock is the system's (flock): SIGKILL, which runs no clean-up, still frees the lineage."""
     root = str(tmp_path / "run")

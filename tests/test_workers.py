@@ -2,6 +2,8 @@
 import os
 import time
 
+import pytest
+
 from experiment import workers
 
 
@@ -16,6 +18,7 @@ def finish(value, wait_for=None, then_write=None):
     return value
 
 
+@pytest.mark.slow
 def test_results_and_progress_come_in_the_jobs_order_when_the_first_job_finishes_last(tmp_path):
     """Job a waits for the file job c writes, so two workers finish b first and a after c. Fails if in_parallel
     hands its results, or each() its calls, in the order the jobs finished (concurrent.futures.as_completed)."""

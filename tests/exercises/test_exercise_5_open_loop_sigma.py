@@ -68,3 +68,23 @@ def test_eq1_is_uncentered_and_averages_over_samples():
     expected = L @ L.T + np.outer(m, m)
     assert np.allclose(steps.sigma.mean(axis=0), expected, atol=0.03 * np.trace(expected))
     assert np.abs(steps.sigma[0] - expected).max() < 0.15 * np.trace(expected)   # each step, n*H = 1600 draws
+
+
+def test_eq1_averages_only_the_executed_steps():
+    """Eq. (1) averages over the n_act executed steps of each chunk, not all H: the rest is re-planned before it
+    runs. A policy with n_act = 2 < H = 4 (and, the same, an explicit n_act=2 to a policy without one) gives
+    mean_{h < 2} d_h d_h^T of the deterministic pattern. Fails on a solution that ignores n_act (averages all H
+    steps) or that keeps the first n_act steps but divides by H."""
+    ep = episode(2)
+    n_act = 2
+    expected = lambda t: pattern(t, None)[:n_act].T @ pattern(t, None)[:n_act] / n_act   # (DOF, DOF)
+    executing = ScriptedPolicy(ep, pattern)
+    executing.cfg = SimpleNamespace(horizon=H, n_act=n_act)
+    for policy, kwargs in ((executing, {}), (ScriptedPolicy(ep, pattern), {"n_act": n_act})):
+        steps = open_loop_sigma(policy, [ep], stride=3, n_samples=2, **kwargs)
+        assert len(steps.timestep) == 10
+        for sigma, t in zip(steps.sigma, steps.timestep):
+            assert np.allclose(sigma, expected(int(t)), rtol=1e-9, atol=1e-15)
+            everything = pattern(int(t), None)
+            assert not np.allclose(sigma, everything.T @ everything / H, rtol=1e-3)   # all H steps differ
+        assert steps.samples.shape == (10, 2, H, DOF)                   # the whole chunks still come back

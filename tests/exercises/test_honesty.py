@@ -248,6 +248,7 @@ def copy_runs(request, tmp_path_factory):
         yield {key: (check, pool.submit(run_test, key[1], copy)) for key, (copy, check) in copies.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(os.environ.get(IN_COPY) == "1", reason="inside a student copy: no recursion")
 @pytest.mark.parametrize("n", sorted(TABLE))
 def test_blanked_exercise_fails_its_test(n, copy_runs):
@@ -259,6 +260,7 @@ def test_blanked_exercise_fails_its_test(n, copy_runs):
         f"exercise {n}: the test failed, but not at the hole:\n{out[-3000:]}"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(os.environ.get(IN_COPY) == "1", reason="inside a student copy: no recursion")
 @pytest.mark.parametrize("n", sorted(WRONG))
 def test_wrong_solution_fails_its_test(n, copy_runs):
