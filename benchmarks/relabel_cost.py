@@ -89,7 +89,8 @@ def variance_components(table):
 # ---- the power analysis (stated before the runs) ------------------------------------------------------------------
 def pilot_table(lineages, row, base, new=True):
     """(lineages, scenarios) row − base in points per scenario (the mean over its repeats), new or collected set."""
-    return np.array([noise_transfer.per_scenario(f, l, row, new) - noise_transfer.per_scenario(f, l, base, new)
+    which = "new" if new else "collected"
+    return np.array([noise_transfer.per_scenario(f, l, row, which) - noise_transfer.per_scenario(f, l, base, which)
                      for l, f in sorted(lineages.items())])
 
 

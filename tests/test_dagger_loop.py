@@ -1083,7 +1083,7 @@ def test_no_spread_is_explained_once_however_many_tests_it_concerns():
     cfg = dagger.Config(name="t", rounds=2, lineages=2, methods=("bc", "hg_dagger", "fixed_4", "pooled"))
     same = {"0": [60.0, 62.0], "1": [61.0, 63.0]}
     results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": same, "pooled": same}
-    table, stats = report.summarize(cfg, results, dagger.PAPER)
+    table, stats = report.summarize(cfg, results)
     text = report.format_table(cfg, table, stats, (table, stats))
     words = "\n".join(report.paired_words(stats))
     assert text.count("no spread") >= 10 and words.count("no spread") == 3
@@ -1091,5 +1091,5 @@ def test_no_spread_is_explained_once_however_many_tests_it_concerns():
     assert text.count("undefined") == 1
     fixed, pooled = {"0": [60.0, 62.0], "1": [65.0, 61.0]}, {"0": [61.0, 60.0], "1": [63.0, 66.0]}  # every test spread
     results = {"bc": {"all": [50.0]}, "hg_dagger": same, "fixed_4": fixed, "pooled": pooled}
-    text = report.format_table(cfg, *report.summarize(cfg, results, dagger.PAPER))
+    text = report.format_table(cfg, *report.summarize(cfg, results))
     assert "no spread" not in text and report.NO_SPREAD not in text
