@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import dagger  # noqa: E402
 import diffusion  # noqa: E402
-from experiment import environments, profiles, report
+from experiment import cpu_kernels, environments, profiles, report  # noqa: E402
 from experiment.run_folder import Run, read_json, timing_name, without_retired_fields, write_json  # noqa: E402
 from experiment.workers import in_parallel  # noqa: E402
 
@@ -102,8 +102,8 @@ def cpu_seconds_per_step(cfg, demos, steps=TIMED_STEPS):
     fresh policy trained `steps` steps at cfg's batch, timed by time.process_time -- a count that other
     processes on the cores do not inflate, unlike the stage's wall seconds."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
-    policy = dagger.make_policy(cfg, environments.make_env(cfg.env))
-    tc = replace(dagger.train_config(cfg, policy, steps, seed=0), log_every=0)
+    policy = cpu_kernels.use_kernels(dagger.make_policy(cfg, environments.make_env(cfg.env)))  # as a run trains it
+    tc = replace(dagger.train_config(replace(cfg, bc_steps=steps), policy, steps, seed=0), log_every=0)
     t0 = time.process_time()
     diffusion.train(policy, obs, chunks, tc, log=lambda m: None)
     return (time.process_time() - t0) / steps

@@ -19,7 +19,7 @@ fi
 profile=$1 out=$2
 shift 2
 cd "$(dirname "$0")/.."  # the repository: sbatch runs each job in the folder it was called from, dagger.py's
-lineages=$(python -c "import sys, dagger; print(dagger.PROFILES[sys.argv[1]].lineages)" "$profile")
+lineages=$(python -c "import sys; from experiment.profiles import PROFILES; print(PROFILES[sys.argv[1]].lineages)" "$profile")
 mkdir -p "$out/slurm"  # sbatch writes a job's output file, but makes no folder for it
 run="python dagger.py --profile $(printf %q "$profile") --out $(printf %q "$out")"
 

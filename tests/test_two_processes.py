@@ -23,7 +23,7 @@ CONFIG = ("dagger.Config(name='two', n_demos=4, rounds=1, lineages=2, K=5, down_
 
 def start(root, code):
     """A python process in the repository running `code` (dagger imported, cfg = CONFIG, root given)."""
-    script = ("import sys, torch, dagger; from experiment import cli, run_folder; torch.set_num_threads(1); "
+    script = ("import sys, torch, dagger; from experiment import cli, report, run_folder; torch.set_num_threads(1); "
               f"cfg = {CONFIG}; root = {root!r}\n" + code)
     return subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
