@@ -81,7 +81,8 @@ def shared_demos(out, base, seed=0):
 
 
 def measure(out, name, cfg_fields, demos_path):
-    """One candidate (a worker's job): D0 copied in, pi_0 trained and evaluated (dagger.py --prepare), the BC row."""
+    """One candidate (a worker's job): D0 copied in, pi_0 trained and evaluated and the recipe's BC row (dagger.py
+    --prepare), the CPU seconds of a training step."""
     root = os.path.join(out, name)
     target = os.path.join(root, "data", "D0.npz")
     if not os.path.exists(target):
@@ -89,9 +90,7 @@ def measure(out, name, cfg_fields, demos_path):
         shutil.copyfile(demos_path, target + ".part")
         os.replace(target + ".part", target)
     cfg = dagger.Config(**cfg_fields)
-    report.run_experiment(cfg, root, prepare=True)
-    run = Run(root, cfg)
-    dagger.bc_row_arm(cfg, run.load("data/D0.npz"), run.load("checkpoints/bc.pt"), run.memo, run.log)
+    report.run_experiment(cfg, root, prepare=True)  # the shared stages: D0, pi_0, its evaluation, the BC row
     path = os.path.join(root, "cpu_per_step.json")
     if not os.path.exists(path):
         write_json(path, {"seconds": cpu_seconds_per_step(cfg, Run(root, cfg).load("data/D0.npz"))})
