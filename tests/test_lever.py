@@ -184,3 +184,12 @@ def test_a_stored_config_of_the_four_old_fields_reads_as_its_recipe(stored, reci
     assert run_folder.without_retired_fields("here", {**stored, "name": old})["name"] == cfg.name
     with pytest.raises(run_folder.ConfigMismatch, match="a combination no recipe runs now"):
         run_folder.without_retired_fields("here", {**stored, "round_shares": "frames", "finetune": "continue"})
+
+
+def test_the_recipes_label_rule_keeps_every_intervention_and_shares_go_by_frames():
+    """lever.every_run keeps an intervention of one step (the paper's rule drops runs shorter than H), and
+    frame_shares weighs rounds by their intervention frames. Fails if a run shorter than 2 steps is dropped, or the
+    shares are equal, unnormalized or inverted."""
+    expert = np.array([0, 1, 0, 1, 1, 0, 1], bool)
+    assert [tuple(r) for r in lever.every_run(expert, 20)] == [(1, 2), (3, 5), (6, 7)]
+    assert lever.frame_shares([10, 30]) == [0.25, 0.75] and lever.frame_shares([5]) == [1.0]

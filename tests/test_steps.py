@@ -120,3 +120,14 @@ def test_the_harness_swap_samples_what_the_plain_policy_samples():
     obs = np.stack([d["obs"][0] for d in demos])
     a, b = (p.sample(obs, generator=torch.Generator().manual_seed(3)) for p in (plain, swapped))
     assert np.allclose(a, b, rtol=0, atol=1e-4)
+
+
+def test_a_steps_seed_is_the_master_seed_and_its_name_through_numpy_seed_sequence():
+    """dagger.stage_seed: stable across runs (the files a resumed run reads were made with it), one per step name and
+    keys, one per master seed. Fails if the keys' bytes, their order, or the master seed stop entering the seed."""
+    word = lambda text: int.from_bytes(text.encode()[:8].ljust(8, b"\0"), "little")  # noqa: E731
+    expect = int(np.random.SeedSequence([CFG.seed, word("train"), 0, 1, word("pooled")]).generate_state(1)[0])
+    assert dagger.stage_seed(CFG, "train", 0, 1, "pooled") == expect
+    seeds = {dagger.stage_seed(CFG, "train", 0, 1, m) for m in ("pooled", "fixed_4", "hg_dagger")}
+    assert len(seeds) == 3 and dagger.stage_seed(CFG, 1, 0) != dagger.stage_seed(CFG, 0, 1)
+    assert dagger.stage_seed(replace(CFG, seed=1), "bc") != dagger.stage_seed(CFG, "bc")
