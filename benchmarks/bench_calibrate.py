@@ -139,7 +139,8 @@ def w_spread(root, n_seeds, lineage, k, betas=None):
     betas: other blend ratios than calibrate's (the authors' six on the lever), or None."""
     import dataclasses
     import dagger
-    from experiment.run_folder import Run, read_json, stage_seed, without_retired_fields
+    from dagger import stage_seed
+    from experiment.run_folder import Run, read_json, without_retired_fields
     if n_seeds < 2:
         raise SystemExit(f"--seeds {n_seeds}: a spread needs at least 2 seeds")
     saved = read_json(os.path.join(root, "config.json"))

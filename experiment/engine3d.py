@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import envs
 from envs import ArmEnv, as_batch
 
 # ---- The UR5 engine lever's configuration (Table II; benchmarks/HISTORY.md, "The UR5 engine-lever task") --

@@ -28,7 +28,6 @@ import torch
 import calibrate
 import diffusion
 import envs
-from dagger import stage_seed  # noqa: F401 (the seed of every step: the harness's benchmarks read it here too)
 from experiment import checkpoints, cpu_kernels
 from experiment.workers import torch_threads
 
