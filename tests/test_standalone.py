@@ -145,15 +145,20 @@ def test_every_markdown_link_to_a_section_finds_its_heading():
     assert not bad, "links to sections that no heading has:\n" + "\n".join(bad)
 
 
-def test_no_tracked_file_names_a_machine_path():
-    """Fails, naming file and line, when a tracked text file names a path under one machine's /root, /home or /work
-    (a run folder or script on the machine that wrote it): the reader's clone has it elsewhere or not at all."""
+def matches_in_tracked_files(pattern):
+    """(path, line number, line, match) of every match of `pattern` in the tracked text files (this file aside: it
+    holds the patterns' own examples)."""
     me = os.path.relpath(os.path.abspath(__file__), ROOT)
-    bad = []
     for path in tracked_files():
         text = None if path == me or not os.path.isfile(os.path.join(ROOT, path)) else read_text(path)
         for number, line in enumerate((text or "").splitlines(), start=1):
-            bad += [f"{path}:{number}: {line.strip()[:100]}" for _ in MACHINE_PATH.finditer(line)]
+            yield from ((path, number, line, m) for m in pattern.finditer(line))
+
+
+def test_no_tracked_file_names_a_machine_path():
+    """Fails, naming file and line, when a tracked text file names a path under one machine's /root, /home or /work
+    (a run folder or script on the machine that wrote it): the reader's clone has it elsewhere or not at all."""
+    bad = [f"{path}:{number}: {line.strip()[:100]}" for path, number, line, _ in matches_in_tracked_files(MACHINE_PATH)]
     assert MACHINE_PATH.search("--out /" "root/runs/x") and not MACHINE_PATH.search("runs/x, ~/work/x, a/home/b")
     assert not bad, "machine paths in tracked files (name run folders relative to the repository):\n" + "\n".join(bad)
 
@@ -164,10 +169,5 @@ def test_no_tracked_file_names_an_issue_number():
     commit)."""
     issue = re.compile(r"\b[Ii]ssues?[ -]#?\d+")
     assert issue.search("as in issue" " 42") and issue.search("the issue-" "59 study") and not issue.search("an issue")
-    me = os.path.relpath(os.path.abspath(__file__), ROOT)
-    bad = []
-    for path in tracked_files():
-        text = None if path == me or not os.path.isfile(os.path.join(ROOT, path)) else read_text(path)
-        for number, line in enumerate((text or "").splitlines(), start=1):
-            bad += [f"{path}:{number}: {m.group(0)}" for m in issue.finditer(line)]
+    bad = [f"{path}:{number}: {m.group(0)}" for path, number, _, m in matches_in_tracked_files(issue)]
     assert not bad, "issue numbers in tracked files:\n" + "\n".join(bad)
