@@ -171,11 +171,12 @@ def evaluate_lineage(root, lineage, log=print):
             f"({time.time() - t0:.0f} s)")
 
 
-def export_policies(root, lineage, folder):
-    """Copy the round-1 policies of `lineage` (weights and config, no training state) to folder/lineage_<l>/."""
+def export_policies(root, lineage, folder, rows=ROWS):
+    """Copy the round-1 policies `rows` of `lineage` (weights and config, no training state) to
+    folder/lineage_<l>/."""
     dst = os.path.join(folder, f"lineage_{lineage}")
     os.makedirs(dst, exist_ok=True)
-    for row in ROWS:
+    for row in rows:
         src = os.path.join(root, f"lineage_{lineage}", "round_1", "checkpoints", f"{row}.pt")
         payload = run_folder.checkpoints.read_checkpoint(src)
         if "train_state" in payload:

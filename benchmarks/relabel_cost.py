@@ -20,23 +20,41 @@ cost, and whether the noise then pays over HG-DAgger. The design (benchmarks/res
                its effect at sigma = 0, each, and both at once)
   every quantity with its SE over lineages and its variance-components SE over the lineage x scenario table
 
-`--design` prints the power analysis (from the noise-transfer study's committed lineage files) and the cost per
-lineage (from their recorded stage times). The study's evaluation, table, tests and figure come with its rows.
+Commands (a lineage at a time; each step resumes; benchmarks/results/relabel_cost/README.md has them whole):
+
+    python benchmarks/relabel_cost.py --design                  # the power analysis, the lineage count, the cost
+    python dagger.py --profile table1_strong --methods hg_dagger,zero_noise,fixed_8,pooled,zero_noise_pd,\
+        fixed_8_pd,pooled_pd --lineages 26 --lineage L --out runs/relabel_cost
+    python benchmarks/relabel_cost.py --evaluate runs/relabel_cost --lineage L   # its new scenarios, its D_1's labels
+    python dagger.py --profile table1_strong --methods ... --lineages 26 --out runs/relabel_cost --report \
+        --export-lineages benchmarks/results/relabel_cost
+    python benchmarks/relabel_cost.py --figure benchmarks/figures/relabel_cost.png   # the table, the tests, the figure
 """
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 import math
 import os
 import sys
+import time
+from types import SimpleNamespace
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
-import noise_transfer  # noqa: E402  (the pilot's files, its per-scenario rates and its power function)
-from paired_bc import load_lineages  # noqa: E402
+import noise_transfer  # noqa: E402  (the pilot's files, its power function, its one-sided t and Holm)
+from evaluate_policy import evaluate_file, t_quantile  # noqa: E402
+from noise_trade import success  # noqa: E402
+from paired_bc import load_lineages, t_test  # noqa: E402
+
+import dagger  # noqa: E402
+from experiment import run_folder  # noqa: E402
+
+t_quantile = functools.lru_cache(maxsize=None)(t_quantile)
 
 FIRST_LINEAGE = 13  # lineages 0-4 are table1_strong's, 5-12 the noise-transfer study's
 SERVO_ROWS = ("zero_noise", "fixed_8", "pooled")
@@ -44,6 +62,9 @@ PD_ROWS = tuple(f"{row}_pd" for row in SERVO_ROWS)
 ROWS = ("hg_dagger",) + SERVO_ROWS + PD_ROWS
 NEW_PER_LINEAGE = 300  # new scenarios a lineage draws
 NEW_SEED_START, NEW_SEED_STRIDE = 100_000, 1_000  # lineage L: 100000 + 1000 L .. + 299
+NEW = "new_scenarios"  # lineage_<l>/new_scenarios/<row>.json: the study's evaluations, exported with the lineage
+DIAGNOSTIC = "relabel_diagnostic.json"  # lineage_<l>/relabel_diagnostic.json: the offline labels of its D_1
+RESULTS = os.path.join(HERE, "results", "relabel_cost")
 ALPHA, POWER, N_MIN, N_MAX, N_TESTS = 0.05, 0.80, 8, 16, 3
 EFFECT = 1.5  # points on the new scenarios: the smallest effect stated for T1, T2 and T3 (of a 1.7 cost)
 PILOT = noise_transfer.RESULTS  # lineages 5-12: the SDs and the stage times
@@ -211,20 +232,342 @@ def cost_per_lineage(pilot, rows=len(ROWS), new_policies=len(ROWS) + 2):
     return lines
 
 
+# ---- the study's own evaluations: each lineage's new scenarios, and the offline labels of its D_1 ------------------
+def study_policies(lineage):
+    """{row: its policy file, relative to the run folder} of one lineage: pi_0, BC and the round-1 rows."""
+    return {"pi0": "checkpoints/bc.pt", "bc": "checkpoints/bc_continued.pt",
+            **{m: f"lineage_{lineage}/round_1/checkpoints/{m}.pt" for m in ROWS}}
+
+
+def study_config(root, lineage):
+    """The run folder's config (a namespace) if it is the study's and `lineage` one of its lineages; else SystemExit
+    naming what is wrong, before anything is written."""
+    path = os.path.join(root, "config.json")
+    if not os.path.isfile(path):
+        raise SystemExit(f"{root}: no config.json; give the study's run folder (python dagger.py --profile "
+                         f"table1_strong --methods {','.join(ROWS)} --lineages 26 --lineage L --out RUN)")
+    cfg = SimpleNamespace(**run_folder.read_json(path))
+    if not str(cfg.name).startswith("table1_strong") or tuple(cfg.methods) != ("bc",) + ROWS:
+        raise SystemExit(f"{root}: not the study's run folder (profile {cfg.name!r}, methods {cfg.methods}); run it "
+                         f"as this script's docstring says")
+    if not FIRST_LINEAGE <= lineage < cfg.lineages:
+        raise SystemExit(f"--lineage {lineage}: the study's lineages are {FIRST_LINEAGE}..{cfg.lineages - 1} of {root}")
+    return cfg
+
+
+def evaluate_lineage(root, lineage, log=print):
+    """Evaluate every study policy of `lineage` in run folder `root` on the lineage's own new scenarios into
+    root/lineage_<l>/new_scenarios/<row>.json (3 repeats, one sampling seed for every row: stage_seed(cfg,
+    "eval_new", lineage)), then its D_1's offline labels (diagnose_lineage). A file already there is kept: the step
+    resumes. A missing policy stops it before anything is written."""
+    cfg = study_config(root, lineage)
+    policies = study_policies(lineage)
+    missing = [rel for rel in policies.values() if not os.path.isfile(os.path.join(root, rel))]
+    if missing:
+        raise SystemExit(f"{root}: {', '.join(missing)} missing; finish lineage {lineage} first (python dagger.py ... "
+                         f"--lineage {lineage} --out {root})")
+    seeds, sample_seed = new_seeds(lineage), dagger.stage_seed(cfg, "eval_new", lineage)
+    for row, rel in policies.items():
+        out = os.path.join(root, f"lineage_{lineage}", NEW, f"{row}.json")
+        if os.path.exists(out):
+            continue
+        t0 = time.time()
+        os.makedirs(os.path.dirname(out), exist_ok=True)
+        ok = evaluate_file(os.path.join(root, rel), seeds, cfg.eval_repeats, sample_seed, cfg.env)
+        with open(os.path.join(root, rel), "rb") as fh:
+            sha = hashlib.sha256(fh.read()).hexdigest()
+        run_folder.write_json(out, {"success": ok.tolist(), "seeds": list(seeds), "policy": rel,
+                                    "policy_sha256": sha, "sample_seed": sample_seed})
+        log(f"lineage {lineage} {row}: {100 * ok.mean():.1f} % on its {len(seeds)} new scenarios {seeds[0]}.."
+            f"{seeds[-1]} ({time.time() - t0:.0f} s)")
+    diagnose_lineage(root, lineage, cfg, log)
+
+
+def diagnose_lineage(root, lineage, cfg, log=print):
+    """root/lineage_<l>/relabel_diagnostic.json: benchmarks/relabel_diagnostic.py on the lineage's D_1 with the run's
+    D0 statistics and H (servo and PD, velocity noise on and off; each {'rows', 'kept', 'masked', 'mean', 'median',
+    'p90'} in median steps, over all kept rows, those whose chunk stays inside its segment and those reaching its
+    end). Descriptive: no test reads it. Kept if already there."""
+    import relabel_diagnostic as rd
+    from experiment import environments
+    out = os.path.join(root, f"lineage_{lineage}", DIAGNOSTIC)
+    if os.path.exists(out):
+        return
+    t0 = time.time()
+    episodes = run_folder.load_episodes(os.path.join(root, f"lineage_{lineage}", "round_1", "D.npz"))
+    stats = rd.run_statistics(cfg.env, run_folder.load_episodes(os.path.join(root, "data", "D0.npz")))
+    results = rd.diagnose(episodes, functools.partial(environments.make_env, cfg.env), stats, cfg.horizon)
+    run_folder.write_json(out, {
+        "episodes": f"lineage_{lineage}/round_1/D.npz", "n_episodes": len(episodes),
+        "expert_steps": int(sum(int(e["expert"].sum()) for e in episodes)), "median_step": stats.median_step,
+        "horizon": cfg.horizon,
+        "labels": [{"label": r.label, "velocity_noise": r.velocity_noise, "all": rd.summary(r),
+                    "inside": rd.summary(r, ~r.reaches_end), "to_end": rd.summary(r, r.reaches_end)}
+                   for r in results]})
+    log(f"lineage {lineage}: its D_1's labels at sigma = 0 measured ({time.time() - t0:.0f} s): {out}")
+
+
+def export_policies(root, lineage, folder):
+    """Copy the round-1 policies of `lineage` (weights and config, no training state) to folder/lineage_<l>/."""
+    noise_transfer.export_policies(root, lineage, folder, rows=ROWS)
+
+
+# ---- the stated tests, from the committed lineage files -----------------------------------------------------------
+def per_scenario(files, lineage, row, scenario_set):
+    """(scenarios,) a row's success in points on each scenario of a set (the mean over its repeats), or None where
+    the lineage has no such evaluation. Rows: 'pi0', 'bc' and ROWS; sets: 'collected' (10000..10099, the run's own
+    evaluation) and 'new' (the lineage's own new_seeds)."""
+    if scenario_set == "new":
+        key = f"lineage_{lineage}/{NEW}/{row}.json"
+        if key not in files:
+            return None
+        seeds, own = files[key]["seeds"], new_seeds(lineage)
+        if seeds != list(own):
+            raise ValueError(f"{key}: seeds {seeds[0]}..{seeds[-1]}, not lineage {lineage}'s own {own[0]}..{own[-1]}")
+        s = files[key]["success"]
+    elif scenario_set != "collected":
+        raise ValueError(f"scenario set {scenario_set!r}: 'collected' or 'new'")
+    elif row in ("pi0", "bc"):
+        if f"eval/{row}.json" not in files:
+            return None
+        s = files[f"eval/{row}.json"]["success"]
+    elif (s := success(files, lineage, 1, row)) is None:
+        return None
+    return 100.0 * np.asarray(s, float).mean(axis=1)
+
+
+def complete(lineages):
+    """The lineages holding BC and every row on both sets."""
+    return {l: f for l, f in sorted(lineages.items())
+            if all(per_scenario(f, l, row, s) is not None for row in ("bc",) + ROWS for s in ("collected", "new"))}
+
+
+def combination_table(lineages, combo, scenario_set):
+    """(lineages, scenarios): sum of coefficient x the row's per-scenario success (points), {row: coefficient}."""
+    return np.array([sum(c * per_scenario(f, l, row, scenario_set) for row, c in combo.items())
+                     for l, f in lineages.items()])
+
+
+def difference(a, b):
+    return {a: 1.0, b: -1.0}
+
+
+def interaction(noise_row):
+    """The label's effect at a noise level minus its effect at sigma = 0: (row_pd - row) - (zero_noise_pd -
+    zero_noise)."""
+    return {f"{noise_row}_pd": 1.0, noise_row: -1.0, "zero_noise_pd": -1.0, "zero_noise": 1.0}
+
+
+# (name, words, set, {row: coefficient}, side): the stated tests, one-sided, Holm over the three
+STATED = (("T1", "zero_noise_pd − zero_noise (the label's cost)", "new", difference("zero_noise_pd", "zero_noise"), ">"),
+          ("T2", "fixed_8_pd − HG-DAgger", "new", difference("fixed_8_pd", "hg_dagger"), ">"),
+          ("T3", "pooled_pd − HG-DAgger", "new", difference("pooled_pd", "hg_dagger"), ">"))
+# the secondary results, two-sided and uncorrected
+SECONDARY = tuple((name, words, "collected", combo, "two-sided")
+                  for name, words, _, combo, _ in STATED) + tuple(
+    (name, words, s, combo, "two-sided") for s in ("collected", "new") for name, words, combo in (
+        ("pooled − HG-DAgger", "the calibrated σ, servo", difference("pooled", "hg_dagger")),
+        ("pooled_pd − HG-DAgger", "the calibrated σ, PD", difference("pooled_pd", "hg_dagger")),
+        ("pooled_pd − pooled", "the label at the calibrated σ", difference("pooled_pd", "pooled")),
+        ("fixed_8_pd − fixed_8", "the label at σ 8", difference("fixed_8_pd", "fixed_8")),
+        ("I_8", "(fixed_8_pd − fixed_8) − (zero_noise_pd − zero_noise)", interaction("fixed_8")),
+        ("I_pooled", "(pooled_pd − pooled) − (zero_noise_pd − zero_noise)", interaction("pooled"))))
+
+
+def estimate(lineages, combo, scenario_set, side):
+    """{'values' (one a lineage), 'mean', 'se' (over lineages), 'vc_se' (variance components), 't', 'df', 'p'} of
+    a combination on a set: a one-sample t over lineages, one-sided ('>', '<') or 'two-sided'."""
+    table = combination_table(lineages, combo, scenario_set)
+    values = table.mean(axis=1)
+    mean, se, t, df, p = t_test(values) if side == "two-sided" else noise_transfer.one_sided(values, side)
+    return {"values": values, "mean": mean, "se": se, "vc_se": variance_components(table)["se"], "t": t, "df": df,
+            "p": p}
+
+
+def stated_tests(lineages):
+    """[(name, words, set, side, estimate, Holm's verdict at ALPHA)] of T1-T3 over complete lineages."""
+    res = [(name, words, s, side, estimate(lineages, combo, s, side)) for name, words, s, combo, side in STATED]
+    return [(*r, v) for r, v in zip(res, noise_transfer.holm([r[4]["p"] for r in res], ALPHA))]
+
+
+def f_cdf(x, d1, d2):
+    """P(F <= x) for Fisher's F with (d1, d2) degrees of freedom: I_{d1 x / (d1 x + d2)}(d1 / 2, d2 / 2)."""
+    return 0.0 if x <= 0 else dagger.incomplete_beta(d1 / 2, d2 / 2, d1 * x / (d1 * x + d2))
+
+
+def hotelling(values):
+    """Hotelling's one-sample T² of mean = 0 for (n, k) values (a row a lineage, a column a quantity):
+    (T², F, k, n − k, p) with T² = n x̄ᵀ S⁻¹ x̄ (S the sample covariance) and F = (n − k) / (k (n − 1)) T² on (k,
+    n − k) df. For k = 1 it is the two-sided t test (T² = t²)."""
+    x = np.asarray(values, float)
+    n, k = x.shape
+    if n <= k:
+        raise ValueError(f"{n} lineages for {k} quantities: Hotelling's T² needs more lineages than quantities")
+    mean, cov = x.mean(axis=0), np.atleast_2d(np.cov(x, rowvar=False, ddof=1))
+    if np.linalg.matrix_rank(cov) < k:
+        raise ValueError(f"the {k} quantities' covariance over {n} lineages is singular (rank "
+                         f"{np.linalg.matrix_rank(cov)}): one is a fixed combination of the others")
+    t2 = float(n * mean @ np.linalg.solve(cov, mean))
+    f = (n - k) / (k * (n - 1)) * t2
+    return t2, f, k, n - k, 1.0 - f_cdf(f, k, n - k)
+
+
+def interactions(lineages, scenario_set):
+    """Hotelling's T² of (I_8, I_pooled) = 0 on a set: both interactions at once."""
+    return hotelling(np.column_stack([combination_table(lineages, interaction(row), scenario_set).mean(axis=1)
+                                      for row in ("fixed_8", "pooled")]))
+
+
+def cell(values, table=None):
+    """'mean ± SE over lineages' (and '(VC SE)' where a lineage x scenario table is given), or the value alone."""
+    if len(values) < 2:
+        return f"{values[0]:.1f}"
+    text = f"{np.mean(values):.1f} ± {np.std(values, ddof=1) / math.sqrt(len(values)):.1f}"
+    return f"{text} ({variance_components(table)['se']:.1f})" if table is not None else text
+
+
+def table(lineages):
+    """Markdown lines: every row's success in points on both sets, mean ± SE over lineages (the variance-components
+    SE in brackets)."""
+    lines = ["| row | collected (10000..10099, one set) | new (each lineage its own 300) |", "|---|---|---|"]
+    for row in ("pi0", "bc") + ROWS:
+        cells = []
+        for s in ("collected", "new"):
+            got = [per_scenario(f, l, row, s) for l, f in lineages.items()]
+            got = [g for g in got if g is not None]
+            cells.append(cell([g.mean() for g in got], np.array(got) if len(got) > 1 else None) if got else "—")
+        lines.append(f"| {row} | {cells[0]} | {cells[1]} |")
+    return lines
+
+
+def tests_table(lineages):
+    """Markdown lines: T1-T3 with both SEs, t, one-sided p and Holm's verdict."""
+    lines = [f"| test | set | quantity (points) | side | mean | SE lineages | SE var. comp. | t | df | p (one-sided) | "
+             f"Holm at {ALPHA} |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, words, s, side, e, ok in stated_tests(lineages):
+        lines.append(f"| {name} | {s} | {words} | {side} 0 | {e['mean']:+.2f} | {e['se']:.2f} | {e['vc_se']:.2f} | "
+                     f"{e['t']:.2f} | {e['df']} | {e['p']:.2g} | {'rejected' if ok else 'not rejected'} |")
+    return lines
+
+
+def secondary(lineages):
+    """Lines of the secondary results (two-sided, uncorrected)."""
+    lines = []
+    for name, words, s, combo, side in SECONDARY:
+        e = estimate(lineages, combo, s, side)
+        lines.append(f"{name} on {s} ({words}): {e['mean']:+.2f} ± {e['se']:.2f} (var. comp. {e['vc_se']:.2f}) "
+                     f"points, t({e['df']}) = {e['t']:.2f}, p = {e['p']:.2g}")
+    for s in ("collected", "new"):
+        try:
+            t2, f, d1, d2, p = interactions(lineages, s)
+        except ValueError as err:
+            lines.append(f"I_8 and I_pooled at once on {s}: no Hotelling's T² ({err})")
+            continue
+        lines.append(f"I_8 and I_pooled at once on {s}: Hotelling's T² = {t2:.2f}, F({d1}, {d2}) = {f:.2f}, p = {p:.2g}")
+    return lines
+
+
+def diagnostics(lineages):
+    """Markdown lines: the offline labels of each lineage's D_1 (descriptive), mean over lineages of each statistic."""
+    got = [f[f"lineage_{l}/{DIAGNOSTIC}"] for l, f in lineages.items() if f"lineage_{l}/{DIAGNOSTIC}" in f]
+    if not got:
+        return []
+    lines = ["| label | velocity noise | masked | mean | median | p90 | inside its segment: mean | to its end: mean |",
+             "|---|---|---|---|---|---|---|---|"]
+    for i, first in enumerate(got[0]["labels"]):
+        def avg(part, key):
+            return np.mean([g["labels"][i][part][key] for g in got])
+        noise = f"on ({first['velocity_noise']:g})" if first["velocity_noise"] else "off"
+        lines.append(f"| {first['label']} | {noise} | {avg('all', 'masked'):.1%} | {avg('all', 'mean'):.2f} | "
+                     f"{avg('all', 'median'):.2f} | {avg('all', 'p90'):.2f} | {avg('inside', 'mean'):.2f} | "
+                     f"{avg('to_end', 'mean'):.2f} |")
+    return [f"the labels at σ = 0 against the recorded chunks on each lineage's D_1 (benchmarks/relabel_diagnostic.py; "
+            f"median steps of D0; means over {len(got)} lineage(s) of each lineage's statistic):"] + lines
+
+
+def figure(lineages, path):
+    """What the tests compare, per set: each relabelled row − HG-DAgger per lineage (points), servo and PD side by
+    side at sigma 0, 8 and pooled, their mean with a paired 95 % t interval (none for one lineage)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(lineages)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
+    for ax, s, title in ((axes[0], "collected", "collected: the 100 scenarios of the round (the paper's protocol)"),
+                         (axes[1], "new", "new: each lineage's own 300 scenarios")):
+        ax.axhline(0.0, color="gray", lw=0.8)
+        for label, rows, shift, colour, marker in (("servo (the authors')", SERVO_ROWS, -0.12, "C0", "o"),
+                                                   ("PD (the paper's Sec. IV-E)", PD_ROWS, 0.12, "C3", "s")):
+            for x, row in enumerate(rows):
+                d = combination_table(lineages, difference(row, "hg_dagger"), s).mean(axis=1)
+                ax.scatter(x + shift + np.linspace(-0.04, 0.04, n), d, s=14, color=colour, alpha=0.45, lw=0,
+                           label="one lineage" if (x, shift) == (0, -0.12) else None)
+                half = t_quantile(0.975, n - 1) * np.std(d, ddof=1) / math.sqrt(n) if n > 1 else 0.0
+                ax.errorbar([x + shift], [np.mean(d)], yerr=[half], marker=marker, markersize=7, capsize=4,
+                            color=colour, lw=1.6, ls="none",
+                            label=f"{label}: mean, 95 % t interval" if x == 0 else None)
+        ax.set_xticks([0, 1, 2], ["σ = 0", "fixed σ 8", r"pooled $\bar\Sigma^\alpha$"])
+        ax.set_title(f"{title}\n{n} lineage{'s' if n > 1 else ''}, each row minus its lineage's HG-DAgger"
+                     + ("" if n > 1 else ": no interval"), fontsize=9)
+        ax.set_ylabel("row − HG-DAgger (success, points)")
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=8, frameon=False)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--design", action="store_true", help="print the power analysis, the lineage count and the cost")
-    args = p.parse_args(argv)
-    if not args.design:
-        p.error("the study's evaluation and tests come with its rows; today: --design")
-    pilot = load_lineages(PILOT)
-    n, lines = lineage_count(pilot)
-    print("\n".join(lines))
-    print()
-    print("\n".join(cost_per_lineage(pilot)))
-    print(f"\nnew scenarios: lineage L draws {NEW_PER_LINEAGE} seeds from {NEW_SEED_START} + {NEW_SEED_STRIDE} L, "
-          f"e.g. lineage {FIRST_LINEAGE}: {new_seeds(FIRST_LINEAGE)[0]}..{new_seeds(FIRST_LINEAGE)[-1]}, lineage "
-          f"{FIRST_LINEAGE + n - 1}: {new_seeds(FIRST_LINEAGE + n - 1)[0]}..{new_seeds(FIRST_LINEAGE + n - 1)[-1]}")
+    p.add_argument("--evaluate", metavar="RUN", help="evaluate lineage --lineage of run folder RUN on its own new "
+                   "scenarios and measure its D_1's labels")
+    p.add_argument("--export-policies", metavar="RUN", help="copy lineage --lineage's round-1 policies of RUN to "
+                   "benchmarks/results/relabel_cost/policies/")
+    p.add_argument("--lineage", type=int, help="the lineage for --evaluate / --export-policies")
+    p.add_argument("--results", default=RESULTS, help="the committed lineage files (default %(default)s)")
+    p.add_argument("--figure", metavar="PNG", help="also draw each relabelled row - HG-DAgger per lineage to PNG")
+    a = p.parse_args(argv)
+    if a.design:
+        pilot = load_lineages(PILOT)
+        n, lines = lineage_count(pilot)
+        print("\n".join(lines))
+        print()
+        print("\n".join(cost_per_lineage(pilot)))
+        print(f"\nnew scenarios: lineage L draws {NEW_PER_LINEAGE} seeds from {NEW_SEED_START} + {NEW_SEED_STRIDE} L, "
+              f"e.g. lineage {FIRST_LINEAGE}: {new_seeds(FIRST_LINEAGE)[0]}..{new_seeds(FIRST_LINEAGE)[-1]}, lineage "
+              f"{FIRST_LINEAGE + n - 1}: {new_seeds(FIRST_LINEAGE + n - 1)[0]}..{new_seeds(FIRST_LINEAGE + n - 1)[-1]}")
+        return
+    if a.evaluate or a.export_policies:
+        if a.lineage is None or a.lineage < FIRST_LINEAGE:
+            p.error(f"--lineage {a.lineage}: give one of the study's lineages (>= {FIRST_LINEAGE})")
+        if a.evaluate:
+            evaluate_lineage(a.evaluate, a.lineage)
+        else:
+            export_policies(a.export_policies, a.lineage, os.path.join(RESULTS, "policies"))
+        return
+    lineages = complete(load_lineages(a.results))
+    print(f"{a.results}: {len(lineages)} complete lineage(s) {sorted(lineages)} of the stated {N_LINEAGES} "
+          f"({FIRST_LINEAGE}..{FIRST_LINEAGE + N_LINEAGES - 1})")
+    if not lineages:
+        return
+    print("\nsuccess in points, mean ± SE over lineages (the variance-components SE in brackets):")
+    print("\n".join(table(lineages)))
+    if len(lineages) >= 2:
+        print()
+        print("\n".join(tests_table(lineages)))
+        if len(lineages) < N_LINEAGES:
+            print(f"(an interim look at {len(lineages)} lineages: the stated tests are read at {N_LINEAGES})")
+        print("\nsecondary (two-sided, uncorrected):")
+        print("\n".join("  " + line for line in secondary(lineages)))
+    if lines := diagnostics(lineages):
+        print()
+        print("\n".join(lines))
+    if a.figure:
+        print(f"\nfigure: {figure(lineages, a.figure)}")
 
 
 if __name__ == "__main__":
