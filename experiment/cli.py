@@ -22,7 +22,7 @@ from experiment.profiles import ALL_METHODS, PROFILES, RECIPES, check_config
 from experiment.report import run_experiment
 from experiment.run_folder import PI0_THREADS, ConfigMismatch, RunFolderError, committed_start, export_start
 
-SMOKE_TIME = "about 1 min on 2 idle cores"  # measured: README, 'Profiles and options' (the same words there)
+SMOKE_TIME = "about 1 min on 2 idle cores"  # measured: benchmarks/README.md, 'What each profile costs' (the same words there and in README)
 
 
 def parse_args(argv):
