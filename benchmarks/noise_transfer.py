@@ -138,10 +138,10 @@ N_LINEAGES = 8  # `--design` prints how it was chosen; a test checks that it sti
 
 
 # ---- the new scenarios' evaluations -------------------------------------------------------------------------------
-def study_policies(lineage):
+def study_policies(lineage, rows=ROWS):
     """{row: its policy file, relative to the run folder} of one lineage: pi_0, BC and the round-1 rows."""
     return {"pi0": "checkpoints/bc.pt", "bc": "checkpoints/bc_continued.pt",
-            **{m: f"lineage_{lineage}/round_1/checkpoints/{m}.pt" for m in ROWS}}
+            **{m: f"lineage_{lineage}/round_1/checkpoints/{m}.pt" for m in rows}}
 
 
 def evaluate_lineage(root, lineage, log=print):

@@ -235,8 +235,7 @@ def cost_per_lineage(pilot, rows=len(ROWS), new_policies=len(ROWS) + 2):
 # ---- the study's own evaluations: each lineage's new scenarios, and the offline labels of its D_1 ------------------
 def study_policies(lineage):
     """{row: its policy file, relative to the run folder} of one lineage: pi_0, BC and the round-1 rows."""
-    return {"pi0": "checkpoints/bc.pt", "bc": "checkpoints/bc_continued.pt",
-            **{m: f"lineage_{lineage}/round_1/checkpoints/{m}.pt" for m in ROWS}}
+    return noise_transfer.study_policies(lineage, rows=ROWS)
 
 
 def study_config(root, lineage):
