@@ -173,14 +173,15 @@ def evaluate_lineage(root, lineage, log=print):
 
 def export_policies(root, lineage, folder, rows=ROWS):
     """Copy the round-1 policies `rows` of `lineage` (weights and config, no training state) to
-    folder/lineage_<l>/."""
+    folder/lineage_<l>/; every policy is read first, and one that is missing or holds a training state stops the
+    export before anything is written."""
+    sources = [os.path.join(root, f"lineage_{lineage}", "round_1", "checkpoints", f"{row}.pt") for row in rows]
+    for src in sources:
+        if "train_state" in run_folder.checkpoints.read_checkpoint(src):
+            raise SystemExit(f"{src} holds a training state; the study's rows are saved for sampling only")
     dst = os.path.join(folder, f"lineage_{lineage}")
     os.makedirs(dst, exist_ok=True)
-    for row in rows:
-        src = os.path.join(root, f"lineage_{lineage}", "round_1", "checkpoints", f"{row}.pt")
-        payload = run_folder.checkpoints.read_checkpoint(src)
-        if "train_state" in payload:
-            raise SystemExit(f"{src} holds a training state; the study's rows are saved for sampling only")
+    for row, src in zip(rows, sources):
         shutil.copyfile(src, os.path.join(dst, f"{row}.pt"))
         print(f"{src} -> {dst}/{row}.pt")
 

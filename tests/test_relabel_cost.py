@@ -178,6 +178,24 @@ def test_evaluate_lineage_writes_each_policy_on_its_lineages_own_seeds_and_resum
     assert not new.exists()
 
 
+def test_export_policies_copies_the_seven_rows_for_sampling_only(rc, tmp_path):
+    """--export-policies: the lineage's seven round-1 policies, byte for byte, under folder/lineage_<l>/; a policy
+    that still holds its training state (AdamW's moments: twice the weights again) is refused before any file is
+    written."""
+    root = tmp_path / "run"
+    _study_folder(rc, root)
+    rc.export_policies(str(root), 13, str(tmp_path / "policies"))
+    out = tmp_path / "policies" / "lineage_13"
+    assert sorted(os.listdir(out)) == sorted(f"{row}.pt" for row in rc.ROWS)
+    source = open(os.path.join(START, "checkpoints", "bc_continued.pt"), "rb").read()
+    assert all((out / f"{row}.pt").read_bytes() == source for row in rc.ROWS)
+    os.remove(root / "lineage_13" / "round_1" / "checkpoints" / "pooled_pd.pt")
+    os.symlink(os.path.join(START, "checkpoints", "bc.pt"), root / "lineage_13" / "round_1" / "checkpoints" / "pooled_pd.pt")
+    with pytest.raises(SystemExit, match="pooled_pd.pt holds a training state"):
+        rc.export_policies(str(root), 13, str(tmp_path / "again"))
+    assert not (tmp_path / "again").exists()  # refused before anything is written
+
+
 def test_diagnose_lineage_records_the_d1s_labels_with_the_runs_d0(rc, tmp_path):
     """relabel_diagnostic.json: the four labels (servo, PD x velocity noise on, off) of the lineage's D_1, labelled
     with the statistics of the run's D0 (not of the D_1 itself) at the run's H; every statistic is the diagnostic's
