@@ -377,7 +377,9 @@ def estimate(lineages, combo, scenario_set, side):
     """{'values' (one a lineage), 'mean', 'se' (over lineages), 'vc_se' (variance components), 't', 'df', 'p'} of
     a combination on a set: a one-sample t over lineages, one-sided ('>', '<') or 'two-sided'."""
     table = combination_table(lineages, combo, scenario_set)
-    values = table.mean(axis=1)
+    # a lineage's value is a sum of multiples of 1/9 or 1/3 point: rounded off float noise, two equal values have
+    # an SD of 0, not 1e-16 (a t of 1e16)
+    values = np.round(table.mean(axis=1), 9)
     mean, se, t, df, p = t_test(values) if side == "two-sided" else noise_transfer.one_sided(values, side)
     return {"values": values, "mean": mean, "se": se, "vc_se": variance_components(table)["se"], "t": t, "df": df,
             "p": p}
@@ -440,12 +442,15 @@ def table(lineages):
 
 
 def tests_table(lineages):
-    """Markdown lines: T1-T3 with both SEs, t, one-sided p and Holm's verdict."""
+    """Markdown lines: T1-T3 with both SEs, t, one-sided p and Holm's verdict (at the stated lineage count; before
+    it, an interim look, no verdict)."""
+    interim = len(lineages) < N_LINEAGES
     lines = [f"| test | set | quantity (points) | side | mean | SE lineages | SE var. comp. | t | df | p (one-sided) | "
              f"Holm at {ALPHA} |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, words, s, side, e, ok in stated_tests(lineages):
         lines.append(f"| {name} | {s} | {words} | {side} 0 | {e['mean']:+.2f} | {e['se']:.2f} | {e['vc_se']:.2f} | "
-                     f"{e['t']:.2f} | {e['df']} | {e['p']:.2g} | {'rejected' if ok else 'not rejected'} |")
+                     f"{e['t']:.2f} | {e['df']} | {e['p']:.2g} | "
+                     f"{'none before ' + str(N_LINEAGES) + ' lineages' if interim else 'rejected' if ok else 'not rejected'} |")
     return lines
 
 

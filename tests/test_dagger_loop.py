@@ -280,7 +280,11 @@ COMMITTED_RESULTS = {
     "table1_strong": ["--profile", "table1_strong"],
     "table2_authors_finetune": ["--profile", "table2", "--recipe", "authors_lever"],
     "table2_authors_finetune_seeds": ["--profile", "table2", "--recipe", "authors_lever_seeds",
-                                      "--methods", "hg_dagger,pooled"]}
+                                      "--methods", "hg_dagger,pooled"],
+    "noise_transfer": ["--profile", "table1_strong", "--methods", "hg_dagger,zero_noise,fixed_4,fixed_8,fixed_16,pooled",
+                       "--lineages", "13"],
+    "relabel_cost": ["--profile", "table1_strong", "--lineages", "26",
+                     "--methods", "hg_dagger,zero_noise,fixed_8,pooled,zero_noise_pd,fixed_8_pd,pooled_pd"]}
 
 
 @pytest.mark.parametrize("folder", sorted(COMMITTED_RESULTS))

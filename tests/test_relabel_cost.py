@@ -350,7 +350,17 @@ def test_the_command_prints_the_table_the_tests_and_draws_the_figure(rc, three, 
     out = capsys.readouterr().out
     assert "3 complete lineage(s) [13, 14, 15] of the stated 13 (13..25)" in out
     assert out.count("| T") == 3 and "an interim look at 3 lineages" in out
+    assert out.count("none before 13 lineages") == 3 and "rejected" not in out  # no verdict at an interim look
     hg = next(line for line in out.splitlines() if line.startswith("| hg_dagger |"))
     assert hg.split("|")[3].strip().startswith(f"{np.mean([(450 + 9 * l) / 9 for l in (13, 14, 15)]):.1f} ± 0.6")
     assert out.count("Hotelling's T² =") == 2 and "I_pooled on new" in out
     assert (tmp_path / "fig.png").stat().st_size > 10_000
+
+
+def test_lineage_values_equal_but_for_float_noise_have_no_spread(rc, monkeypatch):
+    """Two lineages whose value is 0.3 point, one summed as 0.1 + 0.2: their SD is 0, not 3e-17 (which printed a
+    t of 1e16 on the committed lineages' I_pooled)."""
+    tables = np.array([[0.1 + 0.2] * 4, [0.3] * 4])
+    monkeypatch.setattr(rc, "combination_table", lambda lineages, combo, scenario_set: tables)
+    e = rc.estimate({13: {}, 14: {}}, {}, "new", "two-sided")
+    assert e["se"] == 0.0 and e["mean"] == pytest.approx(0.3)
