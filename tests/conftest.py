@@ -1,7 +1,10 @@
 """Test-wide settings. The networks under test are tiny: one torch thread is as fast as two on an idle
 machine and many times faster on a loaded one (thread oversubscription), so tests use one."""
+import gc
 import importlib.util
 import os
+import sys
+from collections import namedtuple
 
 import pytest
 import torch
@@ -47,3 +50,49 @@ def augmentation_samplers(monkeypatch):
         built.append(dict(noise=noise, sigma=sigma, episodes=list(episodes), sampler=self))
     monkeypatch.setattr(relabel.AugmentationSampler, "__init__", spy)
     return built
+
+
+def is_figure(code):
+    """A drawing function: what runs inside one is the figure's, not the method's."""
+    return code.co_name.startswith(("fig", "plot_", "draw_")) or code.co_name == "figures"
+
+
+SmokeRun = namedtuple("SmokeRun", "root called")
+
+
+@pytest.fixture(scope="session")
+def smoke_in_one_process(tmp_path_factory):
+    """The smoke profile (every stage and Table I row kind, two lineages) run once in this process with one worker,
+    traced: SmokeRun(root: its folder, called: {(module, qualified name)} of every function the method called). A
+    call made only inside a figure's drawing does not count, except for the drawing functions themselves. Shared by
+    the reading guide's test (what the run calls) and the Slurm test (the numbers every split of the run must match):
+    one run instead of two.
+
+    The trace is sys.settrace's 'call' event, answered with None (no line events): unlike sys.setprofile it is not
+    called for every C function, which made the traced run 1.6x the untraced one. A tracer already set (coverage)
+    is put back afterwards."""
+    from experiment import profiles, report
+    called, seen = set(), set()
+
+    def trace(frame, event, arg):
+        code = frame.f_code
+        key = (code.co_filename, code.co_qualname)
+        if key in seen or code.co_name == "__del__":  # a finalizer of an object an earlier test made is not the run
+            return None
+        caller = frame.f_back
+        while caller is not None and not is_figure(caller.f_code):
+            caller = caller.f_back
+        if caller is None or is_figure(code):  # from the method, or a drawing function itself
+            seen.add(key)
+            called.add((os.path.splitext(os.path.basename(code.co_filename))[0], code.co_qualname))
+        return None
+
+    root = str(tmp_path_factory.mktemp("one_process") / "smoke")
+    gc.collect()  # finalize what earlier tests left behind before the trace starts
+    previous = sys.gettrace()
+    sys.settrace(trace)
+    try:
+        report.run_experiment(profiles.PROFILES["smoke"], root, workers=1)
+    finally:
+        sys.settrace(previous)
+    return SmokeRun(root, called)

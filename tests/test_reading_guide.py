@@ -6,21 +6,13 @@ alternative or read-out that the run does not use. A marked function the run doe
 """
 from __future__ import annotations
 
-import gc
 import os
 import re
-import sys
 
 import pytest
 
-import dagger
-from experiment import profiles, report
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODULES = ("envs", "diffusion", "partial_denoise", "calibrate", "relabel", "oracle", "dagger", "experiment/report")
-# The smoke profile (CI's run: every stage and every Table I row kind, two lineages for the paired tests, enough blend
-# rollouts for the equilibrium fit), in one process so that one trace sees every call.
-GUIDE_RUN = profiles.PROFILES["smoke"]
 
 
 def guide_names(readme_text):
@@ -40,39 +32,6 @@ def guide_names(readme_text):
             for name in re.finditer(r"`([\w.]+)[^`]*`( \(not run)?", m.group(2)):
                 names[(m.group(1), name.group(1))] = (cells[0], bool(name.group(2)))
     return names
-
-
-def is_figure(code):
-    return code.co_name.startswith(("fig", "plot_", "draw_")) or code.co_name == "figures"
-
-
-@pytest.fixture(scope="module")
-def traced_run(tmp_path_factory):
-    """{(module, qualified name)} of every function called by the method in one in-process run (a call made only
-    inside a figure's drawing does not count, except for the drawing functions themselves)."""
-    called, seen = set(), set()
-
-    def profile(frame, event, arg):
-        if event != "call":
-            return
-        code = frame.f_code
-        key = (code.co_filename, code.co_qualname)
-        if key in seen or code.co_name == "__del__":  # a finalizer of an object an earlier test made is not the run
-            return
-        caller = frame.f_back
-        while caller is not None and not is_figure(caller.f_code):
-            caller = caller.f_back
-        if caller is None or is_figure(code):  # from the method, or a drawing function itself
-            seen.add(key)
-            called.add((os.path.splitext(os.path.basename(code.co_filename))[0], code.co_qualname))
-
-    gc.collect()  # finalize what earlier tests left behind before the trace starts
-    sys.setprofile(profile)
-    try:
-        report.run_experiment(GUIDE_RUN, str(tmp_path_factory.mktemp("guide")))
-    finally:
-        sys.setprofile(None)
-    return called
 
 
 def runs(called, module, name):
@@ -95,15 +54,15 @@ def test_the_guide_parser_reads_marks_and_modules():
 
 
 @pytest.mark.slow
-def test_every_function_the_reading_guide_names_runs_or_is_marked(traced_run):
+def test_every_function_the_reading_guide_names_runs_or_is_marked(smoke_in_one_process):
     """Fails if the guide names a function that one run of the loop never calls (outside the figures) without
     marking it '(not run: ...)', or marks one the run does call."""
     with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as fh:
         names = guide_names(fh.read())
     assert len(names) > 40, "the guide's table was not found or not parsed"
     unmarked_not_run = [f"{step}: {mod}.{name}" for (mod, name), (step, marked) in names.items()
-                        if not marked and not runs(traced_run, mod, name)]
+                        if not marked and not runs(smoke_in_one_process.called, mod, name)]
     marked_but_run = [f"{step}: {mod}.{name}" for (mod, name), (step, marked) in names.items()
-                      if marked and runs(traced_run, mod, name)]
+                      if marked and runs(smoke_in_one_process.called, mod, name)]
     assert not unmarked_not_run, f"named in the reading guide, not run and not marked '(not run': {unmarked_not_run}"
     assert not marked_but_run, f"marked '(not run' in the reading guide but run: {marked_but_run}"

@@ -4,9 +4,9 @@ machine in a temporary folder (munged, slurmctld, slurmd, as root), on the smoke
 must be the one a single process makes, each array task must run its own lineage, and a lineage cancelled in the
 middle of a stage must finish, when the recipe is submitted again, with the same numbers.
 
-Slow: a single-process smoke run, the recipe's run and one more lineage. Measured on the Intel Xeon (family 6, model
-167; 2 cores) beside other jobs (load 5-6): 9 min 46 s and 11 min 45 s, of it 8.5-10 min the two smoke runs and
-1.2-1.4 min the cancelled and resubmitted lineage.
+Slow: the recipe's run and one more lineage, and a single-process smoke run for the reference (shared with the
+reading guide's test: tests/conftest.py). On the Intel Xeon (family 6, model 167; 2 cores), idle: the recipe's run
+with the cluster's start about 2 min, the cancelled and resubmitted lineage about 1 min.
 Skipped where Slurm and MUNGE are not installed (.ci/run installs them: apt-get install slurm-wlm munge) or the
 test is not root (the daemons run as root: SlurmUser=root).
 """
@@ -39,7 +39,7 @@ pytestmark = [
 # the reason DependencyNeverSatisfied: Slurm's default keeps it until it is cancelled).
 ENDED = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "BOOT_FAIL",
          "DEADLINE"}
-# s: the two smoke runs took 8.5-10 min together on the Intel Xeon above; an hour leaves room for a busier machine
+# s: the recipe's run takes about 2 min on the idle Intel Xeon above; an hour leaves room for a busier machine
 JOB_TIMEOUT = 3600
 
 
@@ -207,13 +207,10 @@ def cluster(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """results.json of `python dagger.py --profile smoke` in one process (the run every split of it must match)."""
-    out = str(tmp_path_factory.mktemp("single_process") / "smoke")
-    done = subprocess.run([sys.executable, "dagger.py", "--profile", "smoke", "--out", out], cwd=ROOT,
-                          capture_output=True, text=True, timeout=JOB_TIMEOUT)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.load(open(os.path.join(out, "results.json")))
+def reference(smoke_in_one_process):
+    """results.json of the smoke profile run in one process with one worker (the run every split of it must match;
+    the reading guide's traced run, shared: tests/conftest.py)."""
+    return json.load(open(os.path.join(smoke_in_one_process.root, "results.json")))
 
 
 @pytest.fixture(scope="module")
