@@ -69,7 +69,8 @@ def smoke_in_one_process(tmp_path_factory):
     one run instead of two.
 
     The trace is sys.settrace's 'call' event, answered with None (no line events): unlike sys.setprofile it is not
-    called for every C function, which made the traced run 1.6x the untraced one. A tracer already set (coverage)
+    called for every C function (the traced run took 1.6x the untraced one, once, beside a lineage on the
+    Intel Xeon 6/167). A tracer already set (coverage)
     is put back afterwards."""
     from experiment import profiles, report
     called, seen = set(), set()
