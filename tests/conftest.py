@@ -70,8 +70,7 @@ def smoke_in_one_process(tmp_path_factory):
 
     The trace is sys.settrace's 'call' event, answered with None (no line events): unlike sys.setprofile it is not
     called for every C function (the traced run took 1.6x the untraced one, once, beside a lineage on the
-    Intel Xeon 6/167). A tracer already set (coverage)
-    is put back afterwards."""
+    Intel Xeon 6/167). A tracer already set (coverage) is put back afterwards."""
     from experiment import profiles, report
     called, seen = set(), set()
 
