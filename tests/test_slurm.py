@@ -5,8 +5,8 @@ must be the one a single process makes, each array task must run its own lineage
 middle of a stage must finish, when the recipe is submitted again, with the same numbers.
 
 Slow: the recipe's run and one more lineage, and a single-process smoke run for the reference (shared with the
-reading guide's test: tests/conftest.py). On the Intel Xeon (family 6, model 167; 2 cores), idle: the recipe's run
-with the cluster's start about 2 min, the cancelled and resubmitted lineage about 1 min.
+reading guide's test: tests/conftest.py). On the Intel Xeon (family 6, model 167; 2 cores), nearly idle: the
+recipe's run with the cluster's start 73 s, the cancelled and resubmitted lineage 60 s (2026-11-29).
 Skipped where Slurm and MUNGE are not installed (.ci/run installs them: apt-get install slurm-wlm munge) or the
 test is not root (the daemons run as root: SlurmUser=root).
 """
@@ -39,7 +39,7 @@ pytestmark = [
 # the reason DependencyNeverSatisfied: Slurm's default keeps it until it is cancelled).
 ENDED = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "BOOT_FAIL",
          "DEADLINE"}
-# s: the recipe's run takes about 2 min on the idle Intel Xeon above; an hour leaves room for a busier machine
+# s: the recipe's run took 73 s on the Intel Xeon above; an hour leaves room for a busier machine
 JOB_TIMEOUT = 3600
 
 
