@@ -364,3 +364,16 @@ def test_lineage_values_equal_but_for_float_noise_have_no_spread(rc, monkeypatch
     monkeypatch.setattr(rc, "combination_table", lambda lineages, combo, scenario_set: tables)
     e = rc.estimate({13: {}, 14: {}}, {}, "new", "two-sided")
     assert e["se"] == 0.0 and e["mean"] == pytest.approx(0.3)
+
+
+def test_at_the_stated_count_each_test_gets_holms_verdict(rc, three, monkeypatch):
+    """Once the lineages reach the stated count the table gives Holm's verdict per test: here, at 0.10, T1
+    (p 0.018 against 0.10 / 3) is rejected, T2 (p 0.092 against 0.10 / 2) stops the rest. A table that kept
+    "none before" at the count, gave every test its own uncorrected verdict (T2 would pass 0.10) or read the
+    verdicts out of order would print other words."""
+    monkeypatch.setattr(rc, "N_LINEAGES", 3)
+    monkeypatch.setattr(rc, "ALPHA", 0.10)
+    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip() for line in rc.tests_table(three)[2:]}
+    assert rows == {"T1": "rejected", "T2": "not rejected", "T3": "not rejected"}
+    ps = {name: e["p"] for name, _, _, _, e, _ in rc.stated_tests(three)}
+    assert ps["T1"] == pytest.approx(0.0176, abs=1e-4) and ps["T2"] == pytest.approx(0.0918, abs=1e-4)
