@@ -377,3 +377,24 @@ def test_at_the_stated_count_each_test_gets_holms_verdict(rc, three, monkeypatch
     assert rows == {"T1": "rejected", "T2": "not rejected", "T3": "not rejected"}
     ps = {name: e["p"] for name, _, _, _, e, _ in rc.stated_tests(three)}
     assert ps["T1"] == pytest.approx(0.0176, abs=1e-4) and ps["T2"] == pytest.approx(0.0918, abs=1e-4)
+
+
+def test_the_committed_study_prints_the_numbers_its_readmes_quote(rc, capsys):
+    """The script over the committed lineage files prints what README.md, benchmarks/README.md and the study's
+    README quote: the thirteen lineages, T1-T3 with Holm's verdicts, the secondary results they cite, a table row
+    and the D_1 labels. A lineage file changed, dropped or added, or a quantity computed otherwise, breaks a line."""
+    rc.main([])
+    out = capsys.readouterr().out
+    for line in ("13 complete lineage(s) [13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25] of the stated 13",
+                 "| hg_dagger | 73.9 ± 0.9 (3.0) | 55.3 ± 0.6 (0.8) |",
+                 "| zero_noise_pd | 74.7 ± 0.7 (2.8) | 55.3 ± 0.6 (0.8) |",
+                 "| +0.91 | 0.25 | 0.29 | 3.58 | 12 | 0.0019 | rejected |",
+                 "| +1.37 | 0.45 | 0.45 | 3.03 | 12 | 0.0052 | rejected |",
+                 "| +0.42 | 0.25 | 0.27 | 1.71 | 12 | 0.057 | not rejected |",
+                 "T1 on collected (zero_noise_pd − zero_noise (the label's cost)): +3.18 ± 0.83 (var. comp. 1.02) points, t(12) = 3.85, p = 0.0023",
+                 "pooled_pd − pooled on collected (the label at the calibrated σ): +1.74 ± 0.43 (var. comp. 0.79) points, t(12) = 4.02, p = 0.0017",
+                 "I_8 and I_pooled at once on collected: Hotelling's T² = 9.59, F(2, 11) = 4.40, p = 0.039",
+                 "| servo | off | 5.3% | 1.73 | 0.04 | 5.97 | 1.88 | 1.24 |",
+                 "| pd | off | 0.0% | 0.20 | 0.00 | 0.82 | 0.00 | 0.73 |"):
+        assert line in out, line
+    assert "none before" not in out
