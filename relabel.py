@@ -5,21 +5,22 @@ augmented data D̂_k of Sec. IV-A steps 3-4. Top to bottom:
                        'isotropic' (σ m)² I (Table I's fixed rows), 'pooled' Σ̄^α (Eqs. (15)-(16)) or
                        'per_step' Σ^α_t (Eq. (14)), both measured by calibrate.py
   monotone_projection  Sec. IV-E: "a monotone closest-point projection"                         (exercise 8)
-  pd_return_chunk      Sec. IV-E: "a critically-damped PD controller, with accelerations clamped" (exercise 9)
-  servo_return_chunk   the authors' clamped servo (their code, benchmarks/SETUP.md §6): every profile's label
-  corrective_labels    projection -> return chunk, for a batch of noised states
+  pd_return_chunk      Sec. IV-E: "a critically-damped PD controller, with accelerations clamped" (exercise 9):
+                       the return label of every profile
+  corrective_labels    projection -> PD return chunk, for a batch of noised states
   AugmentationSampler  Sec. IV-A steps 3-4: (observation, chunk, mask) made on the fly for co-training;
                        ChunkSampler, MixtureSampler: a fine-tuning batch's intervention rows, round by round
   plot_recovery        Fig. 1
 
-Units per control step: joints rad, velocities rad/step, accelerations rad/step²; noise levels and most
-RelabelConfig knobs in median steps m. The env is used only through envs.py's interface; which steps teach is
-the label rule diffusion.label_mask (matplotlib only inside `plot_recovery`).
+Units per control step: joints rad, velocities rad/step, accelerations rad/step²; noise levels in median steps m.
+The env is used only through envs.py's interface; which steps teach is the label rule diffusion.label_mask
+(matplotlib only inside `plot_recovery`). The authors' own label, a clamped servo in their units, is a variant
+beside this file (experiment/servo.py), not part of it.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, ClassVar, Sequence
 
 import numpy as np
 
@@ -29,19 +30,10 @@ from diffusion import chunk_dataset, expert_runs, label_mask  # the paper's labe
 @dataclass
 class RelabelConfig:
     horizon: int  # steps: H, the length of a label chunk (the policy's action chunk; dagger passes it)
-    label: str = "servo"  # 'servo': `servo_return_chunk` (the authors', every profile's); 'pd': `pd_return_chunk`
-    settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (label='pd')
+    label: ClassVar[str] = "pd"  # the return label, as logs and run records name it: `pd_return_chunk` (Sec. IV-E)
+    settle_steps: float = 8.0  # steps: the PD's unclamped error settles to 2 % in this many (Sec. IV-E's PD)
     velocity_noise: float = 0.3  # the authors' median steps per 30 Hz frame: std of the velocity noise
-    # the servo's knobs: the authors' values (benchmarks/SETUP.md §6) per 10 Hz step, in our median steps m
-    a_clamp_scale: float = 0.9  # a_clamp = 0.9 · max(2√dof · acc_p95, accel_floor · m)
-    accel_floor: float = 0.6  # median steps/step²
-    gain_floor: float = 4.0 / 3.0  # median steps: Kp = a_clamp / max(d0, gain_floor · m)
-    jerk_slew: float = 1.5  # |a_k - a_{k-1}| <= 1.5 a_clamp per step
-    speed_cap: float = 1.68  # median steps/step: ‖v‖ <= max(1.68 m, speed_cap_v0 ‖v0‖)
-    speed_cap_v0: float = 1.05  # unit-free: the 1.05 · ‖v0‖ part
-    cursor_advance: int = 3  # trajectory indices per step the servo's cursor may advance
-    hold_tol: float = 0.02  # median steps/step: slower steps at the segment end are held (out of the loss)
-    min_moving_steps: int = 3  # steps: a label with fewer in the loss is redrawn
+    # the authors' redraws (benchmarks/SETUP.md §6: 8 of their 30 Hz frames ~ 3 of our 10 Hz steps; 6 redraws)
     near_end_steps: int = 3  # steps: a state projecting this near its segment's end is redrawn
     max_redraws: int = 6  # redraws, then the state is dropped
     # ours
@@ -52,9 +44,6 @@ class RelabelConfig:
     reuse: float = 4.0  # times a pair is served on average (bench_relabel.py)
     episodes_per_refresh: int = 16  # episodes a refresh draws from, so env calls are batched per scenario
 
-    def __post_init__(self):
-        assert self.label in ("servo", "pd"), f"RelabelConfig.label: 'servo' or 'pd', not {self.label!r}"
-
 
 # ---- 1. Demonstration statistics (Sec. IV-E: "the demonstration dataset's velocity and acceleration statistics")
 
@@ -63,7 +52,6 @@ class DemoStats:
     median_step: float  # rad: m, the median per-step joint displacement (envs.median_step); noise unit
     accel_max: np.ndarray  # (dof,) rad/step²: per-joint clamp on the PD's acceleration
     max_step: np.ndarray  # (dof,) rad/step: the env's speed limit, clamp on the velocity
-    acc_p95: float  # rad/step²: 95th percentile of ‖q[t+1] - 2 q[t] + q[t-1]‖₂, sets the servo's a_clamp
     # the env's units, for knobs the authors set in theirs (`velocity_noise_std`); None: not known
     paper_median_step: float | None = None  # rad: the paper's median step of the env (envs.paper_median_step)
     frames_per_step: float | None = None  # the authors' 30 Hz frames per env step: env.dt / envs.PAPER_FRAME_DT
@@ -77,9 +65,8 @@ def demo_stats(episodes: Sequence[dict], median_step: float, max_step,
     qs = [np.asarray(ep["q"], dtype=np.float64) for ep in episodes]  # (T, dof) each
     accels = np.concatenate([np.abs(q[2:] - 2 * q[1:-1] + q[:-2]) for q in qs if len(q) >= 3])  # (sum T-2, dof)
     accel_max = np.percentile(accels, 99.0, axis=0)  # (dof,) rad/step²
-    acc_p95 = float(np.percentile(np.linalg.norm(accels, axis=1), 95))  # the authors': norm over joints
     max_step = np.broadcast_to(np.asarray(max_step, dtype=np.float64), accel_max.shape).copy()
-    return DemoStats(float(median_step), accel_max, max_step, acc_p95,
+    return DemoStats(float(median_step), accel_max, max_step,
                      None if paper_median_step is None else float(paper_median_step),
                      None if frames_per_step is None else float(frames_per_step))
 
@@ -174,7 +161,7 @@ def monotone_projection(q: np.ndarray, trajectory: np.ndarray, t_start, window: 
     # <<< exercise 8
 
 
-# ---- 4. The return chunk: the paper's critically damped PD, and the authors' servo (the default label)
+# ---- 4. The return chunk: the paper's critically damped PD (every profile's label)
 
 def critically_damped_gains(settle_steps: float) -> tuple[float, float]:
     """(Kp, Kd) per step for a critically damped PD on the discrete double integrator v ← v + a, q ← q + v
@@ -254,76 +241,17 @@ def pd_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_pr
     # <<< exercise 9
 
 
-def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, trajectory: np.ndarray, t_proj, stats: DemoStats,
-                       cfg: RelabelConfig, t_end=None, limits=None) -> tuple[np.ndarray, np.ndarray]:
-    """The label every profile uses: the authors' clamped servo (benchmarks/SETUP.md §6), a critically damped servo
-    tracking the expert segment at its own cursor c_k: the monotone projection of x_k, at most `cursor_advance`
-    past c_{k-1} (from t_proj). With m = stats.median_step and r_c = trajectory[c], u_c = r_{c+1} - r_c:
-        a_k = Kp (r_c - x_k) + Kd (u_c - v_k),  Kp = a_clamp / max(d0, gain_floor · m),  d0 = ‖q0 - r_{t_proj}‖,
-    then ‖a‖ <= a_clamp, ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap · m, speed_cap_v0 · ‖v0‖),
-    |v| <= stats.max_step, x within `limits`. The held tail (cursor at the end, every joint < hold_tol · m per
-    step to the chunk's end) is out of the loss. q0, v0: (B, dof); t_proj, t_end: int or (B,) (t_end exclusive).
-    Returns (chunk (B, H, dof) joint targets x_1 .. x_H, mask (B, H) bool, True = in the loss).
-    """
-    trajectory = np.asarray(trajectory, dtype=np.float64)
-    x = np.atleast_2d(np.asarray(q0, dtype=np.float64)).copy()
-    B, dof = x.shape
-    H, m = cfg.horizon, stats.median_step
-    v = np.broadcast_to(np.asarray(v0, dtype=np.float64), (B, dof)).copy()
-    max_step = np.broadcast_to(np.asarray(stats.max_step, dtype=np.float64), (dof,))
-    t_end = np.broadcast_to(np.asarray(len(trajectory) if t_end is None else t_end, dtype=np.int64), (B,))
-    cursor = np.broadcast_to(np.asarray(t_proj, dtype=np.int64), (B,)).copy()
-    norm = lambda a: np.linalg.norm(a, axis=-1, keepdims=True)  # (B, 1)
-    cap = lambda a, limit: a * np.minimum(1.0, limit / np.maximum(norm(a), 1e-300))  # ‖a‖ <= limit
-    a_clamp = cfg.a_clamp_scale * max(2 * np.sqrt(dof) * stats.acc_p95, cfg.accel_floor * m)  # rad/step²
-    d0 = norm(x - trajectory[cursor])  # (B, 1) distance to the projection
-    omega = np.sqrt(a_clamp / np.maximum(d0, cfg.gain_floor * m))  # (B, 1): √Kp, Kp = a_clamp / max(d0, floor)
-    # the discrete double pole e^{-ω} of `critically_damped_gains` (Kd = 2 √Kp would chatter at 10 Hz)
-    p = np.exp(-omega)
-    kp, kd = (1 - p) ** 2, 1 - p ** 2  # (B, 1) per step², per step
-    v_cap = np.maximum(cfg.speed_cap * m, cfg.speed_cap_v0 * norm(v))  # (B, 1) rad/step
-    v = np.minimum(np.maximum(v, -max_step), max_step)
-    a_prev = np.zeros((B, dof))
-    chunk = np.empty((B, H, dof))
-    held = np.zeros((B, H), dtype=bool)
-    for k in range(H):
-        # the servo's own monotone cursor: project x_k, never back, at most cursor_advance ahead
-        cursor = monotone_projection(x, trajectory, cursor, window=cfg.cursor_advance + 1, t_end=t_end)
-        at_end = cursor >= t_end - 1
-        ref = trajectory[cursor]  # (B, dof)
-        ref_vel = trajectory[np.minimum(cursor + 1, t_end - 1)] - ref  # (B, dof), 0 at the end
-        a = kp * (ref - x) + kd * (ref_vel - v)  # PD on position and velocity error
-        a = cap(a, a_clamp)  # accelerations of the demo envelope
-        a = a_prev + cap(a - a_prev, cfg.jerk_slew * a_clamp)  # bounded jerk (slew)
-        a_prev = a
-        v = cap(v + a, v_cap)  # speed cap
-        v = np.minimum(np.maximum(v, -max_step), max_step)  # the env's per-joint speed limit
-        x_next = x + v
-        if limits is not None:
-            x_next = np.minimum(np.maximum(x_next, limits[0]), limits[1])
-            v = x_next - x  # a joint stopped by its limit has stopped moving
-        held[:, k] = at_end & (np.abs(x_next - x).max(axis=1) < cfg.hold_tol * m)
-        x = x_next
-        chunk[:, k] = x
-    # the held tail: steps from which on every step is held; (B, H), True = in the loss
-    tail = np.flip(np.logical_and.accumulate(np.flip(held, axis=1), axis=1), axis=1)
-    return chunk, ~tail
-
-
 def corrective_labels(q_tilde: np.ndarray, v: np.ndarray, trajectory: np.ndarray, t: np.ndarray, t_end: np.ndarray,
-                      stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None,
-                      t_start=None) -> tuple[np.ndarray, np.ndarray]:
-    """Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) from steps t (m,): monotone projection
-    (or `t_proj` given) -> return chunk by `cfg.label` ('servo' or 'pd', lookahead 0); t_end (m,): the exclusive
-    end of each state's expert segment; t_start (m,): its episode's first step in `trajectory` (the PD reference's
-    floor; default 0). Returns (chunks (m, H, dof), mask (m, H) bool; all True for 'pd')."""
+                      stats: DemoStats, cfg: RelabelConfig, limits=None, t_proj=None, t_start=None) -> np.ndarray:
+    """Sec. IV-E for noised states q̃ (m, dof) with velocities v (m, dof) from steps t (m,): the monotone
+    projection (or `t_proj` given), then the critically damped PD return chunk from there (lookahead 0), its
+    accelerations clamped to the demonstrations' (stats.accel_max). t_end (m,): the exclusive end of each state's
+    expert segment; t_start (m,): its episode's first step in `trajectory` (the PD reference's floor; default 0).
+    Returns the chunks (m, H, dof) of joint targets."""
     if t_proj is None:
         t_proj = monotone_projection(q_tilde, trajectory, t, window=cfg.projection_window, t_end=t_end)
-    if cfg.label == "servo":
-        return servo_return_chunk(q_tilde, v, trajectory, t_proj, stats, cfg, t_end=t_end, limits=limits)
-    chunks = pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, 0, stats.accel_max, stats.max_step,
-                             settle_steps=cfg.settle_steps, t_end=t_end, limits=limits, t_start=t_start)
-    return chunks, np.ones(chunks.shape[:2], dtype=bool)
+    return pd_return_chunk(q_tilde, v, trajectory, t_proj, cfg.horizon, 0, stats.accel_max, stats.max_step,
+                           settle_steps=cfg.settle_steps, t_end=t_end, limits=limits, t_start=t_start)
 
 
 # ---- 5. On-the-fly augmentation for co-training (Sec. IV-A steps 3-4)
@@ -353,7 +281,8 @@ class AugmentationSampler:
 
     A pair (benchmarks/SETUP.md §6): (episode, t) uniform over labelable steps; q̃ ~ N(q_t, Σ_t), collision-free;
     v = (q_t - q_{t-1}) + N(0, `velocity_noise_std`²); obs = env.make_obs_near(q̃, q̃ - v, recorded obs); chunk,
-    mask = `corrective_labels`. Pairs go in batches into a pool each call draws from (randomness: the call's rng).
+    mask = `return_chunks` (the PD's `corrective_labels`, every step in the loss). Pairs go in batches into a pool
+    each call draws from (randomness: the call's rng).
     noise: 'isotropic', 'pooled' or 'per_step'; sigma: as in `noise_factors`, for 'per_step' a list or dict
     {episode index: pair}. make_env: an env factory. label_steps(expert, H): the steps states are drawn at (the
     paper's rule by default; a variant hands in its own)."""
@@ -458,8 +387,8 @@ class AugmentationSampler:
 
     def _label_rows(self, rows: np.ndarray, rng: np.random.Generator, limits):
         """One pass over table rows (m,): (r, q̃, v, chunks, mask) of the pairs made, and the rows to redraw
-        (projecting within `near_end_steps` of the segment's end, or fewer than `min_moving_steps` steps in
-        the loss). States in collision / off limits after `max_tries` draws are dropped."""
+        (projecting within `near_end_steps` of the segment's end, or a label with no step in the loss). States in
+        collision / off limits after `max_tries` draws are dropped."""
         cfg, dof = self.cfg, self.center.shape[1]
         q_tilde, kept = np.empty((len(rows), dof)), np.zeros(len(rows), dtype=bool)
         for seed in np.unique(self.seeds[rows]):  # q̃ ~ N(q_t, Σ_t): one batched collision check per scenario
@@ -472,12 +401,18 @@ class AugmentationSampler:
         t_proj = monotone_projection(q_tilde, self.trajectory, self.t_glob[r], window=cfg.projection_window,
                                      t_end=self.end_glob[r])
         ok = t_proj < self.end_glob[r] - cfg.near_end_steps  # not within near_end_steps of the end
-        chunks, mask = corrective_labels(q_tilde[ok], v[ok], self.trajectory, self.t_glob[r[ok]],
-                                         self.end_glob[r[ok]], self.stats, cfg, limits=limits, t_proj=t_proj[ok],
-                                         t_start=self.start_glob[r[ok]])
-        moving = mask.sum(axis=1) >= cfg.min_moving_steps  # enough steps left in the loss
-        ok[ok] = moving
-        return (r[ok], q_tilde[ok], v[ok], chunks[moving], mask[moving]), r[~ok]
+        chunks, mask = self.return_chunks(r[ok], q_tilde[ok], v[ok], t_proj[ok], limits)
+        taught = mask.any(axis=1)  # a label with no step in the loss teaches nothing: redrawn
+        ok[ok] = taught
+        return (r[ok], q_tilde[ok], v[ok], chunks[taught], mask[taught]), r[~ok]
+
+    def return_chunks(self, rows: np.ndarray, q_tilde: np.ndarray, v: np.ndarray, t_proj: np.ndarray, limits):
+        """The labels of noised states q̃ (m, dof) with velocities v (m, dof) drawn at table rows `rows` (m,),
+        projected to t_proj (m,): (chunks (m, H, dof), mask (m, H) bool, True = in the loss). Sec. IV-E's PD,
+        `corrective_labels`: every step of its chunk is in the loss."""
+        chunks = corrective_labels(q_tilde, v, self.trajectory, self.t_glob[rows], self.end_glob[rows], self.stats,
+                                   self.cfg, limits=limits, t_proj=t_proj, t_start=self.start_glob[rows])
+        return chunks, np.ones(chunks.shape[:2], dtype=bool)
 
     def _observe(self, rows: np.ndarray, q_tilde: np.ndarray, v: np.ndarray) -> np.ndarray:
         """obs (m, obs_dim) float32 of noised states, one batched env call per scenario: the previous frame
@@ -567,7 +502,7 @@ def plot_recovery(env, episode: dict, sigma, path: str, rng: np.random.Generator
     q_tilde, kept = perturb_states(q[steps], factors, rng, env, cfg.max_tries)
     q_tilde, t = q_tilde[kept], steps[kept]
     v = q[t] - q[np.maximum(t - 1, 0)]
-    chunks, _ = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
+    chunks = corrective_labels(q_tilde, v, q, t, np.full(len(t), end), stats, cfg, limits=env.joint_limits)
     recoveries = [xy(np.concatenate([qt[None], ch])) for qt, ch in zip(q_tilde, chunks)]  # (H+1, 2) each
 
     env.set_state(q[seg[0]])  # the arm is drawn where the intervention starts

@@ -10,8 +10,8 @@ scenario's start toward its nearest goal configuration, stopped before the first
 with a smoothstep, with the "intervention" covering all but the first 5 steps.
 
 A second table measures label quality on RRT-oracle demonstrations (which move at the speed limit):
-how close the chunks come back to the expert path, for both labels (RelabelConfig.label 'servo', the
-default, and 'pd').
+how close the chunks come back to the expert path, for both labels (the paper's PD, every profile's, and the
+authors' servo of experiment/servo.py).
 
 Usage:  python benchmarks/bench_relabel.py [--calls 400] [--episodes 24] [--oracle-demos 8]
 Prints a markdown table. Numbers depend on machine load (the team shares 2 cores); the CPU-time
@@ -27,7 +27,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 import relabel  # noqa: E402
-from envs import make_env, median_step  # noqa: E402
+from envs import PAPER_FRAME_DT, make_env, median_step  # noqa: E402
+from experiment import servo  # noqa: E402
 from helpers import straight_line_episode  # noqa: E402 (tests/helpers.py)
 
 H = 16  # steps: the label chunk's length measured here
@@ -92,8 +93,11 @@ def main():
     rows.append((f"pd_return_chunk, 512 x H={H}", per_second(
         lambda: relabel.pd_return_chunk(q_tilde, v, ep["q"], proj, H, 0, stats.accel_max, stats.max_step, t_end=t_end), 512),
         "chunks/s"))
-    rows.append((f"servo_return_chunk, 512 x H={H}", per_second(
-        lambda: relabel.servo_return_chunk(q_tilde, v, ep["q"], proj, stats, cfg, t_end=t_end), 512), "chunks/s"))
+    step, acc = servo.segment_geometry(ep["q"])
+    knobs = servo.servo_knobs(np.full(512, step), env.dt / PAPER_FRAME_DT)
+    rows.append((f"servo.servo_return_chunk, 512 x H={H}", per_second(
+        lambda: servo.servo_return_chunk(q_tilde, v, ep["q"], ep["q"], proj, acc, knobs, H, stats.max_step,
+                                         t_end=t_end), 512), "chunks/s"))
 
     for noise, sigma in (("isotropic", 4.0), ("pooled", pooled), ("per_step", per_step)):
         sampler = relabel.AugmentationSampler(episodes, lambda: make_env("planar"), stats, noise, sigma, cfg)
@@ -129,7 +133,7 @@ def main():
 
 def label_quality(env, n_demos):
     """How close the labels come back to the expert path, on RRT-oracle demonstrations (they move at
-    the speed limit, unlike the stand-ins above), for both labels ('servo' and 'pd')."""
+    the speed limit, unlike the stand-ins above), for both labels (the PD and the authors' servo)."""
     import oracle
 
     expert, seed = oracle.Oracle(), 0
@@ -142,12 +146,12 @@ def label_quality(env, n_demos):
             pass
         seed += 1
     unit = median_step(demos)
-    stats = relabel.demo_stats(demos, unit, env.max_step)
+    stats = relabel.demo_stats(demos, unit, env.max_step, paper_median_step=env.paper_median_step,
+                               frames_per_step=env.dt / PAPER_FRAME_DT)
     print(f"\nLabel quality on {len(demos)} oracle demos ({time.perf_counter() - t0:.0f} s to plan): distance of "
           f"chunk[7] / chunk[15] to the expert segment, in median steps ({unit:.4f} rad), median (90th pct)\n")
     print("| σ (median steps) | start | label | chunk[7] | chunk[15] | mean |a| / clamp |\n|---:|---:|---|---:|---:|---:|")
-    table = relabel.AugmentationSampler(demos, lambda: make_env("planar"), stats, "isotropic", 0.0,
-                                        relabel.RelabelConfig(horizon=H))
+    table = servo.ServoSampler(demos, lambda: make_env("planar"), stats, "isotropic", 0.0, servo.ServoConfig(H))
     traj = table.trajectory
     rng = np.random.default_rng(0)
     for sigma in (2, 4, 8, 16):
@@ -159,8 +163,10 @@ def label_quality(env, n_demos):
             return np.array([np.linalg.norm(traj[a:b] - p, axis=1).min() for p, a, b in zip(x, t, t_end)]) / unit
 
         start = dist(q0)
-        for label in ("servo", "pd"):
-            chunks, _ = relabel.corrective_labels(q0, v, traj, t, t_end, stats, relabel.RelabelConfig(horizon=H, label=label))
+        for label in ("servo", "pd"):  # the same table's labels: its own servo, or the core's PD
+            proj = relabel.monotone_projection(q0, traj, t, window=table.cfg.projection_window, t_end=t_end)
+            chunks = (table.return_chunks(rows, q0, v, proj, env.joint_limits)[0] if label == "servo" else
+                      relabel.corrective_labels(q0, v, traj, t, t_end, stats, table.cfg, t_proj=proj))
             path = np.concatenate([q0[:, None], chunks], axis=1)
             acc = np.diff(np.concatenate([v[:, None], np.diff(path, axis=1)], axis=1), axis=1)
             mid, end = dist(chunks[:, 7]), dist(chunks[:, -1])

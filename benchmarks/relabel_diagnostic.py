@@ -1,21 +1,22 @@
 """What the noised rows' labels change at σ = 0: the relabelled chunk beside the recorded chunk it replaces.
 
 At σ = 0 a noised row differs from HG-DAgger only in its intervention rows' labels and velocities: the state is the
-recorded one, the label is the return chunk of `relabel.corrective_labels` instead of the expert's recorded chunk.
-This tool makes that label once at every labelable step of a set of episodes, the way relabel.AugmentationSampler
-makes a pair with Σ = 0 (its table of steps; `perturb_states` with zero factors, which keeps the recorded state and
-drops it where it is in collision; the velocity q_t - q_{t-1} plus `velocity_noise_std` noise; `monotone_projection`;
-`corrective_labels`; and the sampler's two rejections: a state projecting within `near_end_steps` of its segment's
-end, a label with fewer than `min_moving_steps` steps in the loss), and measures at each chunk step k the distance
-‖label_k − recorded_k‖₂ over the joints, in median steps m (`DemoStats.median_step`: D0's per-joint median step of
-the run, the unit of RelabelConfig's knobs). The recorded chunk is HG-DAgger's label (`diffusion.chunk_dataset`:
-action[t .. t+H-1], the last action repeated past the episode's end).
+recorded one, the label is a return chunk instead of the expert's recorded chunk. This tool makes that label once at
+every labelable step of a set of episodes, the way the noised rows' sampler makes a pair with Σ = 0 (its table of
+steps; `perturb_states` with zero factors, which keeps the recorded state and drops it where it is in collision; the
+velocity q_t - q_{t-1} plus `velocity_noise_std` noise; `monotone_projection`; the sampler's `return_chunks`; and its
+rejections: a state projecting within `near_end_steps` of its segment's end, a label with no step in the loss, for
+the servo fewer than `min_moving_steps`), and measures at each chunk step k the distance ‖label_k − recorded_k‖₂ over
+the joints, in median steps m (`DemoStats.median_step`: D0's per-joint median step of the run, the unit of the noise
+levels). The recorded chunk is HG-DAgger's label (`diffusion.chunk_dataset`: action[t .. t+H-1], the last action
+repeated past the episode's end).
 
-Rows: the label (servo: RelabelConfig.label 'servo', `servo_return_chunk`, what every profile trains on; PD:
-label 'pd', `pd_return_chunk`, the paper's Sec. IV-E) and the velocity noise (on: the run's RelabelConfig; off:
-velocity_noise = 0). Columns: rows kept of the labelable steps; masked, the share of the kept rows' chunk steps out
-of the loss (the servo's held tail; the PD masks none); the distance's mean, median and 90th percentile over the
-steps in the loss (a masked step teaches nothing). The servo and the PD of one velocity setting see the same draws.
+Rows: the label (PD: relabel.AugmentationSampler, `pd_return_chunk`, the paper's Sec. IV-E and every profile's label;
+servo: experiment/servo.py's ServoSampler, the authors' servo with its knobs in their units) and the velocity noise
+(on: the run's RelabelConfig; off: velocity_noise = 0). Columns: rows kept of the labelable steps; masked, the share
+of the kept rows' chunk steps out of the loss (the servo's held tail; the PD masks none); the distance's mean,
+median and 90th percentile over the steps in the loss (a masked step teaches nothing). Both labels of one velocity
+setting see the same draws.
 
 Usage:
   python benchmarks/relabel_diagnostic.py [--demos 20] [--figure PATH]   # oracle demonstrations, every step
@@ -45,17 +46,19 @@ sys.path.insert(0, os.path.dirname(HERE))
 import diffusion  # noqa: E402
 import envs  # noqa: E402
 import relabel  # noqa: E402
-from experiment import environments, profiles  # noqa: E402
+from experiment import environments, profiles, servo  # noqa: E402
 
-LABELS = ("servo", "pd")
-LABEL_NAMES = {"servo": "servo (the default)", "pd": "PD (Sec. IV-E)"}
+# each label's sampler and its config: the core's (the paper's PD) and the variant's (the authors' servo)
+SAMPLERS = {"pd": (relabel.AugmentationSampler, relabel.RelabelConfig), "servo": (servo.ServoSampler, servo.ServoConfig)}
+LABELS = tuple(SAMPLERS)
+LABEL_NAMES = {"pd": "PD (Sec. IV-E, the default)", "servo": "the authors' servo (experiment/servo.py)"}
 START = os.path.join(HERE, "results", "table1_strong", "start")  # the committed D0, pi_0 and its evaluation
 
 
 @dataclass
 class Relabelled:
     """Every labelable step of a set of episodes, relabelled as a noised row at σ = 0 labels it."""
-    label: str  # 'servo' or 'pd'
+    label: str  # 'pd' or 'servo'
     velocity_noise: float  # RelabelConfig.velocity_noise used (0: off)
     recorded: np.ndarray  # (N, H, dof) float32: HG-DAgger's chunk of each step
     chunks: np.ndarray  # (N, H, dof) float32: the relabelled chunk (as the sampler hands it to training)
@@ -67,11 +70,14 @@ class Relabelled:
     median_step: float  # rad: m, the unit of the distances
 
 
-def relabel_every_step(episodes, make_env, stats, cfg, seed=0):
-    """Relabelled: the chunk `cfg` labels at every labelable step of `episodes` (σ = 0), beside the recorded one.
-    stats: relabel.DemoStats (the run's D0's); cfg: relabel.RelabelConfig (its label and velocity noise)."""
+def relabel_every_step(episodes, make_env, stats, label, horizon, velocity_noise=None, seed=0):
+    """Relabelled: the chunk `label` ('pd' or 'servo', SAMPLERS) makes at every labelable step of `episodes` (σ = 0),
+    beside the recorded one. stats: relabel.DemoStats (the run's D0's); velocity_noise: RelabelConfig's (None: the
+    run's default)."""
+    make_sampler, make_config = SAMPLERS[label]
+    cfg = make_config(horizon=horizon, **({} if velocity_noise is None else {"velocity_noise": velocity_noise}))
     rng = np.random.default_rng(seed)
-    table = relabel.AugmentationSampler(episodes, make_env, stats, "isotropic", 0.0, cfg)  # its table of steps
+    table = make_sampler(episodes, make_env, stats, "isotropic", 0.0, cfg)  # its table of steps and its labels
     _, recorded = diffusion.chunk_dataset(episodes, cfg.horizon)  # (N, H, dof): the same steps, in the same order
     if len(recorded) != len(table.center):
         raise ValueError(f"{len(recorded)} recorded chunks for {len(table.center)} labelable steps")
@@ -87,12 +93,10 @@ def relabel_every_step(episodes, make_env, stats, cfg, seed=0):
     v = table.velocity + relabel.velocity_noise_std(cfg, stats) * rng.standard_normal(q_tilde.shape)  # (N, dof)
     t_proj = relabel.monotone_projection(q_tilde, table.trajectory, table.t_glob, window=cfg.projection_window,
                                          t_end=table.end_glob)
-    chunks, mask = relabel.corrective_labels(q_tilde, v, table.trajectory, table.t_glob, table.end_glob, stats, cfg,
-                                             limits=limits, t_proj=t_proj, t_start=table.start_glob)
-    kept = (free & (t_proj < table.end_glob - cfg.near_end_steps)  # the sampler's redraws, at σ = 0 for good
-            & (mask.sum(axis=1) >= cfg.min_moving_steps))
+    chunks, mask = table.return_chunks(np.arange(len(q_tilde)), q_tilde, v, t_proj, limits)
+    kept = free & (t_proj < table.end_glob - cfg.near_end_steps) & mask.any(axis=1)  # the sampler's redraws
     reaches_end = table.t_glob + cfg.horizon >= table.end_glob
-    return Relabelled(cfg.label, cfg.velocity_noise, recorded, chunks.astype(np.float32), mask, kept, reaches_end,
+    return Relabelled(label, cfg.velocity_noise, recorded, chunks.astype(np.float32), mask, kept, reaches_end,
                       stats.median_step)
 
 
@@ -126,14 +130,9 @@ def per_chunk_step(result):
 
 
 def diagnose(episodes, make_env, stats, horizon, seed=0):
-    """[Relabelled] for servo and PD, velocity noise on (the run's RelabelConfig) and off."""
-    out = []
-    for label in LABELS:
-        for noise in (relabel.RelabelConfig.velocity_noise, 0.0):
-            out.append(relabel_every_step(episodes, make_env, stats,
-                                          relabel.RelabelConfig(horizon=horizon, label=label, velocity_noise=noise),
-                                          seed))
-    return out
+    """[Relabelled] for the PD and the authors' servo, velocity noise on (the run's RelabelConfig) and off."""
+    return [relabel_every_step(episodes, make_env, stats, label, horizon, noise, seed)
+            for label in LABELS for noise in (relabel.RelabelConfig.velocity_noise, 0.0)]
 
 
 def table(results):
@@ -169,7 +168,7 @@ def figure(results, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True)
-    colors = {"servo": "tab:red", "pd": "tab:blue"}
+    colors = {"pd": "tab:blue", "servo": "tab:red"}
     for r in results:
         mean, p90 = per_chunk_step(r)
         k = np.arange(1, len(mean) + 1)

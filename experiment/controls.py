@@ -23,6 +23,9 @@
                        chunks), half noised and relabelled (fixed sigma 8, pooled Sigma-bar^alpha). Table I's noised
                        rows noise every frame they draw, as the authors' code does.
 Measured: benchmarks/HISTORY.md, "Why the noise's gain does not show here".
+    zero_noise_servo,  zero_noise, fixed_8 and pooled with the authors' servo return label (experiment/servo.py, in
+    fixed_8_servo,     the authors' units) instead of the paper's PD: each row its default twin with the one change
+    pooled_servo       of label, so that a study can run both.
 
 Each row is a Row of ROWS (its intervention sampler per round, and its words); the harness hands the loop a Rows
 (dagger.policy_calibrated_dagger's sampler) where a config names one of them, or runs a recipe with its own samplers
@@ -39,6 +42,7 @@ import numpy as np
 import dagger
 import diffusion
 import relabel
+from experiment import servo
 
 
 # ---- the authors' padded cut (their teleop_pad_short_episodes; lever.py masks the padded steps) ----------------
@@ -83,9 +87,10 @@ class AuthorsChunkSampler:
 @dataclass(frozen=True)
 class Row:
     """A row that builds a round's intervention sampler itself: sampler(D, H, recorded, noised) with recorded() the
-    round's hg_dagger sampler and noised(noise, label='servo') a noised sampler, noise a Table I method's name or a
-    (kind, sigma) of relabel.AugmentationSampler, label its return label (relabel.RelabelConfig.label: 'servo' the
-    authors', 'pd' the paper's Sec. IV-E); what: its rows in words (the log's)."""
+    round's hg_dagger sampler and noised(noise, make=relabel.AugmentationSampler, cfg=relabel.RelabelConfig) a
+    noised sampler, noise a Table I method's name or a (kind, sigma) of relabel.AugmentationSampler, make and cfg
+    the sampler class and its config (the return label: the core's the paper's PD, servo.ServoSampler the
+    authors' servo); what: its rows in words (the log's)."""
     sampler: Callable
     what: str
 
@@ -104,15 +109,16 @@ ROWS = {"zero_noise": Row(lambda D, H, recorded, noised: noised(("isotropic", 0.
         "cotrain_pooled": co_trained("pooled")}
 
 
-def pd_labelled(noise):
-    """A noised row with the paper's PD return label (relabel.pd_return_chunk) instead of the authors' servo."""
-    return Row(lambda D, H, recorded, noised: noised(noise, "pd"),
-               "every drawn frame noised and relabelled by the paper's PD controller (Sec. IV-E)")
+def servo_labelled(noise):
+    """A noised row with the authors' servo return label (experiment/servo.py) instead of the paper's PD."""
+    return Row(lambda D, H, recorded, noised: noised(noise, servo.ServoSampler, servo.ServoConfig),
+               "every drawn frame noised and relabelled by the authors' servo (experiment/servo.py)")
 
 
-# The noised rows with the paper's PD label beside the servo's (zero_noise, fixed_8, pooled): the label's cost
-ROWS.update({"zero_noise_pd": pd_labelled(("isotropic", 0.0)), "fixed_8_pd": pd_labelled("fixed_8"),
-             "pooled_pd": pd_labelled("pooled")})
+# The noised rows with the authors' servo label beside the default PD's (zero_noise, fixed_8, pooled): the label's
+# difference, as a study compares them
+ROWS.update({"zero_noise_servo": servo_labelled(("isotropic", 0.0)), "fixed_8_servo": servo_labelled("fixed_8"),
+             "pooled_servo": servo_labelled("pooled")})
 
 
 def equal_shares(frames):
@@ -132,12 +138,11 @@ class Rows:
     def __call__(self, cfg, method, rounds_data, calibration, stats, make_env):
         per_round, first = [], np.cumsum([0] + [len(D) for D in rounds_data])  # each round's first episode index
         for D, offset in zip(rounds_data, first):
-            def noised(noise, label="servo", D=D, offset=offset):
+            def noised(noise, make=relabel.AugmentationSampler, config=relabel.RelabelConfig, D=D, offset=offset):
                 kind, sigma = noise if isinstance(noise, tuple) else dagger.noise_model(
                     noise, calibration, range(offset, offset + len(D)), stats.median_step, stats.paper_median_step)
-                return relabel.AugmentationSampler(D, functools.partial(make_env, cfg.env), stats, kind, sigma,
-                                                   relabel.RelabelConfig(horizon=cfg.horizon, label=label),
-                                                   self.label_steps)
+                return make(D, functools.partial(make_env, cfg.env), stats, kind, sigma,
+                            config(horizon=cfg.horizon), self.label_steps)
 
             recorded = functools.partial(self.chunks, D, cfg.horizon)
             per_round.append(ROWS[method].sampler(D, cfg.horizon, recorded, noised) if method in ROWS else

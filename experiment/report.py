@@ -20,7 +20,8 @@ import calibrate
 import dagger
 from experiment import controls, environments, figures, lever, profiles
 from experiment.environments import paper_env, paper_median_step
-from experiment.run_folder import Run, copy_from, export_lineages, join_lineage, read_json, write_json
+from experiment.run_folder import (LABEL_WORDS, Run, copy_from, export_lineages, folder_labels, join_lineage, read_json,
+                                   write_json)
 from experiment.workers import worker_map
 
 # Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
@@ -34,9 +35,9 @@ METHOD_LABELS = {
     "authors_hg_dagger": "HG-DAgger as the authors' kit trained it (not in the paper)",
     "cotrain_fixed_8": "Half recorded, half fixed sigma=8 (the paper's co-training; not in its table)",
     "cotrain_pooled": "Half recorded, half pooled Sigma-bar^alpha (the paper's co-training; not in its table)",
-    "zero_noise_pd": "Co-training control (sigma=0), the paper's PD label (not in the paper's table)",
-    "fixed_8_pd": "Fixed iso. noise (sigma=8), the paper's PD label (not in the paper's table)",
-    "pooled_pd": "Pooled Sigma-bar^alpha, the paper's PD label (not in the paper's table)",
+    "zero_noise_servo": "Co-training control (sigma=0), the authors' servo label (not in the paper's table)",
+    "fixed_8_servo": "Fixed iso. noise (sigma=8), the authors' servo label (not in the paper's table)",
+    "pooled_servo": "Pooled Sigma-bar^alpha, the authors' servo label (not in the paper's table)",
 }
 
 
@@ -226,7 +227,7 @@ def paper_table(cfg):
 
 
 def is_fixed(method):
-    """Whether `method` is a row of Table I's fixed sweep, fixed_<sigma> (fixed_8_pd, a variant's row, is not)."""
+    """Whether `method` is a row of Table I's fixed sweep, fixed_<sigma> (fixed_8_servo, a variant's row, is not)."""
     return re.fullmatch(r"fixed_\d+", method) is not None
 
 
@@ -825,7 +826,9 @@ def write_markdown_report(run, text, stats, stats_unseen):
              f"collected on the evaluation scenarios (the paper's protocol: the evaluation scenarios enter the "
              f"training data)"
              + (f"; every policy is also evaluated on {scenario_words(cfg, 'unseen')}" if cfg.eval_unseen else "")
-             + ".", "", "## Table", "", text.rstrip(), ""]
+             + ". The noised rows' return label: " + (", ".join(sorted(LABEL_WORDS.get(label, label)
+                                                               for label in folder_labels(run.root)))
+                                                    or "no lineage yet") + ".", "", "## Table", "", text.rstrip(), ""]
     words = paired_words(stats)
     if words:
         lines += ["## The paired statistics in words", ""] + words + [""]

@@ -28,6 +28,7 @@ import torch
 import calibrate
 import diffusion
 import envs
+import relabel
 from experiment import checkpoints, cpu_kernels
 from experiment.workers import torch_threads
 
@@ -74,6 +75,22 @@ RETIRED_FIELDS = {
     "obs_noise_joints": (0.01,),  # dagger.OBS_NOISE_JOINTS (the authors')
     "obs_noise_env": (0.005,),  # dagger.OBS_NOISE_ENV (the authors')
 }
+# The return label of a lineage's noised rows (relabel.RelabelConfig.label), recorded in its lineage.json and its
+# results file: a lineage's stages continue only under the label they were made with, and a folder's table holds one
+# label. A record without it was made before the label was recorded: by the servo of relabel.py up to 6192871, whose
+# speed cap and floors were converted with our per-joint median step (half the authors' L2 unit in radians).
+LABEL_KEY = "return_label"
+RETURN_LABEL = relabel.RelabelConfig.label
+OLD_SERVO = "servo up to 6192871"
+LABEL_WORDS = {"pd": "the paper's PD (relabel.pd_return_chunk, Sec. IV-E)",
+               OLD_SERVO: "the servo as converted up to commit 6192871 (its speed cap half the authors' in radians)"}
+
+
+def label_of(record):
+    """The return label a lineage record (lineage.json, or a results file) was made with."""
+    return record.get(LABEL_KEY, OLD_SERVO)
+
+
 # What to do instead, for a retired field that became a variant rather than being deleted.
 RETIRED_ADVICE = {"image_obs": "camera images are the env variant --env engine3d_image now (experiment/image_obs.py)",
                   "goal_angle": "the authors' 10 degrees is the env variant --env engine3d_oriented now "
@@ -147,6 +164,8 @@ class Run:
             self.claim_lineage(int(lineage.group(1)))
         if os.path.exists(path):
             return self.load(name)
+        if lineage:
+            self.check_label(int(lineage.group(1)))
         with contextlib.ExitStack() as held:
             if not lineage:  # a shared stage: another run of this folder (another lineage) may be making it now
                 held.enter_context(self.stage_lock(name))
@@ -306,8 +325,25 @@ class Run:
                     f"there, {pi0[:12]}... here). A lineage joins a run folder only with the shared stages it was "
                     "made from: run it from a copy of this folder's data/ and checkpoints/, or run it here.")
         else:
-            write_json(path, {"config": asdict(self.cfg), "pi0_sha256": pi0})
+            others = sorted(folder_labels(self.root) - {RETURN_LABEL})
+            if others:
+                raise ConfigMismatch(f"{self.root} holds lineages made with another return label "
+                                     f"({LABEL_WORDS.get(others[0], others[0])}); this code labels with "
+                                     f"{LABEL_WORDS[RETURN_LABEL]}, and one table holds one label. Give the new "
+                                     "lineage a folder of its own (--out).")
+            write_json(path, {"config": asdict(self.cfg), "pi0_sha256": pi0, LABEL_KEY: RETURN_LABEL})
         self._claimed.add(lineage)
+
+    def check_label(self, lineage):
+        """ConfigMismatch if lineage `lineage`'s stages were made with another return label than this code's (its
+        lineage.json says which): its next stage would be made with another label than its finished ones."""
+        path = os.path.join(self.root, f"lineage_{lineage}", "lineage.json")
+        label = label_of(read_json(path)) if os.path.exists(path) else RETURN_LABEL
+        if label != RETURN_LABEL:
+            raise ConfigMismatch(
+                f"{self.root}/lineage_{lineage} was made with {LABEL_WORDS.get(label, label)}; this code labels with "
+                f"{LABEL_WORDS[RETURN_LABEL]}: a lineage does not continue across a change of label. Run it on in "
+                "a folder of its own from its start (--out), or report it as it is (--report).")
 
     def check_lineages(self):
         """claim_lineage for every lineage folder in the run folder (the report's check before it merges them)."""
@@ -363,7 +399,7 @@ def export_lineages(run, folder):
         with open(tmp, "wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as z, \
                 io.TextIOWrapper(z, encoding="utf-8") as f:
             json.dump({"format": LINEAGE_FILE_FORMAT, "lineage": lineage, "config": record["config"],
-                       "pi0_sha256": record["pi0_sha256"], "rounds_finished": finished,
+                       "pi0_sha256": record["pi0_sha256"], LABEL_KEY: label_of(record), "rounds_finished": finished,
                        "files": files}, f, separators=(",", ":"))
         os.replace(tmp, path)
         written.append(path)
@@ -529,6 +565,11 @@ def join_lineage(run, path):
     check_same_config(f"{path} (lineage {lineage})", data["config"], run.cfg,
                       advice="A lineage joins a run folder only if it was made with the folder's config: join it "
                              "into a folder of its own config (--profile and options as it was run, --out).")
+    label, others = label_of(data), sorted(folder_labels(run.root, but=lineage) - {label_of(data)})
+    if others:
+        raise ConfigMismatch(f"{path} (lineage {lineage}) was made with {LABEL_WORDS.get(label, label)}, "
+                             f"{run.root}'s lineages with {LABEL_WORDS.get(others[0], others[0])}: one table holds "
+                             "one return label. Join it into a folder of its own (--out).")
     pi0 = folder_pi0(run)
     if pi0 is not None and pi0 != data["pi0_sha256"]:
         raise ConfigMismatch(
@@ -550,6 +591,16 @@ def join_lineage(run, path):
             write_json(run.path(rel), content)
     run.log(f"joined lineage {lineage} ({data['rounds_finished']} of {run.cfg.rounds} rounds finished) from {path}")
     return lineage
+
+
+def folder_labels(root, but=None):
+    """The return labels of the lineages in run folder `root` (their lineage.json), lineage `but` aside."""
+    labels = set()
+    for name in os.listdir(root) if os.path.isdir(root) else []:
+        record = os.path.join(root, name, "lineage.json")
+        if re.fullmatch(r"lineage_\d+", name) and name != f"lineage_{but}" and os.path.exists(record):
+            labels.add(label_of(read_json(record)))
+    return labels
 
 
 def _read_lineage_file(path):

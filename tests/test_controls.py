@@ -191,22 +191,29 @@ def test_the_dose_response_is_the_slope_of_each_lineages_difference_on_sigma(loa
     assert n == 2 and mean == pytest.approx(100 * (4 + 8) / 2 / 36) and m2 == pytest.approx(mean)
 
 
-def test_the_pd_rows_are_the_servo_rows_with_the_papers_pd_label(controls_run, augmentation_samplers):
-    """zero_noise_pd, fixed_8_pd and pooled_pd: the same noise as zero_noise, fixed_8 and pooled, every drawn frame
-    relabelled by the paper's PD controller (relabel.pd_return_chunk) instead of the authors' servo. Fails if a _pd
-    row keeps the servo label, takes another noise than its servo twin, or is read as a row of the fixed sweep."""
+def test_the_servo_rows_are_the_default_rows_with_the_authors_servo_label(controls_run, augmentation_samplers):
+    """zero_noise_servo, fixed_8_servo and pooled_servo: the same noise as zero_noise, fixed_8 and pooled, every drawn
+    frame relabelled by the authors' servo (experiment/servo.py) instead of the paper's PD, the default. Fails if a
+    _servo row keeps the PD label, a default row takes the servo, a _servo row takes another noise than its twin, or
+    is read as a row of the fixed sweep."""
+    from experiment import servo
     D, demos = load(controls_run, "lineage_0/round_1/D.npz"), load(controls_run, "data/D0.npz")
     stats = dagger.demo_statistics(TINY, demos)
     cal = run_folder.calibration_from_json(run_folder.read_json(os.path.join(controls_run,
                                                                        "lineage_0/round_1/calibration.json")))
-    for pd_row, twin in (("zero_noise_pd", "zero_noise"), ("fixed_8_pd", "fixed_8"), ("pooled_pd", "pooled")):
+    for servo_row, twin in (("zero_noise_servo", "zero_noise"), ("fixed_8_servo", "fixed_8"),
+                            ("pooled_servo", "pooled")):
         built = {}
-        for method in (pd_row, twin):
+        for method in (servo_row, twin):
             augmentation_samplers.clear()
             controls.Rows()(TINY, method, [D], cal, stats, envs.make_env)
             (built[method],) = augmentation_samplers
-        assert built[pd_row]["sampler"].cfg.label == "pd" and built[twin]["sampler"].cfg.label == "servo"
-        assert built[pd_row]["noise"] == built[twin]["noise"]
-        assert np.allclose(built[pd_row]["sigma"], built[twin]["sigma"])
-        assert pd_row in profiles.ALL_METHODS and not report.is_fixed(pd_row)
-    assert report.is_fixed("fixed_8") and report.method_label("fixed_8_pd").endswith("PD label (not in the paper's table)")
+        assert isinstance(built[servo_row]["sampler"], servo.ServoSampler)
+        assert type(built[twin]["sampler"]) is relabel.AugmentationSampler
+        assert built[servo_row]["sampler"].cfg.label == "servo" and built[twin]["sampler"].cfg.label == "pd"
+        assert built[servo_row]["noise"] == built[twin]["noise"]
+        assert np.allclose(built[servo_row]["sigma"], built[twin]["sigma"])
+        assert servo_row in profiles.ALL_METHODS and not report.is_fixed(servo_row)
+    assert report.is_fixed("fixed_8") and report.method_label("fixed_8_servo").endswith(
+        "the authors' servo label (not in the paper's table)")
+    assert not any(m.endswith("_pd") for m in profiles.ALL_METHODS)  # the PD is every default row's label

@@ -152,7 +152,7 @@ def synthetic_calibration(episodes, W, seed=0):
 def synthetic_stats(dof=3):
     """DemoStats with our median step 0.02 rad beside the paper's planar 0.0176 rad (fixed sigmas convert)."""
     return relabel.DemoStats(median_step=0.02, accel_max=np.full(dof, 0.01),
-                             max_step=np.full(dof, 0.1), acc_p95=0.01,
+                             max_step=np.full(dof, 0.1),
                              paper_median_step=envs.PlanarReacher.paper_median_step, frames_per_step=3.0)
 
 

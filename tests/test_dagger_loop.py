@@ -283,8 +283,24 @@ COMMITTED_RESULTS = {
                                       "--methods", "hg_dagger,pooled"],
     "noise_transfer": ["--profile", "table1_strong", "--methods", "hg_dagger,zero_noise,fixed_4,fixed_8,fixed_16,pooled",
                        "--lineages", "13"],
-    "relabel_cost": ["--profile", "table1_strong", "--lineages", "26",
-                     "--methods", "hg_dagger,zero_noise,fixed_8,pooled,zero_noise_pd,fixed_8_pd,pooled_pd"]}
+}
+# relabel_cost's lineages (rows zero_noise ... made with the old servo, zero_noise_pd ... with the PD) name rows that
+# are gone since the PD became every row's label: its table is `python benchmarks/relabel_cost.py`, from the files
+# (tests/test_relabel_cost.py); they joined a folder with the command of its README at 6192871.
+
+
+def test_every_committed_lineage_file_says_the_return_label_it_was_made_with():
+    """Every committed results file was made before the label was recorded: each reads as the old servo's
+    (run_folder.label_of), and a report of its join says so -- none passes for the PD's."""
+    where = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "results")
+    labels = {}
+    for folder in sorted(os.listdir(where)):
+        for name in sorted(os.listdir(os.path.join(where, folder))):
+            if name.endswith(".json.gz"):
+                data = run_folder.load_stage_file(os.path.join(where, folder, name), run_folder._read_lineage_file)
+                labels[f"{folder}/{name}"] = run_folder.label_of(data)
+    assert len(labels) > 30 and set(labels.values()) == {run_folder.OLD_SERVO}
+    assert "half the authors'" in run_folder.LABEL_WORDS[run_folder.OLD_SERVO]
 
 
 @pytest.mark.parametrize("folder", sorted(COMMITTED_RESULTS))
@@ -890,6 +906,41 @@ def test_a_lineage_results_file_exported_here_joins_another_folder_and_is_refuse
     with pytest.raises(run_folder.RunFolderError, match="no such file"):
         report.run_experiment(TINY, root, report_only=True, join=[str(tmp_path / "missing.json")])
     assert not os.path.exists(os.path.join(str(tmp_path / "other"), "lineage_0"))  # a refused join leaves nothing
+
+
+@pytest.mark.slow
+def test_a_lineage_keeps_the_return_label_it_was_made_with(full_run, tmp_path):
+    """The label is recorded per lineage (lineage.json, the results file; none recorded: the old servo's): a lineage
+    of another label joins only a folder of that label, a report names it, a new lineage does not start in a folder
+    of another label's lineages, and a stage of such a lineage is not computed with this code's label. Fails if the
+    default rows' label changes under a run folder's finished stages unnoticed."""
+    import gzip
+    run = run_folder.Run(full_run, TINY)
+    (path,) = run_folder.export_lineages(run, str(tmp_path / "results"))
+    data = json.load(gzip.open(path, "rt"))
+    assert data["return_label"] == "pd" and data["files"]["lineage_0/lineage.json"]["return_label"] == "pd"
+    assert "the paper's PD" in open(os.path.join(full_run, "report.md")).read()
+    old = {k: v for k, v in data.items() if k != "return_label"}  # a file of before the label was recorded
+    old["files"] = {**data["files"], "lineage_0/lineage.json": {
+        k: v for k, v in data["files"]["lineage_0/lineage.json"].items() if k != "return_label"}}
+    old_path = str(tmp_path / "old.json")
+    json.dump(old, open(old_path, "w"))
+    root = str(tmp_path / "joined_old")
+    report.run_experiment(TINY, root, report_only=True, join=[old_path])  # joins a folder of its own, and reports
+    assert "the servo as converted up to commit 6192871" in open(os.path.join(root, "report.md")).read()
+    new = {**data, "lineage": 1, "files": {k.replace("lineage_0", "lineage_1"): v for k, v in data["files"].items()}}
+    new_path = str(tmp_path / "new.json")
+    json.dump(new, open(new_path, "w"))
+    with pytest.raises(run_folder.ConfigMismatch, match="one table holds one return label"):
+        report.run_experiment(TINY, root, report_only=True, join=[new_path])
+    import shutil
+    os.makedirs(os.path.join(root, "checkpoints"))
+    shutil.copyfile(os.path.join(full_run, "checkpoints", "bc.pt"), os.path.join(root, "checkpoints", "bc.pt"))
+    with pytest.raises(run_folder.ConfigMismatch, match="another return label"):  # a new lineage beside them
+        run_folder.Run(root, TINY).claim_lineage(1)
+    with pytest.raises(run_folder.ConfigMismatch, match="does not continue across a change of label"):
+        run_folder.Run(root, TINY).stage("lineage_0/round_2/D.npz", lambda: [])
+    assert not os.path.exists(os.path.join(root, "lineage_0", "round_2", "D.npz"))
 
 
 def files_and_times(root):

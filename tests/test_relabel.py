@@ -6,6 +6,7 @@ obstacles, planar 3-link forward kinematics), so they run in milliseconds and th
 is known exactly. The tests at the end run against the real envs.PlanarReacher and EngineReach3D.
 """
 import io
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,7 +18,6 @@ from experiment import environments
 from helpers import straight_line_episode  # tests/helpers.py
 import relabel
 from experiment import checkpoints
-from dataclasses import replace
 
 from relabel import (AugmentationSampler, ChunkSampler, MixtureSampler, RelabelConfig, corrective_labels,
                      covariance_factor, critically_damped_gains, demo_stats, monotone_projection,
@@ -418,14 +418,9 @@ def test_zero_covariance_gives_the_expert_state_and_the_expert_label(stats):
     q2, _ = perturb(ep, np.zeros((DOF, DOF)), np.random.default_rng(0), 20, FakeEnv())
     np.testing.assert_array_equal(q2, q)
     v = ep["q"][t] - ep["q"][t - 1]
-    chunks, mask = corrective_labels(q, v, ep["q"], t, np.full(len(t), 60), stats, RelabelConfig(H, label="pd"))
-    assert mask.all()  # the PD label has no held tail
-    servo, _ = corrective_labels(q, v, ep["q"], t, np.full(len(t), 60), stats, RelabelConfig(H))
-    for c, s, ti in zip(chunks, servo, t):  # PD: identical to the expert's own future (padded at the end)
-        fut = ep["q"][np.minimum(np.arange(ti + 1, ti + 17), 59)]
-        np.testing.assert_allclose(c, fut, atol=1e-12)
-        # the servo has no feed-forward: on the path it follows the expert closely, not exactly
-        assert np.abs(s - fut).max() < 0.5 * stats.median_step
+    chunks = corrective_labels(q, v, ep["q"], t, np.full(len(t), 60), stats, RelabelConfig(H))
+    for c, ti in zip(chunks, t):  # the PD: identical to the expert's own future (held at the segment's end)
+        np.testing.assert_allclose(c, ep["q"][np.minimum(np.arange(ti + 1, ti + 17), 59)], atol=1e-12)
 
 
 def test_covariance_factor_batched():
@@ -454,7 +449,7 @@ def test_sampler_shapes_dtypes_and_labels(stats):
     obs, chunks, mask = sampler(128, np.random.default_rng(0))
     assert obs.shape == (128, FakeEnv.obs_dim) and obs.dtype == np.float32
     assert chunks.shape == (128, 16, DOF) and chunks.dtype == np.float32
-    assert mask.shape == (128, 16) and mask.dtype == bool and np.all(mask.sum(1) >= 3)
+    assert mask.shape == (128, 16) and mask.dtype == bool and mask.all()
     q_tilde, q_prev = obs[:, :DOF].astype(np.float64), obs[:, DOF:2 * DOF].astype(np.float64)
     # the observed velocity is one of the expert's velocities at an intervention step
     expert_vel = np.concatenate([ep["q"][10:60] - ep["q"][9:59] for ep in eps])
@@ -583,7 +578,7 @@ def test_planar_perturbed_states_are_free_by_the_pymunk_check(planar):
 
 def test_planar_sampler_without_noise_reproduces_the_episodes(planar):
     envs, eps, st = planar
-    cfg = small_cfg(velocity_noise=0.0, label="pd")  # no noise at all, and the label with feed-forward
+    cfg = small_cfg(velocity_noise=0.0)  # no noise at all; the PD label has feed-forward
     sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "isotropic", 0.0, cfg)
     obs, chunks, _ = sampler(64, np.random.default_rng(0))
     for o, c in zip(obs, chunks):
@@ -602,7 +597,7 @@ def test_planar_sampler_pooled_noise(planar):
     sampler = AugmentationSampler(eps, lambda: envs.make_env("planar"), st, "pooled", cov, small_cfg())
     obs, chunks, mask = sampler(128, np.random.default_rng(1))
     env = envs.make_env("planar")
-    assert mask.shape == (128, 16) and np.all(mask.sum(1) >= 3)
+    assert mask.shape == (128, 16) and mask.all()
     assert obs.shape == (128, env.obs_dim) and chunks.shape == (128, 16, 3)
     for seed in PLANAR_SEEDS:  # every noised state is free in its own scenario
         env.reset(seed=seed)
@@ -655,7 +650,7 @@ def test_sampler_state_dict_resumes_the_same_stream(stats):
 
 
 def test_pd_label_is_time_matched(stats):
-    """label='pd': the PD's reference is trajectory[t_proj + k] (lookahead 0), so the chunk ends on the point
+    """The PD's reference is trajectory[t_proj + k] (lookahead 0), so the chunk ends on the point
     the expert reaches H steps after the projection (the literal 'gap' lookahead was measured worse:
     benchmarks/HISTORY.md, "The PD label's lookahead")."""
     traj = smooth_trajectory()
@@ -664,10 +659,9 @@ def test_pd_label_is_time_matched(stats):
     q = traj[t] + rng.normal(size=(50, DOF)) * 3 * stats.median_step
     v = traj[t] - traj[t - 1]
     end = np.full(50, len(traj))
-    timed, mask = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(H, label="pd"))
+    timed = corrective_labels(q, v, traj, t, end, stats, RelabelConfig(H))
     proj = monotone_projection(q, traj, t, window=32)
     np.testing.assert_allclose(timed, pd_return_chunk(q, v, traj, proj, H, 0, stats.accel_max, stats.max_step))
-    assert mask.all()
     assert np.median(np.linalg.norm(timed[:, -1] - traj[proj + H], axis=1)) < 0.1 * stats.median_step
 
 
@@ -706,7 +700,6 @@ def test_velocity_noise_is_the_authors_rate_per_env_step(stats):
     is their frame, so their 0.3 m_p unconverted), the std over env.dt is one number; one 10 Hz step spans as
     many of their frames as the data say. A missing conversion (3x too little at 10 Hz), a random walk's
     sqrt(3), or the inverse (9x) each break one of these."""
-    from dataclasses import replace
     cfg = RelabelConfig(H)
     assert relabel.velocity_noise_std(cfg, stats) == pytest.approx(0.3 * stats.median_step)   # no units known
     speeds = np.array([0.1, -0.2, 0.26])  # rad/s: one motion, joints at different constant speeds
@@ -752,119 +745,6 @@ def test_planar_obs_of_a_noised_state_is_rebuilt_by_forward_kinematics(planar):
     np.testing.assert_allclose(obs[:, -2:], env.ee(q_tilde), atol=1e-5)  # end effector of q̃, not of q_t
     v = q_tilde - obs[:, 3:6]
     assert np.abs(v).max() > 0  # the previous frame q̃ - v is in the obs
-
-
-def servo_setup(stats, offset, n=64, seed=0, t0=20, velocity=0.3):
-    """n states `offset` median steps (per joint, std) off smooth_trajectory at step t0, moving at the path's
-    velocity plus `velocity` median steps per step (per joint, std): (traj, q0, v0, their projections)."""
-    traj = smooth_trajectory()
-    rng = np.random.default_rng(seed)
-    t = np.full(n, t0)
-    q0 = traj[t] + rng.normal(size=(n, DOF)) * offset * stats.median_step
-    v0 = traj[t] - traj[t - 1] + rng.normal(size=(n, DOF)) * velocity * stats.median_step
-    return traj, q0, v0, monotone_projection(q0, traj, t, window=32)
-
-
-def servo_motion(q0, v0, chunk, max_step):
-    """Realized velocities and accelerations of a chunk from (q0, v0): (B, H, dof) each."""
-    x = np.concatenate([q0[:, None], chunk], axis=1)
-    vel = np.diff(x, axis=1)
-    prev = np.concatenate([np.clip(v0, -max_step, max_step)[:, None], vel[:, :-1]], axis=1)
-    return vel, vel - prev
-
-
-def test_servo_respects_every_clamp(stats):
-    m = stats.median_step
-    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)
-    traj, q0, v0, proj = servo_setup(stats, offset=8.0)
-    # a loose per-joint max_step, so that the norm speed cap is what binds
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=1.0), RelabelConfig(H))
-    vel, acc = servo_motion(q0, v0, chunk, 1.0)
-    cap = np.maximum(1.68 * m, 1.05 * np.linalg.norm(v0, axis=1))[:, None]
-    assert np.all(np.linalg.norm(acc, axis=-1) <= a_clamp * (1 + 1e-9))
-    assert np.all(np.linalg.norm(vel, axis=-1) <= cap * (1 + 1e-9))
-    assert np.any(np.linalg.norm(vel, axis=-1) > 0.99 * cap)  # ... and the cap was reached
-    # slew: with a tight jerk_slew the accelerations change by at most jerk_slew · a_clamp per step
-    tight = RelabelConfig(H, jerk_slew=0.2)
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=1.0), tight)
-    vel, acc = servo_motion(q0, v0, chunk, 1.0)
-    free = np.linalg.norm(vel, axis=-1) < 0.999 * cap  # where the speed cap did not alter the command
-    jerk = np.linalg.norm(np.diff(acc, axis=1), axis=-1)  # (B, H-1)
-    ok = free[:, 1:] & free[:, :-1]
-    assert ok.sum() > 100 and np.all(jerk[ok] <= 0.2 * a_clamp * (1 + 1e-9))
-    assert np.all(np.linalg.norm(acc[:, 0], axis=-1) <= 0.2 * a_clamp * (1 + 1e-9))  # a_{-1} = 0
-    # the env's per-joint speed limit, and joint limits
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=0.01), RelabelConfig(H))
-    vel, _ = servo_motion(q0, v0, chunk, 0.01)
-    assert np.abs(vel).max() <= 0.01 + 1e-12
-    lo, hi = q0.min(0) - 0.01, q0.max(0) + 0.01  # limits that the free servo would leave
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=1.0), RelabelConfig(H),
-                                          limits=(lo, hi))
-    assert np.all((chunk >= lo) & (chunk <= hi))
-
-
-def test_servo_caps_hold_and_bind_where_the_unclamped_servo_would_exceed_them(stats):
-    """Fails if servo_return_chunk's acceleration cap (||a|| <= a_clamp) or its speed cap (||v|| <= max(1.68 m,
-    1.05 ||v0||)) is dropped or loosened. States 20 median steps off the path and 2 median steps per step off its
-    velocity: there the servo's PD commands up to ~3 a_clamp and, without the speed cap, ~1.8 times that cap
-    (checked below with the cap's knobs out of reach) -- unlike servo_setup's offset 8 of the test above, where
-    the PD peaks at 0.94 a_clamp and the acceleration cap never acts."""
-    m = stats.median_step
-    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)
-    traj, q0, v0, proj = servo_setup(stats, offset=20.0, velocity=2.0)
-    v_cap = np.maximum(1.68 * m, 1.05 * np.linalg.norm(v0, axis=1))[:, None]   # (B, 1)
-    # a loose per-joint max_step, so that the norm caps are what bind
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=1.0), RelabelConfig(H))
-    vel, acc = servo_motion(q0, v0, chunk, 1.0)
-    accel, speed = np.linalg.norm(acc, axis=-1), np.linalg.norm(vel, axis=-1)   # (B, H) each
-    assert np.all(accel <= a_clamp * (1 + 1e-9))
-    assert accel.max() > 0.999 * a_clamp                                         # the acceleration cap acts
-    assert np.all(speed <= v_cap * (1 + 1e-9))
-    assert (speed / v_cap).max() > 0.999                                         # the speed cap acts
-    # the same states with the speed cap out of reach: well past it, and still within the acceleration cap
-    loose = RelabelConfig(H, speed_cap=1e3, speed_cap_v0=1e3)
-    chunk, _ = relabel.servo_return_chunk(q0, v0, traj, proj, replace(stats, max_step=1.0), loose)
-    vel, acc = servo_motion(q0, v0, chunk, 1.0)
-    assert (np.linalg.norm(vel, axis=-1) / v_cap).max() > 1.3
-    assert np.all(np.linalg.norm(acc, axis=-1) <= a_clamp * (1 + 1e-9))
-
-
-def test_servo_returns_near_the_expert_path(stats):
-    traj, q0, v0, proj = servo_setup(stats, offset=2.0, n=200)
-    chunk, mask = relabel.servo_return_chunk(q0, v0, traj, proj, stats, RelabelConfig(H))
-    start = np.min(np.linalg.norm(q0[:, None] - traj[None], axis=-1), axis=1)
-    end = np.min(np.linalg.norm(chunk[:, -1, None] - traj[None], axis=-1), axis=1)  # distance to the path
-    assert np.median(end) < 0.5 * stats.median_step and np.median(end) < 0.3 * np.median(start)
-    assert mask.all()  # far from the segment's end nothing is held
-    assert np.all(proj[:, None] <= 79)
-
-
-def test_servo_masks_the_held_tail_and_sampler_redraws_short_labels(stats):
-    traj = smooth_trajectory()
-    m = stats.median_step
-    t_end = np.array([22, 25, 60])  # segments that end 2, 5, 40 steps after the state
-    q0 = traj[[20, 20, 20]]
-    v0 = traj[[20, 20, 20]] - traj[[19, 19, 19]]
-    chunk, mask = relabel.servo_return_chunk(q0, v0, traj, 20, stats, RelabelConfig(H), t_end=t_end)
-    steps = np.abs(np.diff(np.concatenate([q0[:, None], chunk], axis=1), axis=1)).max(-1)  # (3, H)
-    for i in range(2):  # the arm stops on the segment's last point; the rest is masked
-        assert not mask[i].all() and mask[i, 0]
-        first = np.argmin(mask[i])
-        assert not mask[i, first:].any()  # a tail: masked from there to the end
-        assert np.all(steps[i, first:] < 0.02 * m)
-        np.testing.assert_allclose(chunk[i, first:], np.broadcast_to(traj[t_end[i] - 1], (16 - first, DOF)), atol=0.2 * m)
-    assert mask[2].all()
-    assert mask[0].sum() < mask[1].sum()
-    # the sampler never serves a label with fewer than min_moving_steps steps in the loss, nor a state
-    # that projects within near_end_steps of its segment's end
-    sampler = AugmentationSampler([intervention_episode()], FakeEnv, stats, "isotropic", 1.0,
-                                  small_cfg(min_moving_steps=8))
-    obs, chunks, mask = sampler(256, np.random.default_rng(0))
-    assert np.all(mask.sum(1) >= 8)
-    q_tilde = obs[:, :DOF].astype(np.float64)
-    traj = intervention_episode()["q"]
-    nearest = np.argmin(np.linalg.norm(q_tilde[:, None] - traj[None, 10:], axis=-1), axis=1) + 10
-    assert nearest.max() < 80 - 3 + 2  # (the nearest point overall may sit slightly past the projection)
 
 
 def test_sampler_pool_mask_survives_its_resume_state(stats):
@@ -914,31 +794,3 @@ def test_generate_labels_in_one_pass_when_no_redraw_is_allowed(stats):
     obs, chunks, mask = sampler.generate(64, np.random.default_rng(0))  # the same draws
     assert len(obs) == len(kept) and sampler.n_kept == len(kept)
     assert chunks.shape == (len(obs), H, DOF) and mask.shape == (len(obs), H)
-
-
-def test_servo_gains_are_the_discrete_critically_damped_pair(stats):
-    """The servo label's gains are the discrete critically damped pair of its own ω: Kp = (1 - p)², Kd = 1 - p²,
-    p = e^{-ω}, ω² = a_clamp / max(d0, gain_floor · m). On a path that stands still (r constant, no cap in reach)
-    the error map [[1 - Kp, 1 - Kd], [-Kp, 1 - Kd]] then has the double root p, and from rest the error is
-    e_k = (1 + k (1 - p)) p^k e0, the discrete (1 + ωt) e^{-ωt}: it never crosses the path. Fails if the servo
-    uses another damping (the continuous Kd = 2 √Kp overshoots at 10 Hz; a smaller Kd rings, a larger one creeps),
-    or another Kp (ω from d0 without the floor, or a_clamp's square root dropped)."""
-    m, T, t0 = stats.median_step, 40, 10
-    a_clamp = 0.9 * max(2 * np.sqrt(DOF) * stats.acc_p95, 0.6 * m)  # RelabelConfig's defaults
-    point = np.array([0.3, -0.2, 0.1])
-    traj = np.broadcast_to(point, (T, DOF)).copy()  # r_c = point, u_c = 0 wherever the cursor is
-    direction = np.array([2.0, -1.0, 2.0]) / 3.0  # unit vector: the error stays on this line
-    d0 = np.array([0.5, 4.0, 12.0]) * m  # below the floor 4/3 m (ω from the floor), and above it (ω from d0)
-    q0 = point + d0[:, None] * direction  # (3, DOF) at rest
-    loose = RelabelConfig(H, jerk_slew=1e6, speed_cap=1e6, speed_cap_v0=1e6)  # only the PD acts
-    chunk, _ = relabel.servo_return_chunk(q0, np.zeros_like(q0), traj, t0, replace(stats, max_step=1.0), loose)
-    err = (chunk - point) @ direction  # (3, H) signed error along the line
-    np.testing.assert_allclose(chunk - point, err[..., None] * direction, atol=1e-12)  # straight back, no sideways
-    k = np.arange(1, H + 1)
-    omega = np.sqrt(a_clamp / np.maximum(d0, 4.0 / 3.0 * m))  # (3,)
-    p = np.exp(-omega)[:, None]
-    np.testing.assert_allclose(err, (1 + k * (1 - p)) * p ** k * d0[:, None], rtol=1e-9, atol=1e-15)
-    assert np.all(err > 0)  # no overshoot: every step on the side it started
-    assert np.all(np.diff(err, axis=1) < 0)  # and always closing in
-    # the error's own recursion: its characteristic roots coincide at p (e_{k+2} - 2p e_{k+1} + p² e_k = 0)
-    np.testing.assert_allclose(err[:, 2:] - 2 * p * err[:, 1:-1] + p ** 2 * err[:, :-2], 0, atol=1e-12 * m)

@@ -113,13 +113,12 @@ def test_pd_without_velocity_noise_returns_the_recorded_chunk(rd, episodes, stat
     """Where nothing is to correct (σ = 0, the recorded velocity, no clamp binding) the PD label is the recorded
     chunk to float32's grain at every kept row, the padded steps past the episode's end included: a recorded chunk
     of another step (one step early or late), another unit or the velocity noise left on would not be."""
-    r = rd.relabel_every_step(episodes, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd",
-                                                                              velocity_noise=0.0))
+    r = rd.relabel_every_step(episodes, make_env, stats, "pd", H, velocity_noise=0.0)
     assert r.kept.sum() > 50 and r.reaches_end[r.kept].any() and (~r.reaches_end[r.kept]).any()
     assert rd.label_distances(r)[r.kept].max() < 1e-4
     s = rd.summary(r)
     assert s["mean"] < 1e-5 and s["p90"] < 1e-5 and s["masked"] == 0.0
-    noisy = rd.relabel_every_step(episodes, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd"))
+    noisy = rd.relabel_every_step(episodes, make_env, stats, "pd", H)
     assert rd.summary(noisy)["mean"] > 0.05  # the velocity noise moves the label: the test above could fail
 
 
@@ -128,8 +127,8 @@ def test_the_velocity_noise_has_the_runs_spread(rd, episodes, stats):
     close, clamps far), so its distance's mean square is 3 (1 − Kd)² std² / m² with std = relabel.velocity_noise_std,
     the run's (a std divided instead of multiplied, or another std, would not give it)."""
     loose = dataclasses.replace(stats, accel_max=stats.accel_max * 100)
-    cfg = relabel.RelabelConfig(horizon=H, label="pd")
-    r = rd.relabel_every_step(episodes, make_env, loose, cfg)
+    cfg = relabel.RelabelConfig(horizon=H)
+    r = rd.relabel_every_step(episodes, make_env, loose, "pd", H)
     inside = r.kept & ~r.reaches_end
     _, kd = relabel.critically_damped_gains(cfg.settle_steps)
     std = relabel.velocity_noise_std(cfg, loose)
@@ -145,8 +144,7 @@ def test_pd_returns_the_recorded_chunk_at_an_episodes_first_step(rd, stats):
     diagnostic found: 9 rows of table1_strong lineage 5's D_1 off by that jump)."""
     env = envs.make_env("planar")
     from_start = [straight_line_episode(env, seed, expert_from=0) for seed in (0, 1)]
-    r = rd.relabel_every_step(from_start, make_env, stats, relabel.RelabelConfig(horizon=H, label="pd",
-                                                                                velocity_noise=0.0))
+    r = rd.relabel_every_step(from_start, make_env, stats, "pd", H, velocity_noise=0.0)
     assert r.kept.sum() > 20
     assert rd.label_distances(r)[r.kept].max() < 1e-4
 
@@ -156,12 +154,12 @@ def test_the_rows_are_what_the_noised_rows_sampler_trains_on(rd, episodes, stats
     is the chunk and mask of a row the diagnostic keeps, and no row it drops (near the segment's end, too few steps
     in the loss) is ever served -- for both labels."""
     for label in ("servo", "pd"):
-        cfg = relabel.RelabelConfig(horizon=H, label=label, velocity_noise=0.0)
-        r = rd.relabel_every_step(episodes, make_env, stats, cfg)
+        make_sampler, make_config = rd.SAMPLERS[label]
+        r = rd.relabel_every_step(episodes, make_env, stats, label, H, velocity_noise=0.0)
         assert (~r.kept).sum() >= 3 * len(episodes)  # the near-end rows at least: the drop is exercised
         kept = {c.tobytes(): m for c, m in zip(r.chunks[r.kept], r.mask[r.kept])}
         dropped = {c.tobytes() for c in r.chunks[~r.kept]} - set(kept)
-        sampler = relabel.AugmentationSampler(episodes, make_env, stats, "isotropic", 0.0, cfg)
+        sampler = make_sampler(episodes, make_env, stats, "isotropic", 0.0, make_config(H, velocity_noise=0.0))
         _, chunks, masks = sampler.generate(6 * len(r.kept), np.random.default_rng(1))
         served = {c.tobytes() for c in chunks}
         assert served <= set(kept) and not served & dropped
@@ -171,25 +169,34 @@ def test_the_rows_are_what_the_noised_rows_sampler_trains_on(rd, episodes, stats
 
 
 def test_the_servo_masks_only_its_held_tail_at_the_segments_end(rd, episodes, stats):
-    """The servo's masked steps are held steps at its segment's end, so without velocity noise (the servo tracks the
-    path, its cursor never runs ahead) only rows whose chunk runs to that end hold any (an inverted mask would put
-    them everywhere); the PD masks none."""
-    servo, pd = rd.diagnose(episodes, make_env, stats, H)[1::2]  # velocity noise off
+    """The servo's masked steps are a held tail: from its first masked step to the chunk's end, every step masked
+    and standing still on the segment's last point, in rows near the segment's end (its cursor, one frame ahead of
+    the state, may reach the end a few steps before the recorded chunk does); an inverted mask would put them
+    everywhere. The PD masks none."""
+    from experiment.servo import ServoConfig, segment_geometry
+    hold = ServoConfig.hold_tol * max(segment_geometry(ep["q"][5:])[0] for ep in episodes) + 1e-6  # rad a step
+    pd, servo = rd.diagnose(episodes, make_env, stats, H)[1::2]  # velocity noise off
     masked_rows = (~servo.mask).any(axis=1) & servo.kept
-    assert masked_rows.any() and not (masked_rows & ~servo.reaches_end).any()
+    assert masked_rows.any() and (masked_rows & servo.reaches_end).sum() >= 0.5 * masked_rows.sum()
+    for mask, chunk in zip(servo.mask[masked_rows], servo.chunks[masked_rows]):
+        first = int(np.argmin(mask))
+        assert mask[:first].all() and not mask[first:].any()  # a tail
+        still = np.abs(np.diff(chunk[max(first - 1, 0):], axis=0)).max(initial=0.0)
+        assert still < hold  # held: every joint slower than the servo's hold tolerance
     assert 0.0 < rd.summary(servo)["masked"] < 0.5 and rd.summary(pd)["masked"] == 0.0
 
 
 def test_diagnose_makes_the_four_rows_of_the_table(rd, episodes, stats):
-    """servo and PD, each with the run's velocity noise (RelabelConfig's) and without, in that order; the table has
+    """PD and servo, each with the run's velocity noise (RelabelConfig's) and without, in that order; the table has
     a line for each, and the split by where the chunk ends partitions the kept rows."""
     results = rd.diagnose(episodes, make_env, stats, H)
     assert [(r.label, r.velocity_noise) for r in results] == [
-        ("servo", relabel.RelabelConfig.velocity_noise), ("servo", 0.0),
-        ("pd", relabel.RelabelConfig.velocity_noise), ("pd", 0.0)]
+        ("pd", relabel.RelabelConfig.velocity_noise), ("pd", 0.0),
+        ("servo", relabel.RelabelConfig.velocity_noise), ("servo", 0.0)]
     assert relabel.RelabelConfig.velocity_noise > 0
     lines = rd.table(results)
-    assert len(lines) == 6 and lines[2].startswith("| servo") and "| on (0.3" in lines[2] and "| off |" in lines[3]
+    assert len(lines) == 6 and lines[2].startswith("| PD") and "| on (0.3" in lines[2] and "| off |" in lines[3]
+    assert lines[4].startswith("| the authors' servo")
     split = rd.end_split(results)
     for r, line in zip(results, split[2:]):
         inside, end = (int(cell.split(",")[0]) for cell in line.split("|")[3:5])
@@ -212,5 +219,6 @@ def test_the_command_on_a_run_folders_episodes(rd, episodes, tmp_path, capsys):
     rd.main(["--episodes", str(run / "lineage_0" / "round_1" / "D.npz"), "--figure", str(figure)])
     out = capsys.readouterr().out
     assert "H = 8" in out and "statistics of" in out and "data/D0.npz (4 demonstrations)" in out
-    assert out.count("| servo (the default) |") == 4 and out.count("| PD (Sec. IV-E) |") == 4
+    assert out.count("| PD (Sec. IV-E, the default) |") == 4
+    assert out.count("| the authors' servo (experiment/servo.py) |") == 4
     assert figure.stat().st_size > 10_000
