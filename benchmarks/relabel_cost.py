@@ -1,14 +1,18 @@
-"""What the relabelled chunks cost: the authors' servo label against the paper's PD label. A study stated before it runs.
+"""What the relabelled chunks cost: the servo as converted up to 6192871 against the paper's PD label (a stated study).
 
 Without noise the noised rows' pipeline cost 1.7 points on new scenarios in the noise-transfer study (zero_noise -
 HG-DAgger on 30000..30299), and at sigma = 0 such a row differs from HG-DAgger only in its intervention rows'
 labels: the servo's return chunk instead of the recorded one (benchmarks/relabel_diagnostic.py measures how far
-apart they are). This study tests whether the paper's PD label (relabel.pd_return_chunk, Sec. IV-E) removes that
-cost, and whether the noise then pays over HG-DAgger. The design (benchmarks/results/relabel_cost/README.md):
+apart they are). The servo then was the servo as converted up to 6192871 (its speed cap half the authors' in
+radians: its knobs converted with the per-joint median step where the authors' unit is a step's L2 norm over the
+joints). This study tests whether the paper's PD label (relabel.pd_return_chunk, Sec. IV-E) removes that cost, and
+whether the noise then pays over HG-DAgger. The design (benchmarks/results/relabel_cost/README.md):
 
   lineages     13, 14, ..., 13 + N_LINEAGES - 1 of the table1_strong profile from its committed start, K = 1
-  rows         HG-DAgger and {servo, PD} x {sigma = 0, fixed sigma 8, pooled}: zero_noise, fixed_8, pooled (the
-               servo, today's rows) and zero_noise_pd, fixed_8_pd, pooled_pd (the same noise, the PD label)
+  rows         HG-DAgger and {servo, PD} x {sigma = 0, fixed sigma 8, pooled}: zero_noise, fixed_8, pooled (the old
+               servo (up to 6192871), every profile's label then) and zero_noise_pd, fixed_8_pd, pooled_pd (the same
+               noise, the PD label). The lineage files keep these names; since 6192871 the rows zero_noise, fixed_8,
+               pooled are made with PD and the _pd rows are gone: the training commands below are e417b0a's
   scenarios    collected: the 100 evaluation scenarios 10000..10099 (the run's eval/<row>.json); new: lineage L's own
                300 scenarios new_seeds(L) = 100000 + 1000 L .. + 299, drawn by no stage and by no other lineage
   tests        one-sided t over lineages (df = lineages - 1), Holm over T1-T3 at 0.05:
@@ -17,8 +21,13 @@ cost, and whether the noise then pays over HG-DAgger. The design (benchmarks/res
     T3  new: pooled_pd - HG-DAgger       > 0
   secondary    two-sided, uncorrected: T1-T3 on the collected scenarios; pooled and pooled_pd against HG-DAgger and
                each other on both sets; the 2 x 3 interaction (the label's effect at sigma 8 and at pooled minus
-               its effect at sigma = 0, each, and both at once)
-  every quantity with its SE over lineages and its variance-components SE over the lineage x scenario table
+               its effect at sigma = 0, each, and both at once); printed with Holm's adjusted p over them
+  SEs          over lineages. On the collected set (one set of 100 for every lineage, crossed) also the
+               variance-components SE over the lineage x scenario table, which counts the scenarios' draw, its t on
+               Satterthwaite's df (not lineages - 1: most of it is the scenarios' mean square, C - 1 df). On the new
+               set (each lineage its own scenarios, nested) the lineage SE is the SE.
+  conditional  on one pi_0: every lineage continues the start's pi_0 and BC row (and D0), here and in the
+               noise-transfer study, so no SE of either carries the draw of pi_0
 
 Commands (a lineage at a time; each step resumes; benchmarks/results/relabel_cost/README.md has them whole):
 
@@ -56,6 +65,9 @@ from experiment import run_folder  # noqa: E402
 
 t_quantile = functools.lru_cache(maxsize=None)(t_quantile)
 
+CONDITIONAL = ("every SE here, and every SE of the noise-transfer study (benchmarks/noise_transfer.py), is conditional "
+               "on one π0: each lineage continues the start's π0 and BC row (benchmarks/results/table1_strong/start), "
+               "so no SE carries the draw of π0 or of D0; another start may move every row")
 FIRST_LINEAGE = 13  # lineages 0-4 are table1_strong's, 5-12 the noise-transfer study's
 SERVO_ROWS = ("zero_noise", "fixed_8", "pooled")
 PD_ROWS = tuple(f"{row}_pd" for row in SERVO_ROWS)
@@ -88,11 +100,12 @@ def new_seeds(lineage):
 def variance_components(table):
     """Two-way random-effects ANOVA of a (lineages R, scenarios C) table of per-scenario values (a row's success, or
     a difference of two rows, in points): {'ms_lineage', 'ms_scenario', 'ms_error', 'var_lineage', 'var_scenario',
-    'var_error', 'se', 'lineage_se'}. se² = var_lineage / R + var_scenario / C + var_error / (R C), each component
+    'var_error', 'se', 'df', 'lineage_se'}. se² = var_lineage / R + var_scenario / C + var_error / (R C), each component
     floored at 0, which is (MS_L + MS_S − MS_E) / (R C) where both floors are inactive: the SE of the grand mean when
-    the lineages and the scenarios are both drawn again. lineage_se: the SD of the lineage means / √R (the scenarios
-    held fixed). Where each lineage has its own scenarios (the new set), column j is each lineage's j-th scenario:
-    no scenario effect is shared, MS_S estimates MS_E and both SEs estimate the same thing."""
+    the lineages and the scenarios are both drawn again. df: Satterthwaite's effective degrees of freedom of that se²
+    (satterthwaite_df), the df of its t; not R − 1. lineage_se: the SD of the lineage means / √R (the scenarios held
+    fixed). Where each lineage has its own scenarios (the new set), column j is each lineage's j-th scenario: no
+    scenario effect is shared, MS_S estimates MS_E, and the lineage SE is the SE (this one, floored, only checks it)."""
     x = np.asarray(table, dtype=np.float64)
     if x.ndim != 2 or min(x.shape) < 2:
         raise ValueError(f"need a lineages x scenarios table with at least 2 of each, got shape {x.shape}")
@@ -104,7 +117,42 @@ def variance_components(table):
     var_l, var_s, var_e = max((ms_l - ms_e) / C, 0.0), max((ms_s - ms_e) / R, 0.0), ms_e
     return {"ms_lineage": ms_l, "ms_scenario": ms_s, "ms_error": ms_e, "var_lineage": var_l, "var_scenario": var_s,
             "var_error": var_e, "se": math.sqrt(var_l / R + var_s / C + var_e / (R * C)),
+            "df": satterthwaite_df(ms_l, ms_s, ms_e, R, C, lineage=ms_l > ms_e, scenario=ms_s > ms_e),
             "lineage_se": float(row_means.std(ddof=1) / math.sqrt(R))}
+
+
+def satterthwaite_df(ms_l, ms_s, ms_e, R, C, lineage=True, scenario=True):
+    """Satterthwaite's effective df of se² = Σ c_i MS_i / (R C): (Σ c_i MS_i)² / Σ (c_i MS_i)² / df_i, with df
+    R − 1, C − 1 and (R − 1)(C − 1) for MS_L, MS_S, MS_E. Both components in: c = (1, 1, −1); a component floored at
+    0 drops its MS and gives its −MS_E back (var_L out: se² = MS_S / (R C); both out: MS_E / (R C)). On the collected
+    set MS_S (C − 1 df) carries most of se², so the df lies far above the lineages' R − 1."""
+    parts = [(c * ms, df) for c, ms, df in ((float(lineage), ms_l, R - 1), (float(scenario), ms_s, C - 1),
+                                           (1.0 - lineage - scenario, ms_e, (R - 1) * (C - 1))) if c]
+    total = sum(v for v, _ in parts)
+    spread = sum(v * v / df for v, df in parts)
+    return total * total / spread if spread > 0 else math.inf
+
+
+def vc_t(mean, se):
+    """mean / se, or 0 / ±inf where the SE is 0."""
+    return mean / se if se > 0 else (0.0 if mean == 0 else math.copysign(math.inf, mean))
+
+
+def vc_p(mean, se, df, side):
+    """The p of mean `side` 0 ('>', '<' or 'two-sided') by t = mean / se on `df` (Satterthwaite's)."""
+    t = vc_t(mean, se)
+    upper = 0.5 if t == 0 else 1.0 - dagger.student_t_cdf(t, df)
+    return {">": upper, "<": 1.0 - upper}.get(side, 2.0 * min(upper, 1.0 - upper))
+
+
+def holm_adjusted(pvalues):
+    """Holm's adjusted p in the order given: the k-th smallest times (m − k + 1), running maximum, capped at 1."""
+    order = sorted(range(len(pvalues)), key=lambda i: pvalues[i])
+    out, running = [1.0] * len(pvalues), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (len(pvalues) - rank) * pvalues[i]))
+        out[i] = running
+    return out
 
 
 # ---- the power analysis (stated before the runs) ------------------------------------------------------------------
@@ -284,9 +332,10 @@ def evaluate_lineage(root, lineage, log=print):
 
 def diagnose_lineage(root, lineage, cfg, log=print):
     """root/lineage_<l>/relabel_diagnostic.json: benchmarks/relabel_diagnostic.py on the lineage's D_1 with the run's
-    D0 statistics and H (servo and PD, velocity noise on and off; each {'rows', 'kept', 'masked', 'mean', 'median',
-    'p90'} in median steps, over all kept rows, those whose chunk stays inside its segment and those reaching its
-    end). Descriptive: no test reads it. Kept if already there."""
+    D0 statistics and H (its LABELS, velocity noise on and off; the committed files, made before 6192871, hold the old
+    servo and PD; each {'rows', 'kept', 'masked', 'mean', 'median', 'p90'} in median steps, over all kept rows, those
+    whose chunk stays inside its segment and those reaching its end). Descriptive: no test reads it. Kept if already
+    there."""
     import relabel_diagnostic as rd
     from experiment import environments
     out = os.path.join(root, f"lineage_{lineage}", DIAGNOSTIC)
@@ -358,14 +407,15 @@ def interaction(noise_row):
 
 
 # (name, words, set, {row: coefficient}, side): the stated tests, one-sided, Holm over the three
-STATED = (("T1", "zero_noise_pd − zero_noise (the label's cost)", "new", difference("zero_noise_pd", "zero_noise"), ">"),
+STATED = (("T1", "zero_noise_pd − zero_noise (PD − the old servo, σ 0)", "new",
+           difference("zero_noise_pd", "zero_noise"), ">"),
           ("T2", "fixed_8_pd − HG-DAgger", "new", difference("fixed_8_pd", "hg_dagger"), ">"),
           ("T3", "pooled_pd − HG-DAgger", "new", difference("pooled_pd", "hg_dagger"), ">"))
 # the secondary results, two-sided and uncorrected
 SECONDARY = tuple((name, words, "collected", combo, "two-sided")
                   for name, words, _, combo, _ in STATED) + tuple(
     (name, words, s, combo, "two-sided") for s in ("collected", "new") for name, words, combo in (
-        ("pooled − HG-DAgger", "the calibrated σ, servo", difference("pooled", "hg_dagger")),
+        ("pooled − HG-DAgger", "the calibrated σ, the old servo", difference("pooled", "hg_dagger")),
         ("pooled_pd − HG-DAgger", "the calibrated σ, PD", difference("pooled_pd", "hg_dagger")),
         ("pooled_pd − pooled", "the label at the calibrated σ", difference("pooled_pd", "pooled")),
         ("fixed_8_pd − fixed_8", "the label at σ 8", difference("fixed_8_pd", "fixed_8")),
@@ -374,15 +424,17 @@ SECONDARY = tuple((name, words, "collected", combo, "two-sided")
 
 
 def estimate(lineages, combo, scenario_set, side):
-    """{'values' (one a lineage), 'mean', 'se' (over lineages), 'vc_se' (variance components), 't', 'df', 'p'} of
-    a combination on a set: a one-sample t over lineages, one-sided ('>', '<') or 'two-sided'."""
+    """{'values' (one a lineage), 'mean', 'se' (over lineages), 't', 'df', 'p', 'vc_se' (variance components),
+    'vc_df' (its Satterthwaite df), 'vc_t', 'vc_p'} of a combination on a set: a one-sample t over lineages, one-sided
+    ('>', '<') or 'two-sided', and the same side's t of the mean by the variance-components SE on its own df."""
     table = combination_table(lineages, combo, scenario_set)
     # a lineage's value is a sum of multiples of 1/9 or 1/3 point: rounded off float noise, two equal values have
     # an SD of 0, not 1e-16 (a t of 1e16)
     values = np.round(table.mean(axis=1), 9)
     mean, se, t, df, p = t_test(values) if side == "two-sided" else noise_transfer.one_sided(values, side)
-    return {"values": values, "mean": mean, "se": se, "vc_se": variance_components(table)["se"], "t": t, "df": df,
-            "p": p}
+    vc = variance_components(table)
+    return {"values": values, "mean": mean, "se": se, "t": t, "df": df, "p": p, "vc_se": vc["se"],
+            "vc_df": vc["df"], "vc_t": vc_t(mean, vc["se"]), "vc_p": vc_p(mean, vc["se"], vc["df"], side)}
 
 
 def stated_tests(lineages):
@@ -428,39 +480,54 @@ def cell(values, table=None):
 
 
 def table(lineages):
-    """Markdown lines: every row's success in points on both sets, mean ± SE over lineages (the variance-components
-    SE in brackets)."""
+    """Markdown lines: every row's success in points on both sets, mean ± SE over lineages; on the collected set
+    (crossed) the variance-components SE in brackets, on the new set (nested) none: the lineage SE is the SE."""
     lines = ["| row | collected (10000..10099, one set) | new (each lineage its own 300) |", "|---|---|---|"]
     for row in ("pi0", "bc") + ROWS:
         cells = []
         for s in ("collected", "new"):
             got = [per_scenario(f, l, row, s) for l, f in lineages.items()]
             got = [g for g in got if g is not None]
-            cells.append(cell([g.mean() for g in got], np.array(got) if len(got) > 1 else None) if got else "—")
+            crossed = s == "collected" and len(got) > 1
+            cells.append(cell([g.mean() for g in got], np.array(got) if crossed else None) if got else "—")
         lines.append(f"| {row} | {cells[0]} | {cells[1]} |")
     return lines
 
 
 def tests_table(lineages):
-    """Markdown lines: T1-T3 with both SEs, t, one-sided p and Holm's verdict (at the stated lineage count; before
-    it, an interim look, no verdict)."""
+    """Markdown lines: T1-T3 (every one on the new set, where the lineage SE is the SE) with t, one-sided p and
+    Holm's verdict (at the stated lineage count; before it, an interim look, no verdict), then how far the
+    variance-components SE lies from the lineage SE there: the design's check, not a second SE."""
     interim = len(lineages) < N_LINEAGES
-    lines = [f"| test | set | quantity (points) | side | mean | SE lineages | SE var. comp. | t | df | p (one-sided) | "
-             f"Holm at {ALPHA} |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"| test | set | quantity (points) | side | mean | SE lineages | t | df | p (one-sided) | "
+             f"Holm at {ALPHA} |", "|---|---|---|---|---|---|---|---|---|---|"]
+    gaps = []
     for name, words, s, side, e, ok in stated_tests(lineages):
-        lines.append(f"| {name} | {s} | {words} | {side} 0 | {e['mean']:+.2f} | {e['se']:.2f} | {e['vc_se']:.2f} | "
+        gaps.append(abs(e["vc_se"] - e["se"]))
+        lines.append(f"| {name} | {s} | {words} | {side} 0 | {e['mean']:+.2f} | {e['se']:.2f} | "
                      f"{e['t']:.2f} | {e['df']} | {e['p']:.2g} | "
                      f"{'none before ' + str(N_LINEAGES) + ' lineages' if interim else 'rejected' if ok else 'not rejected'} |")
+    lines.append(f"(the new set is nested, each lineage its own scenarios: the lineage SE is the SE; the "
+                 f"variance-components SE, each component floored at 0, lies within {max(gaps):.2f} of it for "
+                 f"T1-T3, the design's check)")
     return lines
 
 
 def secondary(lineages):
-    """Lines of the secondary results (two-sided, uncorrected)."""
+    """Lines of the secondary results (two-sided, uncorrected, with Holm's adjusted p over the t tests beside each).
+    On the collected set (crossed: one set of 100 for every lineage) also the variance-components SE, its t on
+    Satterthwaite's df and its p: the scenarios' draw counted, which the lineage t leaves out. On the new set
+    (nested) the lineage SE is the SE."""
     lines = []
-    for name, words, s, combo, side in SECONDARY:
-        e = estimate(lineages, combo, s, side)
-        lines.append(f"{name} on {s} ({words}): {e['mean']:+.2f} ± {e['se']:.2f} (var. comp. {e['vc_se']:.2f}) "
-                     f"points, t({e['df']}) = {e['t']:.2f}, p = {e['p']:.2g}")
+    got = [(name, words, s, estimate(lineages, combo, s, side)) for name, words, s, combo, side in SECONDARY]
+    adjusted = holm_adjusted([e["p"] for *_, e in got])
+    for (name, words, s, e), adj in zip(got, adjusted):
+        text = (f"{name} on {s} ({words}): {e['mean']:+.2f} ± {e['se']:.2f} points, t({e['df']}) = {e['t']:.2f}, "
+                f"p = {e['p']:.2g} (Holm over the {len(got)}: {adj:.2g})")
+        if s == "collected":
+            text += (f"; var. comp. SE {e['vc_se']:.2f}, t({e['vc_df']:.0f}) = {e['vc_t']:.2f}, "
+                     f"p = {e['vc_p']:.2g}")
+        lines.append(text)
     for s in ("collected", "new"):
         try:
             t2, f, d1, d2, p = interactions(lineages, s)
@@ -468,6 +535,41 @@ def secondary(lineages):
             lines.append(f"I_8 and I_pooled at once on {s}: no Hotelling's T² ({err})")
             continue
         lines.append(f"I_8 and I_pooled at once on {s}: Hotelling's T² = {t2:.2f}, F({d1}, {d2}) = {f:.2f}, p = {p:.2g}")
+    return lines
+
+
+# after the fact, not stated: the quantities the readings quote that the stated and secondary lists leave out
+AFTER = (("zero_noise − HG-DAgger", "new", difference("zero_noise", "hg_dagger"),
+          "σ 0 with the old servo against the recorded chunks; the noise-transfer pilot's −1.69 ± 0.31, one set"),
+         ("fixed_8 − HG-DAgger", "new", difference("fixed_8", "hg_dagger"), "σ 8 with the old servo"),
+         ("zero_noise_pd − HG-DAgger", "collected", difference("zero_noise_pd", "hg_dagger"), "σ 0 with PD"))
+
+
+def after_the_fact(lineages):
+    """Lines: each stated test's power at the stated effect and at the effect seen (its observed SD, the level of
+    the Holm step it was read at), its one-sided 95 % confidence bound; then the differences of AFTER."""
+    res = stated_tests(lineages)
+    n = len(lineages)
+    order = sorted(range(len(res)), key=lambda i: res[i][4]["p"])
+    level = {i: ALPHA / (len(res) - rank) for rank, i in enumerate(order)}
+    lines = [f"the power the stated tests had ({n} lineages, each at the level of its Holm step, the SD observed "
+             f"over the lineages; Monte Carlo, 200,000 draws) and the one-sided 95 % confidence bound:"]
+    for i, (name, words, _, _, e, _) in enumerate(res):
+        sd = float(np.std(e["values"], ddof=1))
+        bound = e["mean"] - t_quantile(0.95, n - 1) * e["se"]
+        stated, seen = (noise_transfer.power(effect, sd, n, level[i]) for effect in (EFFECT, abs(e["mean"])))
+        lines.append(f"  {name} ({words}): SD {sd:.2f}, level {level[i]:.4f}: power {stated:.2f} at the stated "
+                     f"+{EFFECT:.1f}, {seen:.2f} at the {e['mean']:+.2f} seen; one-sided 95 % bounds: > {bound:+.2f}, "
+                     f"< {2 * e['mean'] - bound:+.2f}")
+    lines.append("differences not in the stated lists (two-sided, lineage t; on the collected set also by the "
+                 "variance components on Satterthwaite's df):")
+    for name, s, combo, words in AFTER:
+        e = estimate(lineages, combo, s, "two-sided")
+        text = (f"  {name} on {s} ({words}): {e['mean']:+.2f} ± {e['se']:.2f}, t({e['df']}) = {e['t']:.2f}, "
+                f"p = {e['p']:.2g}")
+        if s == "collected":
+            text += f"; var. comp. SE {e['vc_se']:.2f}, df {e['vc_df']:.0f}, p = {e['vc_p']:.2g}"
+        lines.append(text)
     return lines
 
 
@@ -486,12 +588,13 @@ def diagnostics(lineages):
                      f"{avg('all', 'median'):.2f} | {avg('all', 'p90'):.2f} | {avg('inside', 'mean'):.2f} | "
                      f"{avg('to_end', 'mean'):.2f} |")
     return [f"the labels at σ = 0 against the recorded chunks on each lineage's D_1 (benchmarks/relabel_diagnostic.py; "
-            f"median steps of D0; means over {len(got)} lineage(s) of each lineage's statistic):"] + lines
+            f"median steps of D0; means over {len(got)} lineage(s) of each lineage's statistic; 'servo' in a file made "
+            f"before 6192871 is the old servo):"] + lines
 
 
 def figure(lineages, path):
-    """What the tests compare, per set: each relabelled row − HG-DAgger per lineage (points), servo and PD side by
-    side at sigma 0, 8 and pooled, their mean with a paired 95 % t interval (none for one lineage)."""
+    """What the tests compare, per set: each relabelled row − HG-DAgger per lineage (points), the old servo and PD
+    side by side at sigma 0, 8 and pooled, their mean with a paired 95 % t interval (none for one lineage)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -501,7 +604,7 @@ def figure(lineages, path):
     for ax, s, title in ((axes[0], "collected", "collected: the 100 scenarios of the round (the paper's protocol)"),
                          (axes[1], "new", "new: each lineage's own 300 scenarios")):
         ax.axhline(0.0, color="gray", lw=0.8)
-        for label, rows, shift, colour, marker in (("servo (the authors')", SERVO_ROWS, -0.12, "C0", "o"),
+        for label, rows, shift, colour, marker in (("servo as converted up to 6192871", SERVO_ROWS, -0.12, "C0", "o"),
                                                    ("PD (the paper's Sec. IV-E)", PD_ROWS, 0.12, "C3", "s")):
             for x, row in enumerate(rows):
                 d = combination_table(lineages, difference(row, "hg_dagger"), s).mean(axis=1)
@@ -558,15 +661,19 @@ def main(argv=None):
           f"({FIRST_LINEAGE}..{FIRST_LINEAGE + N_LINEAGES - 1})")
     if not lineages:
         return
-    print("\nsuccess in points, mean ± SE over lineages (the variance-components SE in brackets):")
+    print(f"\n{CONDITIONAL}")
+    print("\nsuccess in points, mean ± SE over lineages (collected: the variance-components SE in brackets; new, "
+          "nested: the lineage SE is the SE):")
     print("\n".join(table(lineages)))
     if len(lineages) >= 2:
         print()
         print("\n".join(tests_table(lineages)))
         if len(lineages) < N_LINEAGES:
             print(f"(an interim look at {len(lineages)} lineages: the stated tests are read at {N_LINEAGES})")
-        print("\nsecondary (two-sided, uncorrected):")
+        print("\nsecondary (two-sided, uncorrected; Holm's adjusted p beside each, over the t tests):")
         print("\n".join("  " + line for line in secondary(lineages)))
+        print("\nafter the fact, not stated tests:")
+        print("\n".join(after_the_fact(lineages)))
     if lines := diagnostics(lineages):
         print()
         print("\n".join(lines))

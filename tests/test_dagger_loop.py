@@ -614,6 +614,11 @@ def test_fixed_sigma_is_in_the_papers_median_steps():
     np.testing.assert_allclose(drawn[0], 4 * paper)
     assert dagger.noise_model("fixed_16", None, None, 0.0245, None) == ("isotropic", 16.0)
     assert "paper's unit" in report.method_label("fixed_4")
+    # the sweep in radians per joint as the authors' unit gives it (0.0176 rad: benchmarks/SETUP.md §1), from a run
+    # whose own unit is the per-joint median step (0.0282 rad on 20 planar oracle demonstrations)
+    for sigma, rad in ((2, 0.035), (4, 0.070), (8, 0.141), (12, 0.211), (16, 0.282)):
+        _, ours = dagger.noise_model(f"fixed_{sigma}", None, None, 0.0282, paper)
+        assert ours * 0.0282 == pytest.approx(rad, abs=6e-4)
 
 
 def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
@@ -622,6 +627,9 @@ def test_demo_statistics_carry_the_units_the_authors_set_knobs_in():
     stats = dagger.demo_statistics(TINY, demos)
     assert stats.paper_median_step == 0.0176 and stats.frames_per_step == pytest.approx(3.0)  # 10 Hz env
     assert relabel.velocity_noise_std(relabel.RelabelConfig(horizon=16), stats) == pytest.approx(0.3 * 0.0176 * 3)
+    # the authors' N(0, (0.3 m_p)²) per joint per 30 Hz frame (m_p = 0.0176 rad, benchmarks/SETUP.md §6) is 0.158 rad/s
+    # whatever the env's rate: 0.0158 rad a 10 Hz step, not 0.3 of our per-joint median step
+    assert relabel.velocity_noise_std(relabel.RelabelConfig(horizon=16), stats) / 0.1 == pytest.approx(0.1584)
 
 
 @pytest.mark.slow

@@ -58,6 +58,36 @@ def test_variance_components_recover_a_known_table(rc):
     assert vc["var_scenario"] == pytest.approx((ms_s - ms_e) / R) and vc["var_error"] == pytest.approx(ms_e)
     assert vc["se"] == pytest.approx(math.sqrt((ms_l + ms_s - ms_e) / (R * C)))
     assert vc["lineage_se"] == pytest.approx(np.std(a, ddof=1) / math.sqrt(R))
+    # Satterthwaite: (MS_L + MS_S − MS_E)² / (MS_L² / (R − 1) + MS_S² / (C − 1) + MS_E² / ((R − 1)(C − 1)))
+    want = (40.0 + 56.0 - 1.6) ** 2 / (40.0 ** 2 / 3 + 56.0 ** 2 / 5 + 1.6 ** 2 / 15)
+    assert (ms_l, ms_s, ms_e) == pytest.approx((40.0, 56.0, 1.6)) and want == pytest.approx(7.6775, abs=1e-4)
+    assert vc["df"] == pytest.approx(want)
+
+
+def test_the_variance_components_t_runs_on_satterthwaites_df_not_the_lineages(rc):
+    """Two lineages, three scenarios: scenario effects (1, 3, 8) and an interaction ±(1, −1, 0), no lineage effect.
+    MS_L = 0 is floored, so se² = MS_S / (R C) = 26 / 6 on C − 1 = 2 df (not R − 1 = 1), t = 4 / √(26 / 6), and on
+    2 df the two-sided p is 1 − t / √(t² + 2) = 0.195 (on 1 df it would be 0.31); one-sided, half of it."""
+    table = np.array([[2.0, 2.0, 8.0], [0.0, 4.0, 8.0]])
+    vc = rc.variance_components(table)
+    assert (vc["ms_lineage"], vc["ms_scenario"], vc["ms_error"]) == pytest.approx((0.0, 26.0, 2.0))
+    assert vc["var_lineage"] == 0.0 and vc["se"] == pytest.approx(math.sqrt(26.0 / 6))
+    assert vc["df"] == pytest.approx(2.0)
+    t = 4.0 / math.sqrt(26.0 / 6)
+    p = rc.vc_p(table.mean(), vc["se"], vc["df"], "two-sided")
+    assert p == pytest.approx(1 - t / math.sqrt(t * t + 2), abs=1e-9) and p == pytest.approx(0.1946, abs=1e-4)
+    assert rc.vc_p(table.mean(), vc["se"], vc["df"], ">") == pytest.approx(p / 2, abs=1e-9)
+    assert rc.vc_p(-table.mean(), vc["se"], vc["df"], "<") == pytest.approx(p / 2, abs=1e-9)
+    assert rc.vc_p(0.0, 0.0, vc["df"], "two-sided") == 1.0
+    # both components floored: se² = MS_E / (R C) on (R − 1)(C − 1) df
+    assert rc.satterthwaite_df(0.0, 1.0, 2.0, 2, 3, lineage=False, scenario=False) == pytest.approx(2.0)
+    assert rc.satterthwaite_df(5.0, 1.0, 2.0, 4, 3, lineage=True, scenario=False) == pytest.approx(3.0)
+
+
+def test_holm_adjusted_p_by_hand(rc):
+    """m = 4: sorted p × (4, 3, 2, 1), a running maximum, at most 1, back in the order given."""
+    assert rc.holm_adjusted([0.04, 0.01, 0.30, 0.02]) == pytest.approx([0.08, 0.04, 0.30, 0.06])
+    assert rc.holm_adjusted([0.5, 0.4]) == pytest.approx([0.8, 0.8])
 
 
 def test_variance_components_floor_a_negative_component_at_zero(rc):
@@ -67,6 +97,7 @@ def test_variance_components_floor_a_negative_component_at_zero(rc):
     vc = rc.variance_components(table)
     assert vc["ms_lineage"] == 0.0 and vc["var_lineage"] == 0.0
     assert vc["se"] == pytest.approx(math.sqrt(vc["var_scenario"] / 4 + vc["var_error"] / 8))
+    assert vc["df"] == pytest.approx(3.0)  # both floored here: MS_E's (R − 1)(C − 1) df
     with pytest.raises(ValueError, match="at least 2"):
         rc.variance_components(np.ones((1, 5)))
 
@@ -197,9 +228,10 @@ def test_export_policies_copies_the_seven_rows_for_sampling_only(rc, tmp_path):
 
 
 def test_diagnose_lineage_records_the_d1s_labels_with_the_runs_d0(rc, tmp_path):
-    """relabel_diagnostic.json: the four labels (servo, PD x velocity noise on, off) of the lineage's D_1, labelled
-    with the statistics of the run's D0 (not of the D_1 itself) at the run's H; every statistic is the diagnostic's
-    own for the same episodes; a second call keeps the file."""
+    """relabel_diagnostic.json: the four labels (the diagnostic's LABELS, PD then the servo, x velocity noise on, off)
+    of the lineage's D_1, labelled with the statistics of the run's D0 (not of the D_1 itself) at the run's H; every
+    statistic is the diagnostic's own for the same episodes; a second call keeps the file. (The committed lineage
+    files, made before 6192871, hold the old servo first, then PD, each under its name.)"""
     import relabel_diagnostic as rd
     from helpers import straight_line_episode
     from experiment import run_folder
@@ -219,13 +251,12 @@ def test_diagnose_lineage_records_the_d1s_labels_with_the_runs_d0(rc, tmp_path):
     assert got["median_step"] != pytest.approx(rd.run_statistics("planar", d1).median_step)
     assert got["n_episodes"] == 2 and got["horizon"] == 8
     assert [(g["label"], g["velocity_noise"] > 0) for g in got["labels"]] == [
-        ("servo", True), ("servo", False), ("pd", True), ("pd", False)]
-    import relabel
+        (label, noise) for label in rd.LABELS for noise in (True, False)]
+    pd_off = next(g for g in got["labels"] if g["label"] == "pd" and not g["velocity_noise"])
     again = rd.relabel_every_step(run_folder.load_episodes(str(root / "lineage_13" / "round_1" / "D.npz")),
-                                  lambda: envs.make_env("planar"), stats,
-                                  relabel.RelabelConfig(horizon=8, label="pd", velocity_noise=0.0))
-    assert got["labels"][3]["all"] == pytest.approx(rd.summary(again), nan_ok=True)
-    assert got["labels"][3]["to_end"] == pytest.approx(rd.summary(again, again.reaches_end), nan_ok=True)
+                                  lambda: envs.make_env("planar"), stats, "pd", 8, velocity_noise=0.0)
+    assert pd_off["all"] == pytest.approx(rd.summary(again), nan_ok=True)
+    assert pd_off["to_end"] == pytest.approx(rd.summary(again, again.reaches_end), nan_ok=True)
     stamp = os.path.getmtime(root / "lineage_13" / rc.DIAGNOSTIC)
     rc.diagnose_lineage(str(root), 13, cfg, log=lambda m: None)
     assert os.path.getmtime(root / "lineage_13" / rc.DIAGNOSTIC) == stamp
@@ -294,12 +325,14 @@ def test_the_stated_quantities_are_the_ones_named(rc, three):
 
 def test_each_quantity_carries_both_ses(rc, three):
     """An estimate's 'se' is the lineage values' SD / √R and 'vc_se' the variance components' SE of the same lineage
-    x scenario table (not of the row's own table, not over the other set)."""
+    x scenario table (not of the row's own table, not over the other set), its p on that table's Satterthwaite df."""
     e = rc.estimate(three, rc.difference("pooled_pd", "hg_dagger"), "new", ">")
     table = rc.combination_table(three, rc.difference("pooled_pd", "hg_dagger"), "new")
     assert table.shape == (3, 300)
     assert e["se"] == pytest.approx(np.std(table.mean(axis=1), ddof=1) / math.sqrt(3))
-    assert e["vc_se"] == pytest.approx(rc.variance_components(table)["se"])
+    vc = rc.variance_components(table)
+    assert e["vc_se"] == pytest.approx(vc["se"]) and e["vc_df"] == pytest.approx(vc["df"])
+    assert e["vc_p"] == pytest.approx(rc.vc_p(e["mean"], vc["se"], vc["df"], ">"))
 
 
 def test_a_new_set_evaluated_on_other_seeds_is_refused(rc, three):
@@ -373,7 +406,8 @@ def test_at_the_stated_count_each_test_gets_holms_verdict(rc, three, monkeypatch
     verdicts out of order would print other words."""
     monkeypatch.setattr(rc, "N_LINEAGES", 3)
     monkeypatch.setattr(rc, "ALPHA", 0.10)
-    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip() for line in rc.tests_table(three)[2:]}
+    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip() for line in rc.tests_table(three)[2:]
+            if line.startswith("|")}
     assert rows == {"T1": "rejected", "T2": "not rejected", "T3": "not rejected"}
     ps = {name: e["p"] for name, _, _, _, e, _ in rc.stated_tests(three)}
     assert ps["T1"] == pytest.approx(0.0176, abs=1e-4) and ps["T2"] == pytest.approx(0.0918, abs=1e-4)
@@ -381,20 +415,48 @@ def test_at_the_stated_count_each_test_gets_holms_verdict(rc, three, monkeypatch
 
 def test_the_committed_study_prints_the_numbers_its_readmes_quote(rc, capsys):
     """The script over the committed lineage files prints what README.md, benchmarks/README.md and the study's
-    README quote: the thirteen lineages, T1-T3 with Holm's verdicts, the secondary results they cite, a table row
-    and the D_1 labels. A lineage file changed, dropped or added, or a quantity computed otherwise, breaks a line."""
+    README quote: the thirteen lineages, T1-T3 with Holm's verdicts (no second SE on the nested new set), the
+    secondary results they cite with Holm's adjusted p and, on the collected set, the variance-components t on
+    Satterthwaite's df (T2's −2.95: p 0.0096 over lineages, 0.15 with the scenarios' draw on 77 df), the
+    after-the-fact power, bounds and differences, the note that every SE is conditional on one π0, a table row and
+    the D_1 labels. A lineage file changed, dropped or added, or a quantity computed otherwise, breaks a line."""
     rc.main([])
     out = capsys.readouterr().out
     for line in ("13 complete lineage(s) [13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25] of the stated 13",
-                 "| hg_dagger | 73.9 ± 0.9 (3.0) | 55.3 ± 0.6 (0.8) |",
-                 "| zero_noise_pd | 74.7 ± 0.7 (2.8) | 55.3 ± 0.6 (0.8) |",
-                 "| +0.91 | 0.25 | 0.29 | 3.58 | 12 | 0.0019 | rejected |",
-                 "| +1.37 | 0.45 | 0.45 | 3.03 | 12 | 0.0052 | rejected |",
-                 "| +0.42 | 0.25 | 0.27 | 1.71 | 12 | 0.057 | not rejected |",
-                 "T1 on collected (zero_noise_pd − zero_noise (the label's cost)): +3.18 ± 0.83 (var. comp. 1.02) points, t(12) = 3.85, p = 0.0023",
-                 "pooled_pd − pooled on collected (the label at the calibrated σ): +1.74 ± 0.43 (var. comp. 0.79) points, t(12) = 4.02, p = 0.0017",
+                 "is conditional on one π0",
+                 "| hg_dagger | 73.9 ± 0.9 (3.0) | 55.3 ± 0.6 |",
+                 "| zero_noise_pd | 74.7 ± 0.7 (2.8) | 55.3 ± 0.6 |",
+                 "| +0.91 | 0.25 | 3.58 | 12 | 0.0019 | rejected |",
+                 "| +1.37 | 0.45 | 3.03 | 12 | 0.0052 | rejected |",
+                 "| +0.42 | 0.25 | 1.71 | 12 | 0.057 | not rejected |",
+                 "lies within 0.04 of it for T1-T3",
+                 "T1 on collected (zero_noise_pd − zero_noise (PD − the old servo, σ 0)): +3.18 ± 0.83 points, t(12) = "
+                 "3.85, p = 0.0023 (Holm over the 15: 0.033); var. comp. SE 1.02, t(24) = 3.13, p = 0.0046",
+                 "T2 on collected (fixed_8_pd − HG-DAgger): -2.95 ± 0.96 points, t(12) = -3.08, p = 0.0096 (Holm over "
+                 "the 15: 0.11); var. comp. SE 2.02, t(77) = -1.46, p = 0.15",
+                 "pooled − HG-DAgger on collected (the calibrated σ, the old servo): -1.77 ± 0.55 points, t(12) = "
+                 "-3.20, p = 0.0076 (Holm over the 15: 0.099); var. comp. SE 1.03, t(99) = -1.71, p = 0.09",
+                 "pooled_pd − pooled on collected (the label at the calibrated σ): +1.74 ± 0.43 points, t(12) = 4.02, "
+                 "p = 0.0017 (Holm over the 15: 0.026); var. comp. SE 0.79, t(99) = 2.20, p = 0.03",
+                 "I_8 on collected ((fixed_8_pd − fixed_8) − (zero_noise_pd − zero_noise)): -2.72 ± 0.94 points, "
+                 "t(12) = -2.89, p = 0.014 (Holm over the 15: 0.15); var. comp. SE 1.15, t(22) = -2.36, p = 0.028",
+                 "pooled_pd − pooled on new (the label at the calibrated σ): +0.55 ± 0.31 points, t(12) = 1.76, p = 0.1",
+                 "fixed_8_pd − fixed_8 on new (the label at σ 8): +0.60 ± 0.35 points, t(12) = 1.71, p = 0.11",
                  "I_8 and I_pooled at once on collected: Hotelling's T² = 9.59, F(2, 11) = 4.40, p = 0.039",
+                 "I_8 and I_pooled at once on new: Hotelling's T² = 0.78, F(2, 11) = 0.36, p = 0.71",
+                 "SD 0.88, level 0.0500: power 1.00 at the stated +1.5, 0.49 at the +0.42 seen; one-sided 95 % bounds: "
+                 "> -0.02, < +0.86",
+                 "SD 1.63, level 0.0250: power 0.86 at the stated +1.5, 0.79 at the +1.37 seen",
+                 "SD 0.91, level 0.0167: power 1.00 at the stated +1.5, 0.86 at the +0.91 seen",
+                 "-0.91 ± 0.27, t(12) = -3.36, p = 0.0057",
+                 "fixed_8 − HG-DAgger on new (σ 8 with the old servo): +0.77 ± 0.35, t(12) = 2.22, p = 0.047",
+                 "zero_noise_pd − HG-DAgger on collected (σ 0 with PD): +0.85 ± 0.60, t(12) = 1.42, p = 0.18; var. "
+                 "comp. SE 0.69, df 19, p = 0.24",
                  "| servo | off | 5.3% | 1.73 | 0.04 | 5.97 | 1.88 | 1.24 |",
                  "| pd | off | 0.0% | 0.20 | 0.00 | 0.82 | 0.00 | 0.73 |"):
         assert line in out, line
     assert "none before" not in out
+    # the new set's cells and T1-T3 carry one SE: no floored second SE in brackets there
+    hg = next(line for line in out.splitlines() if line.startswith("| hg_dagger |"))
+    assert "(" not in hg.split("|")[3]
+    assert "var. comp." not in "".join(line for line in out.splitlines() if " on new (" in line)

@@ -240,17 +240,17 @@ def test_servo_returns_near_the_expert_path(stats):
     assert mask.all()  # far from the segment's end nothing is held
 
 
-def test_servo_gains_are_the_discrete_critically_damped_pair(stats):
+@pytest.mark.parametrize("acc", [0.002, 0.02])  # a_clamp from the accel floor (0.018 rad/step²), from 2 √3 acc_p95
+def test_servo_gains_are_the_discrete_critically_damped_pair(stats, acc):
     """The gains are the discrete critically damped pair of the servo's ω: Kp = (1 - p)², Kd = 1 - p², p = e^{-ω},
-    ω² = a_clamp / max(d0, gain_floor). On a path that stands still the error from rest is
+    ω² = a_clamp / max(d0, gain_floor), a_clamp = 0.9 max(2 √dof acc_p95, accel_floor). On a path that stands still the error from rest is
     e_k = (1 + k (1 - p)) p^k e0, the discrete (1 + ωt) e^{-ωt}: it never crosses the path. Fails on another
     damping (the authors' Kd = 2 √Kp by Euler at 10 Hz overshoots), or another Kp (the floor dropped)."""
     T, t0 = 40, 10
     point = np.array([0.3, -0.2, 0.1])
     traj = np.broadcast_to(point, (T, DOF)).copy()  # the reference and its velocity constant wherever the cursor is
     knobs = replace(servo.servo_knobs(0.03, FRAMES), jerk_slew=1e6, speed_cap=1e6, speed_cap_v0=1e6, launch_cap=1e6)
-    acc = 0.002
-    a_clamp = a_clamp_of(knobs, acc)
+    a_clamp = 0.9 * max(2 * np.sqrt(3) * acc, 0.6 * 0.03)  # the authors' a_clamp, their 0.2 m_f floor at 10 Hz
     direction = np.array([2.0, -1.0, 2.0]) / 3.0  # unit vector: the error stays on this line
     d0 = np.array([0.3, 3.0, 9.0]) * knobs.gain_floor  # below the floor (ω from the floor), and above it
     q0 = point + d0[:, None] * direction  # (3, DOF) at rest
