@@ -11,7 +11,7 @@ whether the noise then pays over HG-DAgger. The design (benchmarks/results/relab
   lineages     13, 14, ..., 13 + N_LINEAGES - 1 of the table1_strong profile from its committed start, K = 1
   rows         HG-DAgger and {servo, PD} x {sigma = 0, fixed sigma 8, pooled}: zero_noise, fixed_8, pooled (the old
                servo (up to 6192871), every profile's label then) and zero_noise_pd, fixed_8_pd, pooled_pd (the same
-               noise, the PD label). The lineage files keep these names; since 6192871 the rows zero_noise, fixed_8,
+               noise, the PD label). The lineage files keep these names; from 2f55526 the rows zero_noise, fixed_8,
                pooled are made with PD and the _pd rows are gone: the training commands below are e417b0a's
   scenarios    collected: the 100 evaluation scenarios 10000..10099 (the run's eval/<row>.json); new: lineage L's own
                300 scenarios new_seeds(L) = 100000 + 1000 L .. + 299, drawn by no stage and by no other lineage

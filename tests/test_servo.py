@@ -293,6 +293,9 @@ def test_servo_masks_the_held_tail_and_the_sampler_redraws_short_labels(stats):
     sampler = servo.ServoSampler([intervention_episode()], FakeEnv, stats, "isotropic", 1.0, cfg)
     obs, chunks, mask = sampler(256, np.random.default_rng(0))
     assert np.all(mask.sum(1) >= 8) and (~mask).any()  # short labels redrawn, held tails still masked
+    moves = np.abs(np.diff(np.concatenate([obs[:, None, :DOF], chunks], axis=1), axis=1)).max(-1)  # (n, H)
+    hold = cfg.hold_tol * sampler.segment_step[0]  # one segment: the sampler's hold tolerance, rad a step
+    assert np.all(moves[~mask] < hold * (1 + 1e-3)) and np.any(moves[mask] >= hold)  # held = slower than it
     assert sampler.cfg.label == "servo" and relabel.RelabelConfig(H).label == "pd"
     with pytest.raises(ValueError, match="ServoConfig"):
         servo.ServoSampler([intervention_episode()], FakeEnv, stats, "isotropic", 1.0, relabel.RelabelConfig(H))
