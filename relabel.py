@@ -14,8 +14,8 @@ augmented data D̂_k of Sec. IV-A steps 3-4. Top to bottom:
 
 Units per control step: joints rad, velocities rad/step, accelerations rad/step²; noise levels in median steps m.
 The env is used only through envs.py's interface; which steps teach is the label rule diffusion.label_mask
-(matplotlib only inside `plot_recovery`). The authors' own label, a clamped servo in their units, is a variant
-beside this file (experiment/servo.py), not part of it.
+(matplotlib only inside `plot_recovery`). The authors' own return label, in their units, is a research variant in
+experiment/, not part of this file.
 """
 from __future__ import annotations
 
