@@ -131,3 +131,36 @@ def test_a_steps_seed_is_the_master_seed_and_its_name_through_numpy_seed_sequenc
     seeds = {dagger.stage_seed(CFG, "train", 0, 1, m) for m in ("pooled", "fixed_4", "hg_dagger")}
     assert len(seeds) == 3 and dagger.stage_seed(CFG, 1, 0) != dagger.stage_seed(CFG, 0, 1)
     assert dagger.stage_seed(replace(CFG, seed=1), "bc") != dagger.stage_seed(CFG, "bc")
+
+
+@pytest.mark.slow
+def test_table_is_bc_cell_is_the_bc_rows_own_policy_not_pi0(tmp_path, monkeypatch):
+    """Table I's BC row is pi_0 continued on D0 alone for the arms' budget (bc_row_arm), evaluated on its own: its
+    cell is that policy's success, not pi_0's. The BC row here is stood in for by a policy that solves everything;
+    pi_0 of this tiny run solves nothing. Fails if the loop or Made.table() takes pi_0's success for the BC cell."""
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    cfg = replace(CFG, n_demos=2, bc_steps=10, finetune_steps=4, methods=("bc", "hg_dagger"))
+    solved = np.ones((cfg.eval_scenarios, cfg.eval_repeats), bool)
+    monkeypatch.setattr(dagger, "bc_row_arm", lambda cfg, demos, pi0, *rest: (pi0, solved))
+    made = dagger.policy_calibrated_dagger(cfg, log=lambda m: None)
+    assert not made.pi0_success.all()  # the case tells the two rules apart
+    assert made.table()["bc"] == {0: [100.0]}
+
+
+def test_the_rounds_intervention_rows_share_a_batch_equally_not_by_their_sizes():
+    """A fine-tuning batch's intervention rows come from rounds 1..k in equal shares (the authors'; dagger's
+    intervention_sampler and the harness's controls.Rows alike), however many frames each round kept: a round of
+    two episodes and one of six each give half. Fails if the shares follow the rounds' sizes."""
+    from experiment import controls
+    env = envs.make_env("planar")
+    small = [straight_line_episode(env, s, expert_from=5) for s in env.eval_seeds()[:2]]
+    big = [straight_line_episode(env, s, expert_from=5) for s in env.eval_seeds()[2:8]]
+    demos, _ = hand_made_data()
+    stats = dagger.demo_statistics(CFG, demos)
+    assert sum(ep["expert"].sum() for ep in big) > 2 * sum(ep["expert"].sum() for ep in small)
+    for method in ("hg_dagger", "fixed_4"):
+        for mixture in (dagger.intervention_sampler(CFG, method, [small, big], None, stats),
+                        controls.Rows()(CFG, method, [small, big], None, stats, envs.make_env)):
+            np.testing.assert_allclose(mixture.p, [0.5, 0.5])
+            assert len(mixture.samplers) == 2
