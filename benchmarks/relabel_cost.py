@@ -313,21 +313,31 @@ def evaluate_lineage(root, lineage, log=print):
     if missing:
         raise SystemExit(f"{root}: {', '.join(missing)} missing; finish lineage {lineage} first (python dagger.py ... "
                          f"--lineage {lineage} --out {root})")
+    write_new_evaluations(root, lineage, cfg, policies, log)
+    diagnose_lineage(root, lineage, cfg, log)
+
+
+def write_new_evaluations(root, lineage, cfg, policies, log=print):
+    """root/lineage_<l>/NEW/<name>.json for each policy {name: path under root}: its success on the lineage's own
+    new scenarios (new_seeds), cfg.eval_repeats each, one sampling seed for every policy of the lineage
+    (stage_seed(cfg, "eval_new", L): the rows pair), with the policy's path and SHA-256. A file already there is
+    kept: the step resumes. Shared by the studies that evaluate on new scenarios (benchmarks/table1_pd.py too)."""
     seeds, sample_seed = new_seeds(lineage), dagger.stage_seed(cfg, "eval_new", lineage)
-    for row, rel in policies.items():
-        out = os.path.join(root, f"lineage_{lineage}", NEW, f"{row}.json")
+    t0 = time.time()
+    for i, (name, rel) in enumerate(policies.items()):
+        out = os.path.join(root, f"lineage_{lineage}", NEW, f"{name}.json")
         if os.path.exists(out):
             continue
-        t0 = time.time()
+        t1 = time.time()
         os.makedirs(os.path.dirname(out), exist_ok=True)
         ok = evaluate_file(os.path.join(root, rel), seeds, cfg.eval_repeats, sample_seed, cfg.env)
         with open(os.path.join(root, rel), "rb") as fh:
             sha = hashlib.sha256(fh.read()).hexdigest()
         run_folder.write_json(out, {"success": ok.tolist(), "seeds": list(seeds), "policy": rel,
                                     "policy_sha256": sha, "sample_seed": sample_seed})
-        log(f"lineage {lineage} {row}: {100 * ok.mean():.1f} % on its {len(seeds)} new scenarios {seeds[0]}.."
-            f"{seeds[-1]} ({time.time() - t0:.0f} s)")
-    diagnose_lineage(root, lineage, cfg, log)
+        left = (time.time() - t0) / (i + 1) * (len(policies) - i - 1)
+        log(f"lineage {lineage} {name}: {100 * ok.mean():.1f} % on its {len(seeds)} new scenarios {seeds[0]}.."
+            f"{seeds[-1]} ({time.time() - t1:.0f} s; {i + 1}/{len(policies)}, ~{left / 60:.0f} min left)")
 
 
 def diagnose_lineage(root, lineage, cfg, log=print):

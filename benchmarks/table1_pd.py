@@ -42,13 +42,11 @@ from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
 import itertools
 import math
 import os
 import shutil
 import sys
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -58,7 +56,7 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 import noise_transfer  # noqa: E402  (its power function, one-sided t and Holm)
 import relabel_cost  # noqa: E402  (each lineage's new scenarios, its pilot's SDs, a lineage file's stage times)
-from evaluate_policy import evaluate_file, t_quantile  # noqa: E402
+from evaluate_policy import t_quantile  # noqa: E402
 from paired_bc import load_lineages, t_test  # noqa: E402
 
 import dagger  # noqa: E402
@@ -498,22 +496,7 @@ def evaluate_lineage(root, lineage, log=print):
         raise SystemExit(f"{root}: {len(absent)} policies missing (e.g. {absent[0]}); finish lineage {lineage} first "
                          f"(python dagger.py --profile table1 --methods {METHODS} --lineages {LINEAGES_ARG} "
                          f"--lineage {lineage} --out {root})")
-    seeds, sample_seed = relabel_cost.new_seeds(lineage), dagger.stage_seed(cfg, "eval_new", lineage)
-    t0 = time.time()
-    for i, (name, rel) in enumerate(policies.items()):
-        out = os.path.join(root, f"lineage_{lineage}", NEW, f"{name}.json")
-        if os.path.exists(out):
-            continue
-        t1 = time.time()
-        os.makedirs(os.path.dirname(out), exist_ok=True)
-        ok = evaluate_file(os.path.join(root, rel), seeds, cfg.eval_repeats, sample_seed, cfg.env)
-        with open(os.path.join(root, rel), "rb") as fh:
-            sha = hashlib.sha256(fh.read()).hexdigest()
-        run_folder.write_json(out, {"success": ok.tolist(), "seeds": list(seeds), "policy": rel,
-                                    "policy_sha256": sha, "sample_seed": sample_seed})
-        left = (time.time() - t0) / (i + 1) * (len(policies) - i - 1)
-        log(f"lineage {lineage} {name}: {100 * ok.mean():.1f} % on its {len(seeds)} new scenarios {seeds[0]}.."
-            f"{seeds[-1]} ({time.time() - t1:.0f} s; {i + 1}/{len(policies)}, ~{left / 60:.0f} min left)")
+    relabel_cost.write_new_evaluations(root, lineage, cfg, policies, log)
 
 
 def export_policies(root, lineage, folder, picks=POLICY_PICKS):

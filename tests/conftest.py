@@ -12,7 +12,7 @@ import torch
 torch.set_num_threads(1)
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def load_benchmark():
     """load_benchmark(name) -> the module benchmarks/<name>.py (a script folder, not a package)."""
     def load(name):

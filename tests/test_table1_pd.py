@@ -21,12 +21,8 @@ START = os.path.join(ROOT, "benchmarks", "results", "table1", "start")
 
 
 @pytest.fixture(scope="module")
-def t1():
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("table1_pd", os.path.join(ROOT, "benchmarks", "table1_pd.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def t1(load_benchmark):
+    return load_benchmark("table1_pd")
 
 
 # ---- hand-made lineage files --------------------------------------------------------------------------------------
@@ -310,7 +306,7 @@ def test_evaluate_lineage_writes_every_policy_on_its_lineages_own_seeds_and_resu
     def fake(path, seeds, repeats, sample_seed, env):
         calls.append((path, tuple(seeds), sample_seed))
         return np.ones((len(seeds), repeats), bool)
-    monkeypatch.setattr(t1, "evaluate_file", fake)
+    monkeypatch.setattr(t1.relabel_cost, "evaluate_file", fake)  # the studies' shared write_new_evaluations
     t1.evaluate_lineage(str(root), 5, log=lambda m: None)
     new = root / "lineage_5" / t1.NEW
     written = sorted(os.path.relpath(os.path.join(d, f), new) for d, _, fs in os.walk(new) for f in fs)
