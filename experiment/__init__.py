@@ -26,7 +26,10 @@ and Table II's env and the research variants, each bringing its own functions th
     oriented_goal.py  the authors' 10-degree goal posture
     lever.py          the authors' lever recipe (--recipe authors_lever, authors_lever_seeds): a learning-rate
                       function, pi_0 as the BC row, every intervention kept, padded chunks, rounds by frames
-    controls.py       rows beside Table I's: zero_noise (sigma = 0), authors_hg_dagger, cotrain_fixed_8, cotrain_pooled;
-                      their sampler (Rows) is the loop's where a config names one
+    controls.py       rows beside Table I's: zero_noise (sigma = 0), authors_hg_dagger, cotrain_fixed_8, cotrain_pooled,
+                      zero_noise_servo, fixed_8_servo, pooled_servo; their sampler (Rows) is the loop's where a config
+                      names one
+    servo.py          the authors' return label, their clamped servo, its knobs converted from their units (the
+                      _servo rows; the paper's PD of relabel.py is every other noised row's)
 A student may skip this folder.
 """
