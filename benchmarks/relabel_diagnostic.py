@@ -49,7 +49,8 @@ import relabel  # noqa: E402
 from experiment import environments, profiles, servo  # noqa: E402
 
 # each label's sampler and its config: the core's (the paper's PD) and the variant's (the authors' servo)
-SAMPLERS = {"pd": (relabel.AugmentationSampler, relabel.RelabelConfig), "servo": (servo.ServoSampler, servo.ServoConfig)}
+SAMPLERS = {"pd": (relabel.AugmentationSampler, relabel.RelabelConfig),
+            "servo": (servo.ServoSampler, servo.ServoConfig)}
 LABELS = tuple(SAMPLERS)
 LABEL_NAMES = {"pd": "PD (Sec. IV-E, the default)", "servo": "the authors' servo (experiment/servo.py)"}
 START = os.path.join(HERE, "results", "table1_strong", "start")  # the committed D0, pi_0 and its evaluation

@@ -117,9 +117,10 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, states: np.ndarray, refer
     """The authors' servo from (q0, v0) (B, dof): a critically damped servo tracking `reference` (`action_reference`:
     the recorded action, as the authors track it) at its own cursor c_k, the monotone projection of x_k onto `states`
     at most `cursor_advance` past c_{k-1} (from t_proj):
-        a_k = Kp (A_c - x_k) + Kd (A_{c+1} - A_c - v_k),   Kp = a_clamp / max(d0, gain_floor),  d0 = ‖q0 - S_{t_proj}‖,
+        a_k = Kp (A_c - x_k) + Kd (A_{c+1} - A_c - v_k),  Kp = a_clamp / max(d0, gain_floor),  d0 = ‖q0 - S_{t_proj}‖,
     A the reference, S the states; at the segment's end A_{end-1} with zero velocity; ‖a‖ <= a_clamp,
-    ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap, speed_cap_v0 ‖v0‖) after ‖v0‖ <= launch_cap. Ours beside theirs (benchmarks/SETUP.md §6):
+    ‖a_k - a_{k-1}‖ <= jerk_slew · a_clamp, ‖v‖ <= max(speed_cap, speed_cap_v0 ‖v0‖) after ‖v0‖ <= launch_cap.
+    Ours beside theirs (benchmarks/SETUP.md §6):
     Kd from the discrete double pole at the env step, |v| <= max_step per joint, x within `limits`, and the held
     tail (cursor at the end, every joint slower than hold_tol per step to the chunk's end) out of the loss.
     states, reference (T, dof): the episodes laid end to end; t_proj, t_end (exclusive): int or (B,); acc_p95 and the
@@ -177,7 +178,7 @@ def servo_return_chunk(q0: np.ndarray, v0: np.ndarray, states: np.ndarray, refer
 class ServoConfig(relabel.RelabelConfig):
     """relabel.RelabelConfig with the authors' servo as the return label, and the servo's two knobs of ours."""
     label: ClassVar[str] = "servo"
-    hold_tol: float = 0.02  # segment median steps per step: slower steps at the segment's end are held (not in the loss)
+    hold_tol: float = 0.02  # segment median steps a step: slower steps at the segment's end are held (out of the loss)
     min_moving_steps: int = 3  # steps: a label with fewer in the loss is redrawn (the authors' 8 frames)
 
 

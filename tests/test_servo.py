@@ -243,7 +243,8 @@ def test_servo_returns_near_the_expert_path(stats):
 @pytest.mark.parametrize("acc", [0.002, 0.02])  # a_clamp from the accel floor (0.018 rad/step²), from 2 √3 acc_p95
 def test_servo_gains_are_the_discrete_critically_damped_pair(stats, acc):
     """The gains are the discrete critically damped pair of the servo's ω: Kp = (1 - p)², Kd = 1 - p², p = e^{-ω},
-    ω² = a_clamp / max(d0, gain_floor), a_clamp = 0.9 max(2 √dof acc_p95, accel_floor). On a path that stands still the error from rest is
+    ω² = a_clamp / max(d0, gain_floor), a_clamp = 0.9 max(2 √dof acc_p95, accel_floor). On a path that stands
+    still the error from rest is
     e_k = (1 + k (1 - p)) p^k e0, the discrete (1 + ωt) e^{-ωt}: it never crosses the path. Fails on another
     damping (the authors' Kd = 2 √Kp by Euler at 10 Hz overshoots), or another Kp (the floor dropped)."""
     T, t0 = 40, 10
