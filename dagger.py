@@ -485,20 +485,11 @@ def fine_tune(cfg, lineage, k, method, demos, pi0, rounds_data, calibration, sta
     interventions of rounds 1..k (sampler: default intervention_sampler); D0 is never noised."""
     obs, chunks = diffusion.chunk_dataset(demos, cfg.horizon)
     rows = (sampler or intervention_sampler)(cfg, method, rounds_data, calibration, stats, make_env)
-    labels = sorted(return_labels(rows))
     log(f"lineage {lineage} round {k}: fine-tune {method} from pi_0, {cfg.finetune_steps} steps, "
         f"{len(obs)} D0 chunks + {cfg.intervention_fraction:.0%} of every batch from the interventions of "
-        f"{len(rounds_data)} round(s)" + (f", noised and relabelled by the {'/'.join(labels)} return label"
-                                          if labels else "") + " (continuing pi_0's optimizer)")
+        f"{len(rounds_data)} round(s) (continuing pi_0's optimizer)")
     return finetune_from_pi0(cfg, pi0, obs, chunks, stage_seed(cfg, "train", lineage, k, method), rows,
                              cfg.intervention_fraction, fit, log, lr_schedule)
-
-
-def return_labels(sampler):
-    """The return labels (relabel.RelabelConfig.label) of the noised samplers in `sampler`, a mixture's included."""
-    if isinstance(sampler, relabel.AugmentationSampler):
-        return {sampler.cfg.label}
-    return set().union(*(return_labels(part) for part in getattr(sampler, "samplers", [])))
 
 
 def finetune_from_pi0(cfg, pi0, obs, chunks, seed, sampler=None, aug_fraction=0.0, fit=None, log=print,

@@ -20,8 +20,8 @@ import calibrate
 import dagger
 from experiment import controls, environments, figures, lever, profiles
 from experiment.environments import paper_env, paper_median_step
-from experiment.run_folder import (LABEL_WORDS, Run, copy_from, export_lineages, folder_labels, join_lineage, read_json,
-                                   write_json)
+from experiment.run_folder import (LABEL_WORDS, RETURN_LABEL, Run, copy_from, export_lineages, folder_labels,
+                                   join_lineage, read_json, write_json)
 from experiment.workers import worker_map
 
 # Table I's row names (the paper's words); fixed_<s> is the isotropic sigma = s in the paper's median steps
@@ -78,7 +78,8 @@ def run_experiment(cfg, root, lineage=None, prepare=False, report_only=False, wo
         lineages = [] if prepare else [lineage] if lineage is not None else list(range(cfg.lineages))
         run.hold_lineages(lineages)  # a second run of one of them into this folder stops here, naming this PID
         try:
-            run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es)")
+            run.log(f"Policy-Calibrated DAgger, env {cfg.env}, folder {run.root}, {workers} worker process(es); the "
+                    f"noised rows' return label: {LABEL_WORDS[RETURN_LABEL]}")
             lever.check_lineages(run, lineages)  # a recipe that trains on lineage 0's data needs it there first
             memo = lever.data_of_lineage_0(cfg, run.memo)  # the seeds recipe's lineages read lineage 0's data
             dagger.policy_calibrated_dagger(cfg, lineages, memo=memo, map=worker_map(workers, run.log), log=run.log,
